@@ -1,0 +1,173 @@
+"""The artifacts folder: keyed, atomic, self-checking files.
+
+Everything the course writes (figures, metrics JSON, datasets, checkpoints, replays) lives under
+one folder, ``outputs/`` at the repository root by default, or ``$E2E_LITE_OUTPUTS``.
+
+Reused artifacts are keyed by a hash of the settings that made them (:func:`settings_key`), so
+changing a setting makes a new file instead of silently reusing an old one. Writes go to a
+temporary file in the same folder and are renamed into place (:func:`atomic_write`), so an
+interrupted run never leaves a half-written file that a later run trusts. :func:`cached` loads a
+valid artifact, or rebuilds it with a one-line message when it is missing, corrupt or mismatched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+OUTPUTS_ENV = "E2E_LITE_OUTPUTS"
+_REPO_ROOT = Path(__file__).resolve().parents[1]
+
+T = TypeVar("T")
+
+
+def outputs_dir() -> Path:
+    """The artifacts folder (created if missing).
+
+    ``$E2E_LITE_OUTPUTS`` if set; else ``outputs/`` beside ``pyproject.toml`` when the package runs
+    from a source checkout (so ``python chapters/01_highway.py`` from any folder writes to the same
+    place); else ``./outputs``.
+    """
+    env = os.environ.get(OUTPUTS_ENV)
+    if env:
+        root = Path(env)
+    elif (_REPO_ROOT / "pyproject.toml").exists():
+        root = _REPO_ROOT / "outputs"
+    else:
+        root = Path.cwd() / "outputs"
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def artifact_path(*parts: str) -> Path:
+    """``outputs_dir() / parts...``, with the parent folder created."""
+    path = outputs_dir().joinpath(*parts)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _jsonable(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {"__type__": type(obj).__name__, **_jsonable(dataclasses.asdict(obj))}
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in sorted(obj.items())}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.integer, np.floating)):
+        return obj.item()
+    return obj
+
+
+def settings_key(*settings: Any, length: int = 12) -> str:
+    """A short hex hash of settings (dataclasses, dicts, numbers, strings).
+
+    Equal settings give equal keys in every process; any changed field changes the key.
+    """
+    blob = json.dumps(_jsonable(list(settings)), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:length]
+
+
+@contextlib.contextmanager
+def atomic_write(path: Path | str, mode: str = "wb") -> Iterator[Any]:
+    """Open a temporary file beside ``path``; rename it onto ``path`` only if the block succeeds.
+
+    Usage: ``with atomic_write(p) as f: f.write(data)``. On an exception the temporary file is
+    removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def save_json(path: Path | str, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON, atomically. Returns the path."""
+    with atomic_write(path, "w") as f:
+        json.dump(_jsonable(obj), f, indent=2, allow_nan=True)
+    return Path(path)
+
+
+def load_json(path: Path | str) -> Any:
+    """Read a JSON file."""
+    with open(path) as f:
+        return json.load(f)
+
+
+def metrics_path(chapter: str) -> Path:
+    """``<outputs>/metrics/<chapter>.json``, e.g. ``metrics_path("01_highway")``."""
+    return artifact_path("metrics", f"{Path(chapter).stem}.json")
+
+
+def write_metrics(chapter: str, metrics: dict[str, Any]) -> Path:
+    """Write a chapter's headline figures where the course runner reads them."""
+    return save_json(metrics_path(chapter), metrics)
+
+
+def read_metrics(chapter: str) -> dict[str, Any] | None:
+    """A chapter's metrics, or ``None`` when it has not written any (or they are unreadable)."""
+    path = outputs_dir() / "metrics" / f"{Path(chapter).stem}.json"
+    try:
+        return load_json(path)
+    except (OSError, ValueError):
+        return None
+
+
+def cached(
+    path: Path | str,
+    key: str,
+    build: Callable[[], T],
+    save: Callable[[Path, T, str], None],
+    load: Callable[[Path], tuple[T, str]],
+    *,
+    verbose: bool = True,
+) -> T:
+    """Load the artifact at ``path`` if it carries ``key``; otherwise build, save and return it.
+
+    ``save(path, value, key)`` must store the key inside the file (it is called inside an atomic
+    write to a temporary path), and ``load(path) -> (value, stored_key)`` must read it back.
+    A file that fails to load, or whose key differs, is rebuilt with a one-line message.
+    """
+    path = Path(path)
+    if path.exists():
+        try:
+            value, stored = load(path)
+        except Exception as err:  # a corrupt artifact of any kind is rebuilt, never trusted
+            if verbose:
+                print(f"[artifacts] {path.name} is unreadable ({type(err).__name__}); rebuilding")
+        else:
+            if stored == key:
+                return value
+            if verbose:
+                print(f"[artifacts] {path.name} was made by other settings; rebuilding")
+    value = build()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        save(Path(tmp), value, key)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return value

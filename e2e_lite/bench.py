@@ -1,0 +1,96 @@
+"""Benchmarks: one command for every speed figure in the README.
+
+    python -m e2e_lite.bench NAME [--json] [--quick]
+
+Readable lines by default; with ``--json`` the last line is one JSON object of the figures.
+Benchmarks measure; they assert nothing (the tests do that).
+
+Names:
+    world   physics steps per second of one world with 80 parked cars, and closed-loop simulated
+            miles per wall-second of the scripted drivers (B worlds in lockstep).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from .config import active_profile
+from .drivers import LaneChanger, LaneKeeper
+from .evaluation import EvalConfig, evaluate
+from .geometry import RoadConfig
+from .world import Fleet, TrafficConfig, WorldConfig, make_world
+
+
+def _machine() -> dict[str, object]:
+    return {
+        "python": platform.python_version(),
+        "cpus": os.cpu_count(),
+        "machine": platform.machine(),
+    }
+
+
+def bench_world(quick: bool) -> dict[str, float]:
+    """Physics steps/s with 80 parked cars; scripted closed-loop simulated miles per wall-second."""
+    cfg = WorldConfig(road=RoadConfig(length_m=17_000.0), traffic=TrafficConfig(n_cars=(80, 80)))
+    world = make_world(cfg, "test", 0)
+    n_cars = len(world.cars)
+    fleet = Fleet([world], cfg)
+    fleet.place(0, 30.0, float(world.track.lane_center(0)), 25.0)
+    steps = 2_000 if quick else 20_000
+    # raw pymunk: set the ego's velocity and step the space
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        world.physics_step(25.0, 0.0, 0.0, cfg.sim.dt_s)
+    raw = steps / (time.perf_counter() - t0)
+    # the fleet's physics step: vectorised bicycle + pymunk, per car
+    fleet.place(0, 30.0, float(world.track.lane_center(0)), 25.0)
+    periods = steps // cfg.sim.steps_per_policy
+    zero = np.zeros(1)
+    t0 = time.perf_counter()
+    for _ in range(periods):
+        fleet.step(zero, zero)
+    fleet_rate = periods * cfg.sim.steps_per_policy / (time.perf_counter() - t0)
+    out = {"parked_cars": n_cars, "pymunk_steps_per_s": raw, "fleet_steps_per_s_b1": fleet_rate}
+    miles = 4.0 if quick else 40.0
+    prof = active_profile([])
+    world_cfg = WorldConfig.for_profile(prof)
+    for name, policy in (("lane_keeper", LaneKeeper()), ("lane_changer", LaneChanger())):
+        res = evaluate(
+            policy, world_cfg, EvalConfig(miles=miles, n_worlds=16, n_tracks=16), progress=False
+        )
+        out[f"{name}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
+        out[f"{name}_sim_miles"] = res.miles
+    return out
+
+
+BENCHMARKS: dict[str, Callable[[bool], dict[str, float]]] = {"world": bench_world}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code."""
+    parser = argparse.ArgumentParser(
+        prog="python -m e2e_lite.bench", description="e2e-lite benchmarks"
+    )
+    parser.add_argument("name", choices=sorted(BENCHMARKS))
+    parser.add_argument("--json", action="store_true", help="end with one JSON line of the figures")
+    parser.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
+    args = parser.parse_args(argv)
+    figures = BENCHMARKS[args.name](args.quick)
+    print(f"benchmark {args.name} ({'quick' if args.quick else 'full'}) on {_machine()}")
+    for key, value in figures.items():
+        print(f"  {key:36s} {value:,.2f}" if isinstance(value, float) else f"  {key:36s} {value}")
+    if args.json:
+        print(json.dumps({"benchmark": args.name, **_machine(), **figures}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

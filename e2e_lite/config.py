@@ -1,0 +1,112 @@
+"""Profiles (quick / full) and the validation helper every settings dataclass uses.
+
+One place decides the active profile: :func:`active_profile`. The quick profile is on when the
+environment variable ``E2E_LITE_QUICK`` is ``1`` (or ``true``/``yes``) or when the running
+script was given ``--quick``. Chapters ask this module; they never read the switch themselves.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+QUICK_ENV = "E2E_LITE_QUICK"
+QUICK_FLAG = "--quick"
+
+
+def check_range(
+    owner: str,
+    name: str,
+    value: float,
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    integer: bool = False,
+) -> None:
+    """Raise ``ValueError`` naming ``owner.name``, the value and the allowed range.
+
+    ``lo``/``hi`` are inclusive bounds unless ``lo_open``/``hi_open``; ``None`` means unbounded.
+    ``integer`` also requires a whole number (bool is refused).
+    """
+    lo_s = "-inf" if lo is None else f"{lo:g}"
+    hi_s = "inf" if hi is None else f"{hi:g}"
+    rng = f"{'(' if lo_open or lo is None else '['}{lo_s}, {hi_s}{')' if hi_open or hi is None else ']'}"
+    kind = "an integer" if integer else "a number"
+    msg = f"{owner}.{name}={value!r} is invalid: must be {kind} in {rng}"
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(msg)
+    if integer and (not float(value).is_integer()):
+        raise ValueError(msg)
+    if not math.isfinite(float(value)) and not (hi is None and value == math.inf):
+        raise ValueError(msg)
+    if lo is not None and (value < lo or (lo_open and value == lo)):
+        raise ValueError(msg)
+    if hi is not None and (value > hi or (hi_open and value == hi)):
+        raise ValueError(msg)
+
+
+def check_pair(owner: str, name: str, pair: Sequence[float], lo: float | None = None) -> None:
+    """Check a ``(low, high)`` range setting: two numbers, ``low <= high``, both ``>= lo``."""
+    if len(pair) != 2:
+        raise ValueError(f"{owner}.{name}={pair!r} is invalid: must be a (low, high) pair")
+    check_range(owner, f"{name}[0]", pair[0], lo)
+    check_range(owner, f"{name}[1]", pair[1], lo)
+    if pair[0] > pair[1]:
+        raise ValueError(f"{owner}.{name}={tuple(pair)!r} is invalid: low must be <= high")
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Every size the course depends on, in one place.
+
+    Attributes:
+        name: ``"quick"`` or ``"full"``.
+        track_length_m: length of each procedural track [m].
+        n_val_tracks: how many validation tracks closed-loop evaluation cycles through.
+        eval_miles: closed-loop distance budget per driver in the chapters [mi].
+        n_worlds: worlds driven in lockstep by the evaluator (the batch B).
+    """
+
+    name: str
+    track_length_m: float
+    n_val_tracks: int
+    eval_miles: float
+    n_worlds: int
+
+    def __post_init__(self) -> None:
+        if self.name not in ("quick", "full"):
+            raise ValueError(f"Profile.name={self.name!r} is invalid: must be 'quick' or 'full'")
+        check_range("Profile", "track_length_m", self.track_length_m, 500.0)
+        check_range("Profile", "n_val_tracks", self.n_val_tracks, 1, integer=True)
+        check_range("Profile", "eval_miles", self.eval_miles, 0.0, lo_open=True)
+        check_range("Profile", "n_worlds", self.n_worlds, 1, integer=True)
+
+    @property
+    def quick(self) -> bool:
+        """True in the quick profile."""
+        return self.name == "quick"
+
+
+QUICK = Profile(name="quick", track_length_m=2_000.0, n_val_tracks=4, eval_miles=4.0, n_worlds=4)
+# The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
+FULL = Profile(name="full", track_length_m=8_000.0, n_val_tracks=16, eval_miles=100.0, n_worlds=16)
+
+
+def quick_requested(argv: Sequence[str] | None = None, environ: dict | None = None) -> bool:
+    """Whether the quick profile is asked for, by ``--quick`` in ``argv`` or ``E2E_LITE_QUICK``."""
+    argv = sys.argv[1:] if argv is None else argv
+    environ = os.environ if environ is None else environ
+    flag = environ.get(QUICK_ENV, "").strip().lower()
+    if flag not in ("", "0", "1", "true", "false", "yes", "no"):
+        raise ValueError(f"{QUICK_ENV}={flag!r} is invalid: must be one of 0, 1, true, false")
+    return QUICK_FLAG in argv or flag in ("1", "true", "yes")
+
+
+def active_profile(argv: Sequence[str] | None = None, environ: dict | None = None) -> Profile:
+    """The profile the current process runs under (see module docstring)."""
+    return QUICK if quick_requested(argv, environ) else FULL

@@ -1,0 +1,127 @@
+"""Run the course: every chapter script in order, each in its own process with plain ``python``.
+
+    python -m e2e_lite.course [--quick] [--only N ...] [--from N] [--chapters DIR]
+
+Shows which chapter runs and how long each took, stops at the first failure (the chapter's own
+error is on screen above the message), and ends with a table of each chapter's headline figures,
+read from ``<outputs>/metrics/<chapter>.json`` (the ``"headline"`` entry each chapter writes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from .artifacts import read_metrics
+from .config import QUICK_ENV, quick_requested
+
+_REPO_ROOT = Path(__file__).resolve().parents[1]
+_CHAPTER_RE = re.compile(r"^(\d{2})_[a-z0-9_]+\.py$")
+
+
+def find_chapters(directory: Path | None = None) -> list[tuple[int, Path]]:
+    """``(number, path)`` of every ``NN_name.py`` chapter, in order.
+
+    The folder is ``directory``, else ``./chapters`` if it exists, else the source checkout's.
+    """
+    if directory is None:
+        directory = Path.cwd() / "chapters"
+        if not directory.is_dir():
+            directory = _REPO_ROOT / "chapters"
+    if not directory.is_dir():
+        raise FileNotFoundError(f"no chapters folder at {directory}; pass --chapters DIR")
+    found = []
+    for path in sorted(directory.iterdir()):
+        m = _CHAPTER_RE.match(path.name)
+        if m:
+            found.append((int(m.group(1)), path))
+    return found
+
+
+def select(
+    chapters: list[tuple[int, Path]], only: list[int] | None, start: int | None
+) -> list[tuple[int, Path]]:
+    """Filter chapters by ``--only`` numbers or a ``--from`` number; unknown numbers raise."""
+    known = {n for n, _ in chapters}
+    for n in (only or []) + ([start] if start is not None else []):
+        if n not in known:
+            raise ValueError(f"chapter {n} does not exist; chapters are {sorted(known)}")
+    if only:
+        return [(n, p) for n, p in chapters if n in set(only)]
+    if start is not None:
+        return [(n, p) for n, p in chapters if n >= start]
+    return chapters
+
+
+def _format_value(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.3g}" if abs(value) < 1000 else f"{value:,.0f}"
+    return str(value)
+
+
+def summary_table(rows: list[tuple[str, float, dict | None]]) -> str:
+    """A markdown table: chapter, seconds, headline figures."""
+    lines = ["| chapter | time [s] | headline |", "|---|---:|---|"]
+    for name, seconds, metrics in rows:
+        head = (metrics or {}).get("headline") or {}
+        text = "; ".join(f"{k}: {_format_value(v)}" for k, v in head.items()) or "(no metrics)"
+        lines.append(f"| {name} | {seconds:.1f} | {text} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    parser = argparse.ArgumentParser(
+        prog="python -m e2e_lite.course", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument(
+        "--quick", action="store_true", help="the quick profile (seconds per chapter)"
+    )
+    parser.add_argument("--only", type=int, nargs="+", metavar="N", help="run only these chapters")
+    parser.add_argument("--from", dest="start", type=int, metavar="N", help="start at chapter N")
+    parser.add_argument("--chapters", type=Path, help="the chapters folder")
+    args = parser.parse_args(argv)
+    quick = args.quick or quick_requested([])
+    try:
+        chapters = select(find_chapters(args.chapters), args.only, args.start)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    env = dict(os.environ)
+    if quick:
+        env[QUICK_ENV] = "1"
+    profile = "quick" if quick else "full"
+    print(f"e2e-lite course: {len(chapters)} chapters, {profile} profile", flush=True)
+    rows: list[tuple[str, float, dict | None]] = []
+    t_course = time.perf_counter()
+    for k, (_, path) in enumerate(chapters, 1):
+        print(f"\n==> [{k}/{len(chapters)}] {path.stem}", flush=True)
+        t0 = time.perf_counter()
+        cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
+        proc = subprocess.run(cmd, env=env, cwd=path.parent.parent)
+        seconds = time.perf_counter() - t0
+        if proc.returncode != 0:
+            print(
+                f"\n!! {path.stem} failed (exit code {proc.returncode}) after {seconds:.1f} s; "
+                f"its error is above. Fix it, then resume with --from {path.stem[:2]}",
+                file=sys.stderr,
+                flush=True,
+            )
+            return proc.returncode
+        print(f"<== {path.stem} done in {seconds:.1f} s", flush=True)
+        rows.append((path.stem, seconds, read_metrics(path.stem)))
+    print(
+        f"\nAll {len(rows)} chapters passed in {time.perf_counter() - t_course:.1f} s "
+        f"({profile} profile).\n"
+    )
+    print(summary_table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

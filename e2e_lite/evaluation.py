@@ -1,0 +1,423 @@
+"""Closed-loop evaluation: drive any policy on unseen tracks and count collisions per 100 miles.
+
+The evaluator drives B cars in B independent worlds in lockstep (:class:`~e2e_lite.world.Fleet`),
+asking the policy once per policy period for a batch of actuator commands. World ``i`` drives the
+validation tracks ``i, i + B, i + 2B, ...`` (modulo ``n_tracks``), each from its start, until it has
+driven its share (``miles / B``) of the budget; so every policy with the same settings drives the
+same roads with the same parked cars.
+
+Metrics (see :class:`EvalResult`):
+
+* collisions per 100 miles, with an exact (Garwood) 95 % Poisson confidence interval;
+* time before a collision (seed 002): an *episode* starts at a (re)spawn and ends at the next
+  collision; the mean length of the episodes that ended in a collision. Episodes cut off by the
+  budget are censored and only counted in ``episodes_censored``;
+* autonomy % (seed 003): ``(1 - interventions * 6 s / elapsed s) * 100``, floored at 0. An
+  intervention is a collision (the re-spawn is the human taking over) or an *off-centre episode*:
+  the car more than 1 m from every lane centre for longer than ``offcentre_grace_s`` (3 s, longer
+  than a normal lane change takes). We only count off-centre interventions; we do not move the car,
+  so the intervention rule cannot change the collision count.
+* a *stall* (speed under 0.5 m/s for 20 s) is re-spawned and reported, so a policy that stops cannot
+  hang the evaluation.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from scipy.stats import chi2
+from tqdm.auto import tqdm
+
+from .config import check_range
+from .geometry import SPLITS
+from .vehicle import H, V
+from .world import Fleet, World, WorldConfig, make_world
+
+M_PER_MILE = 1609.344
+MPS_TO_MPH = 3600.0 / M_PER_MILE
+
+
+@dataclass
+class Observation:
+    """What a policy sees at one decision, for B cars.
+
+    Attributes:
+        state: ``(B, 5)`` ego states ``x, y, heading, speed, steer`` (rear axle; m, rad, m/s).
+        s, d: lane-frame position of the rear axle [m], ``(B,)``.
+        heading_error: heading minus the road's heading at ``s`` [rad], wrapped to (-pi, pi].
+        curvature: the road's curvature at ``s`` [1/m].
+        lane: index of the nearest lane (0 = rightmost), ``(B,)`` int.
+        respawned: ``(B,)`` bool, True when car i was (re)placed since the last decision (start,
+            new track, collision, stall): a stateful policy should forget car i's plan.
+        time_s: simulated time since the start [s].
+        worlds: the B worlds (privileged access for scripted drivers and the expert).
+        images: camera frames ``(B, H, W, 3)`` uint8 when the policy asks for them, else None.
+    """
+
+    state: np.ndarray
+    s: np.ndarray
+    d: np.ndarray
+    heading_error: np.ndarray
+    curvature: np.ndarray
+    lane: np.ndarray
+    respawned: np.ndarray
+    time_s: float
+    worlds: list[World]
+    images: np.ndarray | None = None
+
+    @property
+    def speed(self) -> np.ndarray:
+        """Speed of each car [m/s], ``(B,)``."""
+        return self.state[:, V]
+
+
+@dataclass
+class Actuation:
+    """A batch of actuator commands: road-wheel angle [rad] and acceleration [m/s^2], each ``(B,)``."""
+
+    steer_rad: np.ndarray
+    accel_mps2: np.ndarray
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Anything that drives: ``reset`` once per evaluation, then ``act`` every policy period."""
+
+    def reset(self, n_worlds: int) -> None:
+        """Forget everything; ``n_worlds`` cars are about to be driven."""
+
+    def act(self, obs: Observation) -> Actuation:
+        """Commands for every car in the batch."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Settings of a closed-loop evaluation.
+
+    Attributes:
+        miles: distance budget over all cars [mi].
+        n_worlds: cars driven in lockstep (B).
+        split: which tracks: ``"val"`` (unseen by training) or ``"test"``.
+        n_tracks: how many tracks of the split are cycled through.
+        start_speed_mps: speed at every (re)spawn [m/s].
+        start_s_m: arc length of the spawn point on a new track [m].
+        end_margin_m: a car moves to its next track this far before the end [m].
+        offcentre_m: off-centre distance that starts an off-centre episode [m].
+        offcentre_grace_s: an off-centre episode longer than this is an intervention [s].
+        intervention_cost_s: time charged per intervention in the autonomy metric [s].
+        stall_speed_mps, stall_time_s: below this speed for this long is a stall [m/s, s].
+        seed: seeds the start lanes.
+    """
+
+    miles: float = 100.0
+    n_worlds: int = 16
+    split: str = "val"
+    n_tracks: int = 16
+    start_speed_mps: float = 20.0
+    start_s_m: float = 30.0
+    end_margin_m: float = 120.0
+    offcentre_m: float = 1.0
+    offcentre_grace_s: float = 3.0
+    intervention_cost_s: float = 6.0
+    stall_speed_mps: float = 0.5
+    stall_time_s: float = 20.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        o = "EvalConfig"
+        check_range(o, "miles", self.miles, 0.0, 1e6, lo_open=True)
+        check_range(o, "n_worlds", self.n_worlds, 1, 4096, integer=True)
+        if self.split not in SPLITS:
+            raise ValueError(
+                f"EvalConfig.split={self.split!r} is invalid: must be one of {sorted(SPLITS)}"
+            )
+        check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
+        check_range(o, "start_speed_mps", self.start_speed_mps, 0.0, 100.0)
+        check_range(o, "start_s_m", self.start_s_m, 0.0)
+        check_range(o, "end_margin_m", self.end_margin_m, 0.0)
+        check_range(o, "offcentre_m", self.offcentre_m, 0.0, lo_open=True)
+        check_range(o, "offcentre_grace_s", self.offcentre_grace_s, 0.0)
+        check_range(o, "intervention_cost_s", self.intervention_cost_s, 0.0)
+        check_range(o, "stall_speed_mps", self.stall_speed_mps, 0.0)
+        check_range(o, "stall_time_s", self.stall_time_s, 0.0, lo_open=True)
+        check_range(o, "seed", self.seed, 0, integer=True)
+
+
+@dataclass
+class EvalResult:
+    """What a closed-loop evaluation measured. Distances in miles, times in seconds."""
+
+    miles: float
+    collisions: int
+    car_collisions: int
+    rail_collisions: int
+    collisions_per_100mi: float
+    ci95_per_100mi: tuple[float, float]
+    mean_speed_mph: float
+    time_to_collision_s: float | None
+    episodes_censored: int
+    miles_per_collision: float | None
+    autonomy_pct: float
+    interventions: int
+    stalls: int
+    sim_time_s: float
+    wall_time_s: float
+    sim_miles_per_wall_s: float
+    tracks_driven: int
+    events: list[dict[str, Any]] = field(default_factory=list)
+    traces: dict[str, list[list[float]]] = field(default_factory=dict)
+
+    def to_dict(self, with_events: bool = True) -> dict[str, Any]:
+        """JSON-ready dict (traces left out; events optional)."""
+        out = asdict(self)
+        out.pop("traces")
+        if not with_events:
+            out.pop("events")
+        return out
+
+    def summary(self) -> str:
+        """One readable line."""
+        lo, hi = self.ci95_per_100mi
+        ttc = "n/a" if self.time_to_collision_s is None else f"{self.time_to_collision_s:.1f} s"
+        return (
+            f"{self.miles:.1f} mi, {self.collisions} collisions ({self.car_collisions} car, "
+            f"{self.rail_collisions} rail) = {self.collisions_per_100mi:.1f} per 100 mi "
+            f"[95% CI {lo:.1f}-{hi:.1f}], {self.mean_speed_mph:.1f} mph, time to collision {ttc}, "
+            f"autonomy {self.autonomy_pct:.1f}%"
+        )
+
+
+def poisson_ci(count: int, exposure: float, level: float = 0.95) -> tuple[float, float]:
+    """Exact (Garwood) confidence interval of a Poisson rate: ``count`` events over ``exposure``.
+
+    lower = chi2.ppf(a/2, 2k) / 2 / exposure,  upper = chi2.ppf(1 - a/2, 2k + 2) / 2 / exposure,
+    with a = 1 - level. For k = 0 the lower bound is 0 and the upper is -ln(a/2) / exposure
+    (3.69 per 100 miles over 100 miles at 95 %).
+    """
+    check_range("poisson_ci", "count", count, 0, integer=True)
+    check_range("poisson_ci", "exposure", exposure, 0.0, lo_open=True)
+    check_range("poisson_ci", "level", level, 0.0, 1.0, lo_open=True, hi_open=True)
+    a = 1.0 - level
+    lo = 0.0 if count == 0 else chi2.ppf(a / 2, 2 * count) / 2.0
+    hi = chi2.ppf(1 - a / 2, 2 * count + 2) / 2.0
+    return float(lo / exposure), float(hi / exposure)
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+class _WorldPool:
+    """Worlds of the evaluation split: a road and its cars are made once per track, and every car
+    gets its own pymunk world of it (two cars on one track must not share an ego body)."""
+
+    def __init__(self, world_cfg: WorldConfig, split: str) -> None:
+        self.world_cfg, self.split = world_cfg, split
+        self._roads: dict[int, World] = {}
+        self._worlds: dict[tuple[int, int], World] = {}
+
+    def get(self, car: int, index: int) -> World:
+        if (car, index) not in self._worlds:
+            if index not in self._roads:
+                self._roads[index] = make_world(self.world_cfg, self.split, index)
+            road = self._roads[index]
+            self._worlds[(car, index)] = (
+                road
+                if not any(k[1] == index for k in self._worlds)
+                else World(road.track, road.cars, self.world_cfg.vehicle)
+            )
+        return self._worlds[(car, index)]
+
+
+def evaluate(
+    policy: Policy,
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    *,
+    progress: bool = True,
+    desc: str = "closed loop",
+    record_traces: bool = False,
+) -> EvalResult:
+    """Drive ``policy`` closed-loop until ``cfg.miles`` are driven; return the metrics.
+
+    Args:
+        policy: the driver (see :class:`Policy`).
+        world_cfg: roads, traffic, car and time steps.
+        cfg: the evaluation settings.
+        progress: show a progress bar of miles driven.
+        desc: the progress bar's label.
+        record_traces: keep every car's rear-axle path per track (for top-down figures), in
+            ``result.traces["<split>-<track>"] = [[x, y], ...]``.
+    """
+    t_wall = time.perf_counter()
+    n = cfg.n_worlds
+    pool = _WorldPool(world_cfg, cfg.split)
+    rng = np.random.default_rng([cfg.seed, 7])
+    track_of = np.arange(n) % cfg.n_tracks
+    visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
+    fleet = Fleet([pool.get(i, int(t)) for i, t in enumerate(track_of)], world_cfg)
+    dt_pol = world_cfg.sim.policy_period_s
+    share_m = cfg.miles * M_PER_MILE / n
+    odometer = np.zeros(n)
+    sim_time = np.zeros(n)
+    active = np.ones(n, dtype=bool)
+    respawned = np.ones(n, dtype=bool)
+
+    def spawn_new_track(i: int) -> None:
+        w = fleet.worlds[i]
+        lane = int(rng.integers(0, w.track.n_lanes))
+        s0 = cfg.start_s_m
+        # never start on top of a parked car
+        while not w.lane_free(s0, lane, 10.0, 30.0):
+            lane = (lane + 1) % w.track.n_lanes
+        fleet.place(i, s0, float(w.track.lane_center(lane)), cfg.start_speed_mps)
+
+    def respawn(i: int, s_obstacle: float, d_now: float) -> None:
+        w = fleet.worlds[i]
+        s_new, lane_new = w.respawn_pose(s_obstacle, d_now)
+        s_new = min(s_new, w.track.length - cfg.end_margin_m)  # the next decision moves it on
+        fleet.place(i, s_new, float(w.track.lane_center(lane_new)), cfg.start_speed_mps)
+        respawned[i] = True
+
+    for i in range(n):
+        spawn_new_track(i)
+    policy.reset(n)
+
+    episode_t = np.zeros(n)
+    offcentre_t = np.zeros(n)
+    offcentre_counted = np.zeros(n, dtype=bool)
+    slow_t = np.zeros(n)
+    ttc: list[float] = []
+    interventions = stalls = 0
+    events: list[dict[str, Any]] = []
+    traces: dict[str, list[list[float]]] = {}
+    t_sim = 0.0
+    bar = tqdm(
+        total=round(cfg.miles, 2),
+        desc=desc,
+        unit="mi",
+        disable=not progress,
+        leave=False,
+        mininterval=0.5,
+        bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} mi [{elapsed}<{remaining}]",
+    )
+    track0 = fleet.worlds[0].track  # every track shares the cross-section
+    lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
+    while active.any():
+        # a car near its track's end moves on to its next track
+        s = fleet.lane_frame()[0]
+        lengths = np.array([w.track.length for w in fleet.worlds])
+        for i in np.flatnonzero(active & (s > lengths - cfg.end_margin_m)).tolist():
+            visit[i] += 1
+            fleet.worlds[i] = pool.get(i, int((i + visit[i] * n) % cfg.n_tracks))
+            spawn_new_track(i)
+            respawned[i] = True
+        s, d, road_h, kappa = fleet.lane_frame()
+        obs = Observation(
+            state=fleet.state.copy(),
+            s=s,
+            d=d,
+            heading_error=_wrap(fleet.state[:, H] - road_h),
+            curvature=kappa,
+            lane=track0.lane_index(d),
+            respawned=respawned.copy(),
+            time_s=t_sim,
+            worlds=list(fleet.worlds),
+        )
+        respawned[:] = False
+        act = policy.act(obs)
+        if record_traces:
+            for i in np.flatnonzero(active).tolist():
+                key = "-".join(map(str, fleet.worlds[i].track.track_id))
+                traces.setdefault(key, []).append(
+                    [float(fleet.state[i, 0]), float(fleet.state[i, 1])]
+                )
+        xy_before = fleet.state[:, :2].copy()
+        contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2), active)
+        odometer += np.where(active, np.hypot(*(fleet.state[:, :2] - xy_before).T), 0.0)
+        dt_active = np.where(active, dt_pol, 0.0)
+        sim_time += dt_active
+        episode_t += dt_active
+        t_sim += dt_pol
+        # off-centre episodes (autonomy metric only; the car is not moved)
+        off = np.min(np.abs(d[:, None] - lane_centers[None, :]), axis=1) > cfg.offcentre_m
+        offcentre_t = np.where(active & off, offcentre_t + dt_pol, 0.0)
+        new_int = (offcentre_t > cfg.offcentre_grace_s) & ~offcentre_counted
+        interventions += int(new_int.sum())
+        offcentre_counted = (offcentre_counted | new_int) & (offcentre_t > 0)
+        # collisions: one event per car per period, then a re-spawn
+        for i, c in enumerate(contacts):
+            if not c:
+                continue
+            w = fleet.worlds[i]
+            s_i, d_i, _ = w.track.to_frenet_hint(
+                fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
+            )
+            car_idx = next((j for kind, j in c if kind == "car"), None)
+            s_obst = (
+                s_i if car_idx is None else max(s_i, float(w.cars.s[car_idx]) + w.cars.length_m / 2)
+            )
+            events.append(
+                {
+                    "world": i,
+                    "track": list(w.track.track_id),
+                    "kind": "rail" if car_idx is None else "car",
+                    "car": car_idx,
+                    "s_m": round(s_i, 2),
+                    "d_m": round(d_i, 3),
+                    "x_m": round(float(fleet.state[i, 0]), 2),
+                    "y_m": round(float(fleet.state[i, 1]), 2),
+                    "speed_mps": round(float(fleet.state[i, V]), 2),
+                    "time_s": round(float(sim_time[i]), 2),
+                    "miles": round(float(odometer[i] / M_PER_MILE), 4),
+                }
+            )
+            ttc.append(float(episode_t[i]))
+            episode_t[i] = 0.0
+            interventions += 1
+            respawn(i, s_obst, d_i)
+        # stalls
+        slow_t = np.where(active & (fleet.state[:, V] < cfg.stall_speed_mps), slow_t + dt_pol, 0.0)
+        for i in np.flatnonzero(slow_t > cfg.stall_time_s).tolist():
+            stalls += 1
+            interventions += 1
+            slow_t[i] = 0.0
+            s_i, d_i, _ = fleet.worlds[i].track.to_frenet_hint(
+                fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
+            )
+            respawn(i, s_i, d_i)
+        active &= odometer < share_m
+        bar.update(max(0.0, float(np.minimum(odometer, share_m).sum() / M_PER_MILE) - bar.n))
+    bar.close()
+
+    total_m = float(odometer.sum())
+    miles = total_m / M_PER_MILE
+    n_col = len(events)
+    n_car = sum(e["kind"] == "car" for e in events)
+    total_t = float(sim_time.sum())
+    lo, hi = poisson_ci(n_col, miles / 100.0)
+    wall = time.perf_counter() - t_wall
+    return EvalResult(
+        miles=miles,
+        collisions=n_col,
+        car_collisions=n_car,
+        rail_collisions=n_col - n_car,
+        collisions_per_100mi=100.0 * n_col / miles,
+        ci95_per_100mi=(lo, hi),
+        mean_speed_mph=total_m / total_t * MPS_TO_MPH,
+        time_to_collision_s=float(np.mean(ttc)) if ttc else None,
+        episodes_censored=int(np.count_nonzero(episode_t > 0)),
+        miles_per_collision=miles / n_col if n_col else None,
+        autonomy_pct=max(0.0, 1.0 - interventions * cfg.intervention_cost_s / total_t) * 100.0,
+        interventions=interventions,
+        stalls=stalls,
+        sim_time_s=total_t,
+        wall_time_s=wall,
+        sim_miles_per_wall_s=miles / wall,
+        tracks_driven=int((visit + 1).sum()),
+        events=events,
+        traces=traces,
+    )

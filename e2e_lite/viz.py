@@ -1,0 +1,159 @@
+"""Figures: top-down maps of tracks, parked cars, driven paths and collisions.
+
+Figures are built with ``matplotlib.figure.Figure`` (no pyplot, no window, no backend switch), so
+the library stays headless and a notebook still shows a returned figure inline.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.collections import LineCollection, PolyCollection
+from matplotlib.figure import Figure
+
+from .artifacts import atomic_write
+from .geometry import Track
+from .world import ParkedCars
+
+ROAD_GREY = "#5a5a5a"
+GRASS = "#cfe3c3"
+RAIL = "#8a8a8a"
+CAR = "#d62728"
+
+
+def save_figure(fig: Figure, path: Path | str, dpi: int = 110) -> Path:
+    """Save ``fig`` as PNG, atomically. Returns the path."""
+    path = Path(path)
+    with atomic_write(path) as f:
+        fig.savefig(f, format="png", dpi=dpi, bbox_inches="tight")
+    return path
+
+
+def draw_road(
+    ax: Axes,
+    track: Track,
+    s_range: tuple[float, float] | None = None,
+    cars: ParkedCars | None = None,
+    step_m: float = 2.0,
+) -> None:
+    """Draw the road top-down: surface, lane markings (dashed inside, solid edges), rails, cars.
+
+    Args:
+        ax: where to draw.
+        track: the road.
+        s_range: the stretch to draw ``(s_from, s_to)`` [m]; the whole track by default.
+        cars: parked cars to draw as boxes (only those in the stretch).
+        step_m: sampling step along the road [m].
+    """
+    s_from, s_to = (0.0, track.length) if s_range is None else s_range
+    left = track.sample(step_m, track.half_width, s_from, s_to)
+    right = track.sample(step_m, -track.half_width, s_from, s_to)
+    ax.set_facecolor(GRASS)
+    ax.fill(
+        np.r_[left[:, 0], right[::-1, 0]],
+        np.r_[left[:, 1], right[::-1, 1]],
+        color=ROAD_GREY,
+        lw=0,
+        zorder=1,
+    )
+    for side in (-1, 1):
+        rail = track.sample(step_m, side * track.rail_d, s_from, s_to)
+        ax.plot(rail[:, 0], rail[:, 1], color=RAIL, lw=2.0, zorder=2)
+        edge = track.sample(step_m, side * track.half_width, s_from, s_to)
+        ax.plot(edge[:, 0], edge[:, 1], color="white", lw=1.2, zorder=3)
+    for lane in range(1, track.n_lanes):
+        d = float(track.lane_center(lane)) - track.lane_width / 2
+        pts = track.sample(step_m, d, s_from, s_to)
+        ax.plot(pts[:, 0], pts[:, 1], color="white", lw=0.9, ls=(0, (3, 9)), zorder=3)
+    if cars is not None and len(cars):
+        sl = cars.between(s_from - cars.length_m, s_to + cars.length_m)
+        boxes = cars.corners()[sl]
+        ax.add_collection(
+            PolyCollection(list(boxes), facecolor=CAR, edgecolor="black", lw=0.6, zorder=5)
+        )
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def draw_path(
+    ax: Axes, xy: np.ndarray, color: str, label: str | None = None, lw: float = 1.5
+) -> None:
+    """Draw a driven path ``(N, 2)`` [m], breaking it where consecutive points jump (re-spawns)."""
+    xy = np.asarray(xy, dtype=float)
+    if len(xy) < 2:
+        return
+    jumps = np.hypot(*np.diff(xy, axis=0).T) > 10.0
+    segs = np.stack([xy[:-1], xy[1:]], axis=1)[~jumps]
+    ax.add_collection(LineCollection(list(segs), colors=color, lw=lw, zorder=6, label=label))
+
+
+def track_overview(ax: Axes, track: Track, cars: ParkedCars | None = None) -> None:
+    """A whole-track map: the centre line coloured by |curvature|, parked cars as dots."""
+    s = np.arange(0.0, track.length, 10.0)
+    xy = track.position(s)
+    curv = np.abs(track.curvature(s))
+    segs = np.stack([xy[:-1], xy[1:]], axis=1)
+    lc = LineCollection(list(segs), array=curv[:-1] * 1000.0, cmap="viridis", lw=3)
+    ax.add_collection(lc)
+    if cars is not None and len(cars):
+        ax.scatter(cars.x, cars.y, s=6, color=CAR, zorder=3, label=f"{len(cars)} parked cars")
+        ax.legend(loc="best", fontsize=8)
+    ax.figure.colorbar(lc, ax=ax, label="|curvature| [1/km]", shrink=0.7)
+    ax.autoscale()
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
+def highway_figure(
+    track: Track,
+    cars: ParkedCars,
+    s_range: tuple[float, float],
+    paths: Sequence[tuple[str, np.ndarray, str]] = (),
+    crashes: Sequence[tuple[float, float]] = (),
+) -> Figure:
+    """Chapter 01's picture: the whole track on top, a zoomed stretch with driven paths below.
+
+    Args:
+        track, cars: the world.
+        s_range: the zoomed stretch ``(s_from, s_to)`` [m].
+        paths: ``(label, xy (N, 2), colour)`` of driven paths to overlay on the zoom.
+        crashes: ``(x, y)`` of collisions to mark on the zoom [m].
+    """
+    fig = Figure(figsize=(11, 7.5))
+    ax_map, ax_zoom = fig.subplots(2, 1, gridspec_kw={"height_ratios": [1.3, 1]})
+    track_overview(ax_map, track, cars)
+    ax_map.set_title(
+        f"track {track.track_id[0]}-{track.track_id[1]}: {track.length / 1000:.1f} km, "
+        f"{track.curve_share():.0%} on curves"
+    )
+    band = track.sample(5.0, 0.0, *s_range)
+    ax_map.plot(band[:, 0], band[:, 1], color="orange", lw=6, alpha=0.6, zorder=2)
+    draw_road(ax_zoom, track, s_range, cars)
+    for label, xy, color in paths:
+        draw_path(ax_zoom, xy, color, label)
+    if len(crashes):
+        c = np.asarray(crashes)
+        ax_zoom.scatter(
+            c[:, 0],
+            c[:, 1],
+            marker="X",
+            s=90,
+            color="yellow",
+            edgecolor="black",
+            zorder=8,
+            label="collision",
+        )
+    pts = np.concatenate([track.sample(5.0, side * track.rail_d, *s_range) for side in (-1, 1)])
+    pad = 5.0
+    ax_zoom.set_xlim(pts[:, 0].min() - pad, pts[:, 0].max() + pad)
+    ax_zoom.set_ylim(pts[:, 1].min() - pad, pts[:, 1].max() + pad)
+    ax_zoom.set_title(f"s = {s_range[0]:.0f}-{s_range[1]:.0f} m (orange on the map)")
+    if paths or len(crashes):
+        ax_zoom.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,99 @@
+"""Every chapter runs as a plain script in the quick profile; the course runner runs them."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from e2e_lite.course import find_chapters, select, summary_table
+
+ROOT = Path(__file__).resolve().parents[1]
+CHAPTERS = find_chapters(ROOT / "chapters")
+
+
+def _env(tmp_path: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env["E2E_LITE_OUTPUTS"] = str(tmp_path / "outputs")
+    env["E2E_LITE_QUICK"] = "1"
+    return env
+
+
+@pytest.mark.parametrize("path", [p for _, p in CHAPTERS], ids=[p.stem for _, p in CHAPTERS])
+def test_chapter_runs_in_quick_profile(path, tmp_path):
+    proc = subprocess.run(
+        [sys.executable, str(path)],
+        env=_env(tmp_path),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    metrics = json.loads((tmp_path / "outputs" / "metrics" / f"{path.stem}.json").read_text())
+    assert metrics["profile"] == "quick" and metrics["headline"]
+
+
+def test_chapters_are_percent_format_with_summary_and_exercises():
+    assert CHAPTERS, "no chapters found"
+    for _, path in CHAPTERS:
+        text = path.read_text()
+        assert text.startswith("# %% [markdown]\n"), path
+        assert "## Summary" in text and "## Exercises" in text, path
+        for line in text.splitlines():
+            if line.startswith("# %%") and "markdown" in line:
+                assert line == "# %% [markdown]", f"{path.name}: {line!r}"
+
+
+def test_course_runner_runs_a_chapter_and_prints_the_table(tmp_path):
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "e2e_lite.course",
+            "--quick",
+            "--only",
+            "1",
+            "--chapters",
+            str(ROOT / "chapters"),
+        ],
+        env=_env(tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "==> [1/1] 01_highway" in proc.stdout
+    assert "| 01_highway |" in proc.stdout and "collisions/100mi" in proc.stdout
+
+
+def test_course_runner_stops_at_a_failing_chapter(tmp_path):
+    chapters = tmp_path / "chapters"
+    chapters.mkdir()
+    (chapters / "01_ok.py").write_text("print('fine')\n")
+    (chapters / "02_broken.py").write_text("raise SystemExit('boom: a broken chapter')\n")
+    (chapters / "03_never.py").write_text("print('should not run')\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "e2e_lite.course", "--chapters", str(chapters)],
+        env=_env(tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1
+    assert "boom: a broken chapter" in proc.stderr and "02_broken failed" in proc.stderr
+    assert "should not run" not in proc.stdout
+
+
+def test_selection_and_table():
+    chapters = [(1, Path("01_a.py")), (2, Path("02_b.py")), (3, Path("03_c.py"))]
+    assert [n for n, _ in select(chapters, [1, 3], None)] == [1, 3]
+    assert [n for n, _ in select(chapters, None, 2)] == [2, 3]
+    with pytest.raises(ValueError, match="chapter 7 does not exist"):
+        select(chapters, [7], None)
+    table = summary_table([("01_a", 1.0, {"headline": {"rate": 2.5}}), ("02_b", 2.0, None)])
+    assert "| 01_a | 1.0 | rate: 2.5 |" in table and "(no metrics)" in table

@@ -1,0 +1,119 @@
+"""Settings validation, profiles and artifacts."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from e2e_lite import artifacts
+from e2e_lite.config import FULL, QUICK, Profile, active_profile
+from e2e_lite.geometry import RoadConfig, track_rng
+from e2e_lite.vehicle import VehicleParams
+from e2e_lite.world import SimConfig, TrafficConfig
+
+
+@pytest.mark.parametrize(
+    ("factory", "field"),
+    [
+        (lambda: RoadConfig(n_lanes=1), "RoadConfig.n_lanes"),
+        (lambda: RoadConfig(n_lanes=2.5), "RoadConfig.n_lanes"),
+        (lambda: RoadConfig(lane_width_m=0.0), "RoadConfig.lane_width_m"),
+        (lambda: RoadConfig(lane_width_m=-3.0), "RoadConfig.lane_width_m"),
+        (lambda: RoadConfig(radius_m=(5.0, 10.0)), "RoadConfig.radius_m"),
+        (lambda: RoadConfig(arc_deg=(10.0, 80.0)), "RoadConfig.arc_deg"),
+        (lambda: VehicleParams(max_speed_mps=-1.0), "VehicleParams.max_speed_mps"),
+        (lambda: VehicleParams(wheelbase_m=0.0), "VehicleParams.wheelbase_m"),
+        (lambda: SimConfig(dt_s=0.0), "SimConfig.dt_s"),
+        (lambda: SimConfig(dt_s=-0.02), "SimConfig.dt_s"),
+        (lambda: SimConfig(dt_s=0.02, policy_period_s=0.05), "SimConfig.policy_period_s"),
+        (lambda: TrafficConfig(car_length_m=0.0), "TrafficConfig.car_length_m"),
+        (lambda: Profile("medium", 1000.0, 1, 1.0, 1), "Profile.name"),
+    ],
+)
+def test_bad_settings_raise_a_clear_error(factory, field):
+    with pytest.raises(ValueError) as err:
+        factory()
+    msg = str(err.value)
+    assert field in msg and ("must be" in msg)
+
+
+def test_error_names_value_and_range():
+    with pytest.raises(
+        ValueError, match=r"RoadConfig.n_lanes=1 is invalid: must be an integer in \[2, 8\]"
+    ):
+        RoadConfig(n_lanes=1)
+    with pytest.raises(ValueError, match=r"whole number of physics steps"):
+        SimConfig(policy_period_s=0.07)
+    assert SimConfig().steps_per_policy == 5
+
+
+def test_profile_switch():
+    assert active_profile([], {}) is FULL
+    assert active_profile(["--quick"], {}) is QUICK
+    assert active_profile([], {"E2E_LITE_QUICK": "1"}) is QUICK
+    assert active_profile([], {"E2E_LITE_QUICK": "0"}) is FULL
+    with pytest.raises(ValueError, match="E2E_LITE_QUICK"):
+        active_profile([], {"E2E_LITE_QUICK": "maybe"})
+    assert QUICK.eval_miles < FULL.eval_miles and QUICK.track_length_m < FULL.track_length_m
+
+
+def test_bad_split_is_refused():
+    with pytest.raises(ValueError, match="split"):
+        track_rng(0, "validation", 0)
+
+
+def test_outputs_dir_follows_the_environment(tmp_path):
+    assert artifacts.outputs_dir() == tmp_path / "outputs"
+    p = artifacts.write_metrics("99_demo", {"headline": {"x": 1.5}})
+    assert p == tmp_path / "outputs" / "metrics" / "99_demo.json"
+    assert artifacts.read_metrics("99_demo") == {"headline": {"x": 1.5}}
+    assert artifacts.read_metrics("98_missing") is None
+
+
+def test_settings_key_is_stable_and_sensitive():
+    a = artifacts.settings_key(RoadConfig(), {"n": 3})
+    assert a == artifacts.settings_key(RoadConfig(), {"n": 3})
+    assert a != artifacts.settings_key(RoadConfig(n_lanes=4), {"n": 3})
+    assert a != artifacts.settings_key(RoadConfig(), {"n": 4})
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "data.bin"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError):
+        with artifacts.atomic_write(target) as f:
+            f.write(b"half-written")
+            raise RuntimeError("interrupted")
+    assert target.read_bytes() == b"old"
+    assert os.listdir(tmp_path) == ["data.bin"]
+
+
+def _save(path, value, key):
+    np.savez(open(path, "wb"), value=value, key=key)
+
+
+def _load(path):
+    with np.load(path) as z:
+        return z["value"], str(z["key"])
+
+
+def test_cached_reuses_rebuilds_on_mismatch_and_on_corruption(tmp_path, capsys):
+    path = tmp_path / "thing.npz"
+    calls = []
+
+    def build():
+        calls.append(1)
+        return np.arange(5)
+
+    v = artifacts.cached(path, "k1", build, _save, _load)
+    assert np.array_equal(v, np.arange(5)) and len(calls) == 1
+    artifacts.cached(path, "k1", build, _save, _load)
+    assert len(calls) == 1  # reused
+    artifacts.cached(path, "k2", build, _save, _load)
+    assert len(calls) == 2 and "other settings" in capsys.readouterr().out
+    path.write_bytes(b"garbage")
+    artifacts.cached(path, "k2", build, _save, _load)
+    assert len(calls) == 3 and "unreadable" in capsys.readouterr().out
+    assert sorted(os.listdir(tmp_path)) == ["thing.npz"]  # no temporary files left

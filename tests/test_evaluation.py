@@ -1,0 +1,149 @@
+"""Closed-loop evaluator: known drives give known counts; the interval is right; seeded."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from e2e_lite.drivers import LaneChanger, LaneKeeper
+from e2e_lite.evaluation import (
+    M_PER_MILE,
+    Actuation,
+    EvalConfig,
+    Observation,
+    Policy,
+    evaluate,
+    poisson_ci,
+)
+from e2e_lite.geometry import RoadConfig
+from e2e_lite.world import TrafficConfig, WorldConfig
+
+EMPTY = WorldConfig(road=RoadConfig(length_m=3_000.0), traffic=TrafficConfig(n_cars=(0, 0)))
+BUSY = WorldConfig(road=RoadConfig(length_m=3_000.0))
+
+
+class Straight:
+    """Holds the wheel straight and the speed constant: drives into whatever is ahead."""
+
+    def reset(self, n_worlds: int) -> None:
+        self.n = n_worlds
+
+    def act(self, obs: Observation) -> Actuation:
+        return Actuation(np.zeros(self.n), np.zeros(self.n))
+
+
+class Parked:
+    """Brakes to a standstill and stays there."""
+
+    def reset(self, n_worlds: int) -> None:
+        self.n = n_worlds
+
+    def act(self, obs: Observation) -> Actuation:
+        return Actuation(np.zeros(self.n), np.full(self.n, -8.0))
+
+
+def test_poisson_interval():
+    lo, hi = poisson_ci(0, 1.0)  # 0 collisions over 100 miles, per 100 miles
+    assert lo == 0.0 and hi == pytest.approx(-math.log(0.025), rel=1e-9)  # 3.689
+    lo, hi = poisson_ci(10, 1.0)
+    assert lo == pytest.approx(4.7954, abs=1e-3) and hi == pytest.approx(18.3904, abs=1e-3)
+    with pytest.raises(ValueError, match="exposure"):
+        poisson_ci(1, 0.0)
+
+
+def test_lane_keeper_on_an_empty_road_never_collides():
+    res = evaluate(
+        LaneKeeper(), EMPTY, EvalConfig(miles=6.0, n_worlds=4, n_tracks=4), progress=False
+    )
+    assert res.collisions == 0 and res.interventions == 0
+    assert res.miles == pytest.approx(6.0, rel=0.01)
+    assert res.collisions_per_100mi == 0.0
+    assert res.ci95_per_100mi[1] == pytest.approx(-math.log(0.025) / 0.06, rel=0.02)
+    assert res.autonomy_pct == 100.0
+    assert res.time_to_collision_s is None
+    assert 50.0 < res.mean_speed_mph < 56.5  # 25 m/s = 55.9 mph, from a 20 m/s start
+
+
+def test_straight_driver_hits_the_first_arc_rail():
+    """A car that never steers leaves the road at the first curve: every collision is a rail."""
+    res = evaluate(Straight(), EMPTY, EvalConfig(miles=2.0, n_worlds=2, n_tracks=2), progress=False)
+    assert res.collisions > 0 and res.rail_collisions == res.collisions
+    # each collision happens on an arc (the opening straight is 300 m)
+    assert all(e["s_m"] > 300.0 for e in res.events)
+
+
+def test_lane_keeper_hits_exactly_the_cars_in_its_lane():
+    """On one track, a lane keeper starting in lane L hits the first car in lane L, then is
+    re-spawned past it onto the nearest free lane: the first event is predictable."""
+    cfg = EvalConfig(miles=0.5, n_worlds=1, n_tracks=1)
+    res = evaluate(LaneKeeper(), BUSY, cfg, progress=False)
+    from e2e_lite.world import make_world
+
+    w = make_world(BUSY, "val", 0)
+    first = res.events[0]
+    lane = w.cars.lane[first["car"]]
+    ahead = np.flatnonzero(w.cars.lane == lane)
+    assert first["car"] == ahead[0]  # the first car in its lane, none skipped
+    assert first["kind"] == "car"
+
+
+def test_time_to_collision_and_miles_per_collision():
+    res = evaluate(
+        LaneKeeper(), BUSY, EvalConfig(miles=3.0, n_worlds=2, n_tracks=2), progress=False
+    )
+    assert res.collisions >= 2
+    assert res.miles_per_collision == pytest.approx(res.miles / res.collisions)
+    assert 0 < res.time_to_collision_s < res.sim_time_s
+    assert res.interventions >= res.collisions
+    expected = 100 * (1 - res.interventions * 6.0 / res.sim_time_s)
+    assert res.autonomy_pct == pytest.approx(max(0.0, expected))
+
+
+def test_same_seed_same_counts_and_different_tracks_differ():
+    cfg = EvalConfig(miles=3.0, n_worlds=3, n_tracks=3)
+    a = evaluate(LaneKeeper(), BUSY, cfg, progress=False)
+    b = evaluate(LaneKeeper(), BUSY, cfg, progress=False)
+    assert a.collisions == b.collisions and a.events == b.events and a.miles == b.miles
+    c = evaluate(
+        LaneKeeper(), WorldConfig(road=RoadConfig(length_m=3_000.0, seed=5)), cfg, progress=False
+    )
+    assert [e["s_m"] for e in a.events] != [e["s_m"] for e in c.events]
+
+
+def test_stalled_car_is_respawned_and_the_evaluation_ends():
+    res = evaluate(
+        Parked(),
+        EMPTY,
+        EvalConfig(miles=0.2, n_worlds=1, n_tracks=1, stall_time_s=5.0),
+        progress=False,
+    )
+    assert res.stalls >= 1
+    assert res.miles == pytest.approx(0.2, rel=0.05)
+
+
+def test_cars_move_on_to_their_next_tracks():
+    res = evaluate(
+        LaneKeeper(), EMPTY, EvalConfig(miles=5.0, n_worlds=2, n_tracks=3), progress=False
+    )
+    # 2.5 mi = 4 km each on 3 km tracks: each car started at least two tracks
+    assert res.tracks_driven >= 4
+    assert res.miles * M_PER_MILE == pytest.approx(5.0 * M_PER_MILE, rel=0.01)
+
+
+def test_lane_changer_beats_lane_keeper():
+    cfg = EvalConfig(miles=4.0, n_worlds=4, n_tracks=4)
+    keep = evaluate(LaneKeeper(), BUSY, cfg, progress=False)
+    change = evaluate(LaneChanger(), BUSY, cfg, progress=False)
+    assert change.collisions < keep.collisions
+
+
+def test_policy_protocol_and_config_validation():
+    assert isinstance(LaneKeeper(), Policy)
+    with pytest.raises(ValueError, match=r"EvalConfig\.miles"):
+        EvalConfig(miles=0.0)
+    with pytest.raises(ValueError, match=r"EvalConfig\.split"):
+        EvalConfig(split="everything")
+    with pytest.raises(ValueError, match="n_worlds"):
+        EvalConfig(n_worlds=0)
