@@ -307,15 +307,17 @@ def evaluate(
     track0 = fleet.worlds[0].track  # every track shares the cross-section
     lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
     while active.any():
+        s, d, road_h, kappa = fleet.lane_frame()
         # a car near its track's end moves on to its next track
-        s = fleet.lane_frame()[0]
         lengths = np.array([w.track.length for w in fleet.worlds])
-        for i in np.flatnonzero(active & (s > lengths - cfg.end_margin_m)).tolist():
+        moving_on = np.flatnonzero(active & (s > lengths - cfg.end_margin_m)).tolist()
+        for i in moving_on:
             visit[i] += 1
             fleet.worlds[i] = pool.get(i, int((i + visit[i] * n) % cfg.n_tracks))
             spawn_new_track(i)
             respawned[i] = True
-        s, d, road_h, kappa = fleet.lane_frame()
+        if moving_on:
+            s, d, road_h, kappa = fleet.lane_frame()
         obs = Observation(
             state=fleet.state.copy(),
             s=s,

@@ -111,17 +111,19 @@ def bicycle_step(
         from its old to its new pose in ``dt``, so a physics engine that integrates
         ``p += v dt, h += omega dt`` lands exactly where this model does.
     """
-    steer_cmd = np.clip(steer_cmd, -params.max_steer_rad, params.max_steer_rad)
-    max_dsteer = params.max_steer_rate_radps * dt
-    steer = state[:, STEER] + np.clip(steer_cmd - state[:, STEER], -max_dsteer, max_dsteer)
-    accel = np.clip(accel_cmd, -params.max_brake_mps2, params.max_accel_mps2)
+    max_steer, max_dsteer = params.max_steer_rad, params.max_steer_rate_radps * dt
+    target = np.minimum(np.maximum(steer_cmd, -max_steer), max_steer)
+    steer0 = state[:, STEER]
+    steer = steer0 + np.minimum(np.maximum(target - steer0, -max_dsteer), max_dsteer)
+    accel = np.minimum(np.maximum(accel_cmd, -params.max_brake_mps2), params.max_accel_mps2)
     v0 = state[:, V]
-    v1 = np.clip(v0 + accel * dt, 0.0, params.max_speed_mps)
+    v1 = np.minimum(np.maximum(v0 + accel * dt, 0.0), params.max_speed_mps)
     v_mid = 0.5 * (v0 + v1)  # exact distance for constant acceleration
     omega = v_mid * np.tan(steer) / params.wheelbase_m
     half = 0.5 * omega * dt
-    # chord of an arc of angle 2*half: length = arc * sin(half) / half
-    chord_speed = v_mid * np.sinc(half / np.pi)  # np.sinc(x) = sin(pi x) / (pi x)
+    # chord of an arc of angle 2*half: length = arc * sin(half) / half (-> arc as half -> 0)
+    small = np.abs(half) < 1e-9
+    chord_speed = v_mid * np.where(small, 1.0, np.sin(half) / np.where(small, 1.0, half))
     direction = state[:, H] + half
     vx = chord_speed * np.cos(direction)
     vy = chord_speed * np.sin(direction)

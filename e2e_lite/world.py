@@ -34,6 +34,10 @@ EGO, CAR, RAIL = 1, 2, 3
 CAT_EGO, CAT_CAR, CAT_RAIL = 0b001, 0b010, 0b100
 RAIL_RADIUS_M = 0.15  # half thickness of a guard rail [m]
 _CARS_ONLY = pymunk.ShapeFilter(mask=CAT_CAR)
+# pymunk wraps attribute assignment in a typo check that costs more than the physics step;
+# the hot loop calls the property setters directly.
+_SET_VELOCITY = pymunk.Body.velocity.fset
+_SET_ANGULAR_VELOCITY = pymunk.Body.angular_velocity.fset
 
 
 @dataclass(frozen=True)
@@ -250,8 +254,8 @@ class World:
 
     def physics_step(self, vx: float, vy: float, omega: float, dt: float) -> None:
         """Move the ego with velocity ``(vx, vy)`` [m/s] and yaw rate ``omega`` [rad/s] for ``dt`` [s]."""
-        self.ego.velocity = (vx, vy)
-        self.ego.angular_velocity = omega
+        _SET_VELOCITY(self.ego, (vx, vy))
+        _SET_ANGULAR_VELOCITY(self.ego, omega)
         self.space.step(dt)
 
     # --------------------------------------------------------- range queries
