@@ -278,7 +278,8 @@ def evaluate(
     def respawn(i: int, s_obstacle: float, d_now: float) -> None:
         w = fleet.worlds[i]
         s_new, lane_new = w.respawn_pose(s_obstacle, d_now)
-        s_new = min(s_new, w.track.length - cfg.end_margin_m)  # the next decision moves it on
+        # past the move-on line: the next decision moves the car to its next track before any physics
+        s_new = min(s_new, w.track.length - cfg.end_margin_m + 1.0)
         fleet.place(i, s_new, float(w.track.lane_center(lane_new)), cfg.start_speed_mps)
         respawned[i] = True
 
