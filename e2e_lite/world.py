@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -33,6 +34,7 @@ from .vehicle import STATE_SIZE, STEER, V, VehicleParams, bicycle_step
 EGO, CAR, RAIL = 1, 2, 3
 CAT_EGO, CAT_CAR, CAT_RAIL = 0b001, 0b010, 0b100
 RAIL_RADIUS_M = 0.15  # half thickness of a guard rail [m]
+CAR_HEIGHT_M = 1.5  # parked cars' height, for the camera [m]
 _CARS_ONLY = pymunk.ShapeFilter(mask=CAT_CAR)
 # pymunk wraps attribute assignment in a typo check that costs more than the physics step;
 # the hot loop calls the property setters directly.
@@ -152,6 +154,16 @@ class ParkedCars:
         x = self.x[:, None] + c * local[:, 0] - s * local[:, 1]
         y = self.y[:, None] + s * local[:, 0] + c * local[:, 1]
         return np.stack([x, y], axis=-1)
+
+    @functools.cached_property
+    def box_corners_3d(self) -> np.ndarray:
+        """World corners of every car as a box of height ``CAR_HEIGHT_M``: bottom ring, then top
+        ring, counter-clockwise from rear-right; (N, 8, 3) [m]. Computed once (cars never move)."""
+        ring = self.corners()
+        bottom = np.concatenate([ring, np.zeros((*ring.shape[:2], 1))], axis=-1)
+        top = bottom.copy()
+        top[..., 2] = CAR_HEIGHT_M
+        return np.concatenate([bottom, top], axis=1)
 
     def between(self, s_lo: float, s_hi: float) -> slice:
         """The slice of cars with centre ``s`` in ``[s_lo, s_hi)``."""

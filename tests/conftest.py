@@ -1,11 +1,45 @@
-"""Shared fixtures: every test writes artifacts to its own temporary folder."""
+"""Shared fixtures and scene builders."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
+
+from e2e_lite.geometry import Track
+from e2e_lite.vehicle import VehicleParams
+from e2e_lite.world import ParkedCars, World
 
 
 @pytest.fixture(autouse=True)
 def _isolated_outputs(tmp_path, monkeypatch):
+    """Every test writes artifacts to its own temporary folder, in the full profile."""
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path / "outputs"))
     monkeypatch.delenv("E2E_LITE_QUICK", raising=False)
+
+
+def straight_world(
+    car_s: list[float],
+    car_lane: list[int],
+    length: float = 2_000.0,
+    car_d: list[float] | None = None,
+) -> World:
+    """A straight 3-lane road along +x from the origin, with parked cars at the given places
+    (centred on their lanes unless ``car_d`` gives their offsets)."""
+    track = Track([0.0], [0.0], [0.0], [0.0], [length])
+    s = np.array(car_s, dtype=float)
+    lane = np.array(car_lane, dtype=int)
+    if car_d is None:
+        d = np.asarray(track.lane_center(lane), dtype=float).reshape(-1)
+    else:
+        d = np.array(car_d, dtype=float)
+    cars = ParkedCars(
+        s=s,
+        d=d,
+        lane=lane,
+        x=s.copy(),
+        y=d.copy(),
+        heading=np.zeros(len(s)),
+        length_m=4.5,
+        width_m=1.8,
+    )
+    return World(track, cars, VehicleParams())

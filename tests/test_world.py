@@ -4,30 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import straight_world
 
-from e2e_lite.geometry import RoadConfig, Track
-from e2e_lite.world import Fleet, ParkedCars, TrafficConfig, World, WorldConfig, make_world
+from e2e_lite.geometry import RoadConfig
+from e2e_lite.world import Fleet, TrafficConfig, WorldConfig, make_world
 
 CFG = WorldConfig()
-
-
-def straight_world(car_s: list[float], car_lane: list[int], length: float = 2_000.0) -> World:
-    """A straight 3-lane road along +x with parked cars at the given places."""
-    track = Track([0.0], [0.0], [0.0], [0.0], [length])
-    s = np.array(car_s, dtype=float)
-    lane = np.array(car_lane, dtype=int)
-    d = np.asarray(track.lane_center(lane), dtype=float).reshape(-1)
-    cars = ParkedCars(
-        s=s,
-        d=d,
-        lane=lane,
-        x=s.copy(),
-        y=d.copy(),
-        heading=np.zeros(len(s)),
-        length_m=4.5,
-        width_m=1.8,
-    )
-    return World(track, cars, CFG.vehicle)
 
 
 def drive(fleet: Fleet, periods: int, steer: float = 0.0, accel: float = 0.0) -> list:
