@@ -42,7 +42,7 @@ import numpy as np
 
 from .artifacts import atomic_write
 from .config import check_range
-from .geometry import Track
+from .geometry import Track, positions_on
 from .world import CAR_HEIGHT_M, ParkedCars
 
 _SHIFT = 4  # sub-pixel bits for OpenCV fills
@@ -139,6 +139,20 @@ class Camera:
         far = cfg.draw_distance_m
         self._s_offsets = np.unique(np.r_[-4.0, -1.0, 0.0, np.geomspace(1.0, far, 28)])
         self._background = self._make_background(self.pitch, SKY, GRASS)
+        # inward normals of the view's side planes through the lens: a camera-frame point p is
+        # inside when n . p >= 0 for each (left, right, top, bottom edges of the pixel grid)
+        w, hgt = cfg.width_px, cfg.height_px
+        self._frustum = np.array(
+            [
+                [self.fx, 0.0, self.cx + 0.5],
+                [-self.fx, 0.0, w - 0.5 - self.cx],
+                [0.0, self.fy, self.cy + 0.5],
+                [0.0, -self.fy, hgt - 0.5 - self.cy],
+            ]
+        )
+        # dashes per divider that cover the sampled window from the period boundary before it
+        span = self._s_offsets[-1] - self._s_offsets[0]
+        self._n_dashes = math.ceil(span / DASH_PERIOD_M) + 2
 
     # -------------------------------------------------------------- geometry
     def horizon_row(self, pitch: float | None = None) -> float:
@@ -183,14 +197,31 @@ class Camera:
 
         The rows of ``R`` are the camera's right, down and optical axes in world coordinates.
         """
-        h = self.height if height is None else height
-        th = self.pitch if pitch is None else pitch
-        x0, y0, hd = pose
-        c, s = math.cos(hd), math.sin(hd)
-        ct, st = math.cos(th), math.sin(th)
-        rot = np.array([[s, -c, 0.0], [-st * c, -st * s, -ct], [ct * c, ct * s, -st]])
-        lens = np.array([x0 + self.cfg.forward_offset_m * c, y0 + self.cfg.forward_offset_m * s, h])
-        return rot, -rot @ lens
+        rot, t = self._matrices(
+            np.array([pose], dtype=np.float64),
+            np.array([self.height if height is None else height]),
+            np.array([self.pitch if pitch is None else pitch]),
+        )
+        return rot[0], t[0]
+
+    def _matrices(
+        self, poses: np.ndarray, heights: np.ndarray, pitches: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """World-to-camera rotations (B, 3, 3) and offsets (B, 3) for poses (B, 3)."""
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        ct, st = np.cos(pitches), np.sin(pitches)
+        zero = np.zeros_like(c)
+        rot = np.stack(
+            [
+                np.stack([s, -c, zero], -1),
+                np.stack([-st * c, -st * s, -ct], -1),
+                np.stack([ct * c, ct * s, -st], -1),
+            ],
+            axis=1,
+        )
+        off = self.cfg.forward_offset_m
+        lens = np.stack([poses[:, 0] + off * c, poses[:, 1] + off * s, heights], -1)
+        return rot, -np.einsum("bij,bj->bi", rot, lens)
 
     # -------------------------------------------------------------- drawing
     def render(
@@ -215,148 +246,225 @@ class Camera:
         Returns:
             The RGB ``uint8`` image, shape ``(height_px, width_px, 3)``.
         """
+        batch = None if out is None else out[None]
+        return self.render_batch(
+            [track],
+            [cars],
+            np.array([pose], dtype=np.float64),
+            None if s is None else np.array([s]),
+            rng=rng,
+            out=batch,
+        )[0]
+
+    def render_batch(
+        self,
+        tracks: list[Track],
+        cars: list[ParkedCars | None],
+        poses: np.ndarray,
+        s: np.ndarray | None = None,
+        rng: np.random.Generator | None = None,
+        out: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Draw B views at once (the evaluator's and the data collector's way): (B, H, W, 3) RGB.
+
+        Frame ``b`` shows ``tracks[b]`` and ``cars[b]`` from a car at ``poses[b] = (x, y, heading)``
+        (rear axle), with arc length ``s[b]`` if given. The geometry of all frames is computed in
+        a few array operations; only the polygon fills are per frame. ``rng`` as in :meth:`render`
+        (one generator draws for every frame, in order).
+        """
         cfg = self.cfg
-        height, pitch = self.height, self.pitch
-        road_col, bright = ROAD, 1.0
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        n_frames = len(poses)
+        if out is None:
+            out = np.empty((n_frames, *self.shape), dtype=np.uint8)
+        if s is None:
+            s = np.array([float(t.to_frenet(p[0], p[1])[0]) for t, p in zip(tracks, poses)])
+        heights = np.full(n_frames, self.height)
+        pitches = np.full(n_frames, self.pitch)
+        road_cols = [ROAD] * n_frames
         if cfg.augment:
             if rng is None:
                 raise ValueError("Camera.render: rng is required when CameraConfig.augment is on")
-            height += rng.uniform(-cfg.height_jitter_m, cfg.height_jitter_m)
-            pitch += math.radians(rng.uniform(-cfg.pitch_jitter_deg, cfg.pitch_jitter_deg))
-            tint = 1.0 + rng.uniform(-cfg.tint_jitter, cfg.tint_jitter, 6)
-            road_col = tuple(int(min(255, c * t)) for c, t in zip(ROAD, tint[:3]))
-            grass_col = tuple(int(min(255, c * t)) for c, t in zip(GRASS, tint[3:]))
-            bright = 1.0 + rng.uniform(-cfg.brightness_jitter, cfg.brightness_jitter)
-        img = np.empty(self.shape, dtype=np.uint8) if out is None else out
-        if cfg.augment:
-            np.copyto(img, self._make_background(pitch, SKY, grass_col))
+            brights = []
+            for b in range(n_frames):
+                heights[b] += rng.uniform(-cfg.height_jitter_m, cfg.height_jitter_m)
+                pitches[b] += math.radians(rng.uniform(-cfg.pitch_jitter_deg, cfg.pitch_jitter_deg))
+                tint = 1.0 + rng.uniform(-cfg.tint_jitter, cfg.tint_jitter, 6)
+                road_cols[b] = tuple(int(min(255, c * t)) for c, t in zip(ROAD, tint[:3]))
+                grass = tuple(int(min(255, c * t)) for c, t in zip(GRASS, tint[3:]))
+                brights.append(1.0 + rng.uniform(-cfg.brightness_jitter, cfg.brightness_jitter))
+                np.copyto(out[b], self._make_background(pitches[b], SKY, grass))
         else:
-            np.copyto(img, self._background)
-        if s is None:
-            s = float(track.to_frenet(pose[0], pose[1])[0])
-        rot, t = self.world_to_camera_matrix(pose, height, pitch)
-        s_lens = s + cfg.forward_offset_m
-        s_pts = np.maximum(s_lens + self._s_offsets, 0.0)
-        n = len(s_pts)
-        # --- every ground point in one lane-frame lookup: 6 band lines, then the dash corners
+            out[:] = self._background
+        rot, t = self._matrices(poses, heights, pitches)
+        s_lens = np.asarray(s, dtype=np.float64) + cfg.forward_offset_m
+        s_pts = np.maximum(s_lens[:, None] + self._s_offsets, 0.0)  # (B, n)
+        n = s_pts.shape[1]
+        # --- all ground points of all frames: 6 lines along the road, then the dash corners.
+        # Every track shares the first track's cross-section (one RoadConfig per evaluation).
+        track = tracks[0]
         hw, rd = track.half_width, track.rail_d
         d_lines = np.array([-rd, rd, -hw, hw, hw - MARK_WIDTH_M, -hw + MARK_WIDTH_M])
-        first = math.floor(s_pts[0] / DASH_PERIOD_M) * DASH_PERIOD_M
-        starts = np.arange(first, s_pts[-1], DASH_PERIOD_M)
         n_div = track.n_lanes - 1
         d_div = np.asarray(track.lane_center(np.arange(1, track.n_lanes))) - track.lane_width / 2
-        dash_s = np.stack([starts, starts + DASH_M, starts + DASH_M, starts], -1)  # (D, 4)
-        dash_d = np.array([-1.0, -1.0, 1.0, 1.0]) * (MARK_WIDTH_M / 2)
-        n_dash = dash_s.size
-        all_s = np.empty(6 * n + n_div * n_dash)
-        all_s[: 6 * n].reshape(6, n)[:] = s_pts
-        all_s[6 * n :].reshape(n_div, n_dash)[:] = dash_s.ravel()
-        all_d = np.empty_like(all_s)
-        all_d[: 6 * n].reshape(6, n)[:] = d_lines[:, None]
-        all_d[6 * n :].reshape(n_div, -1, 4)[:] = d_div[:, None, None] + dash_d
-        xy = track.position(all_s, all_d)  # (6n + 4 D n_div, 2)
-        cam = xy @ rot[:, :2].T + t  # ground points in the camera frame
-        lines = cam[: 6 * n].reshape(6, n, 3)
-        # rail tops: the rail lines lifted by RAIL_HEIGHT_M (a world z offset is R[:, 2] * dz)
-        tops = lines[:2] + rot[:, 2] * RAIL_HEIGHT_M
-        polys = _clip_strips(
-            np.concatenate([lines, tops]),
-            cfg.near_m,
-            [(0, 1), (2, 3), (3, 4), (5, 2), (0, 6), (1, 7)],
+        first = np.floor(s_pts[:, :1] / DASH_PERIOD_M) * DASH_PERIOD_M
+        starts = first + DASH_PERIOD_M * np.arange(self._n_dashes)  # (B, D)
+        dash_s = (starts[:, :, None] + _DASH_S).reshape(n_frames, 1, -1)  # (B, 1, 4D)
+        all_s = np.concatenate(
+            [
+                np.repeat(s_pts, 6, axis=0).reshape(n_frames, 6 * n),
+                np.repeat(dash_s, n_div, axis=1).reshape(n_frames, -1),
+            ],
+            axis=1,
         )
-        shoulder, road, edge_l, edge_r, wall_r, wall_l = polys
-        dashes = cam[6 * n :].reshape(-1, 4, 3)
-        dash_z = dashes[:, :, 2]
-        dash_list = list(dashes[dash_z.min(axis=1) >= cfg.near_m])
-        for k in np.flatnonzero(
-            (dash_z.min(axis=1) < cfg.near_m) & (dash_z.max(axis=1) >= cfg.near_m)
-        ):
-            dash_list.append(clip_near(dashes[k], cfg.near_m))  # straddles the near plane: cut
-        groups = [
-            ([shoulder], SHOULDER),
-            ([road], road_col),
-            ([edge_l, edge_r, *dash_list], MARKING),
-            ([wall_r, wall_l], RAIL),
-        ]
-        self._fill_groups(img, groups)
-        # --- parked cars, farthest first
-        if cars is not None and len(cars):
-            sl = cars.between(s_lens - 12.0, s_lens + cfg.draw_distance_m)
-            if sl.stop > sl.start:
-                self._draw_cars(img, cars, sl, pose, rot, t)
-        if bright != 1.0:
-            cv2.convertScaleAbs(img, dst=img, alpha=bright)
-        return img
+        all_d = np.concatenate(
+            [np.repeat(d_lines, n), (d_div[:, None] + np.tile(_DASH_D, self._n_dashes)).ravel()]
+        )
+        xy = positions_on(tracks, all_s, all_d)  # (B, P, 2)
+        cam = xy @ rot[:, :, :2].transpose(0, 2, 1) + t[:, None, :]  # (B, P, 3)
+        lines = cam[:, : 6 * n].reshape(n_frames, 6, n, 3)
+        tops = lines[:, :2] + (rot[:, :, 2] * RAIL_HEIGHT_M)[:, None, None, :]  # rails' top edges
+        strips, ok = _clip_strips(np.concatenate([lines, tops], axis=1), cfg.near_m)
+        strip_px = np.round(self.project(strips) * _SCALE).astype(np.int32)  # (B, 6, 2n, 2)
+        dashes = cam[:, 6 * n :].reshape(n_frames, -1, 4, 3)
+        dz = dashes[..., 2]
+        dash_front = dz.min(axis=-1) >= cfg.near_m
+        dash_px = np.round(
+            self.project(np.where(dash_front[..., None, None], dashes, 1.0)) * _SCALE
+        ).astype(np.int32)
+        straddle = ~dash_front & (dz.max(axis=-1) >= cfg.near_m)
+        car_faces = self._car_faces(cars, poses, s_lens, heights, rot, t)
+        for b in range(n_frames):
+            img = out[b]
+            if ok[b]:
+                polys = list(strip_px[b])
+            else:  # a line that does not cross the near plane once (car turned across the road)
+                polys = []
+                for a, c in _STRIPS:
+                    poly = clip_near(
+                        np.concatenate([_line(lines, tops, b, a), _line(lines, tops, b, c)[::-1]]),
+                        cfg.near_m,
+                    )
+                    polys.append(
+                        None
+                        if poly is None
+                        else np.round(self.project(poly) * _SCALE).astype(np.int32)
+                    )
+            marks = [p for p in polys[2:4] if p is not None] + list(dash_px[b][dash_front[b]])
+            for k in np.flatnonzero(straddle[b]).tolist():  # the dash under the lens: cut it
+                poly = clip_near(dashes[b, k], cfg.near_m)
+                if poly is not None:
+                    marks.append(np.round(self.project(poly) * _SCALE).astype(np.int32))
+            for poly, colour in ((polys[0], SHOULDER), (polys[1], road_cols[b])):
+                if poly is not None:
+                    cv2.fillPoly(img, [poly], colour, cv2.LINE_AA, _SHIFT)
+            if marks:
+                cv2.fillPoly(img, marks, MARKING, cv2.LINE_AA, _SHIFT)
+            walls = [p for p in polys[4:6] if p is not None]
+            if walls:
+                cv2.fillPoly(img, walls, RAIL, cv2.LINE_AA, _SHIFT)
+            for pts, colour in car_faces[b]:
+                cv2.fillConvexPoly(img, pts, colour, cv2.LINE_AA, _SHIFT)
+            if cfg.augment and brights[b] != 1.0:
+                cv2.convertScaleAbs(img, dst=img, alpha=brights[b])
+        return out
 
-    def _fill_groups(self, img: np.ndarray, groups: list[tuple[list, tuple]]) -> None:
-        """Project polygons already clipped at the near plane (``None`` entries are skipped) in one
-        go, and fill each group with its colour in one call."""
-        flat, spans = [], []
-        for polys, colour in groups:
-            kept = [p for p in polys if p is not None]
-            spans.append((len(flat), len(flat) + len(kept), colour))
-            flat.extend(kept)
-        if not flat:
-            return
-        px = np.round(self.project(np.concatenate(flat)) * _SCALE).astype(np.int32)
-        ends = np.cumsum([len(p) for p in flat]).tolist()
-        pieces = [px[a:b] for a, b in zip([0, *ends[:-1]], ends)]
-        for a, b, colour in spans:
-            if b > a:
-                cv2.fillPoly(img, pieces[a:b], colour, cv2.LINE_AA, _SHIFT)
-
-    def _draw_cars(
+    def _car_faces(
         self,
-        img: np.ndarray,
-        cars: ParkedCars,
-        sl: slice,
-        pose: tuple[float, float, float],
+        cars: list[ParkedCars | None],
+        poses: np.ndarray,
+        s_lens: np.ndarray,
+        heights: np.ndarray,
         rot: np.ndarray,
         t: np.ndarray,
-    ) -> None:
-        x, y, h = cars.x[sl], cars.y[sl], cars.heading[sl]
-        hl, hw = cars.length_m / 2, cars.width_m / 2
-        cam = cars.box_corners_3d[sl] @ rot.T + t  # (C, 8, 3)
-        c, s = np.cos(h)[:, None], np.sin(h)[:, None]
-        # which faces point at the camera: the lens relative to each car, in the car's frame
-        lens_x = pose[0] + self.cfg.forward_offset_m * math.cos(pose[2])
-        lens_y = pose[1] + self.cfg.forward_offset_m * math.sin(pose[2])
-        rel_x, rel_y = lens_x - x, lens_y - y
-        along = rel_x * c[:, 0] + rel_y * s[:, 0]  # lens ahead (+) / behind (-) of the car's centre
-        across = -rel_x * s[:, 0] + rel_y * c[:, 0]  # lens left (+) / right (-)
+    ) -> list[list[tuple]]:
+        """Per frame, the ``(pixels, colour)`` of every visible car face, farthest car first.
+
+        The geometry of every car of every frame is computed together: corners in camera frames,
+        which faces point at the lens, frustum culling, projection. Faces of a car straddling the
+        near plane are clipped one by one.
+        """
+        n_frames = len(poses)
+        faces: list[list[tuple]] = [[] for _ in range(n_frames)]
+        sls = [
+            c.between(sl - 12.0, sl + self.cfg.draw_distance_m)
+            if c is not None and len(c)
+            else slice(0, 0)
+            for c, sl in zip(cars, s_lens)
+        ]
+        counts = np.array([sl.stop - sl.start for sl in sls])
+        if counts.sum() == 0:
+            return faces
+        live = [b for b in range(n_frames) if counts[b]]
+        corners = np.concatenate([cars[b].box_corners_3d[sls[b]] for b in live])  # (C, 8, 3)
+        x = np.concatenate([cars[b].x[sls[b]] for b in live])
+        y = np.concatenate([cars[b].y[sls[b]] for b in live])
+        h = np.concatenate([cars[b].heading[sls[b]] for b in live])
+        ids = np.concatenate([np.arange(sls[b].start, sls[b].stop) for b in live])
+        frame = np.repeat(np.arange(n_frames), counts)
+        cam = corners @ rot[frame].transpose(0, 2, 1) + t[frame][:, None, :]  # (C, 8, 3)
+        # which faces point at the lens: the lens relative to each car, in the car's frame
+        off = self.cfg.forward_offset_m
+        rel_x = poses[frame, 0] + off * np.cos(poses[frame, 2]) - x
+        rel_y = poses[frame, 1] + off * np.sin(poses[frame, 2]) - y
+        c, s = np.cos(h), np.sin(h)
+        along = rel_x * c + rel_y * s  # lens ahead (+) / behind (-) of the car's centre
+        across = -rel_x * s + rel_y * c  # lens left (+) / right (-)
+        hl = np.array([cars[b].length_m for b in live]).repeat(counts[live]) / 2
+        hw = np.array([cars[b].width_m for b in live]).repeat(counts[live]) / 2
         seen = np.stack(
-            [
-                along < -hl,
-                along > hl,
-                across < -hw,
-                across > hw,
-                np.full(len(x), self.height > CAR_HEIGHT_M),
-            ],
-            -1,
+            [along < -hl, along > hl, across < -hw, across > hw, heights[frame] > CAR_HEIGHT_M], -1
         )  # (C, 5)
         depth = cam[:, :, 2]
         near = self.cfg.near_m
         in_front = depth.min(axis=1) >= near
-        px = np.round(self.project(np.where(in_front[:, None, None], cam, 1.0)) * _SCALE).astype(
-            np.int32
+        px = self.project(np.where(in_front[:, None, None], cam, 1.0))
+        face_px = np.round(px[:, _FACE_INDEX] * _SCALE).astype(np.int32, order="C")  # (C, 5, 4, 2)
+        # frustum culling: a box wholly outside one side plane of the view (a half-space test
+        # that holds for corners behind the lens too) or wholly behind the near plane is skipped
+        drawn = (depth.max(axis=1) >= near) & ~np.any(
+            np.all(cam @ self._frustum.T < 0.0, axis=1), axis=1
         )
-        for k in np.argsort(-depth.mean(axis=1)).tolist():
-            if depth[k].max() < near:
-                continue  # wholly behind the camera
-            colours = _FACE_COLOURS[(sl.start + k) % len(CAR_COLOURS)]
-            for f in np.flatnonzero(seen[k]).tolist():
-                if in_front[k]:
-                    pts = px[k, _FACES[f]]
+        order = np.lexsort((-depth.mean(axis=1), frame))  # by frame, farthest first
+        seen_l, front_l, frame_l, ids_l = (
+            seen.tolist(),
+            in_front.tolist(),
+            frame.tolist(),
+            ids.tolist(),
+        )
+        for k in order[drawn[order]].tolist():
+            colours = _FACE_COLOURS[ids_l[k] % len(CAR_COLOURS)]
+            out = faces[frame_l[k]]
+            for f in range(5):
+                if not seen_l[k][f]:
+                    continue
+                if front_l[k]:
+                    out.append((face_px[k, f], colours[f]))
                 else:  # straddles the near plane: cut the face first
                     poly = clip_near(cam[k, _FACES[f]], near)
-                    if poly is None:
-                        continue
-                    pts = np.round(self.project(poly) * _SCALE).astype(np.int32)
-                cv2.fillConvexPoly(img, pts, colours[f], cv2.LINE_AA, _SHIFT)
+                    if poly is not None:
+                        out.append(
+                            (np.round(self.project(poly) * _SCALE).astype(np.int32), colours[f])
+                        )
+        return faces
 
 
+def _line(lines: np.ndarray, tops: np.ndarray, b: int, i: int) -> np.ndarray:
+    """Line ``i`` of frame ``b`` among the 6 ground lines followed by the 2 rail tops."""
+    return lines[b, i] if i < 6 else tops[b, i - 6]
+
+
+# dash corners: along-road offsets (from the dash start) and lateral offsets (from the line)
+_DASH_S = np.array([0.0, DASH_M, DASH_M, 0.0])
+_DASH_D = np.array([-1.0, -1.0, 1.0, 1.0]) * (MARK_WIDTH_M / 2)
+# the ground strips as (line, line) pairs of [6 ground lines, 2 rail tops]:
+# shoulder, road, left edge line, right edge line, right rail, left rail
+_STRIPS = ((0, 1), (2, 3), (3, 4), (5, 2), (0, 6), (1, 7))
+_STRIP_A = np.array([a for a, _ in _STRIPS])
+_STRIP_B = np.array([b for _, b in _STRIPS])
 # faces of ParkedCars.box_corners_3d, in the order of the visibility tests: back, front, right, left, top
 _FACES = ([0, 3, 7, 4], [1, 5, 6, 2], [0, 4, 5, 1], [3, 2, 6, 7], [4, 5, 6, 7])
+_FACE_INDEX = np.array(_FACES)
 _FACE_COLOURS = tuple(
     tuple(
         tuple(int(ch * FACE_SHADE[f]) for ch in base)
@@ -366,38 +474,33 @@ _FACE_COLOURS = tuple(
 )
 
 
-def _clip_strips(lines: np.ndarray, near: float, pairs: list[tuple[int, int]]) -> list:
-    """Polygons ``[line a forward, line b backward]`` for each pair, clipped at ``z >= near``.
+def _clip_strips(lines: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray]:
+    """The ground strips of B frames, clipped at the near plane; (B, 6, 2n, 3) and a (B,) mask.
 
-    ``lines`` is ``(P, n, 3)``: P polylines sampled at the same arc lengths. When every line's
-    depth grows along it (the car faces roughly along the road), each line is cut once at the
-    near plane, vectorised, which equals Sutherland-Hodgman on the strip; otherwise each strip
-    falls back to :func:`clip_near`. A strip wholly behind the camera gives ``None``.
+    ``lines`` is (B, 8, n, 3): per frame, 8 polylines sampled at the same arc lengths. A strip is
+    ``[line a forward, line b backward]``. When a line's samples, once in front of the near plane,
+    stay in front (the car faces roughly along the road), every sample behind it is replaced by
+    the line's crossing point. The strip then keeps the same outline as a Sutherland-Hodgman clip,
+    with repeated vertices that fill nothing. Frames where that does not hold are flagged
+    ``False`` (the caller clips them polygon by polygon); so are frames where a line is wholly
+    behind the camera.
     """
-    z = lines[:, :, 2]
-    if not np.all(np.diff(z, axis=1) > 0):
-        out = []
-        for a, b in pairs:
-            out.append(clip_near(np.concatenate([lines[a], lines[b, ::-1]]), near))
-        return out
-    n = z.shape[1]
-    first = np.argmax(z >= near, axis=1)  # first sample in front (0 if none: checked below)
-    behind = ~np.any(z >= near, axis=1)
+    z = lines[..., 2]  # (B, 8, n)
+    front = z >= near
+    once = np.all(front[..., 1:] >= front[..., :-1], axis=(1, 2))  # never back behind
+    seen = np.all(front[..., -1], axis=1)  # every line reaches in front
+    first = np.argmax(front, axis=-1)  # (B, 8)
     prev = np.maximum(first - 1, 0)
-    rows = np.arange(len(lines))
-    za, zb = z[rows, prev], z[rows, first]
+    za = np.take_along_axis(z, prev[..., None], -1)[..., 0]
+    zb = np.take_along_axis(z, first[..., None], -1)[..., 0]
+    pa = np.take_along_axis(lines, prev[..., None, None], 2)[:, :, 0]  # (B, 8, 3)
+    pb = np.take_along_axis(lines, first[..., None, None], 2)[:, :, 0]
     frac = np.where(first > 0, (near - za) / np.where(zb > za, zb - za, 1.0), 0.0)
-    cut = lines[rows, prev] + frac[:, None] * (lines[rows, first] - lines[rows, prev])
-    out = []
-    for a, b in pairs:
-        if behind[a] or behind[b]:
-            out.append(None)
-            continue
-        fa, fb = int(first[a]), int(first[b])
-        line_a = lines[a, fa:] if fa == 0 else np.concatenate([cut[a : a + 1], lines[a, fa:]])
-        line_b = lines[b, fb:] if fb == 0 else np.concatenate([cut[b : b + 1], lines[b, fb:]])
-        out.append(np.concatenate([line_a, line_b[::-1]]) if n else None)
-    return out
+    cut = pa + frac[..., None] * (pb - pa)
+    clipped = np.where(front[..., None], lines, cut[:, :, None, :])
+    strips = np.concatenate([clipped[:, _STRIP_A], clipped[:, _STRIP_B, ::-1]], axis=2)
+    strips[..., 2] = np.maximum(strips[..., 2], near)  # the crossing points sit on the plane
+    return strips, once & seen
 
 
 def clip_near(poly: np.ndarray, near: float) -> np.ndarray | None:
@@ -405,22 +508,23 @@ def clip_near(poly: np.ndarray, near: float) -> np.ndarray | None:
 
     Returns the clipped polygon, or ``None`` when nothing is in front. For each edge ``i -> i+1``:
     keep vertex ``i`` if it is inside, and add the edge's crossing point if the edge crosses.
+    (Plain Python: the polygons that need it are few and small, where numpy's call overhead
+    would dominate.)
     """
     z = poly[:, 2]
-    inside = z >= near
-    if inside.all():
+    if z.min() >= near:
         return poly
-    if not inside.any():
+    if z.max() < near:
         return None
-    n = len(poly)
-    i = np.flatnonzero(inside != np.roll(inside, -1))  # edges i -> i+1 that cross
-    j = (i + 1) % n
-    frac = (near - z[i]) / (z[j] - z[i])
-    crossing = poly[i] + frac[:, None] * (poly[j] - poly[i])
-    crossing[:, 2] = near
-    # each crossing goes right after the inside vertices up to and including vertex i
-    out = np.insert(poly[inside], np.cumsum(inside)[i], crossing, axis=0)
-    return out if len(out) >= 3 else None
+    pts = poly.tolist()
+    out = []
+    for (xa, ya, za), (xb, yb, zb) in zip(pts, pts[1:] + pts[:1]):
+        if za >= near:
+            out.append((xa, ya, za))
+        if (za >= near) != (zb >= near):
+            f = (near - za) / (zb - za)
+            out.append((xa + f * (xb - xa), ya + f * (yb - ya), near))
+    return np.array(out) if len(out) >= 3 else None
 
 
 def draw_trajectory(

@@ -302,6 +302,39 @@ class Track:
         return float(self.seg_len[np.abs(self.k) >= _STRAIGHT_EPS].sum() / self.length)
 
 
+def positions_on(tracks: list[Track], s: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """:meth:`Track.position` for B tracks at once: row ``b`` of ``s`` (B, P) lies on ``tracks[b]``.
+
+    ``d`` is (P,) or (B, P). Rows whose points all lie on one segment (a camera window of 100 m
+    usually does) are computed together with per-row segment constants; the others row by row.
+    Returns (B, P, 2) [m].
+    """
+    s = np.asarray(s, dtype=np.float64)
+    d = np.broadcast_to(np.asarray(d, dtype=np.float64), s.shape)
+    out = np.empty((*s.shape, 2))
+    lo, hi = s.min(axis=1), s.max(axis=1)
+    rows, consts = [], []
+    for b, track in enumerate(tracks):
+        j = int(np.searchsorted(track.s0, lo[b], side="right")) - 1
+        if j >= 0 and (j == len(track.s0) - 1 or hi[b] < track.s0[j + 1]):
+            rows.append(b)
+            consts.append(track.seg_table[j])
+        else:
+            out[b] = track.position(s[b], d[b])
+    if rows:
+        c = np.array(consts)  # (R, 8): s0, length, x0, y0, h0, k, cx, cy
+        s0, x0, y0, h0, k, cx, cy = (c[:, i : i + 1] for i in (0, 2, 3, 4, 5, 6, 7))
+        u, dd = s[rows] - s0, d[rows]
+        straight = np.abs(k) < _STRAIGHT_EPS
+        k_safe = np.where(straight, 1.0, k)
+        h = h0 + k * u
+        r = 1.0 / k_safe - dd  # arcs: radius of the offset point about the centre
+        sin_h, cos_h = np.sin(h), np.cos(h)
+        out[rows, :, 0] = np.where(straight, x0 + u * cos_h - dd * sin_h, cx + r * sin_h)
+        out[rows, :, 1] = np.where(straight, y0 + u * sin_h + dd * cos_h, cy - r * cos_h)
+    return out
+
+
 def _project(
     px: np.ndarray,
     py: np.ndarray,
