@@ -31,6 +31,7 @@ import numpy as np
 from scipy.stats import chi2
 from tqdm.auto import tqdm
 
+from .camera import Camera
 from .config import check_range
 from .geometry import SPLITS
 from .vehicle import H, V
@@ -54,7 +55,7 @@ class Observation:
             new track, collision, stall): a stateful policy should forget car i's plan.
         time_s: simulated time since the start [s].
         worlds: the B worlds (privileged access for scripted drivers and the expert).
-        images: camera frames ``(B, H, W, 3)`` uint8 when the policy asks for them, else None.
+        images: camera frames ``(B, H, W, 3)`` RGB uint8 when the policy has a ``camera``, else None.
     """
 
     state: np.ndarray
@@ -84,7 +85,14 @@ class Actuation:
 
 @runtime_checkable
 class Policy(Protocol):
-    """Anything that drives: ``reset`` once per evaluation, then ``act`` every policy period."""
+    """Anything that drives: ``reset`` once per evaluation, then ``act`` every policy period.
+
+    A policy that sees through the front camera also has an attribute ``camera`` holding a
+    :class:`~e2e_lite.camera.CameraConfig`; the evaluator then renders one frame per car every
+    decision into ``obs.images`` (B, H, W, 3) RGB uint8. That buffer is reused: copy a frame to
+    keep it past the next decision. A policy without the attribute (or with ``None``) gets no
+    images and costs no rendering.
+    """
 
     def reset(self, n_worlds: int) -> None:
         """Forget everything; ``n_worlds`` cars are about to be driven."""
@@ -306,6 +314,10 @@ def evaluate(
         bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} mi [{elapsed}<{remaining}]",
     )
     track0 = fleet.worlds[0].track  # every track shares the cross-section
+    cam_cfg = getattr(policy, "camera", None)
+    camera = None if cam_cfg is None else Camera(cam_cfg)
+    images = None if camera is None else np.empty((n, *camera.shape), dtype=np.uint8)
+    cam_rng = np.random.default_rng([cfg.seed, 11])  # used only if the camera augments
     lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
     while active.any():
         s, d, road_h, kappa = fleet.lane_frame()
@@ -319,7 +331,17 @@ def evaluate(
             respawned[i] = True
         if moving_on:
             s, d, road_h, kappa = fleet.lane_frame()
+        if camera is not None:
+            camera.render_batch(
+                [w.track for w in fleet.worlds],
+                [w.cars for w in fleet.worlds],
+                fleet.state[:, :3],
+                s,
+                rng=cam_rng,
+                out=images,
+            )
         obs = Observation(
+            images=images,
             state=fleet.state.copy(),
             s=s,
             d=d,

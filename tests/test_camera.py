@@ -19,6 +19,7 @@ from e2e_lite.camera import (
     render_topdown,
 )
 from e2e_lite.geometry import RoadConfig, generate_track
+from e2e_lite.world import WorldConfig, make_world
 
 CAM = Camera()
 CENTRE_POSE = (100.0, 0.0, 0.0)  # rear axle at s = 100 m, middle lane, aligned
@@ -182,3 +183,13 @@ def test_topdown_puts_the_ego_at_its_place_and_cars_ahead_above_it():
     assert tuple(img[round(row0 - 4), round(col0)]) == (30, 110, 255)  # the ego (blue), 1 m ahead
     car_row = round(row0 - 20.0 / cfg.m_per_px)  # 20 m ahead
     assert tuple(img[car_row, round(col0)]) != tuple(img[car_row, 5])  # a car, not road or grass
+
+
+def test_a_batch_renders_exactly_what_single_frames_do():
+    world = make_world(WorldConfig(road=RoadConfig(length_m=3_000.0)), "val", 2)
+    s = np.array([40.0, 180.0, 800.0, 1_500.0])
+    poses = np.array([world.track.pose(si, di) for si, di in zip(s, (0.0, 3.7, -2.0, 1.0))])
+    poses[1, 2] += 0.2  # one car turned off the road direction
+    batch = CAM.render_batch([world.track] * 4, [world.cars] * 4, poses, s)
+    for b in range(4):
+        assert np.array_equal(batch[b], CAM.render(world.track, world.cars, tuple(poses[b]), s[b]))

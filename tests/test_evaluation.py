@@ -147,3 +147,37 @@ def test_policy_protocol_and_config_validation():
         EvalConfig(split="everything")
     with pytest.raises(ValueError, match="n_worlds"):
         EvalConfig(n_worlds=0)
+
+
+class Looking(LaneKeeper):
+    """A lane keeper that also asks for camera frames and checks each against a fresh render."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        from e2e_lite.camera import CameraConfig
+
+        self.camera = CameraConfig()
+        self.frames_checked = 0
+
+    def act(self, obs: Observation) -> Actuation:
+        from e2e_lite.camera import Camera
+
+        assert obs.images is not None and obs.images.shape == (len(obs.s), 66, 200, 3)
+        assert obs.images.dtype == np.uint8
+        if self.frames_checked < 5:
+            w = obs.worlds[0]
+            again = Camera(self.camera).render(w.track, w.cars, tuple(obs.state[0, :3]), obs.s[0])
+            assert np.array_equal(obs.images[0], again)
+        self.frames_checked += 1
+        return super().act(obs)
+
+
+def test_a_policy_with_a_camera_gets_one_frame_per_car_per_decision():
+    policy = Looking()
+    res = evaluate(policy, BUSY, EvalConfig(miles=0.3, n_worlds=3, n_tracks=3), progress=False)
+    assert policy.frames_checked > 10
+    plain = evaluate(
+        LaneKeeper(), BUSY, EvalConfig(miles=0.3, n_worlds=3, n_tracks=3), progress=False
+    )
+    assert res.collisions == plain.collisions  # seeing does not change a blind driver's drive
+    assert res.events == plain.events

@@ -102,3 +102,24 @@ def test_polyline_is_exact_on_straights_and_close_on_arcs(track):
     mid = 0.5 * (pts[1:] + pts[:-1])
     _, d_mid = track.to_frenet(mid[:, 0], mid[:, 1])
     assert np.max(np.abs(d_mid - track.rail_d)) <= 0.0201
+
+
+def test_positions_on_many_tracks_matches_each_track():
+    from e2e_lite.geometry import positions_on
+
+    tracks = [generate_track(RoadConfig(length_m=4_000.0), "val", i) for i in range(4)]
+    rng = np.random.default_rng(1)
+    # rows 0-1 inside one segment (the fast path); rows 2-3 spanning joins (the general path)
+    s = np.stack(
+        [
+            np.linspace(10, 90, 50),
+            np.linspace(5, 40, 50),
+            np.linspace(0, 3_900, 50),
+            np.linspace(250, 400, 50),
+        ]
+    )
+    d = rng.uniform(-8, 8, 50)
+    got = positions_on(tracks, s, d)
+    for b, t in enumerate(tracks):
+        assert np.allclose(got[b], t.position(s[b], d), atol=1e-9)
+        assert np.allclose(t.position(s[b, :20], d[:20]), t.position(s[b], d)[:20], atol=1e-9)
