@@ -146,6 +146,35 @@ class ParkedCars:
     def __len__(self) -> int:
         return len(self.s)
 
+    @classmethod
+    def on_track(
+        cls,
+        track: Track,
+        s: np.ndarray,
+        d: np.ndarray,
+        length_m: float = 4.5,
+        width_m: float = 1.8,
+        heading_offset: np.ndarray | float = 0.0,
+    ) -> ParkedCars:
+        """Cars centred at lane coordinates ``(s, d)`` [m], aligned with the road (plus
+        ``heading_offset`` [rad]); sorted by ``s``. Their lane is the nearest lane centre."""
+        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        order = np.argsort(s, kind="stable")
+        s = s[order]
+        d = np.broadcast_to(np.asarray(d, dtype=np.float64), order.shape)[order]
+        offset = np.broadcast_to(np.asarray(heading_offset, dtype=np.float64), order.shape)[order]
+        xy = track.position(s, d).reshape(-1, 2)
+        return cls(
+            s=s,
+            d=d.copy(),
+            lane=np.atleast_1d(track.lane_index(d)),
+            x=xy[:, 0],
+            y=xy[:, 1],
+            heading=np.asarray(track.heading(s) + offset, dtype=np.float64).reshape(-1),
+            length_m=length_m,
+            width_m=width_m,
+        )
+
     def corners(self) -> np.ndarray:
         """World corners of every car, counter-clockwise; (N, 4, 2) [m]."""
         hl, hw = self.length_m / 2, self.width_m / 2
@@ -180,21 +209,10 @@ def place_parked_cars(track: Track, cfg: TrafficConfig, rng: np.random.Generator
         lanes.append(int(rng.integers(0, track.n_lanes)))
         s += rng.uniform(*cfg.spacing_m)
     n = len(s_list)
-    s_arr = np.array(s_list, dtype=np.float64)
     lane = np.array(lanes, dtype=np.int64)
     d = track.lane_center(lane) + rng.uniform(-cfg.lateral_jitter_m, cfg.lateral_jitter_m, n)
-    xy = track.position(s_arr, d).reshape(n, 2)
-    heading = track.heading(s_arr) + rng.uniform(-cfg.heading_jitter_rad, cfg.heading_jitter_rad, n)
-    return ParkedCars(
-        s=s_arr,
-        d=np.asarray(d, dtype=np.float64).reshape(n),
-        lane=lane,
-        x=xy[:, 0],
-        y=xy[:, 1],
-        heading=np.asarray(heading, dtype=np.float64).reshape(n),
-        length_m=cfg.car_length_m,
-        width_m=cfg.car_width_m,
-    )
+    yaw = rng.uniform(-cfg.heading_jitter_rad, cfg.heading_jitter_rad, n)
+    return ParkedCars.on_track(track, np.array(s_list), d, cfg.car_length_m, cfg.car_width_m, yaw)
 
 
 class World:

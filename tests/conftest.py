@@ -26,20 +26,8 @@ def straight_world(
     """A straight 3-lane road along +x from the origin, with parked cars at the given places
     (centred on their lanes unless ``car_d`` gives their offsets)."""
     track = Track([0.0], [0.0], [0.0], [0.0], [length])
-    s = np.array(car_s, dtype=float)
     lane = np.array(car_lane, dtype=int)
-    if car_d is None:
-        d = np.asarray(track.lane_center(lane), dtype=float).reshape(-1)
-    else:
-        d = np.array(car_d, dtype=float)
-    cars = ParkedCars(
-        s=s,
-        d=d,
-        lane=lane,
-        x=s.copy(),
-        y=d.copy(),
-        heading=np.zeros(len(s)),
-        length_m=4.5,
-        width_m=1.8,
+    d = track.lane_center(lane) if car_d is None else np.array(car_d, dtype=float)
+    return World(
+        track, ParkedCars.on_track(track, np.array(car_s, dtype=float), d), VehicleParams()
     )
-    return World(track, cars, VehicleParams())
