@@ -27,8 +27,11 @@ the road surface (polygons between samples of the edges, so curves look curved),
 markings and solid edge lines, the guard rails (low walls), and finally every car within the draw
 distance as a box (visible faces only, shaded per face), farthest first. Every polygon is clipped
 at the near plane ``z_c >= near_m`` (Sutherland-Hodgman) before projection, so geometry behind the
-camera is never projected through infinity. Known simplification: guard rails are drawn before
-all cars, so on a curve a near inner rail never hides a far car (rails are 0.8 m high).
+camera is never projected through infinity. Known simplifications: guard rails are drawn before
+all cars, so on a curve a near inner rail never hides a far car (rails are 0.8 m high); and the
+road is sampled along its own direction, from 4 m behind the lens's arc length to the draw
+distance, so a car turned more than about 90 degrees from the road sees little of it (the
+simulation never drives backwards).
 """
 
 from __future__ import annotations

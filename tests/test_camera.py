@@ -205,3 +205,16 @@ def test_a_batch_renders_exactly_what_single_frames_do():
     batch = CAM.render_batch([world.track] * 4, [world.cars] * 4, poses, s)
     for b in range(4):
         assert np.array_equal(batch[b], CAM.render(world.track, world.cars, tuple(poses[b]), s[b]))
+
+
+@pytest.mark.parametrize("heading_deg", [100.0, 180.0, -135.0])
+def test_a_car_turned_across_or_against_the_road_renders_sanely(heading_deg):
+    """Road lines that never come in front of the lens take the polygon-by-polygon clipping path:
+    the frame renders, the sky stays sky, and ground is only drawn below the horizon."""
+    world = straight_world([130.0], [1], length=400.0)
+    img = view(world, pose=(200.0, 0.0, math.radians(heading_deg)))
+    assert img.shape == (66, 200, 3) and img.dtype == np.uint8
+    horizon = int(CAM.horizon_row())
+    assert np.all(img[:horizon] == SKY)
+    if heading_deg != -135.0:  # looking back to the right, the sampled road is out of view
+        assert np.any(img != view(straight_world([], [], length=400.0), pose=(0.0, 500.0, 0.0)))
