@@ -117,3 +117,9 @@ def test_cached_reuses_rebuilds_on_mismatch_and_on_corruption(tmp_path, capsys):
     artifacts.cached(path, "k2", build, _save, _load)
     assert len(calls) == 3 and "unreadable" in capsys.readouterr().out
     assert sorted(os.listdir(tmp_path)) == ["thing.npz"]  # no temporary files left
+
+
+def test_metrics_keep_their_order_and_keys_ignore_it():
+    artifacts.write_metrics("97_order", {"headline": {"zeta": 1, "alpha": 2}})
+    assert list(artifacts.read_metrics("97_order")["headline"]) == ["zeta", "alpha"]
+    assert artifacts.settings_key({"a": 1, "b": 2}) == artifacts.settings_key({"b": 2, "a": 1})
