@@ -170,11 +170,6 @@ class Track:
         """
         s = np.asarray(s, dtype=np.float64)
         d = np.asarray(d, dtype=np.float64)
-        if s.size > 8:  # a window inside one segment (the camera's usual case): scalar constants
-            lo, hi = s.min(), s.max()
-            j = int(np.searchsorted(self.s0, lo, side="right")) - 1
-            if 0 <= j and (j == len(self.s0) - 1 or hi < self.s0[j + 1]):
-                return self._position_in(j, s - self.s0[j], d)
         i = self.segment_index(s)
         u = s - self.s0[i]
         k, h0 = self.k[i], self.h0[i]
@@ -186,21 +181,6 @@ class Track:
         x = self.x0[i] + dx - d * np.sin(h)
         y = self.y0[i] + dy + d * np.cos(h)
         return np.stack([x, y], axis=-1)
-
-    def _position_in(self, j: int, u: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """:meth:`position` for local arc lengths ``u`` all on segment ``j``."""
-        _, _, x0, y0, h0, k, cx, cy = self.seg_table[j]
-        out = np.empty((*np.broadcast(u, d).shape, 2))
-        if abs(k) < _STRAIGHT_EPS:
-            c, s = math.cos(h0), math.sin(h0)
-            out[..., 0] = x0 + u * c - d * s
-            out[..., 1] = y0 + u * s + d * c
-        else:  # a point at (u, d) lies at radius (1/k - d) from the centre, at angle h - pi/2
-            h = h0 + k * u
-            r = 1.0 / k - d
-            out[..., 0] = cx + r * np.sin(h)
-            out[..., 1] = cy - r * np.cos(h)
-        return out
 
     def pose(self, s: float | np.ndarray, d: float | np.ndarray = 0.0) -> np.ndarray:
         """``(x, y, heading)`` at ``(s, d)``, heading along the road; shape ``(..., 3)``."""
