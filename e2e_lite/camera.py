@@ -46,10 +46,17 @@ import numpy as np
 from .artifacts import atomic_write
 from .config import check_range
 from .geometry import Track, positions_on
+from .vehicle import VehicleParams
 from .world import CAR_HEIGHT_M, ParkedCars
 
 _SHIFT = 4  # sub-pixel bits for OpenCV fills
 _SCALE = float(1 << _SHIFT)
+
+
+def _fixed(px: np.ndarray) -> np.ndarray:
+    """Pixel coordinates to OpenCV's fixed point with ``_SHIFT`` fractional bits (C-ordered int32)."""
+    return np.round(px * _SCALE).astype(np.int32, order="C")
+
 
 # colours (RGB)
 SKY = (160, 196, 232)
@@ -328,13 +335,11 @@ class Camera:
         lines = cam[:, : 6 * n].reshape(n_frames, 6, n, 3)
         tops = lines[:, :2] + (rot[:, :, 2] * RAIL_HEIGHT_M)[:, None, None, :]  # rails' top edges
         strips, ok = _clip_strips(np.concatenate([lines, tops], axis=1), cfg.near_m)
-        strip_px = np.round(self.project(strips) * _SCALE).astype(np.int32)  # (B, 6, 2n, 2)
+        strip_px = _fixed(self.project(strips))  # (B, 6, 2n, 2)
         dashes = cam[:, 6 * n :].reshape(n_frames, -1, 4, 3)
         dz = dashes[..., 2]
         dash_front = dz.min(axis=-1) >= cfg.near_m
-        dash_px = np.round(
-            self.project(np.where(dash_front[..., None, None], dashes, 1.0)) * _SCALE
-        ).astype(np.int32)
+        dash_px = _fixed(self.project(np.where(dash_front[..., None, None], dashes, 1.0)))
         straddle = ~dash_front & (dz.max(axis=-1) >= cfg.near_m)
         car_faces = self._car_faces(cars, poses, s_lens, heights, rot, t)
         for b in range(n_frames):
@@ -348,16 +353,12 @@ class Camera:
                         np.concatenate([_line(lines, tops, b, a), _line(lines, tops, b, c)[::-1]]),
                         cfg.near_m,
                     )
-                    polys.append(
-                        None
-                        if poly is None
-                        else np.round(self.project(poly) * _SCALE).astype(np.int32)
-                    )
+                    polys.append(None if poly is None else _fixed(self.project(poly)))
             marks = [p for p in polys[2:4] if p is not None] + list(dash_px[b][dash_front[b]])
             for k in np.flatnonzero(straddle[b]).tolist():  # the dash under the lens: cut it
                 poly = clip_near(dashes[b, k], cfg.near_m)
                 if poly is not None:
-                    marks.append(np.round(self.project(poly) * _SCALE).astype(np.int32))
+                    marks.append(_fixed(self.project(poly)))
             for poly, colour in ((polys[0], SHOULDER), (polys[1], road_cols[b])):
                 if poly is not None:
                     cv2.fillPoly(img, [poly], colour, cv2.LINE_AA, _SHIFT)
@@ -422,7 +423,7 @@ class Camera:
         near = self.cfg.near_m
         in_front = depth.min(axis=1) >= near
         px = self.project(np.where(in_front[:, None, None], cam, 1.0))
-        face_px = np.round(px[:, _FACE_INDEX] * _SCALE).astype(np.int32, order="C")  # (C, 5, 4, 2)
+        face_px = _fixed(px[:, _FACE_INDEX])  # (C, 5, 4, 2)
         # frustum culling: a box wholly outside one side plane of the view (a half-space test
         # that holds for corners behind the lens too) or wholly behind the near plane is skipped
         drawn = (depth.max(axis=1) >= near) & ~np.any(
@@ -446,9 +447,7 @@ class Camera:
                 else:  # straddles the near plane: cut the face first
                     poly = clip_near(cam[k, _FACES[f]], near)
                     if poly is not None:
-                        out.append(
-                            (np.round(self.project(poly) * _SCALE).astype(np.int32), colours[f])
-                        )
+                        out.append((_fixed(self.project(poly)), colours[f]))
         return faces
 
 
@@ -551,7 +550,7 @@ def draw_trajectory(
     scale = max(1, round(image.shape[1] / 200))
     radius = radius_px if radius_px is not None else 1 + scale
     thick = thickness_px if thickness_px is not None else scale
-    fixed = np.round(px[front] * _SCALE).astype(np.int32)
+    fixed = _fixed(px[front])
     if len(fixed) >= 2:
         cv2.polylines(image, [fixed], False, colour, thick, cv2.LINE_AA, _SHIFT)
     for p in fixed[1:] if front[0] else fixed:
@@ -600,9 +599,7 @@ def render_topdown(
     pose: tuple[float, float, float],
     cfg: TopDownConfig | None = None,
     trajectory: np.ndarray | None = None,
-    ego_length_m: float = 4.5,
-    ego_width_m: float = 1.8,
-    ego_rear_overhang_m: float = 0.9,
+    vehicle: VehicleParams | None = None,
 ) -> np.ndarray:
     """An ego-centred bird's-eye RGB view: road, lanes, rails, parked cars, the ego, a trajectory.
 
@@ -611,7 +608,7 @@ def render_topdown(
         pose: the ego's rear-axle pose ``(x, y, heading)`` [m, m, rad]; heading points up.
         cfg: size and scale.
         trajectory: optional car-frame points ``(K, 2)`` [m] drawn as dots joined by a line.
-        ego_length_m, ego_width_m, ego_rear_overhang_m: the ego's box [m].
+        vehicle: the ego's dimensions (default :class:`~e2e_lite.vehicle.VehicleParams`).
     """
     cfg = cfg or TopDownConfig()
     rows, cols = cfg.size_px
@@ -636,38 +633,33 @@ def render_topdown(
         )
 
     def fill(polys: list[np.ndarray], colour: tuple) -> None:
-        cv2.fillPoly(
-            img, [np.round(p * _SCALE).astype(np.int32) for p in polys], colour, cv2.LINE_AA, _SHIFT
-        )
+        cv2.fillPoly(img, [_fixed(p) for p in polys], colour, cv2.LINE_AA, _SHIFT)
 
     hw, rd = track.half_width, track.rail_d
     fill([band(-rd, rd)], SHOULDER)
     fill([band(-hw, hw)], ROAD)
     fill([band(hw - MARK_WIDTH_M, hw), band(-hw, -hw + MARK_WIDTH_M)], MARKING)
     fill([band(rd, rd + 0.3), band(-rd - 0.3, -rd)], RAIL)
-    for lane in range(1, track.n_lanes):
-        d = float(track.lane_center(lane)) - track.lane_width / 2
+    if track.n_lanes > 1:  # every dash of every divider in one lookup
+        d_div = np.asarray(track.lane_center(np.arange(1, track.n_lanes))) - track.lane_width / 2
         first = math.floor(s_pts[0] / DASH_PERIOD_M) * DASH_PERIOD_M
-        dashes = []
-        for st in np.arange(first, s_pts[-1], DASH_PERIOD_M):
-            ss = np.array([st, st + DASH_M, st + DASH_M, st])
-            dd = d + np.array([-1, -1, 1, 1]) * MARK_WIDTH_M / 2
-            dashes.append(to_px(track.position(ss, dd)))
-        if dashes:
-            fill(dashes, MARKING)
+        starts = np.arange(first, s_pts[-1], DASH_PERIOD_M)
+        dash_s = np.broadcast_to(starts[:, None] + _DASH_S, (len(d_div), len(starts), 4))
+        dash_d = np.broadcast_to(d_div[:, None, None] + _DASH_D, dash_s.shape)
+        dashes = to_px(track.position(dash_s, dash_d)).reshape(-1, 4, 2)
+        if len(dashes):
+            fill(list(dashes), MARKING)
     if cars is not None and len(cars):
         sl = cars.between(s_pts[0] - 5, s_pts[-1] + 5)
         boxes = cars.corners()[sl]
         for k, box in enumerate(boxes):
             fill([to_px(box)], CAR_COLOURS[(sl.start + k) % len(CAR_COLOURS)])
-    r, f, w = -ego_rear_overhang_m, ego_length_m - ego_rear_overhang_m, ego_width_m / 2
-    ego = np.array([[r, -w], [f, -w], [f, w], [r, w]])
+    ego = (vehicle or VehicleParams()).box_corners()
     fill([_car_to_topdown(ego, row0, col0, cfg.m_per_px)], EGO_COLOUR)
     if trajectory is not None:
-        pts = np.round(
+        pts = _fixed(
             _car_to_topdown(np.r_[[[0.0, 0.0]], np.asarray(trajectory)], row0, col0, cfg.m_per_px)
-            * _SCALE
-        ).astype(np.int32)
+        )
         cv2.polylines(img, [pts], False, (255, 40, 40), 1, cv2.LINE_AA, _SHIFT)
         for p in pts[1:]:
             cv2.circle(
