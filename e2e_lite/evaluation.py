@@ -319,14 +319,15 @@ def evaluate(
     images = None if camera is None else np.empty((n, *camera.shape), dtype=np.uint8)
     cam_rng = np.random.default_rng([cfg.seed, 11])  # used only if the camera augments
     lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
+    lengths = np.array([w.track.length for w in fleet.worlds])  # of each car's current track [m]
     while active.any():
         s, d, road_h, kappa = fleet.lane_frame()
         # a car near its track's end moves on to its next track
-        lengths = np.array([w.track.length for w in fleet.worlds])
         moving_on = np.flatnonzero(active & (s > lengths - cfg.end_margin_m)).tolist()
         for i in moving_on:
             visit[i] += 1
             fleet.worlds[i] = pool.get(i, int((i + visit[i] * n) % cfg.n_tracks))
+            lengths[i] = fleet.worlds[i].track.length
             spawn_new_track(i)
             respawned[i] = True
         if moving_on:
