@@ -230,9 +230,7 @@ print(f"figure: {sizes_png}")
 frames = list(scenes.values())
 tracks = [sc[0] for sc in frames] * 3
 cars = [sc[1] for sc in frames] * 3
-poses = np.array(
-    [(*sc[0].position(sc[2], sc[3]), float(sc[0].heading(sc[2])) + sc[4]) for sc in frames] * 3
-)
+poses = np.array([sc[0].pose(sc[2], sc[3]) + np.array([0.0, 0.0, sc[4]]) for sc in frames] * 3)
 s_arr = np.array([sc[2] for sc in frames] * 3)
 out = cam.render_batch(tracks, cars, poses, s_arr)
 reps = 5 if profile.quick else 50
