@@ -69,6 +69,11 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
+def to_json(obj: Any) -> str:
+    """``obj`` (dataclasses, numpy values and arrays included) as a compact JSON string."""
+    return json.dumps(_jsonable(obj), allow_nan=True)
+
+
 def settings_key(*settings: Any, length: int = 12) -> str:
     """A short hex hash of settings (dataclasses, dicts, numbers, strings).
 

@@ -70,6 +70,9 @@ class Profile:
         n_val_tracks: how many validation tracks closed-loop evaluation cycles through.
         eval_miles: closed-loop distance budget per driver in the chapters [mi].
         n_worlds: worlds driven in lockstep by the evaluator (the batch B).
+        n_train_samples: expert samples collected on training tracks (chapter 04).
+        n_val_samples: expert samples collected on validation tracks (for validation losses).
+        n_train_tracks: how many training tracks the collector cycles through.
     """
 
     name: str
@@ -77,6 +80,9 @@ class Profile:
     n_val_tracks: int
     eval_miles: float
     n_worlds: int
+    n_train_samples: int
+    n_val_samples: int
+    n_train_tracks: int
 
     def __post_init__(self) -> None:
         if self.name not in ("quick", "full"):
@@ -85,6 +91,9 @@ class Profile:
         check_range("Profile", "n_val_tracks", self.n_val_tracks, 1, integer=True)
         check_range("Profile", "eval_miles", self.eval_miles, 0.0, lo_open=True)
         check_range("Profile", "n_worlds", self.n_worlds, 1, integer=True)
+        check_range("Profile", "n_train_samples", self.n_train_samples, 1, integer=True)
+        check_range("Profile", "n_val_samples", self.n_val_samples, 1, integer=True)
+        check_range("Profile", "n_train_tracks", self.n_train_tracks, 1, integer=True)
 
     @property
     def quick(self) -> bool:
@@ -92,9 +101,28 @@ class Profile:
         return self.name == "quick"
 
 
-QUICK = Profile(name="quick", track_length_m=2_000.0, n_val_tracks=4, eval_miles=4.0, n_worlds=4)
+QUICK = Profile(
+    name="quick",
+    track_length_m=2_000.0,
+    n_val_tracks=4,
+    eval_miles=4.0,
+    n_worlds=4,
+    n_train_samples=600,
+    n_val_samples=200,
+    n_train_tracks=4,
+)
 # The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
-FULL = Profile(name="full", track_length_m=8_000.0, n_val_tracks=16, eval_miles=100.0, n_worlds=16)
+# 48,000 training samples (the paper had 500K) are 80 minutes of expert driving, ~120 km.
+FULL = Profile(
+    name="full",
+    track_length_m=8_000.0,
+    n_val_tracks=16,
+    eval_miles=100.0,
+    n_worlds=16,
+    n_train_samples=48_000,
+    n_val_samples=8_000,
+    n_train_tracks=32,
+)
 
 
 def quick_requested(argv: Sequence[str] | None = None, environ: dict | None = None) -> bool:
