@@ -24,6 +24,7 @@ Metrics (see :class:`EvalResult`):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -248,6 +249,7 @@ def evaluate(
     progress: bool = True,
     desc: str = "closed loop",
     record_traces: bool = False,
+    stop_when: Callable[[], bool] | None = None,
 ) -> EvalResult:
     """Drive ``policy`` closed-loop until ``cfg.miles`` are driven; return the metrics.
 
@@ -259,6 +261,8 @@ def evaluate(
         desc: the progress bar's label.
         record_traces: keep every car's rear-axle path per track (for top-down figures), in
             ``result.traces["<split>-<track>"] = [[x, y], ...]``.
+        stop_when: called after every decision; the drive ends early when it returns True (the
+            data collector stops at a sample count this way). The metrics cover what was driven.
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
@@ -416,6 +420,8 @@ def evaluate(
             )
             respawn(i, s_i, d_i)
         active &= odometer < share_m
+        if stop_when is not None and stop_when():
+            active[:] = False
         bar.update(max(0.0, float(np.minimum(odometer, share_m).sum() / M_PER_MILE) - bar.n))
     bar.close()
 

@@ -85,7 +85,7 @@ def test_accelerating_trajectory_gives_the_acceleration():
 
 
 def test_standing_still_gives_no_direction():
-    e, psi, kappa, v_ref, _ = trajectory_reference(np.zeros((2, 5, 2)))
+    _, psi, kappa, v_ref, _ = trajectory_reference(np.zeros((2, 5, 2)))
     assert np.all(psi == 0) and np.all(kappa == 0) and np.all(v_ref == 0)
 
 
@@ -153,5 +153,5 @@ def test_speed_control_is_bounded():
 
 
 def test_bad_tracker_settings_raise():
-    with pytest.raises(ValueError, match="TrackerConfig.steer_max_rad"):
+    with pytest.raises(ValueError, match=r"TrackerConfig\.steer_max_rad"):
         TrackerConfig(steer_max_rad=0.0)
