@@ -1,0 +1,147 @@
+"""The dataset: affordances, clean labels under noise, determinism, storage, torch view."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from conftest import straight_world
+
+from e2e_lite.config import QUICK
+from e2e_lite.data import (
+    AFFORDANCE_NAMES,
+    GAP_CAP_M,
+    DataConfig,
+    DrivingDataset,
+    NoiseConfig,
+    affordances,
+    collect,
+    dataset_path,
+    load_or_collect,
+    throttle_brake,
+)
+from e2e_lite.expert import CHANGE
+from e2e_lite.geometry import generate_track
+from e2e_lite.vehicle import VehicleParams
+
+
+def small_cfg(**kw) -> DataConfig:
+    base = DataConfig.for_profile(QUICK, n_samples=96, n_worlds=4)
+    return dataclasses.replace(base, **kw)
+
+
+def test_affordances_on_a_constructed_scene():
+    # ego rear axle at s=100, 0.3 m left of the middle lane's centre; cars ahead in the middle
+    # lane (centre s=140) and the left lane (s=130); the right lane is empty
+    world = straight_world([140.0, 130.0], [1, 2], length=500.0)
+    aff = affordances([world], np.array([100.0]), np.array([0.3]), np.array([0.02]))[0]
+    named = dict(zip(AFFORDANCE_NAMES, aff))
+    veh = VehicleParams()
+    front = 100.0 + veh.length_m - veh.rear_overhang_m
+    assert named["heading_rad"] == pytest.approx(0.02)
+    assert named["center_offset_m"] == pytest.approx(0.3)
+    assert named["left_marking_m"] == pytest.approx(1.85 - 0.3)
+    assert named["right_marking_m"] == pytest.approx(1.85 + 0.3)
+    assert named["left_edge_m"] == pytest.approx(5.55 - 0.3)
+    assert named["right_edge_m"] == pytest.approx(5.55 + 0.3)
+    assert named["gap_ego_m"] == pytest.approx(140.0 - 2.25 - front, abs=1e-3)
+    assert named["gap_left_m"] == pytest.approx(130.0 - 2.25 - front, abs=1e-3)
+    assert named["gap_right_m"] == GAP_CAP_M
+
+
+def test_affordances_encode_missing_lanes_and_cars_alongside():
+    # ego in the left lane; a car alongside in the middle lane
+    world = straight_world([101.0], [1], length=500.0)
+    aff = affordances([world], np.array([100.0]), np.array([3.7]), np.array([0.0]))[0]
+    named = dict(zip(AFFORDANCE_NAMES, aff))
+    assert named["gap_left_m"] == 0.0  # no lane there
+    assert named["gap_right_m"] == 0.0  # a car alongside
+    assert named["gap_ego_m"] == GAP_CAP_M
+
+
+def test_collection_is_deterministic_and_labels_are_clean():
+    cfg = small_cfg(noise=NoiseConfig(rate_per_s=2.0))
+    a, b = collect(cfg, progress=False), collect(cfg, progress=False)
+    for name in a.arrays:
+        np.testing.assert_array_equal(a.arrays[name], b.arrays[name], err_msg=name)
+    assert len(a) == 96 and a.images.shape == (96, 66, 200, 3) and a.images.dtype == np.uint8
+    assert a.noise.mean() > 0.3
+    # under noise, the label still starts where the expert's clean plan goes: the first point
+    # is ahead of the car at about the speed times 0.3 s
+    first = a.trajectory[:, 0]
+    np.testing.assert_allclose(first[:, 0], a.speed * 0.3, rtol=0.1, atol=0.3)
+    # the actuator label is the clean command, within the car's limits
+    assert np.all(np.abs(a.actuators[:, 0]) <= VehicleParams().max_steer_rad)
+
+
+def test_noise_changes_the_states_but_not_what_labels_mean():
+    quiet = collect(small_cfg(noise=NoiseConfig(rate_per_s=0.0)), progress=False)
+    noisy = collect(small_cfg(noise=NoiseConfig(rate_per_s=2.0)), progress=False)
+    assert not quiet.noise.any()
+    off_quiet = np.abs(quiet.affordances[:, 1])[quiet.expert_state != CHANGE]
+    off_noisy = np.abs(noisy.affordances[:, 1])[noisy.expert_state != CHANGE]
+    assert off_noisy.mean() > off_quiet.mean()
+
+
+def test_train_and_validation_tracks_never_overlap():
+    cfg = small_cfg()
+    train = [generate_track(cfg.world.road, "train", i) for i in range(8)]
+    val = [generate_track(cfg.world.road, "val", i) for i in range(8)]
+    train_sig = {tuple(np.round(t.seg_len, 6)) for t in train}
+    assert not train_sig & {tuple(np.round(t.seg_len, 6)) for t in val}
+    data = collect(cfg, progress=False)
+    assert data.info["split"] == "train" and set(np.unique(data.track)) <= set(range(cfg.n_tracks))
+    assert DataConfig.for_profile(QUICK, "val").key != DataConfig.for_profile(QUICK, "train").key
+
+
+def test_dataset_is_saved_reused_and_rebuilt_on_other_settings(capsys):
+    cfg = small_cfg()
+    first = load_or_collect(cfg, progress=False)
+    assert dataset_path(cfg).exists()
+    again = load_or_collect(cfg, progress=False)
+    np.testing.assert_array_equal(first.images, again.images)
+    for name, value in first.stats.items():
+        np.testing.assert_array_equal(value, again.stats[name])
+    assert again.info["shares"] == first.info["shares"]
+    assert "rebuilding" not in capsys.readouterr().out
+    load_or_collect(dataclasses.replace(cfg, seed=5), progress=False)
+    assert "other settings" in capsys.readouterr().out
+
+
+def test_stats_and_shares():
+    data = collect(small_cfg(), progress=False)
+    assert data.stats["trajectory_mean"].shape == (5, 2)
+    assert data.stats["affordances_std"].shape == (len(AFFORDANCE_NAMES),)
+    assert np.all(data.stats["trajectory_std"] > 0)
+    shares = data.info["shares"]
+    assert all(0.0 <= v <= 1.0 for v in shares.values())
+    assert shares["overtake_left"] + shares["overtake_right"] + shares["return"] == pytest.approx(
+        shares["lane_change"]
+    )
+
+
+def test_torch_view_shapes():
+    data = collect(small_cfg(), progress=False)
+    ds = DrivingDataset(data, np.arange(10, 20))
+    item = ds[3]
+    assert len(ds) == 10
+    assert item["image"].shape == (3, 66, 200) and str(item["image"].dtype) == "torch.uint8"
+    assert item["trajectory"].shape == (10,) and item["affordances"].shape == (9,)
+    np.testing.assert_array_equal(item["image"].numpy(), data.images[13].transpose(2, 0, 1))
+    batch = ds.batch(np.array([0, 5]))
+    assert batch["speed"].shape == (2, 1) and batch["actuators"].shape == (2, 2)
+
+
+def test_throttle_brake_recovered_from_acceleration():
+    veh = VehicleParams()
+    thr, brk = throttle_brake(np.array([1.5, -4.0, 0.0]), veh)
+    np.testing.assert_allclose(thr, [1.5 / veh.max_accel_mps2, 0, 0])
+    np.testing.assert_allclose(brk, [0, 4.0 / veh.max_brake_mps2, 0])
+
+
+def test_bad_data_settings_raise():
+    with pytest.raises(ValueError, match=r"DataConfig\.split"):
+        DataConfig(split="test")
+    with pytest.raises(ValueError, match=r"NoiseConfig\.duration_s"):
+        NoiseConfig(duration_s=(2.0, 1.0))
