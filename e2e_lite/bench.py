@@ -10,6 +10,8 @@ Names:
             miles per wall-second of the scripted drivers (B worlds in lockstep).
     camera  frames per second at 66x200 and 240x640 on busy curved scenes (10+ parked cars within
             100 m), rendered 16 at a time (as the evaluator does) and one by one.
+    data    samples collected per second (noisy expert, frames, label rollouts, affordances), and
+            the expert's and the oracle's closed-loop simulated miles per wall-second.
 """
 
 from __future__ import annotations
@@ -26,8 +28,10 @@ import numpy as np
 
 from .camera import Camera, CameraConfig
 from .config import active_profile
+from .data import DataConfig, collect
 from .drivers import LaneChanger, LaneKeeper
 from .evaluation import EvalConfig, evaluate
+from .expert import Expert, Oracle
 from .geometry import RoadConfig
 from .world import Fleet, TrafficConfig, WorldConfig, make_world
 
@@ -120,9 +124,28 @@ def bench_camera(quick: bool) -> dict[str, float]:
     return out
 
 
+def bench_data(quick: bool) -> dict[str, float]:
+    """Samples collected per second (noisy expert, 66x200 frames, label rollouts, affordances);
+    closed-loop simulated miles per wall-second of the expert and of the oracle (B = 16)."""
+    prof = active_profile([])
+    n = 800 if quick else 8_000
+    cfg = DataConfig.for_profile(prof, "train", n_samples=n)
+    t0 = time.perf_counter()
+    collect(cfg, progress=False)
+    out: dict[str, float] = {"samples": n, "samples_per_s": n / (time.perf_counter() - t0)}
+    world_cfg = WorldConfig.for_profile(prof)
+    ev = EvalConfig(miles=4.0 if quick else 40.0, n_worlds=16, n_tracks=16)
+    for name, policy in (("expert", Expert()), ("oracle", Oracle())):
+        res = evaluate(policy, world_cfg, ev, progress=False)
+        out[f"{name}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
+        out[f"{name}_sim_miles"] = res.miles
+    return out
+
+
 BENCHMARKS: dict[str, Callable[[bool], dict[str, float]]] = {
     "world": bench_world,
     "camera": bench_camera,
+    "data": bench_data,
 }
 
 

@@ -282,7 +282,14 @@ class _Recorder:
             "noise": np.empty(n, bool),
         }
         self.count = 0
-        self.bar = tqdm(total=n, desc=f"collect {cfg.split}", unit="sample", disable=not progress)
+        self.bar = tqdm(
+            total=n,
+            desc=f"collect {cfg.split}",
+            unit="sample",
+            disable=not progress,
+            leave=False,
+            mininterval=0.5,
+        )
 
     def reset(self, n_worlds: int) -> None:
         self.expert.reset(n_worlds)

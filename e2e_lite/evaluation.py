@@ -219,6 +219,73 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+def observe(
+    fleet: Fleet,
+    respawned: np.ndarray | bool = False,
+    time_s: float = 0.0,
+    images: np.ndarray | None = None,
+    frame: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> Observation:
+    """The observation of a fleet's cars now (``frame``: a lane frame already computed)."""
+    s, d, road_h, kappa = fleet.lane_frame() if frame is None else frame
+    n = len(fleet)
+    return Observation(
+        images=images,
+        state=fleet.state.copy(),
+        s=s,
+        d=d,
+        heading_error=_wrap(fleet.state[:, H] - road_h),
+        curvature=kappa,
+        lane=np.atleast_1d(fleet.worlds[0].track.lane_index(d)),
+        respawned=np.broadcast_to(np.asarray(respawned, dtype=bool), (n,)).copy(),
+        time_s=time_s,
+        worlds=list(fleet.worlds),
+    )
+
+
+def drive(
+    policy: Policy,
+    world: World,
+    world_cfg: WorldConfig,
+    s_m: float,
+    d_m: float,
+    speed_mps: float,
+    seconds: float,
+    on_decision: Callable[[Observation, Actuation], None] | None = None,
+) -> tuple[np.ndarray, list[tuple[str, int]]]:
+    """Drive one car in a hand-made ``world`` from ``(s_m, d_m)`` at ``speed_mps`` (for figures
+    and tests; :func:`evaluate` is the measurement).
+
+    Returns:
+        ``(states, contacts)``: the state ``(T + 1, 5)`` at every decision and the first contacts
+        (the drive stops at a collision). ``on_decision(obs, act)`` is called every decision.
+    """
+    fleet = Fleet([world], world_cfg)
+    fleet.place(0, s_m, d_m, speed_mps)
+    policy.reset(1)
+    cam_cfg = getattr(policy, "camera", None)
+    camera = None if cam_cfg is None else Camera(cam_cfg)
+    states = [fleet.state[0].copy()]
+    contacts: list[tuple[str, int]] = []
+    period = world_cfg.sim.policy_period_s
+    for k in range(round(seconds / period)):
+        frame = fleet.lane_frame()
+        images = None
+        if camera is not None:
+            images = camera.render(world.track, world.cars, tuple(fleet.state[0, :3]), frame[0][0])[
+                None
+            ]
+        obs = observe(fleet, k == 0, k * period, images, frame)
+        act = policy.act(obs)
+        if on_decision is not None:
+            on_decision(obs, act)
+        contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2))[0]
+        states.append(fleet.state[0].copy())
+        if contacts:
+            break
+    return np.array(states), contacts
+
+
 class _WorldPool:
     """Worlds of the evaluation split: a road and its cars are made once per track, and every car
     gets its own pymunk world of it (two cars on one track must not share an ego body)."""
@@ -345,18 +412,7 @@ def evaluate(
                 rng=cam_rng,
                 out=images,
             )
-        obs = Observation(
-            images=images,
-            state=fleet.state.copy(),
-            s=s,
-            d=d,
-            heading_error=_wrap(fleet.state[:, H] - road_h),
-            curvature=kappa,
-            lane=track0.lane_index(d),
-            respawned=respawned.copy(),
-            time_s=t_sim,
-            worlds=list(fleet.worlds),
-        )
+        obs = observe(fleet, respawned, t_sim, images, (s, d, road_h, kappa))
         respawned[:] = False
         act = policy.act(obs)
         if record_traces:

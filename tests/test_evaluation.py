@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import straight_world
 
 from e2e_lite.drivers import LaneChanger, LaneKeeper
 from e2e_lite.evaluation import (
@@ -14,6 +15,7 @@ from e2e_lite.evaluation import (
     EvalConfig,
     Observation,
     Policy,
+    drive,
     evaluate,
     poisson_ci,
 )
@@ -181,3 +183,13 @@ def test_a_policy_with_a_camera_gets_one_frame_per_car_per_decision():
     )
     assert res.collisions == plain.collisions  # seeing does not change a blind driver's drive
     assert res.events == plain.events
+
+
+def test_drive_a_hand_made_scene_until_the_collision():
+    cfg = WorldConfig()
+    blind = LaneKeeper(target_speed_mps=20.0)
+    states, contacts = drive(blind, straight_world([], []), cfg, 50.0, 0.0, 20.0, 3.0)
+    assert not contacts and states.shape == (31, 5)
+    assert states[-1, 0] == pytest.approx(50.0 + 60.0, abs=1.0)  # 3 s at 20 m/s
+    states, contacts = drive(blind, straight_world([120.0], [1]), cfg, 50.0, 0.0, 20.0, 10.0)
+    assert contacts == [("car", 0)] and len(states) < 101

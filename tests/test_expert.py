@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.evaluation import EvalConfig, Observation, evaluate
+from e2e_lite.evaluation import EvalConfig, evaluate, observe
 from e2e_lite.expert import (
     CHANGE,
     KEEP,
@@ -18,28 +18,11 @@ from e2e_lite.expert import (
     speed_profile,
 )
 from e2e_lite.geometry import RoadConfig, Track
-from e2e_lite.vehicle import H
 from e2e_lite.world import Fleet, TrafficConfig, World, WorldConfig
 
 
 def small_world_cfg() -> WorldConfig:
     return WorldConfig(road=RoadConfig(length_m=2_000.0), traffic=TrafficConfig())
-
-
-def observe(fleet: Fleet, respawned: bool = False) -> Observation:
-    s, d, road_h, kappa = fleet.lane_frame()
-    track = fleet.worlds[0].track
-    return Observation(
-        state=fleet.state.copy(),
-        s=s,
-        d=d,
-        heading_error=(fleet.state[:, H] - road_h + np.pi) % (2 * np.pi) - np.pi,
-        curvature=kappa,
-        lane=np.atleast_1d(track.lane_index(d)),
-        respawned=np.full(len(fleet), respawned),
-        time_s=0.0,
-        worlds=list(fleet.worlds),
-    )
 
 
 def test_expert_drives_seeded_tracks_without_collision():

@@ -1,0 +1,325 @@
+# %% [markdown]
+# # 04 · The expert and its dataset
+#
+# Behaviour cloning needs someone to clone. The paper built "a basic expert traversing the inner
+# states of a finite state machine" with privileged access to the simulator (seed 000, 4.1.1),
+# randomised its overtakes "to simulate multi-modal behaviour exhibited by real drivers", and
+# found that "adding noise to the expert was found to be crucial". This chapter builds that
+# expert on the LQR tracker of chapter 03 and records the dataset every learned driver trains on.
+#
+# **You will learn**
+# 1. the expert's state machine: when it *should* overtake and when it *can*;
+# 2. why its trigger and finish distances and its side are random, and what that does to the data
+#    (the same scene overtaken left in one sample and right in another);
+# 3. how noise injection puts recovery into the data while the labels stay clean;
+# 4. what a sample holds: a 66 x 200 frame, the speed, clean actuators, a 5-point trajectory and
+#    DeepDriving-style affordances;
+# 5. the **ceiling** (the expert's collisions per 100 miles) and the **oracle** (the LQR tracker
+#    following the expert's 5-point trajectories): the representation is enough to drive.
+#
+# Run it with `python chapters/04_expert_and_data.py` (add `--quick` for a run of seconds).
+
+# %%
+import numpy as np
+from matplotlib.figure import Figure
+
+from e2e_lite import artifacts
+from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
+from e2e_lite.config import active_profile
+from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, describe, load_or_collect
+from e2e_lite.evaluation import EvalConfig, drive, evaluate, observe
+from e2e_lite.expert import CHANGE, STATE_NAMES, Expert, Oracle
+from e2e_lite.geometry import Track
+from e2e_lite.viz import draw_road, save_figure
+from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
+
+profile = active_profile()
+world_cfg = WorldConfig.for_profile(profile)
+human = Camera(CameraConfig.human())
+print(f"{profile.name} profile")
+
+# %% [markdown]
+# ## 1. The state machine
+#
+# The expert follows three rules (the paper's): its speed never exceeds
+# `min(top speed, sqrt(a_lat,max / |κ|))` over the curvature ahead (it brakes *before* a curve);
+# the tracker keeps it on a lane centre or a lane-change path; and a state machine decides when it
+# **should** overtake (a parked car ahead in its lane nearer than a *trigger* distance) and when
+# it **can** (the target lane is free from just behind it to 40 m past the parked car).
+#
+# | state | does | leaves when |
+# |---|---|---|
+# | `keep` | follow the lane centre | a car ahead nearer than *trigger*: `change` if a neighbour |
+# | | at the speed limit | is free (a coin picks when both are), else `follow` |
+# | `change` | follow a quintic path | at its end: `pass` (an overtake) or `keep` (a return) |
+# | `pass` | follow the new lane | *finish* metres past the car, original lane free: `change` |
+# | `follow` | stop 15 m behind the car | a lane becomes free (slower: a shorter lane change) |
+#
+# Per manoeuvre, each car draws from its own seeded generator: the trigger (45-75 m: at 25 m/s a
+# comfortable lane change needs ~60 m), the finish (5-40 m), the change's duration (2.5-3.5 s) and
+# the side coin.
+
+# %%
+straight = Track([0.0], [0.0], [0.0], [0.0], [900.0])
+scene_cars = ParkedCars.on_track(
+    straight, np.array([260.0, 420.0, 560.0]), straight.lane_center(np.array([1, 2, 1]))
+)
+scene = World(straight, scene_cars, world_cfg.vehicle)
+
+
+def expert_drive(seed: int, world: World = scene, seconds: float = 26.0):
+    """The expert's rear-axle path and states on a hand-made scene, starting in the middle lane."""
+    expert = Expert(seed=seed)
+    states: list[int] = []
+    path, contacts = drive(
+        expert,
+        world,
+        world_cfg,
+        60.0,
+        0.0,
+        25.0,
+        seconds,
+        lambda obs, act: states.append(expert.plans[0].state),
+    )
+    return path, np.array(states), contacts
+
+
+colours = {0: "#1f77b4", 1: "#ff7f0e", 2: "#2ca02c", 3: "#d62728"}
+fig = Figure(figsize=(12, 4.6))
+axes = fig.subplots(2, 1)
+overtakes = {}
+for ax, seed in zip(axes, (0, 3)):
+    path, states, contacts = expert_drive(seed)
+    assert not contacts, "the expert collided on the demonstration scene"
+    draw_road(ax, straight, (40.0, 700.0), scene_cars)
+    for st in range(4):
+        sel = states == st
+        ax.scatter(
+            path[:-1][sel, 0],
+            path[:-1][sel, 1],
+            s=4,
+            color=colours[st],
+            zorder=6,
+            label=STATE_NAMES[st],
+        )
+    ax.set_aspect(6.0)
+    ax.set_title(f"expert, seed {seed}")
+    overtakes[seed] = path
+axes[0].legend(loc="upper left", ncol=4, fontsize=8, markerscale=3)
+strip_png = save_figure(fig, artifacts.artifact_path("figures", "04_overtake_strip.png"))
+print(f"saved {strip_png} (lateral scale stretched 6x)")
+
+# %% [markdown]
+# ## 2. The same scene, two answers
+#
+# A parked car in the middle lane with both neighbours free: the coin decides. Over 48 seeds the
+# expert passes it on both sides, and where it starts varies with the trigger. A network that
+# regresses the *mean* of these answers would aim at the parked car; chapter 07's mixture
+# density head is built for exactly this.
+
+# %%
+single = World(
+    straight, ParkedCars.on_track(straight, np.array([300.0]), np.array([0.0])), world_cfg.vehicle
+)
+sides, starts = [], []
+for seed in range(48):
+    path, states, contacts = expert_drive(seed, single, seconds=12.0)
+    assert not contacts
+    k = int(np.argmax(states == CHANGE))
+    sides.append(int(np.sign(path[np.argmin(np.abs(path[:, 0] - 300.0)), 1])))  # beside the car
+    starts.append(float(path[k, 0]))
+print(f"48 seeds: {sides.count(1)} overtakes on the left, {sides.count(-1)} on the right")
+print(f"lane change started at x = {min(starts):.0f} to {max(starts):.0f} m (car at 300 m)")
+
+# The same frame, eight experts: the car 44 m behind the parked car (nearer than any trigger), and
+# each seed's label from this one state. The image is identical; the answers are not.
+fleet = Fleet([single], world_cfg)
+fleet.place(0, 300.0 - 2.25 - 3.6 - 44.0, 0.0, 25.0)
+obs = observe(fleet, respawned=True)
+img = human.render(straight, single.cars, tuple(obs.state[0, :3]), obs.s[0])
+label_sides = []
+for seed in range(8):
+    expert = Expert(seed=seed)
+    expert.reset(1)
+    pts = expert.trajectory_label(obs)[0]
+    label_sides.append(int(np.sign(pts[-1, 1])))
+    draw_trajectory(img, pts, human, colour=(255, 60, 40) if pts[-1, 1] > 0 else (40, 120, 255))
+both_png = save_image(artifacts.artifact_path("figures", "04_two_answers.png"), img)
+print(
+    f"saved {both_png}: of 8 seeds, {label_sides.count(1)} plan left (red), {label_sides.count(-1)} right (blue)"
+)
+
+# %% [markdown]
+# ## 3. The ceiling and the oracle
+#
+# The expert drives the validation tracks (the unseen tracks every learned driver is judged on).
+# It is the ceiling: if it collided, the fix would go into the expert, not the count. The oracle
+# is the LQR tracker following the expert's **5-point trajectories** (re-planned every 0.1 s),
+# not its commands: if the oracle drives as well, the paper's output representation plus a
+# controller loses nothing.
+
+# %%
+ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+expert = Expert()
+res_expert = evaluate(expert, world_cfg, ev, desc="expert")
+print("expert:", res_expert.summary())
+print(f"  manoeuvres: {expert.manoeuvres}")
+oracle = Oracle()
+res_oracle = evaluate(oracle, world_cfg, ev, desc="oracle")
+print("oracle:", res_oracle.summary())
+
+# %% [markdown]
+# ## 4. Noise and clean labels
+#
+# The collector drives the expert with random **bursts** added to what it executes: a steering
+# offset of 0.003-0.015 rad and an acceleration offset of up to 1 m/s², lasting 0.5-1.5 s, about
+# one every 8 s. The recorded states drift off-centre and off-heading; the expert pulls back. The
+# labels are what the expert would do from each recorded state:
+#
+# * actuators: its command **before** the burst is added;
+# * trajectory: a rollout of copies of the car and its plan for 1.5 s without noise (no physics,
+#   no rendering), recorded every 0.3 s in the car frame at the sample time.
+#
+# ## 5. The dataset
+#
+# One sample per decision (10 Hz) on the training tracks, and a smaller set on the validation
+# tracks (for validation losses). The paper had 500K samples; we record 48,000 (full profile),
+# about 80 minutes of driving, which trains in minutes on two cores.
+
+# %%
+train = load_or_collect(DataConfig.for_profile(profile, "train"))
+val = load_or_collect(DataConfig.for_profile(profile, "val"))
+print("train:", describe(train))
+print("val:  ", describe(val))
+print(f"  trajectory mean (x, y) per point: {np.round(train.stats['trajectory_mean'], 2).tolist()}")
+print(f"  trajectory std  (x, y) per point: {np.round(train.stats['trajectory_std'], 2).tolist()}")
+for name, mean, std in zip(
+    AFFORDANCE_NAMES, train.stats["affordances_mean"], train.stats["affordances_std"]
+):
+    print(f"  affordance {name:16s} mean {mean:8.3f}  std {std:7.3f}")
+
+# %% [markdown]
+# Samples with their labels, drawn on the human-sized camera view of the same pose (the network
+# sees the 66 x 200 frame at the bottom right of each tile).
+
+# %%
+rng = np.random.default_rng(0)
+groups = {
+    "straight, keep": (np.abs(train.curvature) < 1e-4) & (train.expert_state == 0) & ~train.noise,
+    "curve": (np.abs(train.curvature) > 2e-3) & (train.expert_state == 0),
+    "overtake left": (train.expert_state == CHANGE) & train.overtaking & (train.change_side > 0),
+    "overtake right": (train.expert_state == CHANGE) & train.overtaking & (train.change_side < 0),
+    "return": (train.expert_state == CHANGE) & ~train.overtaking,
+    "noise burst": train.noise & (train.expert_state == 0),
+}
+dcfg = DataConfig.for_profile(profile, "train")
+worlds: dict[int, World] = {}
+tiles = []
+for title, mask in groups.items():
+    rows = np.flatnonzero(mask)
+    if rows.size == 0:
+        print(f"no '{title}' sample in this dataset")
+        continue
+    i = int(rng.choice(rows))
+    t_idx = int(train.track[i])
+    if t_idx not in worlds:
+        worlds[t_idx] = make_world(dcfg.world, "train", t_idx)
+    w = worlds[t_idx]
+    x, y, h = w.track.pose(float(train.s[i]), float(train.d[i]))
+    pose = (float(x), float(y), float(h) + float(train.affordances[i, 0]))
+    img = human.render(w.track, w.cars, pose, float(train.s[i]))
+    draw_trajectory(img, train.trajectory[i], human, label=title)
+    small = train.images[i]
+    img[-small.shape[0] - 4 : -4, -small.shape[1] - 4 : -4] = small
+    tiles.append(img)
+while len(tiles) % 2:
+    tiles.append(np.zeros_like(tiles[0]))
+grid = np.concatenate(
+    [np.concatenate(tiles[k : k + 2], axis=1) for k in range(0, len(tiles), 2)], axis=0
+)
+samples_png = save_image(artifacts.artifact_path("figures", "04_samples.png"), grid)
+print(f"saved {samples_png}")
+
+# %% [markdown]
+# Where the labels end after 1.5 s, across the training set: most samples go straight ahead;
+# the tails left and right are the overtakes and returns, the rare events the paper cares about.
+
+# %%
+fig = Figure(figsize=(10, 3.4))
+ax1, ax2 = fig.subplots(1, 2)
+ax1.hist(train.trajectory[:, -1, 1], bins=80, color="C0", log=True)
+ax1.set(xlabel="lateral position after 1.5 s, y5 [m]", ylabel="samples (log)", title="label tails")
+gaps = train.affordances[:, AFFORDANCE_NAMES.index("gap_ego_m")]
+ax2.hist(gaps, bins=60, color="C1", log=True)
+ax2.set(
+    xlabel="gap to the car ahead in the ego lane [m] (60 = none)", title="affordance: ego-lane gap"
+)
+hist_png = save_figure(fig, artifacts.artifact_path("figures", "04_label_tails.png"))
+
+# %% [markdown]
+# ## Headline figures
+
+# %%
+shares = train.info["shares"]
+artifacts.write_metrics(
+    "04_expert_and_data",
+    {
+        "profile": profile.name,
+        "headline": {
+            "expert collisions/100mi": res_expert.collisions_per_100mi,
+            "oracle collisions/100mi": res_oracle.collisions_per_100mi,
+            "train samples": len(train),
+        },
+        "expert": res_expert.to_dict(),
+        "oracle": res_oracle.to_dict(),
+        "expert_manoeuvres": expert.manoeuvres,
+        "scene_sides": {"left": sides.count(1), "right": sides.count(-1)},
+        "train": {k: v for k, v in train.info.items() if k != "collision_events"},
+        "val": {k: v for k, v in val.info.items() if k != "collision_events"},
+        "figures": [
+            str(p.relative_to(artifacts.outputs_dir()))
+            for p in (strip_png, both_png, samples_png, hist_png)
+        ],
+    },
+)
+print(
+    "| driver | miles | collisions | per 100 mi [95% CI] | mph |\n|---|---:|---:|---:|---:|\n"
+    + "\n".join(
+        f"| {name} | {r.miles:.0f} | {r.collisions} | {r.collisions_per_100mi:.1f} "
+        f"[{r.ci95_per_100mi[0]:.1f}-{r.ci95_per_100mi[1]:.1f}] | {r.mean_speed_mph:.1f} |"
+        for name, r in (
+            ("expert (ceiling)", res_expert),
+            ("oracle (LQR on expert trajectories)", res_oracle),
+        )
+    )
+)
+print(
+    f"\ndataset: {len(train)} train / {len(val)} val samples; curves {shares['curve']:.1%}, "
+    f"lane changes {shares['lane_change']:.1%} (left {shares['overtake_left']:.1%}, right "
+    f"{shares['overtake_right']:.1%}, return {shares['return']:.1%}), noise {shares['noise']:.1%}"
+)
+
+# %% [markdown]
+# ## Summary
+#
+# * A privileged state machine on the LQR tracker drives the validation tracks without a
+#   collision: that is the ceiling every learned driver is compared with.
+# * The oracle, the tracker following the expert's own 5-point trajectories, also drives them:
+#   predicting the trajectory loses nothing a controller cannot recover.
+# * Randomised triggers, finishes and sides make the data multi-modal: the same parked car is
+#   passed on the left in some samples and on the right in others.
+# * Noise bursts put off-centre states and recoveries into the data; the labels stay what the
+#   expert would do, not what the noisy car did.
+# * Straight lane keeping dominates; overtakes and curves are the minority the later chapters
+#   (GMM, CVaR) are about.
+#
+# ## Exercises
+#
+# 1. Set `ExpertConfig(trigger_m=(25.0, 35.0))`. Does the expert still drive without collisions?
+#    What does `_change_length` do with such short triggers, and what does the expert do instead?
+# 2. Make the side coin always pick the left (`coin=0.0` in `Plan.draw`). Which share in the
+#    dataset statistics changes, and what would a network trained on it never learn?
+# 3. Collect a dataset with `NoiseConfig(rate_per_s=0.0)`. Compare the distribution of the
+#    `center_offset_m` affordance with and without noise. Which states are missing without it?
+# 4. The oracle re-plans every 0.1 s. Make it re-plan every 0.3 s (hold the label for three
+#    decisions). Does it still drive? What does that say about a network's inference budget?
