@@ -73,6 +73,7 @@ class Profile:
         n_train_samples: expert samples collected on training tracks (chapter 04).
         n_val_samples: expert samples collected on validation tracks (for validation losses).
         n_train_tracks: how many training tracks the collector cycles through.
+        train_epochs: epochs of every network's training (chapters 05-09).
     """
 
     name: str
@@ -83,6 +84,7 @@ class Profile:
     n_train_samples: int
     n_val_samples: int
     n_train_tracks: int
+    train_epochs: int
 
     def __post_init__(self) -> None:
         if self.name not in ("quick", "full"):
@@ -94,6 +96,7 @@ class Profile:
         check_range("Profile", "n_train_samples", self.n_train_samples, 1, integer=True)
         check_range("Profile", "n_val_samples", self.n_val_samples, 1, integer=True)
         check_range("Profile", "n_train_tracks", self.n_train_tracks, 1, integer=True)
+        check_range("Profile", "train_epochs", self.train_epochs, 1, integer=True)
 
     @property
     def quick(self) -> bool:
@@ -110,6 +113,7 @@ QUICK = Profile(
     n_train_samples=600,
     n_val_samples=200,
     n_train_tracks=4,
+    train_epochs=1,
 )
 # The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
 # 48,000 training samples (the paper had 500K) are 80 minutes of expert driving, ~120 km.
@@ -122,6 +126,7 @@ FULL = Profile(
     n_train_samples=48_000,
     n_val_samples=8_000,
     n_train_tracks=32,
+    train_epochs=3,
 )
 
 

@@ -456,6 +456,7 @@ def evaluate(
                     "d_m": round(d_i, 3),
                     "x_m": round(float(fleet.state[i, 0]), 2),
                     "y_m": round(float(fleet.state[i, 1]), 2),
+                    "heading_rad": round(float(fleet.state[i, H]), 4),
                     "speed_mps": round(float(fleet.state[i, V]), 2),
                     "time_s": round(float(sim_time[i]), 2),
                     "miles": round(float(odometer[i] / M_PER_MILE), 4),

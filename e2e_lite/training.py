@@ -1,0 +1,423 @@
+"""One training loop for every chapter, and checkpoints that know what they were trained on.
+
+:func:`fit` trains with Adam (the paper: learning rate 1e-3, no weight decay), shuffles with a
+seeded generator, validates every epoch, keeps the weights of the best validation loss (as seed
+002 did), stops early after ``patience`` epochs without improvement, and can freeze parameters by
+name for a range of epochs. It writes per-epoch metrics as JSON and a training-curve PNG.
+
+A checkpoint stores the model's settings, its weights *and normalisation buffers*, the training
+settings, the objective's name and the dataset's key. :func:`load_checkpoint` refuses a checkpoint
+made with other settings or statistics (:class:`CheckpointMismatch`) instead of letting a driver
+run with the wrong normalisation; :func:`train_or_load` reuses a valid one and trains otherwise.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from tqdm.auto import tqdm
+
+from .artifacts import artifact_path, atomic_write, save_json, settings_key
+from .config import check_range
+from .data import DrivingData, DrivingDataset
+from .losses import Objective
+from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
+from .viz import save_figure
+
+
+class CheckpointMismatch(ValueError):
+    """A checkpoint was made with other settings, statistics or data than asked for."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training settings.
+
+    Attributes:
+        epochs: passes over the training set.
+        batch_size: samples per step.
+        lr: Adam's learning rate (the paper: 1e-3).
+        weight_decay: Adam's weight decay (the paper: none).
+        grad_clip: clip the gradient's global norm to this (None: no clipping).
+        freeze: ``(name_prefix, first_epoch, stop_epoch)`` triples: parameters whose name starts
+            with the prefix are frozen for epochs ``first_epoch <= e < stop_epoch`` (0-based).
+        patience: stop after this many epochs without a better validation loss (None: never).
+        max_val_samples: validate on at most this many samples (evenly spaced) to save time.
+        seed: seeds the weights, the dropout and the shuffling.
+        device: ``"auto"`` (CUDA if present, else CPU), ``"cpu"`` or ``"cuda"``.
+    """
+
+    epochs: int = 4
+    batch_size: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    grad_clip: float | None = None
+    freeze: tuple[tuple[str, int, int], ...] = ()
+    patience: int | None = None
+    max_val_samples: int | None = None
+    seed: int = 0
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        o = "TrainConfig"
+        check_range(o, "epochs", self.epochs, 1, 10_000, integer=True)
+        check_range(o, "batch_size", self.batch_size, 2, 65_536, integer=True)
+        check_range(o, "lr", self.lr, 0.0, 1.0, lo_open=True)
+        check_range(o, "weight_decay", self.weight_decay, 0.0, 1.0)
+        if self.grad_clip is not None:
+            check_range(o, "grad_clip", self.grad_clip, 0.0, lo_open=True)
+        if self.patience is not None:
+            check_range(o, "patience", self.patience, 1, integer=True)
+        if self.max_val_samples is not None:
+            check_range(o, "max_val_samples", self.max_val_samples, 1, integer=True)
+        check_range(o, "seed", self.seed, 0, integer=True)
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"{o}.device={self.device!r} is invalid: must be auto, cpu or cuda")
+        for prefix, first, stop in self.freeze:
+            if not isinstance(prefix, str) or not 0 <= first <= stop:
+                raise ValueError(
+                    f"{o}.freeze entry {(prefix, first, stop)!r} is invalid: must be "
+                    "(name_prefix, first_epoch, stop_epoch) with 0 <= first <= stop"
+                )
+
+
+@dataclass
+class History:
+    """What training did: one dict per epoch, the best epoch and the wall time.
+
+    Each epoch dict holds ``epoch``, ``train_loss``, ``val_loss``, the objective's validation
+    metrics (means, physical units), ``frozen`` (parameter prefixes frozen) and ``seconds``.
+    """
+
+    epochs: list[dict[str, Any]]
+    best_epoch: int
+    seconds: float
+    samples_per_s: float
+
+    @property
+    def best(self) -> dict[str, Any]:
+        """The best epoch's record."""
+        return self.epochs[self.best_epoch]
+
+
+def model_stats(cfg: ModelConfig, data: DrivingData, objective: Objective) -> dict[str, np.ndarray]:
+    """The normalisation a model of ``cfg`` trained on ``data`` carries (from the training set)."""
+    s = data.stats
+    if cfg.target_size == 10:
+        t_mean, t_std = s["trajectory_mean"].reshape(-1), s["trajectory_std"].reshape(-1)
+    elif cfg.head == "actuators":
+        t_mean, t_std = s["actuators_mean"], s["actuators_std"]
+    else:  # steering as curvature: statistics of tan(steer) / L
+        kappa = np.tan(data.actuators[:, 0].astype(np.float64)) / objective.wheelbase_m
+        t_mean, t_std = np.array([kappa.mean()]), np.array([max(kappa.std(), 1e-6)])
+    return {
+        "speed_mean": s["speed_mean"],
+        "speed_std": s["speed_std"],
+        "target_mean": t_mean,
+        "target_std": t_std,
+        "affordance_mean": s["affordances_mean"],
+        "affordance_std": s["affordances_std"],
+    }
+
+
+def _batches(n: int, batch_size: int, rng: np.random.Generator | None) -> list[np.ndarray]:
+    order = np.arange(n) if rng is None else rng.permutation(n)
+    return [order[i : i + batch_size] for i in range(0, n, batch_size)]
+
+
+def _to(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
+def evaluate_loss(
+    model: DrivingModel,
+    objective: Objective,
+    dataset: DrivingDataset,
+    batch_size: int = 256,
+    device: torch.device | None = None,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Per-sample losses (N,) and per-sample metrics of ``model`` on ``dataset`` (eval mode)."""
+    device = device or next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    losses, metrics = [], {}
+    with torch.inference_mode():
+        for rows in _batches(len(dataset), batch_size, None):
+            batch = _to(dataset.batch(dataset.indices[rows]), device)
+            out = model(batch["image"], batch["speed"])
+            losses.append(objective.per_sample(out, batch, model).float().cpu().numpy())
+            for k, v in objective.metrics(out, batch, model).items():
+                metrics.setdefault(k, []).append(v.float().cpu().numpy())
+    model.train(was_training)
+    return np.concatenate(losses), {k: np.concatenate(v) for k, v in metrics.items()}
+
+
+def fit(
+    model: DrivingModel,
+    objective: Objective,
+    train: DrivingDataset,
+    val: DrivingDataset,
+    cfg: TrainConfig,
+    *,
+    name: str = "model",
+    progress: bool = True,
+) -> History:
+    """Train ``model`` in place; on return it holds the best validation epoch's weights.
+
+    Writes ``<outputs>/training/<name>.json`` (the history) and ``<outputs>/figures/train_<name>.png``.
+    """
+    device = next(model.parameters()).device
+    params = dict(model.named_parameters())
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    val_ds = val
+    if cfg.max_val_samples is not None and len(val) > cfg.max_val_samples:
+        keep = np.linspace(0, len(val) - 1, cfg.max_val_samples).round().astype(int)
+        val_ds = DrivingDataset(val.data, val.indices[keep])
+    epochs: list[dict[str, Any]] = []
+    best_loss, best_epoch, best_state = float("inf"), 0, None
+    t_start, n_seen, t_train = time.perf_counter(), 0, 0.0
+    for epoch in range(cfg.epochs):
+        t0 = time.perf_counter()
+        frozen = sorted({p for p, a, b in cfg.freeze if a <= epoch < b})
+        for pname, param in params.items():
+            param.requires_grad_(not any(pname.startswith(p) for p in frozen))
+        objective.start_epoch(epoch)
+        model.train()
+        rng = np.random.default_rng([cfg.seed, epoch])
+        batches = _batches(len(train), cfg.batch_size, rng)
+        if len(batches) > 1 and len(batches[-1]) < 2:  # batch norm needs two samples
+            batches = batches[:-1]
+        total, count = 0.0, 0
+        bar = tqdm(
+            batches,
+            desc=f"{name} epoch {epoch + 1}/{cfg.epochs}",
+            unit="batch",
+            disable=not progress,
+            leave=False,
+            mininterval=0.5,
+        )
+        for rows in bar:
+            batch = _to(train.batch(train.indices[rows]), device)
+            out = model(batch["image"], batch["speed"])
+            loss = objective.per_sample(out, batch, model).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            total += float(loss.detach()) * len(rows)
+            count += len(rows)
+            bar.set_postfix(loss=f"{total / count:.4f}", refresh=False)
+        bar.close()
+        t_train += time.perf_counter() - t0
+        n_seen += count
+        val_losses, val_metrics = evaluate_loss(model, objective, val_ds, device=device)
+        record = {
+            "epoch": epoch,
+            "train_loss": total / max(count, 1),
+            "val_loss": float(val_losses.mean()),
+            **{k: float(v.mean()) for k, v in val_metrics.items()},
+            "frozen": frozen,
+            "seconds": time.perf_counter() - t0,
+        }
+        epochs.append(record)
+        if progress:
+            extras = ", ".join(f"{k} {v:.3g}" for k, v in record.items() if "MAE" in k or "DE" in k)
+            print(
+                f"{name} epoch {epoch + 1}/{cfg.epochs}: train {record['train_loss']:.4f}, "
+                f"val {record['val_loss']:.4f}"
+                + (f" ({extras})" if extras else "")
+                + (f", frozen {frozen}" if frozen else "")
+            )
+        if record["val_loss"] < best_loss:
+            best_loss, best_epoch = record["val_loss"], epoch
+            best_state = copy.deepcopy(model.state_dict())
+        elif cfg.patience is not None and epoch - best_epoch >= cfg.patience:
+            if progress:
+                print(f"{name}: early stop, no better validation loss for {cfg.patience} epochs")
+            break
+    for param in params.values():
+        param.requires_grad_(True)
+    if best_state is not None:
+        model.load_state_dict(best_state)
+    history = History(
+        epochs=epochs,
+        best_epoch=best_epoch,
+        seconds=time.perf_counter() - t_start,
+        samples_per_s=n_seen / max(t_train, 1e-9),
+    )
+    save_json(artifact_path("training", f"{name}.json"), asdict(history))
+    save_figure(training_curve(history, name), artifact_path("figures", f"train_{name}.png"))
+    return history
+
+
+def training_curve(history: History, title: str) -> Figure:
+    """Training and validation loss per epoch, the best epoch marked, frozen epochs shaded."""
+    fig = Figure(figsize=(5.5, 3.4))
+    ax = fig.subplots()
+    ep = [r["epoch"] + 1 for r in history.epochs]
+    ax.plot(ep, [r["train_loss"] for r in history.epochs], "o-", label="train")
+    ax.plot(ep, [r["val_loss"] for r in history.epochs], "s-", label="validation")
+    ax.axvline(history.best_epoch + 1, color="0.5", ls=":", label="best (kept)")
+    for r in history.epochs:
+        if r["frozen"]:
+            ax.axvspan(r["epoch"] + 0.5, r["epoch"] + 1.5, color="C2", alpha=0.12, lw=0)
+    ax.set(xlabel="epoch", ylabel="loss", title=title)
+    ax.legend()
+    return fig
+
+
+# ------------------------------------------------------------------ checkpoints
+def checkpoint_key(
+    model_cfg: ModelConfig, train_cfg: TrainConfig, objective: Objective, data_key: str
+) -> str:
+    """The settings key of a training run (the device is left out: CPU and GPU runs share it)."""
+    return settings_key(
+        "checkpoint-v1", model_cfg, {**asdict(train_cfg), "device": None}, objective.name, data_key
+    )
+
+
+def save_checkpoint(
+    path: Path | str,
+    model: DrivingModel,
+    train_cfg: TrainConfig,
+    objective: Objective,
+    data_key: str,
+    history: History | None = None,
+) -> Path:
+    """Write a checkpoint (weights, normalisation, settings, data key, history) atomically."""
+    blob = {
+        "key": checkpoint_key(model.cfg, train_cfg, objective, data_key),
+        "model_config": model.config_dict(),
+        "train_config": asdict(train_cfg),
+        "objective": objective.name,
+        "data_key": data_key,
+        "normalisation": model.normalisation(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "history": None if history is None else asdict(history),
+    }
+    with atomic_write(path) as f:
+        torch.save(blob, f)
+    return Path(path)
+
+
+def load_checkpoint(
+    path: Path | str,
+    model_cfg: ModelConfig | None = None,
+    data_key: str | None = None,
+    normalisation: dict[str, np.ndarray] | None = None,
+    device: torch.device | str = "cpu",
+) -> tuple[DrivingModel, dict[str, Any]]:
+    """Load a checkpoint; refuse it (:class:`CheckpointMismatch`) when what is asked differs.
+
+    Args:
+        path: the file.
+        model_cfg: the settings the caller expects (None: accept the stored ones).
+        data_key: the dataset the caller drives/evaluates with (None: do not check).
+        normalisation: the statistics the caller expects (None: do not check).
+        device: where to put the model.
+
+    Returns:
+        ``(model in eval mode, the checkpoint's metadata)``.
+    """
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    stored_cfg = ModelConfig(**blob["model_config"])
+    if model_cfg is not None and stored_cfg != model_cfg:
+        raise CheckpointMismatch(
+            f"{Path(path).name} holds a model with settings {stored_cfg}, not the requested "
+            f"{model_cfg}; retrain or ask for the stored settings"
+        )
+    if data_key is not None and blob["data_key"] != data_key:
+        raise CheckpointMismatch(
+            f"{Path(path).name} was trained on dataset {blob['data_key']}, not {data_key}: its "
+            "normalisation belongs to that data; retrain on this one"
+        )
+    if normalisation is not None:
+        for name, value in normalisation.items():
+            stored = np.asarray(blob["normalisation"][name], dtype=np.float32).ravel()
+            value = np.asarray(value, dtype=np.float32).ravel()
+            if stored.shape != value.shape or not np.allclose(stored, value, rtol=1e-5, atol=1e-7):
+                raise CheckpointMismatch(
+                    f"{Path(path).name} normalises with other statistics ({name}: stored "
+                    f"{np.round(np.asarray(stored).ravel()[:4], 4).tolist()}..., expected "
+                    f"{np.round(np.asarray(value).ravel()[:4], 4).tolist()}...); refusing to drive "
+                    "with the wrong normalisation"
+                )
+    model = build_model(stored_cfg)
+    model.load_state_dict(blob["state_dict"])
+    model = prepare(model, torch.device(device))
+    model.eval()
+    meta = {k: blob[k] for k in ("key", "train_config", "objective", "data_key", "history")}
+    return model, meta
+
+
+def train_or_load(
+    name: str,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    objective: Objective,
+    train_data: DrivingData,
+    val_data: DrivingData,
+    *,
+    train_rows: np.ndarray | None = None,
+    progress: bool = True,
+) -> tuple[DrivingModel, History]:
+    """The model ``name`` from ``<outputs>/checkpoints/<name>.pt`` if it was trained with these
+    settings on this data; otherwise train it (seeded), save it and return it.
+
+    Args:
+        name: checkpoint and figure name.
+        model_cfg, train_cfg, objective: what to train and how.
+        train_data, val_data: the datasets (statistics come from ``train_data``).
+        train_rows: train on these rows of ``train_data`` only (e.g. without recovery views).
+        progress: progress bars and per-epoch lines.
+    """
+    device = pick_device(train_cfg.device)
+    rows = np.arange(len(train_data)) if train_rows is None else np.asarray(train_rows)
+    data_key = settings_key(
+        train_data.info["key"],
+        val_data.info["key"],
+        None if train_rows is None else hashlib.sha256(rows.astype(np.int64).tobytes()).hexdigest(),
+    )
+    path = artifact_path("checkpoints", f"{name}.pt")
+    stats = model_stats(model_cfg, train_data, objective)
+    key = checkpoint_key(model_cfg, train_cfg, objective, data_key)
+    if path.exists():
+        try:
+            model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
+            if meta["key"] == key and meta["history"] is not None:
+                if progress:
+                    print(f"[checkpoints] {name}: reusing {path.name}")
+                return model, History(**meta["history"])
+            if progress:
+                print(f"[checkpoints] {name}: trained with other settings; retraining")
+        except CheckpointMismatch as err:
+            if progress:
+                print(f"[checkpoints] {name}: {err}; retraining")
+        except Exception as err:  # a corrupt file is retrained, never trusted
+            if progress:
+                print(f"[checkpoints] {name}: unreadable ({type(err).__name__}); retraining")
+    torch.manual_seed(train_cfg.seed)
+    model = build_model(model_cfg)
+    model.set_normalisation(stats)
+    model = prepare(model, device)
+    history = fit(
+        model,
+        objective,
+        DrivingDataset(train_data, rows),
+        DrivingDataset(val_data),
+        train_cfg,
+        name=name,
+        progress=progress,
+    )
+    model.eval()
+    save_checkpoint(path, model, train_cfg, objective, data_key, history)
+    return model, history

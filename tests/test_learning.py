@@ -1,0 +1,258 @@
+"""Models, training, checkpoints and agents on small synthetic data (fast, CPU)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from e2e_lite.agents import ActuatorAgent, CruiseControl, SteeringAgent
+from e2e_lite.artifacts import artifact_path
+from e2e_lite.data import FIELDS, DrivingData, DrivingDataset, dataset_stats
+from e2e_lite.evaluation import EvalConfig, evaluate
+from e2e_lite.geometry import RoadConfig
+from e2e_lite.losses import Objective, target
+from e2e_lite.models import (
+    TRUNK_FEATURES,
+    FusionNet,
+    ModelConfig,
+    Normalise,
+    PilotNet,
+    PilotNetTrunk,
+    build_model,
+    count_parameters,
+    prepare,
+)
+from e2e_lite.training import (
+    CheckpointMismatch,
+    TrainConfig,
+    fit,
+    load_checkpoint,
+    model_stats,
+    save_checkpoint,
+    train_or_load,
+)
+from e2e_lite.vehicle import VehicleParams
+from e2e_lite.world import TrafficConfig, WorldConfig
+
+
+def fake_data(n: int = 64, seed: int = 0) -> DrivingData:
+    """Random frames and labels with the dataset's fields (nothing to learn but memorisation)."""
+    rng = np.random.default_rng(seed)
+    arrays = {
+        "images": rng.integers(0, 256, (n, 66, 200, 3), dtype=np.uint8),
+        "speed": rng.uniform(15, 25, n).astype(np.float32),
+        "actuators": np.stack([rng.normal(0, 0.02, n), rng.normal(0, 1, n)], 1).astype(np.float32),
+        "trajectory": rng.normal(0, 1, (n, 5, 2)).astype(np.float32)
+        + np.array([7.5, 0.0], np.float32) * np.arange(1, 6)[:, None],
+        "affordances": rng.normal(0, 1, (n, 9)).astype(np.float32),
+    }
+    for name in FIELDS:
+        arrays.setdefault(name, np.zeros(n, dtype=np.float32))
+    return DrivingData(arrays, dataset_stats(arrays), {"key": f"fake-{seed}-{n}", "split": "train"})
+
+
+def test_trunk_and_heads_shapes_and_parameter_counts():
+    x = torch.zeros(2, 3, 66, 200, dtype=torch.uint8)
+    assert PilotNetTrunk()(x).shape == (2, TRUNK_FEATURES) == (2, 1152)
+    pilot = PilotNet(ModelConfig(kind="pilotnet", head="steer"))
+    assert pilot(x)["main"].shape == (2, 1)
+    assert 240_000 < count_parameters(pilot) < 260_000  # seed 003: ~250K
+    speed = torch.full((2, 1), 20.0)
+    for head, size in (("actuators", 2), ("trajectory", 10), ("gmm", 42)):
+        net = FusionNet(ModelConfig(head=head, affordance=True)).eval()
+        out = net(x, speed)
+        assert out["main"].shape == (2, size) and out["affordance"].shape == (2, 9)
+    assert "affordance" not in FusionNet(ModelConfig())(x, speed)
+
+
+def test_normalisation_layer_is_fixed():
+    layer = Normalise()
+    assert not list(layer.parameters())
+    out = layer(torch.tensor([0, 255], dtype=torch.uint8))
+    assert out.tolist() == [-1.0, 1.0]
+    net = build_model(ModelConfig(kind="pilotnet", head="steer"))
+    names = [n for n, _ in net.named_parameters()]
+    assert not any("normalise" in n or "mean" in n or "std" in n for n in names)
+
+
+def test_bad_model_settings_raise():
+    with pytest.raises(ValueError, match=r"ModelConfig\.head"):
+        ModelConfig(head="throttle")
+    with pytest.raises(ValueError, match=r"ModelConfig\.affordance"):
+        ModelConfig(kind="pilotnet", head="steer", affordance=True)
+
+
+def test_model_overfits_sixteen_samples():
+    data = fake_data(16)
+    ds = DrivingDataset(data)
+    torch.manual_seed(0)
+    cfg = ModelConfig(kind="pilotnet", head="actuators")
+    model = build_model(cfg)
+    objective = Objective("actuators")
+    model.set_normalisation(model_stats(cfg, data, objective))
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    batch = ds.batch(np.arange(16))
+    losses = []
+    for _ in range(200):
+        loss = objective.per_sample(model(batch["image"], batch["speed"]), batch, model).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < losses[0] / 10
+
+
+def small_train_cfg(**kw) -> TrainConfig:
+    return TrainConfig(**{"epochs": 2, "batch_size": 16, "device": "cpu", **kw})
+
+
+def test_training_is_seeded_and_keeps_the_best_epoch():
+    data, val = fake_data(48, 0), fake_data(16, 1)
+    cfg = ModelConfig(head="actuators", fusion_width=32)
+    obj = Objective("actuators")
+    runs = []
+    for _ in range(2):
+        model, hist = train_or_load(
+            "seeded", cfg, small_train_cfg(), obj, data, val, progress=False
+        )
+        runs.append(model.state_dict())
+        artifact_path("checkpoints", "seeded.pt").unlink()  # force a second training
+    for k in runs[0]:
+        assert torch.equal(runs[0][k], runs[1][k]), k
+    best = min(range(len(hist.epochs)), key=lambda e: hist.epochs[e]["val_loss"])
+    assert hist.best_epoch == best
+
+
+def test_train_or_load_reuses_a_valid_checkpoint(capsys):
+    data, val = fake_data(32, 0), fake_data(16, 1)
+    cfg = ModelConfig(head="trajectory", fusion_width=32)
+    obj = Objective("trajectory")
+    first, _ = train_or_load(
+        "reuse", cfg, small_train_cfg(epochs=1), obj, data, val, progress=False
+    )
+    again, hist = train_or_load("reuse", cfg, small_train_cfg(epochs=1), obj, data, val)
+    assert "reusing" in capsys.readouterr().out and len(hist.epochs) == 1
+    x = DrivingDataset(val).batch(np.arange(4))
+    with torch.inference_mode():
+        np.testing.assert_array_equal(
+            first(x["image"], x["speed"])["main"].numpy(),
+            again(x["image"], x["speed"])["main"].numpy(),
+        )
+    # other training settings: retrained, with a message
+    train_or_load("reuse", cfg, small_train_cfg(epochs=1, lr=5e-4), obj, data, val)
+    assert "other settings" in capsys.readouterr().out
+
+
+def test_checkpoint_round_trip_and_refusals(tmp_path):
+    data, val = fake_data(32, 0), fake_data(16, 1)
+    cfg = ModelConfig(head="actuators", fusion_width=32)
+    obj = Objective("actuators")
+    model, hist = train_or_load(
+        "ck", cfg, small_train_cfg(epochs=1), obj, data, val, progress=False
+    )
+    path = save_checkpoint(tmp_path / "m.pt", model, small_train_cfg(epochs=1), obj, "data-A", hist)
+    loaded, meta = load_checkpoint(path, cfg, "data-A", model.normalisation())
+    x = DrivingDataset(val).batch(np.arange(8))
+    with torch.inference_mode():
+        a = model(x["image"], x["speed"])["main"]
+        b = loaded(x["image"], x["speed"])["main"]
+    assert torch.equal(a, b) and meta["data_key"] == "data-A"
+    with pytest.raises(CheckpointMismatch, match="normalis"):
+        other = model_stats(cfg, fake_data(32, 7), obj)
+        load_checkpoint(path, cfg, "data-A", other)
+    with pytest.raises(CheckpointMismatch, match="settings"):
+        load_checkpoint(path, dataclasses.replace(cfg, fusion_width=64))
+    with pytest.raises(CheckpointMismatch, match="dataset"):
+        load_checkpoint(path, cfg, "data-B")
+
+
+def test_freezing_keeps_parameters_fixed_for_its_epochs():
+    data, val = fake_data(32, 0), fake_data(16, 1)
+    torch.manual_seed(0)
+    cfg = ModelConfig(head="actuators", fusion_width=32)
+    model = prepare(build_model(cfg), torch.device("cpu"))
+    model.set_normalisation(model_stats(cfg, data, Objective("actuators")))
+    before = model.trunk.convs[0].weight.detach().clone()
+    head_before = model.head.weight.detach().clone()
+    hist = fit(
+        model,
+        Objective("actuators"),
+        DrivingDataset(data),
+        DrivingDataset(val),
+        small_train_cfg(epochs=1, freeze=(("trunk.", 0, 1),)),
+        name="freeze",
+        progress=False,
+    )
+    assert torch.equal(model.trunk.convs[0].weight, before)
+    assert not torch.equal(model.head.weight, head_before)
+    assert hist.epochs[0]["frozen"] == ["trunk."]
+    assert all(p.requires_grad for p in model.parameters())
+
+
+def test_bad_train_settings_raise():
+    with pytest.raises(ValueError, match=r"TrainConfig\.freeze"):
+        TrainConfig(freeze=(("trunk.", 3, 1),))
+    with pytest.raises(ValueError, match=r"TrainConfig\.device"):
+        TrainConfig(device="tpu")
+
+
+def test_steering_target_is_curvature():
+    batch = {"actuators": torch.tensor([[0.1, 0.0]])}
+    assert float(target("steer", batch, 2.7)) == pytest.approx(np.tan(0.1) / 2.7)
+
+
+class Spy:
+    """Wraps an agent, checks the frames it gets and keeps its commands."""
+
+    def __init__(self, agent, seen: list) -> None:
+        self.agent, self.seen, self.camera = agent, seen, agent.camera
+
+    def reset(self, n: int) -> None:
+        self.agent.reset(n)
+
+    def act(self, obs):
+        a = self.agent.act(obs)
+        assert obs.images.shape == (len(obs.s), 66, 200, 3)
+        self.seen.append((a.steer_rad.copy(), a.accel_mps2.copy()))
+        return a
+
+
+def test_agents_give_valid_commands_in_closed_loop():
+    """An untrained model with absurd output scales still yields commands within the car's limits."""
+    world_cfg = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(5, 5)))
+    veh = VehicleParams()
+    seen = []
+    for cfg, agent_cls in (
+        (ModelConfig(head="actuators", fusion_width=16), ActuatorAgent),
+        (ModelConfig(kind="pilotnet", head="steer"), SteeringAgent),
+    ):
+        torch.manual_seed(0)
+        model = prepare(build_model(cfg), torch.device("cpu")).eval()
+        model.target_std.fill_(100.0)
+        agent = agent_cls(model)
+        evaluate(
+            Spy(agent, seen),
+            world_cfg,
+            EvalConfig(miles=0.05, n_worlds=3, n_tracks=2),
+            progress=False,
+        )
+    steer = np.concatenate([s for s, _ in seen])
+    accel = np.concatenate([a for _, a in seen])
+    assert np.all(np.abs(steer) <= veh.max_steer_rad + 1e-9)
+    assert np.all((accel >= -veh.max_brake_mps2 - 1e-9) & (accel <= veh.max_accel_mps2 + 1e-9))
+    assert np.ptp(steer) > 0  # the commands come from the frames, not a constant
+
+
+def test_cruise_control_targets_the_road_speed_limit():
+    from conftest import straight_world
+
+    from e2e_lite.evaluation import observe
+    from e2e_lite.world import Fleet
+
+    fleet = Fleet([straight_world([], [])], WorldConfig())
+    fleet.place(0, 100.0, 0.0, 10.0)
+    accel = CruiseControl().accel(observe(fleet, True))
+    assert accel[0] > 0  # below the 25 m/s limit of a straight
