@@ -12,6 +12,9 @@ Names:
             100 m), rendered 16 at a time (as the evaluator does) and one by one.
     data    samples collected per second (noisy expert, frames, label rollouts, affordances), and
             the expert's and the oracle's closed-loop simulated miles per wall-second.
+    train   training samples per second at batch 64 through the real training loop.
+    closed-loop [--agent pilotnet|actuators]
+            simulated miles per wall-second with camera + CNN in the loop, B = 16.
 """
 
 from __future__ import annotations
@@ -25,14 +28,20 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+import torch
 
+from .agents import ActuatorAgent, SteeringAgent
+from .artifacts import artifact_path
 from .camera import Camera, CameraConfig
 from .config import active_profile
-from .data import DataConfig, collect
+from .data import DataConfig, DrivingDataset, collect, synthetic_data
 from .drivers import LaneChanger, LaneKeeper
 from .evaluation import EvalConfig, evaluate
 from .expert import Expert, Oracle
 from .geometry import RoadConfig
+from .losses import Objective
+from .models import ModelConfig, build_model, pick_device, prepare
+from .training import TrainConfig, fit, load_checkpoint
 from .world import Fleet, TrafficConfig, WorldConfig, make_world
 
 
@@ -142,10 +151,70 @@ def bench_data(quick: bool) -> dict[str, float]:
     return out
 
 
-BENCHMARKS: dict[str, Callable[[bool], dict[str, float]]] = {
+def bench_train(quick: bool) -> dict[str, float]:
+    """Training samples per second (batch 64, the real loop on synthetic frames): the full fusion
+    model (trajectory head + affordance head) and PilotNet."""
+    n = 512 if quick else 6_144
+    train, val = synthetic_data(n, 0), synthetic_data(64, 1)
+    out: dict[str, float] = {"threads": torch.get_num_threads(), "device": str(pick_device())}
+    for name, cfg in (
+        ("fusion_trajectory_affordance", ModelConfig(head="trajectory", affordance=True)),
+        ("pilotnet", ModelConfig(kind="pilotnet", head="steer")),
+    ):
+        torch.manual_seed(0)
+        model = prepare(build_model(cfg), pick_device())
+        objective = Objective("steer" if cfg.head == "steer" else "trajectory")
+        hist = fit(
+            model,
+            objective,
+            DrivingDataset(train),
+            DrivingDataset(val),
+            TrainConfig(epochs=1, batch_size=64),
+            name=f"bench_{name}",
+            progress=False,
+        )
+        out[f"{name}_train_samples_per_s"] = hist.samples_per_s
+    return out
+
+
+def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
+    """Closed-loop simulated miles per wall-second with camera + CNN in the loop, B = 16 worlds
+    (the chapter's checkpoint when it exists, else an untrained network of the same shape)."""
+    name, cfg = {
+        "pilotnet": ("05_pilotnet", ModelConfig(kind="pilotnet", head="steer")),
+        "actuators": ("05_actuators", ModelConfig(kind="fusion", head="actuators")),
+    }[agent]
+    path = artifact_path("checkpoints", f"{name}.pt")
+    if path.exists():
+        model, _ = load_checkpoint(path, cfg, device=pick_device())
+        source = f"checkpoint {path.name}"
+    else:
+        torch.manual_seed(0)
+        model = prepare(build_model(cfg), pick_device()).eval()
+        source = "untrained network (no checkpoint yet)"
+    policy = SteeringAgent(model) if cfg.head == "steer" else ActuatorAgent(model)
+    world_cfg = WorldConfig.for_profile(active_profile([]))
+    res = evaluate(
+        policy,
+        world_cfg,
+        EvalConfig(miles=2.0 if quick else 20.0, n_worlds=16, n_tracks=16),
+        progress=False,
+    )
+    print(f"closed loop with {agent}: {source}")
+    return {
+        "sim_miles_per_wall_s": res.sim_miles_per_wall_s,
+        "sim_miles": res.miles,
+        "collisions_per_100mi": res.collisions_per_100mi,
+        "decisions_per_wall_s": res.sim_time_s / world_cfg.sim.policy_period_s / res.wall_time_s,
+    }
+
+
+BENCHMARKS: dict[str, Callable[..., dict[str, float]]] = {
     "world": bench_world,
     "camera": bench_camera,
     "data": bench_data,
+    "train": bench_train,
+    "closed-loop": bench_closed_loop,
 }
 
 
@@ -157,8 +226,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("name", choices=sorted(BENCHMARKS))
     parser.add_argument("--json", action="store_true", help="end with one JSON line of the figures")
     parser.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
+    parser.add_argument(
+        "--agent",
+        choices=["pilotnet", "actuators"],
+        default="pilotnet",
+        help="closed-loop: which learned driver",
+    )
     args = parser.parse_args(argv)
-    figures = BENCHMARKS[args.name](args.quick)
+    if args.name == "closed-loop":
+        figures = bench_closed_loop(args.quick, args.agent)
+    else:
+        figures = BENCHMARKS[args.name](args.quick)
     print(f"benchmark {args.name} ({'quick' if args.quick else 'full'}) on {_machine()}")
     for key, value in figures.items():
         print(f"  {key:36s} {value:,.2f}" if isinstance(value, float) else f"  {key:36s} {value}")

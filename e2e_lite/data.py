@@ -582,6 +582,26 @@ def concat(first: DrivingData, second: DrivingData) -> DrivingData:
     return DrivingData(arrays, dict(first.stats), info)
 
 
+def synthetic_data(n: int = 64, seed: int = 0) -> DrivingData:
+    """Random frames and plausible random labels with every field of a real dataset: for tests and
+    speed benchmarks that must not depend on a collected dataset (nothing to learn in it)."""
+    rng = np.random.default_rng([seed, 97])
+    arrays: dict[str, np.ndarray] = {
+        "images": rng.integers(0, 256, (n, 66, 200, 3), dtype=np.uint8),
+        "speed": rng.uniform(15.0, 25.0, n).astype(np.float32),
+        "actuators": np.stack([rng.normal(0, 0.02, n), rng.normal(0, 1, n)], 1).astype(np.float32),
+        "trajectory": (
+            rng.normal(0, 1, (n, N_POINTS, 2)) + np.array([7.5, 0.0]) * np.arange(1, 6)[:, None]
+        ).astype(np.float32),
+        "affordances": rng.normal(0, 1, (n, len(AFFORDANCE_NAMES))).astype(np.float32),
+    }
+    for name in FIELDS:
+        arrays.setdefault(name, np.zeros(n, dtype=np.float32))
+    return DrivingData(
+        arrays, dataset_stats(arrays), {"key": f"synthetic-{seed}-{n}", "split": "train"}
+    )
+
+
 class DrivingDataset(torch.utils.data.Dataset):
     """A ``torch`` view of :class:`DrivingData` (or a subset of its rows).
 

@@ -10,7 +10,7 @@ import torch
 
 from e2e_lite.agents import ActuatorAgent, CruiseControl, SteeringAgent
 from e2e_lite.artifacts import artifact_path
-from e2e_lite.data import FIELDS, DrivingData, DrivingDataset, dataset_stats
+from e2e_lite.data import DrivingDataset, synthetic_data
 from e2e_lite.evaluation import EvalConfig, evaluate
 from e2e_lite.geometry import RoadConfig
 from e2e_lite.losses import Objective, target
@@ -36,22 +36,6 @@ from e2e_lite.training import (
 )
 from e2e_lite.vehicle import VehicleParams
 from e2e_lite.world import TrafficConfig, WorldConfig
-
-
-def fake_data(n: int = 64, seed: int = 0) -> DrivingData:
-    """Random frames and labels with the dataset's fields (nothing to learn but memorisation)."""
-    rng = np.random.default_rng(seed)
-    arrays = {
-        "images": rng.integers(0, 256, (n, 66, 200, 3), dtype=np.uint8),
-        "speed": rng.uniform(15, 25, n).astype(np.float32),
-        "actuators": np.stack([rng.normal(0, 0.02, n), rng.normal(0, 1, n)], 1).astype(np.float32),
-        "trajectory": rng.normal(0, 1, (n, 5, 2)).astype(np.float32)
-        + np.array([7.5, 0.0], np.float32) * np.arange(1, 6)[:, None],
-        "affordances": rng.normal(0, 1, (n, 9)).astype(np.float32),
-    }
-    for name in FIELDS:
-        arrays.setdefault(name, np.zeros(n, dtype=np.float32))
-    return DrivingData(arrays, dataset_stats(arrays), {"key": f"fake-{seed}-{n}", "split": "train"})
 
 
 def test_trunk_and_heads_shapes_and_parameter_counts():
@@ -86,7 +70,7 @@ def test_bad_model_settings_raise():
 
 
 def test_model_overfits_sixteen_samples():
-    data = fake_data(16)
+    data = synthetic_data(16)
     ds = DrivingDataset(data)
     torch.manual_seed(0)
     cfg = ModelConfig(kind="pilotnet", head="actuators")
@@ -110,7 +94,7 @@ def small_train_cfg(**kw) -> TrainConfig:
 
 
 def test_training_is_seeded_and_keeps_the_best_epoch():
-    data, val = fake_data(48, 0), fake_data(16, 1)
+    data, val = synthetic_data(48, 0), synthetic_data(16, 1)
     cfg = ModelConfig(head="actuators", fusion_width=32)
     obj = Objective("actuators")
     runs = []
@@ -127,7 +111,7 @@ def test_training_is_seeded_and_keeps_the_best_epoch():
 
 
 def test_train_or_load_reuses_a_valid_checkpoint(capsys):
-    data, val = fake_data(32, 0), fake_data(16, 1)
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
     cfg = ModelConfig(head="trajectory", fusion_width=32)
     obj = Objective("trajectory")
     first, _ = train_or_load(
@@ -147,7 +131,7 @@ def test_train_or_load_reuses_a_valid_checkpoint(capsys):
 
 
 def test_checkpoint_round_trip_and_refusals(tmp_path):
-    data, val = fake_data(32, 0), fake_data(16, 1)
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
     cfg = ModelConfig(head="actuators", fusion_width=32)
     obj = Objective("actuators")
     model, hist = train_or_load(
@@ -161,7 +145,7 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
         b = loaded(x["image"], x["speed"])["main"]
     assert torch.equal(a, b) and meta["data_key"] == "data-A"
     with pytest.raises(CheckpointMismatch, match="normalis"):
-        other = model_stats(cfg, fake_data(32, 7), obj)
+        other = model_stats(cfg, synthetic_data(32, 7), obj)
         load_checkpoint(path, cfg, "data-A", other)
     with pytest.raises(CheckpointMismatch, match="settings"):
         load_checkpoint(path, dataclasses.replace(cfg, fusion_width=64))
@@ -170,7 +154,7 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
 
 
 def test_freezing_keeps_parameters_fixed_for_its_epochs():
-    data, val = fake_data(32, 0), fake_data(16, 1)
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
     torch.manual_seed(0)
     cfg = ModelConfig(head="actuators", fusion_width=32)
     model = prepare(build_model(cfg), torch.device("cpu"))

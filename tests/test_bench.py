@@ -1,0 +1,20 @@
+"""The benchmark commands run and print their figures (they assert nothing about speed)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from e2e_lite import bench
+
+
+@pytest.mark.parametrize(
+    "argv", [["train", "--quick"], ["closed-loop", "--quick", "--agent", "actuators"]]
+)
+def test_benchmark_command_prints_json(argv, capsys):
+    assert bench.main([*argv, "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert figures["benchmark"] == argv[0]
+    numbers = [v for k, v in figures.items() if "_per_" in k and k.endswith("_s")]
+    assert numbers and all(v > 0 for v in numbers)
