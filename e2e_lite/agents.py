@@ -10,7 +10,8 @@ decision with the whole batch; the agent runs the network once on the B frames (
 * :class:`ActuatorAgent` (seed 002 / the GM paper's Baseline E2E): the network gives steering and
   acceleration, applied directly; no controller.
 
-Trajectory agents (the network proposes, the LQR tracker follows) are added by chapter 06.
+* :class:`TrajectoryAgent` (seed 000): the network proposes a 5-point trajectory (for a GMM head,
+  the mean of the most likely mode), the LQR tracker follows it (steering and speed).
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ from .camera import CameraConfig
 from .evaluation import Actuation, Observation
 from .expert import ExpertConfig, speed_profile
 from .geometry import Track
+from .losses import split_gmm
 from .models import DrivingModel, images_to_tensor
-from .tracker import LQRTracker
+from .tracker import LQRTracker, follow_trajectory
 from .vehicle import VehicleParams
 
 
@@ -97,7 +99,7 @@ class SteeringAgent(NetworkAgent):
 
     def act(self, obs: Observation) -> Actuation:
         """Steer from the frames; accelerate towards the road's speed limit."""
-        kappa = self.model.denormalise(self.predict(obs)["main"])[:, 0].float().cpu().numpy()
+        kappa = self.model.denormalise(self.predict(obs)["main"])[:, 0].double().cpu().numpy()
         steer = np.arctan(self.vehicle.wheelbase_m * kappa)
         lim = self.vehicle.max_steer_rad
         return Actuation(steer_rad=np.clip(steer, -lim, lim), accel_mps2=self.cruise.accel(obs))
@@ -108,9 +110,70 @@ class ActuatorAgent(NetworkAgent):
 
     def act(self, obs: Observation) -> Actuation:
         """Apply the predicted steering and acceleration (clipped to the car's limits)."""
-        out = self.model.denormalise(self.predict(obs)["main"]).float().cpu().numpy()
+        out = self.model.denormalise(self.predict(obs)["main"]).double().cpu().numpy()
         v = self.vehicle
         return Actuation(
             steer_rad=np.clip(out[:, 0], -v.max_steer_rad, v.max_steer_rad),
             accel_mps2=np.clip(out[:, 1], -v.max_brake_mps2, v.max_accel_mps2),
         )
+
+
+class TrajectoryAgent(NetworkAgent):
+    """The network proposes, the LQR tracker follows (seed 000's Fig. 1).
+
+    For a ``trajectory`` head the prediction is de-normalised and followed. For a ``gmm`` head
+    the mean of the mode with the largest weight is followed; every mode, its weight and its
+    sigma are kept in :attr:`last` (for figures and the safety module).
+
+    Args:
+        model: a trajectory or GMM model.
+        tracker: the LQR tracker (default settings if None).
+        sigma_floor: the GMM's sigma floor (normalised units) used to report sigmas.
+
+    Attributes:
+        last: the latest decision's ``{"points": (B, 5, 2) followed [m], "modes": (B, K, 5, 2) [m],
+            "weights": (B, K), "sigmas": (B, K, 5, 2) [m]}`` (modes/weights/sigmas for GMMs only).
+    """
+
+    def __init__(
+        self,
+        model: DrivingModel,
+        tracker: LQRTracker | None = None,
+        sigma_floor: float = 0.01,
+        **kwargs,
+    ) -> None:
+        super().__init__(model, **kwargs)
+        if model.cfg.head not in ("trajectory", "gmm"):
+            raise ValueError(
+                f"TrajectoryAgent needs a trajectory or gmm head, not {model.cfg.head!r}"
+            )
+        self.tracker = tracker or LQRTracker(vehicle=self.vehicle)
+        self.sigma_floor = sigma_floor
+        self.last: dict[str, np.ndarray] = {}
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        """The trajectories to follow (B, 5, 2) [m]; fills :attr:`last`."""
+        out = self.predict(obs)["main"]
+        model = self.model
+        if model.cfg.head == "trajectory":
+            pts = model.denormalise(out).reshape(-1, 5, 2).double().cpu().numpy()
+            self.last = {"points": pts}
+            return pts
+        logits, means, raw = split_gmm(out, model.cfg.gmm_modes)
+        weights = torch.softmax(logits, dim=-1)
+        modes = model.denormalise(means)
+        sig = (self.sigma_floor + torch.exp(raw)) * model.target_std
+        top = weights.argmax(dim=-1)
+        pts = modes[torch.arange(len(top), device=top.device), top]
+        self.last = {
+            "points": pts.reshape(-1, 5, 2).double().cpu().numpy(),
+            "modes": modes.reshape(*modes.shape[:2], 5, 2).double().cpu().numpy(),
+            "weights": weights.double().cpu().numpy(),
+            "sigmas": sig.reshape(*sig.shape[:2], 5, 2).double().cpu().numpy(),
+        }
+        return self.last["points"]
+
+    def act(self, obs: Observation) -> Actuation:
+        """Follow the predicted trajectory with the LQR tracker."""
+        steer, accel = follow_trajectory(self.tracker, self.trajectories(obs), obs.speed)
+        return Actuation(steer_rad=steer, accel_mps2=accel)

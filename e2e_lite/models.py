@@ -183,6 +183,24 @@ class PilotNet(DrivingModel):
         return {"main": self.head(self.trunk(image))}
 
 
+class GMMHead(nn.Module):
+    """K-mode mixture head: separate layers for the means, the log-sigmas and the mixing logits
+    (so the log-sigma layer can be frozen by name), concatenated as ``[means | log-sigmas | logits]``
+    (K x 10, K x 10, K)."""
+
+    def __init__(self, width: int, n_modes: int) -> None:
+        super().__init__()
+        self.means = nn.Linear(width, n_modes * 10)
+        self.log_sigma = nn.Linear(width, n_modes * 10)
+        self.logits = nn.Linear(width, n_modes)
+        # start every sigma near 1 (log sigma ~ 0) so opening them after a warm-up is smooth
+        nn.init.zeros_(self.log_sigma.bias)
+        nn.init.normal_(self.log_sigma.weight, std=1e-3)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([self.means(x), self.log_sigma(x), self.logits(x)], dim=-1)
+
+
 class FusionNet(DrivingModel):
     """Trunk + speed -> fusion MLP -> main head (+ affordance head). Seed 000's Fig. 1."""
 
@@ -200,7 +218,11 @@ class FusionNet(DrivingModel):
                 layers.append(nn.Dropout(cfg.dropout))
             width_in = cfg.fusion_width
         self.fusion = nn.Sequential(*layers)
-        self.head = nn.Linear(cfg.fusion_width, cfg.out_size)
+        self.head = (
+            GMMHead(cfg.fusion_width, cfg.gmm_modes)
+            if cfg.head == "gmm"
+            else nn.Linear(cfg.fusion_width, cfg.out_size)
+        )
         self.affordance_head = (
             nn.Sequential(
                 nn.Linear(cfg.fusion_width, 64), nn.ReLU(inplace=True), nn.Linear(64, N_AFFORDANCES)

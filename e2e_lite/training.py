@@ -186,7 +186,9 @@ def fit(
     t_start, n_seen, t_train = time.perf_counter(), 0, 0.0
     for epoch in range(cfg.epochs):
         t0 = time.perf_counter()
-        frozen = sorted({p for p, a, b in cfg.freeze if a <= epoch < b})
+        frozen = sorted(
+            {p for p, a, b in cfg.freeze if a <= epoch < b} | set(objective.frozen_prefixes(epoch))
+        )
         for pname, param in params.items():
             param.requires_grad_(not any(pname.startswith(p) for p in frozen))
         objective.start_epoch(epoch)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from e2e_lite.agents import ActuatorAgent, CruiseControl, SteeringAgent
+from e2e_lite.agents import ActuatorAgent, CruiseControl, SteeringAgent, TrajectoryAgent
 from e2e_lite.artifacts import artifact_path
 from e2e_lite.data import DrivingDataset, synthetic_data
 from e2e_lite.evaluation import EvalConfig, evaluate
@@ -212,6 +212,8 @@ def test_agents_give_valid_commands_in_closed_loop():
     for cfg, agent_cls in (
         (ModelConfig(head="actuators", fusion_width=16), ActuatorAgent),
         (ModelConfig(kind="pilotnet", head="steer"), SteeringAgent),
+        (ModelConfig(head="trajectory", fusion_width=16), TrajectoryAgent),
+        (ModelConfig(head="gmm", gmm_modes=3, fusion_width=16), TrajectoryAgent),
     ):
         torch.manual_seed(0)
         model = prepare(build_model(cfg), torch.device("cpu")).eval()
@@ -240,3 +242,32 @@ def test_cruise_control_targets_the_road_speed_limit():
     fleet.place(0, 100.0, 0.0, 10.0)
     accel = CruiseControl().accel(observe(fleet, True))
     assert accel[0] > 0  # below the 25 m/s limit of a straight
+
+
+def test_trajectory_agent_keeps_every_mode():
+    from conftest import straight_world
+
+    from e2e_lite.evaluation import observe
+    from e2e_lite.world import Fleet
+
+    torch.manual_seed(0)
+    model = prepare(
+        build_model(ModelConfig(head="gmm", gmm_modes=2, fusion_width=16)), torch.device("cpu")
+    )
+    agent = TrajectoryAgent(model.eval())
+    fleet = Fleet([straight_world([], []), straight_world([], [])], WorldConfig())
+    for i in range(2):
+        fleet.place(i, 100.0, 0.0, 20.0)
+    obs = observe(fleet, True, images=np.zeros((2, 66, 200, 3), np.uint8))
+    pts = agent.trajectories(obs)
+    last = agent.last
+    assert (
+        pts.shape == (2, 5, 2)
+        and last["modes"].shape == (2, 2, 5, 2)
+        and last["weights"].shape == (2, 2)
+    )
+    top = last["weights"].argmax(axis=1)
+    np.testing.assert_allclose(pts, last["modes"][np.arange(2), top])
+    assert np.all(last["sigmas"] > 0)
+    with pytest.raises(ValueError, match="trajectory or gmm"):
+        TrajectoryAgent(build_model(ModelConfig(kind="pilotnet", head="steer")))

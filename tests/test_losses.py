@@ -1,0 +1,142 @@
+"""The GMM loss against direct computations, its numerical safety, mode selection, sigma warm-up."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import multivariate_normal
+
+from e2e_lite.data import DrivingDataset, synthetic_data
+from e2e_lite.losses import GMMObjective, gmm_nll, log_sigma, most_likely, split_gmm
+from e2e_lite.models import ModelConfig, build_model, prepare
+from e2e_lite.training import TrainConfig, fit, model_stats
+
+
+def direct_nll(y, weights, means, sigmas):
+    """-log sum_k w_k N(y; mu_k, diag(sigma_k^2)) with scipy densities."""
+    dens = sum(
+        w * multivariate_normal(mean=m, cov=np.diag(s**2)).pdf(y)
+        for w, m, s in zip(weights, means, sigmas)
+    )
+    return -math.log(dens)
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_gmm_nll_equals_scipy(k):
+    rng = np.random.default_rng(k)
+    y = rng.normal(size=10)
+    means = rng.normal(size=(k, 10))
+    sigmas = rng.uniform(0.5, 2.0, size=(k, 10))
+    logits = rng.normal(size=k)
+    weights = np.exp(logits) / np.exp(logits).sum()
+    ours = gmm_nll(
+        torch.tensor(y)[None],
+        torch.tensor(logits)[None],
+        torch.tensor(means)[None],
+        torch.tensor(np.log(sigmas))[None],
+    )
+    assert float(ours[0]) == pytest.approx(direct_nll(y, weights, means, sigmas), rel=1e-9)
+
+
+def test_one_mode_with_unit_sigma_is_scaled_mse_plus_constant():
+    rng = np.random.default_rng(0)
+    y, mu = torch.tensor(rng.normal(size=(6, 10))), torch.tensor(rng.normal(size=(6, 1, 10)))
+    nll = gmm_nll(y, torch.zeros(6, 1, dtype=torch.float64), mu, torch.zeros_like(mu))
+    mse = ((y - mu[:, 0]) ** 2).mean(dim=1)
+    torch.testing.assert_close(nll, 5.0 * mse + 5.0 * math.log(2 * math.pi))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    mean_scale=st.floats(1e-3, 1e4),
+    raw_sigma=st.floats(-60.0, 10.0),
+    logit=st.floats(-50.0, 50.0),
+    k=st.integers(1, 4),
+)
+def test_loss_and_gradients_stay_finite_for_extreme_inputs(mean_scale, raw_sigma, logit, k):
+    out = torch.zeros(3, k * 21)
+    out[:, : k * 10] = mean_scale * torch.linspace(-1, 1, k * 10)
+    out[:, k * 10 : k * 20] = raw_sigma
+    out[:, k * 20 :] = torch.linspace(-logit, logit, k)
+    out.requires_grad_(True)
+    logits, means, raw = split_gmm(out, k)
+    loss = gmm_nll(torch.zeros(3, 10), logits, means, log_sigma(raw, 0.01)).mean()
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(out.grad).all()
+
+
+def test_sigma_floor_is_smooth_and_respected():
+    raw = torch.tensor([-100.0, 0.0, 5.0])
+    ls = log_sigma(raw, 0.01)
+    assert ls[0] == pytest.approx(math.log(0.01), abs=1e-6)
+    assert ls[1] == pytest.approx(math.log(1.01)) and ls[2] == pytest.approx(
+        math.log(0.01 + math.exp(5))
+    )
+
+
+def test_most_likely_mode_and_shapes():
+    weights = torch.tensor([[0.2, 0.8], [0.9, 0.1]])
+    means = torch.arange(40.0).reshape(2, 2, 10)
+    torch.testing.assert_close(most_likely(weights, means), torch.stack([means[0, 1], means[1, 0]]))
+    for k in (1, 2, 5):
+        logits, mu, raw = split_gmm(torch.zeros(4, k * 21), k)
+        assert logits.shape == (4, k) and mu.shape == raw.shape == (4, k, 10)
+
+
+def test_bad_sizes_raise():
+    with pytest.raises(ValueError, match="n_modes"):
+        split_gmm(torch.zeros(2, 21), 0)
+    with pytest.raises(ValueError, match="columns"):
+        split_gmm(torch.zeros(2, 40), 2)
+    with pytest.raises(ValueError, match="mismatched"):
+        gmm_nll(torch.zeros(2, 9), torch.zeros(2, 2), torch.zeros(2, 2, 10), torch.zeros(2, 2, 10))
+    with pytest.raises(ValueError, match=r"GMMObjective\.n_modes"):
+        GMMObjective(n_modes=0)
+
+
+def test_sigma_is_frozen_during_warmup_and_opened_after():
+    train, val = synthetic_data(32, 0), synthetic_data(16, 1)
+    cfg = ModelConfig(head="gmm", fusion_width=32)
+    torch.manual_seed(0)
+    model = prepare(build_model(cfg), torch.device("cpu"))
+    model.set_normalisation(model_stats(cfg, train, GMMObjective()))
+    tcfg = TrainConfig(epochs=1, batch_size=16, device="cpu")
+    before = {n: p.detach().clone() for n, p in model.named_parameters()}
+    hist = fit(
+        model,
+        GMMObjective(sigma_warmup_epochs=1),
+        DrivingDataset(train),
+        DrivingDataset(val),
+        tcfg,
+        progress=False,
+    )
+    assert hist.epochs[0]["frozen"] == ["head.log_sigma"]
+    after = dict(model.named_parameters())
+    assert torch.equal(after["head.log_sigma.weight"], before["head.log_sigma.weight"])
+    assert not torch.equal(after["head.means.weight"], before["head.means.weight"])
+    fit(
+        model,
+        GMMObjective(sigma_warmup_epochs=0),
+        DrivingDataset(train),
+        DrivingDataset(val),
+        tcfg,
+        progress=False,
+    )
+    assert not torch.equal(model.head.log_sigma.weight, before["head.log_sigma.weight"])
+
+
+def test_normalisation_round_trip():
+    data = synthetic_data(16)
+    cfg = ModelConfig(head="gmm")
+    model = build_model(cfg)
+    model.set_normalisation(model_stats(cfg, data, GMMObjective()))
+    x = torch.from_numpy(data.trajectory.reshape(16, 10))
+    torch.testing.assert_close(
+        model.denormalise(model.normalise_target(x)), x, rtol=1e-6, atol=1e-5
+    )
+    assert model.normalise_target(x).mean(dim=0).abs().max() < 1e-4  # the stats are this data's
