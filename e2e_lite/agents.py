@@ -21,9 +21,8 @@ import torch
 
 from .camera import CameraConfig
 from .evaluation import Actuation, Observation
-from .expert import ExpertConfig, speed_profile
-from .geometry import Track
-from .losses import split_gmm
+from .expert import ExpertConfig, SpeedLimits
+from .losses import log_sigma, split_gmm
 from .models import DrivingModel, images_to_tensor
 from .tracker import LQRTracker, follow_trajectory
 from .vehicle import VehicleParams
@@ -70,23 +69,12 @@ class CruiseControl:
     by the LQR tracker's speed loop. It knows the road's curvature ahead, not the parked cars."""
 
     def __init__(self, cfg: ExpertConfig | None = None, tracker: LQRTracker | None = None) -> None:
-        self.cfg = cfg or ExpertConfig()
+        self.limits = SpeedLimits(cfg or ExpertConfig())
         self.tracker = tracker or LQRTracker()
-        self._profiles: dict[tuple, np.ndarray] = {}
-
-    def _profile(self, track: Track) -> np.ndarray:
-        if track.track_id not in self._profiles:
-            self._profiles[track.track_id] = speed_profile(track, self.cfg)
-        return self._profiles[track.track_id]
 
     def accel(self, obs: Observation) -> np.ndarray:
         """Acceleration [m/s^2] towards each car's speed limit at its position."""
-        v_ref = np.array(
-            [
-                self._profile(w.track)[min(int(s / 5.0), len(self._profile(w.track)) - 1)]
-                for w, s in zip(obs.worlds, obs.s)
-            ]
-        )
+        v_ref = np.array([self.limits.at(w.track, s) for w, s in zip(obs.worlds, obs.s)])
         return self.tracker.accel(obs.speed, v_ref)
 
 
@@ -162,7 +150,7 @@ class TrajectoryAgent(NetworkAgent):
         logits, means, raw = split_gmm(out, model.cfg.gmm_modes)
         weights = torch.softmax(logits, dim=-1)
         modes = model.denormalise(means)
-        sig = (self.sigma_floor + torch.exp(raw)) * model.target_std
+        sig = torch.exp(log_sigma(raw, self.sigma_floor)) * model.target_std
         top = weights.argmax(dim=-1)
         pts = modes[torch.arange(len(top), device=top.device), top]
         self.last = {

@@ -180,6 +180,26 @@ def speed_profile(track: Track, cfg: ExpertConfig, step_m: float = 5.0) -> np.nd
     return v
 
 
+class SpeedLimits:
+    """The expert's speed limit at any ``(track, s)``: :func:`speed_profile` computed once per
+    track object (keyed by identity: two roads may share a ``track_id`` but not a profile)."""
+
+    STEP_M = 5.0
+
+    def __init__(self, cfg: ExpertConfig) -> None:
+        self.cfg = cfg
+        self._profiles: dict[int, tuple[Track, np.ndarray]] = {}
+
+    def at(self, track: Track, s: float) -> float:
+        """Speed limit [m/s] at arc length ``s`` [m]."""
+        entry = self._profiles.get(id(track))
+        if entry is None or entry[0] is not track:
+            entry = (track, speed_profile(track, self.cfg, self.STEP_M))
+            self._profiles[id(track)] = entry
+        profile = entry[1]
+        return float(profile[min(len(profile) - 1, max(0, int(s / self.STEP_M)))])
+
+
 def car_ahead(world: World, s_from: float, lane: int, range_m: float) -> tuple[float, int]:
     """The first parked car in ``lane`` whose rear is ahead of ``s_from`` (or overlaps it), from
     the world's car list: ``(gap from s_from to its rear [m], index)``, or ``(inf, -1)``."""
@@ -196,8 +216,7 @@ def car_ahead(world: World, s_from: float, lane: int, range_m: float) -> tuple[f
 def lane_clear(world: World, lane: int, s_lo: float, s_hi: float) -> bool:
     """No parked car's body in ``lane`` overlaps ``[s_lo, s_hi]`` [m] of arc length."""
     half = world.cars.length_m / 2.0
-    sl = world.cars.between(s_lo - half, s_hi + half)
-    return not np.any(world.cars.lane[sl] == lane)
+    return world.lane_free(s_lo, lane, half, s_hi - s_lo + half)
 
 
 class Expert:
@@ -231,7 +250,7 @@ class Expert:
         self.seed = seed
         self.plans: list[Plan] = []
         self.manoeuvres = {"left": 0, "right": 0, "return": 0, "follow": 0}
-        self._profiles: dict[tuple, np.ndarray] = {}
+        self.speed_limits = SpeedLimits(self.cfg)
         self._front = self.vehicle.length_m - self.vehicle.rear_overhang_m
 
     # ------------------------------------------------------------------ Policy
@@ -272,7 +291,8 @@ class Expert:
         st = obs.state.copy()
         tracks = [w.track for w in obs.worlds]
         seg = np.array([int(t.segment_index(si)) for t, si in zip(tracks, obs.s)], dtype=np.int64)
-        x0, y0, h0 = st[:, 0].copy(), st[:, 1].copy(), st[:, H].copy()
+        x0, y0 = st[:, 0].copy(), st[:, 1].copy()
+        c, sn = np.cos(st[:, H]), np.sin(st[:, H])  # the car frame at the sample time
         per_point = round(POINT_DT_S / self.sim.policy_period_s)
         out = np.empty((len(plans), N_POINTS, 2))
         s, d, he, kap = obs.s, obs.d, obs.heading_error, obs.curvature
@@ -285,7 +305,6 @@ class Expert:
                 bicycle_step(st, steer, accel, self.vehicle, self.sim.dt_s)
             if (k + 1) % per_point == 0:
                 dx, dy = st[:, 0] - x0, st[:, 1] - y0
-                c, sn = np.cos(h0), np.sin(h0)
                 j = (k + 1) // per_point - 1
                 out[:, j, 0] = c * dx + sn * dy
                 out[:, j, 1] = -sn * dx + c * dy
@@ -295,12 +314,6 @@ class Expert:
     def _restart(self, plan: Plan, lane: int) -> None:
         plan.state, plan.lane, plan.origin, plan.path = KEEP, lane, lane, None
         plan.overtaking, plan.obstacle_front_m = False, -math.inf
-
-    def _profile(self, track: Track) -> np.ndarray:
-        key = track.track_id
-        if key not in self._profiles:
-            self._profiles[key] = speed_profile(track, self.cfg)
-        return self._profiles[key]
 
     def _change_length(
         self, plan: Plan, speed: float, gap: float, lane_width_m: float
@@ -427,8 +440,7 @@ class Expert:
                 )
                 e[i], psi[i], kap[i] = float(ei), float(pi), float(ki)
             # speed: the curve profile, then any car ahead it must not reach
-            profile = self._profile(track)
-            v_ref[i] = profile[min(len(profile) - 1, max(0, int(si / 5.0)))]
+            v_ref[i] = self.speed_limits.at(track, si)
             room = gap - cfg.follow_margin_m
             if plan.state == FOLLOW:
                 v_ref[i] = min(v_ref[i], math.sqrt(2.0 * cfg.approach_brake_mps2 * max(room, 0.0)))
