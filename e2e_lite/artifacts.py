@@ -1,7 +1,9 @@
 """The artifacts folder: keyed, atomic, self-checking files.
 
 Everything the course writes (figures, metrics JSON, datasets, checkpoints, replays) lives under
-one folder, ``outputs/`` at the repository root by default, or ``$E2E_LITE_OUTPUTS``.
+one folder, ``outputs/`` at the repository root by default, or ``$E2E_LITE_OUTPUTS``. The quick
+profile writes into its own ``quick/`` subfolder, so a smoke run never replaces the full profile's
+checkpoints, datasets or metrics.
 
 Reused artifacts are keyed by a hash of the settings that made them (:func:`settings_key`), so
 changing a setting makes a new file instead of silently reusing an old one. Writes go to a
@@ -24,6 +26,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from .config import quick_requested
+
 OUTPUTS_ENV = "E2E_LITE_OUTPUTS"
 _REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,7 +39,7 @@ def outputs_dir() -> Path:
 
     ``$E2E_LITE_OUTPUTS`` if set; else ``outputs/`` beside ``pyproject.toml`` when the package runs
     from a source checkout (so ``python chapters/01_highway.py`` from any folder writes to the same
-    place); else ``./outputs``.
+    place); else ``./outputs``. Under the quick profile, its ``quick/`` subfolder.
     """
     env = os.environ.get(OUTPUTS_ENV)
     if env:
@@ -44,6 +48,8 @@ def outputs_dir() -> Path:
         root = _REPO_ROOT / "outputs"
     else:
         root = Path.cwd() / "outputs"
+    if quick_requested():
+        root = root / "quick"
     root.mkdir(parents=True, exist_ok=True)
     return root
 

@@ -34,7 +34,9 @@ def test_chapter_runs_in_quick_profile(path, tmp_path):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    metrics = json.loads((tmp_path / "outputs" / "metrics" / f"{path.stem}.json").read_text())
+    metrics = json.loads(
+        (tmp_path / "outputs" / "quick" / "metrics" / f"{path.stem}.json").read_text()
+    )
     assert metrics["profile"] == "quick" and metrics["headline"]
 
 

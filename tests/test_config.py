@@ -125,3 +125,11 @@ def test_metrics_keep_their_order_and_keys_ignore_it():
     artifacts.write_metrics("97_order", {"headline": {"zeta": 1, "alpha": 2}})
     assert list(artifacts.read_metrics("97_order")["headline"]) == ["zeta", "alpha"]
     assert artifacts.settings_key({"a": 1, "b": 2}) == artifacts.settings_key({"b": 2, "a": 1})
+
+
+def test_quick_profile_writes_to_its_own_folder(tmp_path, monkeypatch):
+    """A quick smoke run must never replace the full profile's checkpoints or metrics."""
+    monkeypatch.setenv("E2E_LITE_QUICK", "1")
+    assert artifacts.outputs_dir() == tmp_path / "outputs" / "quick"
+    monkeypatch.setenv("E2E_LITE_QUICK", "0")
+    assert artifacts.outputs_dir() == tmp_path / "outputs"
