@@ -11,7 +11,9 @@ decision with the whole batch; the agent runs the network once on the B frames (
   acceleration, applied directly; no controller.
 
 * :class:`TrajectoryAgent` (seed 000): the network proposes a 5-point trajectory (for a GMM head,
-  the mean of the most likely mode), the LQR tracker follows it (steering and speed).
+  the mean of the most likely mode), the LQR tracker follows it (steering and speed). Where the
+  speed comes from is a switch (:data:`SPEED_SOURCES`) so chapter 07 can separate lateral from
+  longitudinal failures.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from .evaluation import Actuation, Observation
 from .expert import ExpertConfig, SpeedLimits
 from .losses import log_sigma, split_gmm
 from .models import DrivingModel, images_to_tensor
-from .tracker import LQRTracker, follow_trajectory
+from .tracker import LQRTracker, trajectory_reference
 from .vehicle import VehicleParams
 
 
@@ -55,8 +57,13 @@ class NetworkAgent:
         """The network's raw (normalised) outputs for the batch of frames in ``obs``."""
         if obs.images is None:
             raise ValueError("this agent needs camera frames: give it a `camera` attribute")
-        image = images_to_tensor(obs.images, self.device)
-        speed = torch.as_tensor(obs.speed, dtype=torch.float32, device=self.device)[:, None]
+        return self.predict_frames(obs.images, obs.speed)
+
+    def predict_frames(self, images: np.ndarray, speed_mps: np.ndarray) -> dict[str, torch.Tensor]:
+        """The network's raw outputs for frames ``(B, H, W, 3)`` uint8 at speeds ``(B,)`` [m/s]
+        (e.g. recorded frames of a dataset)."""
+        image = images_to_tensor(images, self.device)
+        speed = torch.as_tensor(speed_mps, dtype=torch.float32, device=self.device)[:, None]
         with torch.inference_mode():
             return self.model(image, speed)
 
@@ -106,6 +113,13 @@ class ActuatorAgent(NetworkAgent):
         )
 
 
+#: Where a :class:`TrajectoryAgent` takes its speed from: ``"trajectory"`` (the paper: reference
+#: speed and acceleration read from the trajectory, ``a = a_ref + k (v_ref - v)``),
+#: ``"trajectory_no_ff"`` (reference speed only, no acceleration feed-forward) or ``"cruise"``
+#: (the trajectory steers, :class:`CruiseControl` holds the speed, as for PilotNet).
+SPEED_SOURCES = ("trajectory", "trajectory_no_ff", "cruise")
+
+
 class TrajectoryAgent(NetworkAgent):
     """The network proposes, the LQR tracker follows (seed 000's Fig. 1).
 
@@ -117,6 +131,7 @@ class TrajectoryAgent(NetworkAgent):
         model: a trajectory or GMM model.
         tracker: the LQR tracker (default settings if None).
         sigma_floor: the GMM's sigma floor (normalised units) used to report sigmas.
+        speed: where the speed command comes from, one of :data:`SPEED_SOURCES`.
 
     Attributes:
         last: the latest decision's ``{"points": (B, 5, 2) followed [m], "modes": (B, K, 5, 2) [m],
@@ -128,20 +143,31 @@ class TrajectoryAgent(NetworkAgent):
         model: DrivingModel,
         tracker: LQRTracker | None = None,
         sigma_floor: float = 0.01,
+        speed: str = "trajectory",
         **kwargs,
     ) -> None:
         super().__init__(model, **kwargs)
+        if speed not in SPEED_SOURCES:
+            raise ValueError(f"speed must be one of {SPEED_SOURCES}, not {speed!r}")
+        self.speed = speed
         if model.cfg.head not in ("trajectory", "gmm"):
             raise ValueError(
                 f"TrajectoryAgent needs a trajectory or gmm head, not {model.cfg.head!r}"
             )
         self.tracker = tracker or LQRTracker(vehicle=self.vehicle)
+        self.cruise = CruiseControl(tracker=self.tracker) if speed == "cruise" else None
         self.sigma_floor = sigma_floor
         self.last: dict[str, np.ndarray] = {}
 
     def trajectories(self, obs: Observation) -> np.ndarray:
         """The trajectories to follow (B, 5, 2) [m]; fills :attr:`last`."""
-        out = self.predict(obs)["main"]
+        if obs.images is None:
+            raise ValueError("this agent needs camera frames: give it a `camera` attribute")
+        return self.trajectories_from(obs.images, obs.speed)
+
+    def trajectories_from(self, images: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
+        """:meth:`trajectories` for frames ``(B, H, W, 3)`` uint8 at speeds ``(B,)`` [m/s]."""
+        out = self.predict_frames(images, speed_mps)["main"]
         model = self.model
         if model.cfg.head == "trajectory":
             pts = model.denormalise(out).reshape(-1, 5, 2).double().cpu().numpy()
@@ -162,6 +188,12 @@ class TrajectoryAgent(NetworkAgent):
         return self.last["points"]
 
     def act(self, obs: Observation) -> Actuation:
-        """Follow the predicted trajectory with the LQR tracker."""
-        steer, accel = follow_trajectory(self.tracker, self.trajectories(obs), obs.speed)
+        """Follow the predicted trajectory with the LQR tracker (speed as :attr:`speed` says)."""
+        e, psi, kappa, v_ref, a_ref = trajectory_reference(self.trajectories(obs))
+        steer = self.tracker.steer(e, psi, kappa, obs.speed)
+        if self.cruise is not None:
+            accel = self.cruise.accel(obs)
+        else:
+            feed_forward = a_ref if self.speed == "trajectory" else np.zeros_like(a_ref)
+            accel = self.tracker.accel(obs.speed, v_ref, feed_forward)
         return Actuation(steer_rad=steer, accel_mps2=accel)

@@ -157,3 +157,40 @@ def highway_figure(
         ax_zoom.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def collision_chart(
+    rows: Sequence[tuple[str, float, tuple[float, float]]],
+    title: str = "closed loop on the validation tracks",
+    reference: Sequence[tuple[str, float]] = (),
+) -> Figure:
+    """Collisions per 100 miles as horizontal bars with their 95 % intervals.
+
+    Args:
+        rows: ``(driver, collisions per 100 mi, (ci_low, ci_high))``, drawn top to bottom.
+        title: the axes title.
+        reference: ``(label, collisions per 100 mi)`` drawn as dashed vertical lines (e.g. a
+            paper's figure).
+    """
+    if not rows:
+        raise ValueError("collision_chart needs at least one row")
+    names = [r[0] for r in rows]
+    rate = np.array([r[1] for r in rows], dtype=float)
+    lo = np.array([r[2][0] for r in rows], dtype=float)
+    hi = np.array([r[2][1] for r in rows], dtype=float)
+    fig = Figure(figsize=(8.5, 0.55 * len(rows) + 1.4))
+    ax = fig.subplots()
+    y = np.arange(len(rows))[::-1]
+    ax.barh(y, rate, color="#4c72b0", alpha=0.8)
+    ax.errorbar(rate, y, xerr=[rate - lo, hi - rate], fmt="none", ecolor="black", capsize=4)
+    for yi, r, h in zip(y, rate, hi):
+        ax.text(h + 0.01 * max(hi.max(), 1.0), yi, f"{r:.1f}", va="center", fontsize=9)
+    for label, value in reference:
+        ax.axvline(value, color="#c44e52", ls="--", lw=1)
+        ax.text(value, len(rows) - 0.45, f" {label}", color="#c44e52", fontsize=8, va="bottom")
+    ax.set_yticks(y, names)
+    ax.set_xlabel("collisions per 100 miles (bar: measured; line: 95 % interval)")
+    ax.set_xlim(0, 1.15 * max(hi.max(), *(v for _, v in reference), 1.0))
+    ax.set_title(title)
+    fig.tight_layout()
+    return fig
