@@ -11,15 +11,27 @@ Targets per head (see :class:`~e2e_lite.models.ModelConfig`):
 * ``actuators``: steering [rad] and acceleration [m/s^2] (seed 002 / the GM paper's baseline);
 * ``trajectory``: the 5-point label flattened to 10 numbers [m];
 * ``gmm``: the same 10 numbers, as a sample of a K-mode Gaussian mixture (:class:`GMMObjective`).
+
+Two wrappers change an objective without touching it (seed 000, sections 3.4 and 3.5):
+
+* :class:`WithAffordance` adds ``w x`` the squared error of the affordance head (chapter 08);
+* :class:`CVaRObjective` reduces a batch by :func:`cvar_loss` instead of the mean, so only the
+  worst ``1 - alpha`` of each batch is trained on (chapter 09). :func:`cvar` is the statistic.
+
+Every objective reduces its per-sample losses with :meth:`Objective.reduce` (the mean unless a
+wrapper says otherwise); the training loop calls nothing else.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 
+import numpy as np
 import torch
 
 from .config import check_range
+from .data import AFFORDANCE_NAMES
 from .models import DrivingModel
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -59,6 +71,10 @@ class Objective:
     def frozen_prefixes(self, epoch: int) -> list[str]:
         """Parameter-name prefixes this objective wants frozen in ``epoch`` (none)."""
         return []
+
+    def reduce(self, losses: torch.Tensor) -> torch.Tensor:
+        """The batch loss the optimiser minimises, from per-sample losses (B,): their mean."""
+        return losses.mean()
 
     def per_sample(
         self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
@@ -216,3 +232,192 @@ def most_likely(weights: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
     """The mean of the mode with the largest weight (the paper's inference): (B, D)."""
     top = weights.argmax(dim=-1)
     return means[torch.arange(len(top), device=top.device), top]
+
+
+# ------------------------------------------------------------------------------ wrappers
+class WithAffordance(Objective):
+    """``base + weight x affordance loss`` (seed 000, section 3.4): the affordance head learns the
+    dataset's 9 affordances (normalised per affordance) from the same fused features.
+
+    The affordance loss of a sample is the mean over the 9 of the squared normalised error. With
+    ``weight = 0`` this is exactly ``base`` (the head is then not trained).
+
+    Args:
+        base: the main objective (e.g. :class:`GMMObjective`); its settings (``n_modes``,
+            ``sigma_floor``, ...) are read through this wrapper.
+        weight: ``w >= 0``.
+    """
+
+    def __init__(self, base: Objective, weight: float) -> None:
+        check_range("WithAffordance", "weight", weight, 0.0)
+        self.base, self.weight = base, float(weight)
+        self.head, self.wheelbase_m = base.head, base.wheelbase_m
+        self.name = f"{base.name}+affordance{self.weight:g}"
+
+    def __getattr__(self, name: str):  # n_modes, sigma_floor, modes(), ... of the base
+        if name == "base":
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    def start_epoch(self, epoch: int) -> None:
+        self.base.start_epoch(epoch)
+
+    def frozen_prefixes(self, epoch: int) -> list[str]:
+        return self.base.frozen_prefixes(epoch)
+
+    def reduce(self, losses: torch.Tensor) -> torch.Tensor:
+        return self.base.reduce(losses)
+
+    def affordance_loss(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """Per-sample mean squared normalised affordance error, (B,)."""
+        if "affordance" not in out:
+            raise ValueError(
+                "WithAffordance needs a model with an affordance head (affordance=True)"
+            )
+        tgt = (batch["affordances"] - model.affordance_mean) / model.affordance_std
+        return ((out["affordance"] - tgt) ** 2).mean(dim=1)
+
+    def per_sample(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """``base`` loss + ``weight`` x affordance loss, (B,)."""
+        main = self.base.per_sample(out, batch, model)
+        if self.weight == 0.0:
+            return main
+        return main + self.weight * self.affordance_loss(out, batch, model)
+
+    def metrics(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> dict[str, torch.Tensor]:
+        """The base's metrics, its loss alone, and per-affordance absolute errors [m or rad]."""
+        m = dict(self.base.metrics(out, batch, model))
+        m["main loss"] = self.base.per_sample(out, batch, model)
+        if "affordance" in out:
+            pred = out["affordance"] * model.affordance_std + model.affordance_mean
+            err = (pred - batch["affordances"]).abs()
+            for i, name in enumerate(AFFORDANCE_NAMES):
+                m[f"MAE {name}"] = err[:, i]
+        return m
+
+
+def cvar(losses: np.ndarray | torch.Tensor, alpha: float) -> float:
+    """Conditional value at risk: the mean of the worst ``1 - alpha`` share of ``losses``.
+
+    ``CVaR_alpha(L) = E[L | L >= nu_alpha]`` with ``nu_alpha`` the alpha-quantile. On a finite
+    sample of n losses the tail holds ``k = (1 - alpha) n`` samples; when k is not an integer (a
+    tiny batch) or several losses tie at the quantile, the boundary sample enters with the
+    fractional weight ``k - floor(k)``. This is Rockafellar and Uryasev's
+    ``min_nu nu + E[(L - nu)+] / (1 - alpha)``, so: ``alpha = 0`` gives the mean, the value never
+    decreases with alpha, and as alpha -> 1 it tends to the maximum.
+
+    Args:
+        losses: (N,) per-sample losses, N >= 1.
+        alpha: the quantile level, ``0 <= alpha < 1``.
+    """
+    values = torch.as_tensor(losses).detach().double().reshape(-1)
+    return float(_tail_mean(values, alpha))
+
+
+def _check_alpha(alpha: float, n: int, lo_closed: bool) -> None:
+    ok = (0.0 <= alpha < 1.0) if lo_closed else (0.0 < alpha < 1.0)
+    if not ok:
+        raise ValueError(
+            f"alpha={alpha!r} is invalid: must be in {'[0, 1)' if lo_closed else '(0, 1)'}"
+        )
+    if n < 1:
+        raise ValueError("CVaR of an empty set of losses is undefined: give at least one sample")
+
+
+def _tail_mean(values: torch.Tensor, alpha: float) -> torch.Tensor:
+    _check_alpha(alpha, values.numel(), lo_closed=True)
+    k = (1.0 - alpha) * values.numel()
+    ordered = torch.sort(values, descending=True).values
+    whole = math.floor(k + 1e-9)
+    frac = k - whole
+    weights = torch.zeros_like(ordered)
+    weights[:whole] = 1.0
+    if whole < len(ordered) and frac > 1e-9:
+        weights[whole] = frac
+    return (weights * ordered).sum() / k
+
+
+def cvar_loss(losses: torch.Tensor, alpha: float, min_tail: int = 10) -> torch.Tensor:
+    """The CVaR training loss of seed 000 (eq. 3): :func:`cvar` of a batch's per-sample losses,
+    differentiable; gradients flow only into the samples of the tail (the boundary sample with its
+    fractional weight), so the samples below the batch's alpha-quantile get exactly zero.
+
+    Args:
+        losses: (B,) per-sample losses with gradients.
+        alpha: in (0, 1); 0.9 trains on the worst 10 %.
+        min_tail: warn when the batch leaves fewer tail samples than this (the batch size must
+            grow with alpha: B >= min_tail / (1 - alpha)).
+    """
+    if losses.dim() != 1:
+        raise ValueError(
+            f"cvar_loss takes per-sample losses of shape (B,), got {tuple(losses.shape)}"
+        )
+    _check_alpha(alpha, losses.numel(), lo_closed=False)
+    k = (1.0 - alpha) * losses.numel()
+    if k < min_tail:
+        warnings.warn(
+            f"CVaR-{alpha:g} on a batch of {losses.numel()} keeps only {k:.1f} samples in the tail "
+            f"(< {min_tail}); use batches of at least {math.ceil(min_tail / (1 - alpha) - 1e-9)}",
+            stacklevel=2,
+        )
+    return _tail_mean(losses, alpha)
+
+
+def cvar_curve(
+    losses: np.ndarray, alphas: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(alphas, CVaR_alpha(losses))`` over a percentile grid (default 0, 1, ..., 99 %): seed
+    000's Fig. 5."""
+    alphas = np.arange(100) / 100.0 if alphas is None else np.asarray(alphas, dtype=float)
+    values = torch.as_tensor(np.asarray(losses, dtype=np.float64)).reshape(-1)
+    return alphas, np.array([float(_tail_mean(values, float(a))) for a in alphas])
+
+
+class CVaRObjective(Objective):
+    """Train on the worst ``1 - alpha`` of every batch (seed 000, section 3.5).
+
+    The per-sample losses and metrics are the base's; only :meth:`reduce` changes, to
+    :func:`cvar_loss`. Validation losses stay per-sample means, comparable with the base's.
+
+    Args:
+        base: the objective whose tail is trained on (e.g. ``WithAffordance(GMMObjective(), w)``).
+        alpha: in (0, 1) (the paper: 0.9).
+        min_tail: see :func:`cvar_loss`.
+    """
+
+    def __init__(self, base: Objective, alpha: float = 0.9, min_tail: int = 10) -> None:
+        _check_alpha(alpha, 1, lo_closed=False)
+        self.base, self.alpha, self.min_tail = base, float(alpha), min_tail
+        self.head, self.wheelbase_m = base.head, base.wheelbase_m
+        self.name = f"cvar{self.alpha:g}({base.name})"
+
+    def __getattr__(self, name: str):
+        if name == "base":
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    def start_epoch(self, epoch: int) -> None:
+        self.base.start_epoch(epoch)
+
+    def frozen_prefixes(self, epoch: int) -> list[str]:
+        return self.base.frozen_prefixes(epoch)
+
+    def per_sample(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        return self.base.per_sample(out, batch, model)
+
+    def metrics(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> dict[str, torch.Tensor]:
+        return self.base.metrics(out, batch, model)
+
+    def reduce(self, losses: torch.Tensor) -> torch.Tensor:
+        """:func:`cvar_loss` of the batch."""
+        return cvar_loss(losses, self.alpha, self.min_tail)

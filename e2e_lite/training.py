@@ -209,7 +209,7 @@ def fit(
         for rows in bar:
             batch = _to(train.batch(train.indices[rows]), device)
             out = model(batch["image"], batch["speed"])
-            loss = objective.per_sample(out, batch, model).mean()
+            loss = objective.reduce(objective.per_sample(out, batch, model))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip is not None:
@@ -294,10 +294,12 @@ def save_checkpoint(
     objective: Objective,
     data_key: str,
     history: History | None = None,
+    key: str | None = None,
 ) -> Path:
-    """Write a checkpoint (weights, normalisation, settings, data key, history) atomically."""
+    """Write a checkpoint (weights, normalisation, settings, data key, history) atomically.
+    ``key`` overrides the settings key (a fine-tune's includes its parent's)."""
     blob = {
-        "key": checkpoint_key(model.cfg, train_cfg, objective, data_key),
+        "key": key or checkpoint_key(model.cfg, train_cfg, objective, data_key),
         "model_config": model.config_dict(),
         "train_config": asdict(train_cfg),
         "objective": objective.name,
@@ -370,6 +372,7 @@ def train_or_load(
     val_data: DrivingData,
     *,
     train_rows: np.ndarray | None = None,
+    init_from: str | None = None,
     progress: bool = True,
 ) -> tuple[DrivingModel, History]:
     """The model ``name`` from ``<outputs>/checkpoints/<name>.pt`` if it was trained with these
@@ -380,6 +383,9 @@ def train_or_load(
         model_cfg, train_cfg, objective: what to train and how.
         train_data, val_data: the datasets (statistics come from ``train_data``).
         train_rows: train on these rows of ``train_data`` only (e.g. without recovery views).
+        init_from: fine-tune: start from the weights of checkpoint ``<init_from>.pt`` (same model
+            settings and data; its key joins this checkpoint's, so a retrained parent makes this
+            one stale). Raises :class:`CheckpointMismatch` when it is missing or does not fit.
         progress: progress bars and per-epoch lines.
     """
     device = pick_device(train_cfg.device)
@@ -392,6 +398,15 @@ def train_or_load(
     path = artifact_path("checkpoints", f"{name}.pt")
     stats = model_stats(model_cfg, train_data, objective)
     key = checkpoint_key(model_cfg, train_cfg, objective, data_key)
+    parent = None
+    if init_from is not None:
+        parent_path = artifact_path("checkpoints", f"{init_from}.pt")
+        if not parent_path.exists():
+            raise CheckpointMismatch(
+                f"{name} fine-tunes {init_from}, but {parent_path} does not exist: train it first"
+            )
+        parent, parent_meta = load_checkpoint(parent_path, model_cfg, data_key, stats, device)
+        key = settings_key(key, parent_meta["key"])
     if path.exists():
         try:
             model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
@@ -408,9 +423,12 @@ def train_or_load(
             if progress:
                 print(f"[checkpoints] {name}: unreadable ({type(err).__name__}); retraining")
     torch.manual_seed(train_cfg.seed)
-    model = build_model(model_cfg)
-    model.set_normalisation(stats)
-    model = prepare(model, device)
+    if parent is not None:
+        model = parent
+    else:
+        model = build_model(model_cfg)
+        model.set_normalisation(stats)
+        model = prepare(model, device)
     history = fit(
         model,
         objective,
@@ -421,5 +439,5 @@ def train_or_load(
         progress=progress,
     )
     model.eval()
-    save_checkpoint(path, model, train_cfg, objective, data_key, history)
+    save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)
     return model, history

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from e2e_lite.agents import ActuatorAgent, CruiseControl, SteeringAgent, TrajectoryAgent
+from e2e_lite.agents import (
+    SPEED_SOURCES,
+    ActuatorAgent,
+    CruiseControl,
+    SteeringAgent,
+    TrajectoryAgent,
+)
 from e2e_lite.artifacts import artifact_path
 from e2e_lite.data import DrivingDataset, synthetic_data
 from e2e_lite.evaluation import EvalConfig, evaluate
@@ -127,6 +133,31 @@ def test_train_or_load_reuses_a_valid_checkpoint(capsys):
         )
     # other training settings: retrained, with a message
     train_or_load("reuse", cfg, small_train_cfg(epochs=1, lr=5e-4), obj, data, val)
+    assert "other settings" in capsys.readouterr().out
+
+
+def test_fine_tune_starts_from_its_parent_and_follows_it(capsys):
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
+    cfg = ModelConfig(head="trajectory", fusion_width=32)
+    obj = Objective("trajectory")
+    with pytest.raises(CheckpointMismatch, match="train it first"):
+        train_or_load("child", cfg, small_train_cfg(epochs=1), obj, data, val, init_from="nope")
+    parent, _ = train_or_load("parent", cfg, small_train_cfg(epochs=1), obj, data, val)
+    tiny_lr = small_train_cfg(epochs=1, lr=1e-12)  # so the child stays (almost) the parent
+    child, _ = train_or_load("child", cfg, tiny_lr, obj, data, val, init_from="parent")
+    fresh, _ = train_or_load("fresh", cfg, tiny_lr, obj, data, val)
+    for (name, p), c, f in zip(
+        parent.named_parameters(), child.parameters(), fresh.parameters(), strict=True
+    ):  # the weights (not batch-norm statistics) come from the parent, not a fresh start
+        torch.testing.assert_close(c, p, msg=name)
+        assert not torch.allclose(f, p) or p.numel() == 0 or torch.all(p == 0)
+    capsys.readouterr()
+    train_or_load("child", cfg, tiny_lr, obj, data, val, init_from="parent")
+    assert "reusing" in capsys.readouterr().out
+    # a retrained parent makes the child stale
+    train_or_load("parent", cfg, small_train_cfg(epochs=1, lr=5e-4), obj, data, val)
+    capsys.readouterr()
+    train_or_load("child", cfg, tiny_lr, obj, data, val, init_from="parent")
     assert "other settings" in capsys.readouterr().out
 
 
@@ -271,3 +302,37 @@ def test_trajectory_agent_keeps_every_mode():
     assert np.all(last["sigmas"] > 0)
     with pytest.raises(ValueError, match="trajectory or gmm"):
         TrajectoryAgent(build_model(ModelConfig(kind="pilotnet", head="steer")))
+
+
+def test_trajectory_agent_speed_sources():
+    """Same steering from every speed source; the speed command follows the chosen source."""
+    from conftest import straight_world
+
+    from e2e_lite.evaluation import observe
+    from e2e_lite.tracker import trajectory_reference
+    from e2e_lite.world import Fleet
+
+    torch.manual_seed(0)
+    model = prepare(
+        build_model(ModelConfig(head="trajectory", fusion_width=16)), torch.device("cpu")
+    ).eval()
+    t = 0.3 * np.arange(1, 6)  # the net proposes ~ a straight at 10 m/s speeding up at 1 m/s^2
+    plan = np.stack([10.0 * t + 0.5 * t**2, np.zeros(5)], axis=1).ravel()
+    model.target_mean.copy_(torch.as_tensor(plan, dtype=torch.float32))
+    model.target_std.fill_(0.01)
+    fleet = Fleet([straight_world([], [])], WorldConfig())
+    fleet.place(0, 100.0, 0.0, 10.0)
+    obs = observe(fleet, True, images=np.full((1, 66, 200, 3), 90, np.uint8))
+    acts = {s: TrajectoryAgent(model, speed=s).act(obs) for s in SPEED_SOURCES}
+    steer = {s: float(a.steer_rad[0]) for s, a in acts.items()}
+    assert len(set(steer.values())) == 1
+    agent = TrajectoryAgent(model)
+    _, _, _, v_ref, a_ref = trajectory_reference(agent.trajectories(obs))
+    no_ff = agent.tracker.accel(obs.speed, v_ref, np.zeros(1))
+    with_ff = agent.tracker.accel(obs.speed, v_ref, a_ref)
+    assert abs(with_ff[0] - no_ff[0]) > 1e-3  # the two trajectory sources are distinguishable
+    assert acts["trajectory"].accel_mps2[0] == pytest.approx(with_ff[0])
+    assert acts["trajectory_no_ff"].accel_mps2[0] == pytest.approx(no_ff[0])
+    assert acts["cruise"].accel_mps2[0] == pytest.approx(CruiseControl().accel(obs)[0])
+    with pytest.raises(ValueError, match="speed must be one of"):
+        TrajectoryAgent(model, speed="fast")

@@ -1,0 +1,154 @@
+"""CVaR (seed 000, section 3.5) and the affordance auxiliary loss (section 3.4)."""
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from e2e_lite.losses import (
+    CVaRObjective,
+    GMMObjective,
+    WithAffordance,
+    cvar,
+    cvar_curve,
+    cvar_loss,
+)
+from e2e_lite.models import ModelConfig, build_model
+from e2e_lite.training import TrainConfig, fit
+
+
+def test_cvar_is_the_brute_force_tail_mean():
+    losses = np.array([5.0, 1.0, 9.0, 3.0, 7.0, 2.0, 8.0, 4.0, 6.0, 10.0])
+    assert cvar(losses, 0.0) == pytest.approx(losses.mean())
+    assert cvar(losses, 0.8) == pytest.approx(np.mean([9.0, 10.0]))  # the worst 20 %
+    assert cvar(losses, 0.5) == pytest.approx(np.mean([6.0, 7.0, 8.0, 9.0, 10.0]))
+    # brute force: mean of the losses above the empirical quantile, where the tail is whole
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=200)
+    for alpha in (0.5, 0.75, 0.9, 0.95):
+        k = round((1 - alpha) * len(x))
+        assert cvar(x, alpha) == pytest.approx(np.sort(x)[-k:].mean())
+
+
+def test_cvar_ties_and_tiny_batches_use_a_fractional_boundary():
+    # 3 samples at alpha 0.5: the tail holds 1.5 samples, the best of it with weight 0.5
+    assert cvar(np.array([1.0, 2.0, 4.0]), 0.5) == pytest.approx((4.0 + 0.5 * 2.0) / 1.5)
+    # all tied: every CVaR is that value (the strict "L > quantile" set would be empty)
+    assert cvar(np.full(7, 3.0), 0.9) == pytest.approx(3.0)
+    assert cvar(np.array([2.5]), 0.99) == pytest.approx(2.5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.floats(-1e3, 1e3), min_size=1, max_size=60),
+    st.floats(0.0, 0.98),
+    st.floats(0.0, 0.98),
+)
+def test_cvar_is_monotone_in_alpha_and_bounded(values, a, b):
+    x = np.array(values)
+    lo, hi = sorted((a, b))
+    assert cvar(x, lo) <= cvar(x, hi) + 1e-9
+    assert x.mean() - 1e-9 <= cvar(x, lo) <= x.max() + 1e-9
+
+
+def test_cvar_curve_matches_pointwise_values():
+    x = np.random.default_rng(1).exponential(size=500)
+    alphas, values = cvar_curve(x)
+    assert len(alphas) == 100 and alphas[0] == 0.0 and alphas[-1] == 0.99
+    assert values[0] == pytest.approx(x.mean()) and np.all(np.diff(values) >= -1e-12)
+    assert values[90] == pytest.approx(cvar(x, 0.9))
+
+
+def test_cvar_loss_gradient_lives_only_in_the_tail():
+    losses = torch.tensor(
+        [0.3, 5.0, 1.0, 4.0, 0.1, 2.0, 3.0, 0.2, 0.4, 6.0] * 2, requires_grad=True
+    )
+    out = cvar_loss(losses, 0.9, min_tail=1)  # the worst 2 of 20
+    out.backward()
+    g = losses.grad.numpy()
+    tail = losses.detach().numpy() >= 6.0
+    np.testing.assert_allclose(g[tail], 0.5)  # the tail mean's gradient: 1 / k
+    np.testing.assert_allclose(g[~tail], 0.0)
+    assert float(out.detach()) == pytest.approx(6.0)
+
+
+def test_cvar_loss_refuses_bad_inputs_and_warns_on_a_thin_tail():
+    x = torch.ones(64)
+    for alpha in (0.0, 1.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="alpha"):
+            cvar_loss(x, alpha)
+    with pytest.raises(ValueError, match="empty"):
+        cvar_loss(torch.ones(0), 0.9)
+    with pytest.raises(ValueError, match="shape"):
+        cvar_loss(torch.ones(4, 2), 0.9)
+    with pytest.warns(UserWarning, match="at least 100"):
+        cvar_loss(x, 0.9)  # 6.4 samples in the tail
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cvar_loss(torch.ones(128), 0.9)  # 12.8: fine
+    with pytest.raises(ValueError, match="alpha"):
+        CVaRObjective(GMMObjective(), alpha=1.0)
+
+
+def _batch(b: int = 8, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "image": torch.randint(0, 255, (b, 3, 66, 200), generator=g, dtype=torch.uint8).float(),
+        "speed": 20 + torch.rand(b, 1, generator=g),
+        "trajectory": torch.randn(b, 10, generator=g),
+        "affordances": torch.randn(b, 9, generator=g) * 5,
+        "actuators": torch.randn(b, 2, generator=g),
+    }
+
+
+def test_affordance_weight_zero_is_the_plain_gmm_loss():
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(head="gmm", affordance=True, fusion_width=16)).eval()
+    batch = _batch()
+    out = model(batch["image"], batch["speed"])
+    gmm = GMMObjective(sigma_warmup_epochs=0)
+    plain = gmm.per_sample(out, batch, model)
+    torch.testing.assert_close(WithAffordance(gmm, 0.0).per_sample(out, batch, model), plain)
+    w = WithAffordance(gmm, 0.5)
+    aff = w.affordance_loss(out, batch, model)
+    assert torch.all(aff > 0)
+    torch.testing.assert_close(w.per_sample(out, batch, model), plain + 0.5 * aff)
+    assert w.n_modes == 2 and w.sigma_floor == gmm.sigma_floor  # the base's settings show through
+    m = w.metrics(out, batch, model)
+    assert "MAE gap_ego_m" in m and "ADE [m]" in m
+    with pytest.raises(ValueError, match="affordance head"):
+        w.per_sample({"main": out["main"]}, batch, model)
+    with pytest.raises(ValueError, match="weight"):
+        WithAffordance(gmm, -1.0)
+
+
+def test_training_loop_reduces_with_the_objectives_reduce():
+    """fit() minimises objective.reduce(per-sample losses): CVaR changes what is trained on."""
+    from e2e_lite.data import DrivingDataset, synthetic_data
+    from e2e_lite.losses import Objective
+
+    calls = []
+
+    class Spy(CVaRObjective):
+        def reduce(self, losses):
+            value = super().reduce(losses)
+            calls.append((float(value), float(losses.mean())))
+            return value
+
+    data = synthetic_data(64, seed=0)
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(head="trajectory", fusion_width=16))
+    objective = Spy(Objective("trajectory"), alpha=0.5, min_tail=1)
+    fit(
+        model,
+        objective,
+        DrivingDataset(data),
+        DrivingDataset(data),
+        TrainConfig(epochs=1, batch_size=32),
+        progress=False,
+    )
+    assert len(calls) == 2
+    assert all(tail > mean for tail, mean in calls)  # the tail mean, not the mean
