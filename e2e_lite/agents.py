@@ -135,7 +135,9 @@ class TrajectoryAgent(NetworkAgent):
 
     Attributes:
         last: the latest decision's ``{"points": (B, 5, 2) followed [m], "modes": (B, K, 5, 2) [m],
-            "weights": (B, K), "sigmas": (B, K, 5, 2) [m]}`` (modes/weights/sigmas for GMMs only).
+            "weights": (B, K), "sigmas": (B, K, 5, 2) [m], "affordances": (B, 9)}`` (modes, weights
+            and sigmas for GMMs only; the predicted affordances, in the dataset's units, for models
+            with an affordance head only).
     """
 
     def __init__(
@@ -167,11 +169,15 @@ class TrajectoryAgent(NetworkAgent):
 
     def trajectories_from(self, images: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
         """:meth:`trajectories` for frames ``(B, H, W, 3)`` uint8 at speeds ``(B,)`` [m/s]."""
-        out = self.predict_frames(images, speed_mps)["main"]
-        model = self.model
+        outputs = self.predict_frames(images, speed_mps)
+        out, model = outputs["main"], self.model
+        extra = {}
+        if "affordance" in outputs:
+            aff = outputs["affordance"] * model.affordance_std + model.affordance_mean
+            extra["affordances"] = aff.double().cpu().numpy()
         if model.cfg.head == "trajectory":
             pts = model.denormalise(out).reshape(-1, 5, 2).double().cpu().numpy()
-            self.last = {"points": pts}
+            self.last = {"points": pts, **extra}
             return pts
         logits, means, raw = split_gmm(out, model.cfg.gmm_modes)
         weights = torch.softmax(logits, dim=-1)
@@ -184,6 +190,7 @@ class TrajectoryAgent(NetworkAgent):
             "modes": modes.reshape(*modes.shape[:2], 5, 2).double().cpu().numpy(),
             "weights": weights.double().cpu().numpy(),
             "sigmas": sig.reshape(*sig.shape[:2], 5, 2).double().cpu().numpy(),
+            **extra,
         }
         return self.last["points"]
 

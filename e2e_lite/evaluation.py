@@ -24,12 +24,12 @@ Metrics (see :class:`EvalResult`):
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.stats import binomtest, chi2
 from tqdm.auto import tqdm
 
 from .camera import Camera
@@ -213,6 +213,66 @@ def poisson_ci(count: int, exposure: float, level: float = 0.95) -> tuple[float,
     lo = 0.0 if count == 0 else chi2.ppf(a / 2, 2 * count) / 2.0
     hi = chi2.ppf(1 - a / 2, 2 * count + 2) / 2.0
     return float(lo / exposure), float(hi / exposure)
+
+
+def result_dict(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
+    """An ``EvalResult`` as its ``to_dict()`` (without events); a dict as it is."""
+    return r.to_dict(with_events=False) if isinstance(r, EvalResult) else r
+
+
+def results_table(rows: Sequence[tuple[str, EvalResult | dict[str, Any]]]) -> str:
+    """A markdown table of closed-loop results (``EvalResult`` or its ``to_dict()``), one row per
+    ``(driver, result)``: miles, collisions (car / rail), per 100 mi with the 95 % interval, mph,
+    time to collision, autonomy."""
+    lines = [
+        "| driver | miles | collisions (car / rail) | per 100 mi [95% CI] | mph | time to collision "
+        "| autonomy |",
+        "|---|---:|---:|---|---:|---:|---:|",
+    ]
+    for name, result in rows:
+        r = result_dict(result)
+        lo, hi = r["ci95_per_100mi"]
+        ttc = "-" if r["time_to_collision_s"] is None else f"{r['time_to_collision_s']:.1f} s"
+        lines.append(
+            f"| {name} | {r['miles']:.0f} | {r['collisions']} ({r['car_collisions']} / "
+            f"{r['rail_collisions']}) | {r['collisions_per_100mi']:.1f} [{lo:.1f}-{hi:.1f}] | "
+            f"{r['mean_speed_mph']:.1f} | {ttc} | {r['autonomy_pct']:.1f}% |"
+        )
+    return "\n".join(lines)
+
+
+def compare_rates(
+    a: EvalResult | dict[str, Any], b: EvalResult | dict[str, Any], level: float = 0.95
+) -> dict[str, Any]:
+    """Is driver a's collision rate different from b's beyond chance?
+
+    The exact conditional test of two Poisson rates: given ``n = k_a + k_b`` collisions in
+    ``m_a`` and ``m_b`` miles, ``k_a ~ Binomial(n, m_a / (m_a + m_b))`` when the rates are equal;
+    the two-sided p-value of that binomial test.
+
+    Returns:
+        ``{"ratio": rate_a / rate_b (None when b has none), "p_value", "different": p < 1 - level,
+        "verdict": one readable line}``.
+    """
+    ra, rb = result_dict(a), result_dict(b)
+    ka, kb, ma, mb = ra["collisions"], rb["collisions"], ra["miles"], rb["miles"]
+    n = ka + kb
+    p = 1.0 if n == 0 else float(binomtest(ka, n, ma / (ma + mb)).pvalue)
+    rate_a, rate_b = 100.0 * ka / ma, 100.0 * kb / mb
+    different = p < 1.0 - level
+    if not different:
+        verdict = (
+            f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: no difference beyond chance (p = {p:.2f})"
+        )
+    else:
+        word = "fewer" if rate_a < rate_b else "more"
+        verdict = f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: {word} collisions beyond chance (p = {p:.2g})"
+    return {
+        "ratio": None if kb == 0 else rate_a / rate_b,
+        "p_value": p,
+        "different": different,
+        "verdict": verdict,
+    }
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:

@@ -298,7 +298,7 @@ class WithAffordance(Objective):
             pred = out["affordance"] * model.affordance_std + model.affordance_mean
             err = (pred - batch["affordances"]).abs()
             for i, name in enumerate(AFFORDANCE_NAMES):
-                m[f"MAE {name}"] = err[:, i]
+                m[f"|err| {name}"] = err[:, i]
         return m
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -15,6 +16,7 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
 from .artifacts import atomic_write
+from .evaluation import EvalResult, result_dict
 from .geometry import Track
 from .world import ParkedCars
 
@@ -160,24 +162,26 @@ def highway_figure(
 
 
 def collision_chart(
-    rows: Sequence[tuple[str, float, tuple[float, float]]],
+    rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
     title: str = "closed loop on the validation tracks",
     reference: Sequence[tuple[str, float]] = (),
 ) -> Figure:
     """Collisions per 100 miles as horizontal bars with their 95 % intervals.
 
     Args:
-        rows: ``(driver, collisions per 100 mi, (ci_low, ci_high))``, drawn top to bottom.
+        rows: ``(driver, result)`` with an :class:`EvalResult` or its ``to_dict()``, drawn top to
+            bottom.
         title: the axes title.
         reference: ``(label, collisions per 100 mi)`` drawn as dashed vertical lines (e.g. a
             paper's figure).
     """
     if not rows:
         raise ValueError("collision_chart needs at least one row")
-    names = [r[0] for r in rows]
-    rate = np.array([r[1] for r in rows], dtype=float)
-    lo = np.array([r[2][0] for r in rows], dtype=float)
-    hi = np.array([r[2][1] for r in rows], dtype=float)
+    names = [name for name, _ in rows]
+    results = [result_dict(r) for _, r in rows]
+    rate = np.array([r["collisions_per_100mi"] for r in results], dtype=float)
+    lo = np.array([r["ci95_per_100mi"][0] for r in results], dtype=float)
+    hi = np.array([r["ci95_per_100mi"][1] for r in results], dtype=float)
     fig = Figure(figsize=(8.5, 0.55 * len(rows) + 1.4))
     ax = fig.subplots()
     y = np.arange(len(rows))[::-1]

@@ -118,7 +118,7 @@ def test_affordance_weight_zero_is_the_plain_gmm_loss():
     torch.testing.assert_close(w.per_sample(out, batch, model), plain + 0.5 * aff)
     assert w.n_modes == 2 and w.sigma_floor == gmm.sigma_floor  # the base's settings show through
     m = w.metrics(out, batch, model)
-    assert "MAE gap_ego_m" in m and "ADE [m]" in m
+    assert "|err| gap_ego_m" in m and "ADE [m]" in m
     with pytest.raises(ValueError, match="affordance head"):
         w.per_sample({"main": out["main"]}, batch, model)
     with pytest.raises(ValueError, match="weight"):

@@ -15,9 +15,11 @@ from e2e_lite.evaluation import (
     EvalConfig,
     Observation,
     Policy,
+    compare_rates,
     drive,
     evaluate,
     poisson_ci,
+    results_table,
 )
 from e2e_lite.geometry import RoadConfig
 from e2e_lite.world import TrafficConfig, WorldConfig
@@ -53,6 +55,39 @@ def test_poisson_interval():
     assert lo == pytest.approx(4.7954, abs=1e-3) and hi == pytest.approx(18.3904, abs=1e-3)
     with pytest.raises(ValueError, match="exposure"):
         poisson_ci(1, 0.0)
+
+
+def _result(k: int, miles: float) -> dict:
+    return {
+        "miles": miles,
+        "collisions": k,
+        "car_collisions": k,
+        "rail_collisions": 0,
+        "collisions_per_100mi": 100.0 * k / miles,
+        "ci95_per_100mi": [100.0 * x for x in poisson_ci(k, miles)],
+        "mean_speed_mph": 55.0,
+        "time_to_collision_s": None,
+        "autonomy_pct": 100.0,
+    }
+
+
+def test_compare_rates_uses_the_exact_conditional_test():
+    # 30 vs 10 in equal miles: binomial(40, 1/2) two-sided p = 0.0022
+    res = compare_rates(_result(30, 100.0), _result(10, 100.0))
+    assert res["p_value"] == pytest.approx(0.00222, abs=1e-4) and res["different"]
+    assert "more collisions" in res["verdict"] and res["ratio"] == pytest.approx(3.0)
+    same = compare_rates(_result(12, 100.0), _result(10, 100.0))
+    assert not same["different"] and "no difference" in same["verdict"]
+    # unequal miles enter as the binomial's p: 10 in 200 mi vs 5 in 100 mi is the same rate
+    assert compare_rates(_result(10, 200.0), _result(5, 100.0))["p_value"] == pytest.approx(1.0)
+    assert compare_rates(_result(0, 100.0), _result(0, 100.0))["ratio"] is None
+
+
+def test_results_table_has_a_row_per_driver():
+    table = results_table([("a", _result(3, 100.0)), ("b", _result(0, 50.0))])
+    lines = table.splitlines()
+    assert len(lines) == 4 and lines[2].startswith("| a | 100 | 3 (3 / 0) | 3.0 [")
+    assert "| b | 50 | 0 (0 / 0) | 0.0 [0.0-7.4] |" in lines[3]
 
 
 def test_lane_keeper_on_an_empty_road_never_collides():

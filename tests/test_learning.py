@@ -299,7 +299,15 @@ def test_trajectory_agent_keeps_every_mode():
     )
     top = last["weights"].argmax(axis=1)
     np.testing.assert_allclose(pts, last["modes"][np.arange(2), top])
-    assert np.all(last["sigmas"] > 0)
+    assert np.all(last["sigmas"] > 0) and "affordances" not in last
+    with_aff = prepare(
+        build_model(ModelConfig(head="gmm", affordance=True, fusion_width=16)), torch.device("cpu")
+    ).eval()
+    with_aff.affordance_mean.fill_(30.0)
+    agent = TrajectoryAgent(with_aff)
+    agent.trajectories(obs)
+    assert agent.last["affordances"].shape == (2, 9)
+    assert 20.0 < agent.last["affordances"].mean() < 40.0  # de-normalised
     with pytest.raises(ValueError, match="trajectory or gmm"):
         TrajectoryAgent(build_model(ModelConfig(kind="pilotnet", head="steer")))
 

@@ -6,7 +6,10 @@ from e2e_lite.viz import collision_chart, save_figure
 
 
 def test_collision_chart_draws_each_driver_with_its_interval(tmp_path):
-    rows = [("a", 10.0, (5.0, 18.0)), ("b", 0.0, (0.0, 3.7))]
+    rows = [
+        ("a", {"collisions_per_100mi": 10.0, "ci95_per_100mi": [5.0, 18.0]}),
+        ("b", {"collisions_per_100mi": 0.0, "ci95_per_100mi": [0.0, 3.7]}),
+    ]
     fig = collision_chart(rows, reference=[("paper", 12.7)])
     ax = fig.axes[0]
     assert [t.get_text() for t in ax.get_yticklabels()] == ["a", "b"]
