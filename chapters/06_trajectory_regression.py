@@ -21,7 +21,7 @@
 import numpy as np
 import torch
 
-from e2e_lite import artifacts
+from e2e_lite import artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
 from e2e_lite.config import active_profile
@@ -29,9 +29,7 @@ from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect
 from e2e_lite.evaluation import EvalConfig, evaluate, observe
 from e2e_lite.expert import Expert
 from e2e_lite.geometry import Track
-from e2e_lite.losses import Objective
-from e2e_lite.models import ModelConfig
-from e2e_lite.training import TrainConfig, evaluate_loss, train_or_load
+from e2e_lite.training import evaluate_loss
 from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
 
 profile = active_profile()
@@ -61,10 +59,7 @@ print(
 # of 10 outputs.
 
 # %%
-cfg = ModelConfig(kind="fusion", head="trajectory")
-tcfg = TrainConfig(epochs=profile.train_epochs, batch_size=64, max_val_samples=4000)
-objective = Objective("trajectory")
-model, hist = train_or_load("06_trajectory_l2", cfg, tcfg, objective, train, val)
+model, objective, hist = recipes.trajectory_l2(profile, train, val)  # settings: e2e_lite/recipes.py
 val_losses, val_metrics = evaluate_loss(model, objective, DrivingDataset(val))
 ade, fde = float(val_metrics["ADE [m]"].mean()), float(val_metrics["FDE [m]"].mean())
 print(f"held out: ADE {ade:.3f} m, FDE {fde:.3f} m (mean distance over the 5 points / at 1.5 s)")

@@ -25,17 +25,16 @@ import math
 import numpy as np
 import torch
 
-from e2e_lite import artifacts
+from e2e_lite import artifacts, recipes
 from e2e_lite.agents import SPEED_SOURCES, TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
 from e2e_lite.config import active_profile
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, observe, results_table
 from e2e_lite.geometry import Track
-from e2e_lite.losses import GMMObjective, Objective, gmm_nll
-from e2e_lite.models import ModelConfig
+from e2e_lite.losses import gmm_nll
 from e2e_lite.tracker import trajectory_reference
-from e2e_lite.training import TrainConfig, evaluate_loss, train_or_load
+from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
 
@@ -104,11 +103,8 @@ except ValueError as err:  # log(0)
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
 val = load_or_collect(DataConfig.for_profile(profile, "val"))
-warmup = max(1, profile.train_epochs // 3) if profile.train_epochs > 1 else 0
-objective = GMMObjective(n_modes=2, sigma_warmup_epochs=warmup)
-cfg = ModelConfig(kind="fusion", head="gmm", gmm_modes=2)
-tcfg = TrainConfig(epochs=profile.train_epochs, batch_size=64, max_val_samples=4000, grad_clip=10.0)
-model, hist = train_or_load("07_gmm", cfg, tcfg, objective, train, val)
+model, objective, hist = recipes.gmm(profile, train, val)
+warmup = objective.sigma_warmup_epochs
 objective.start_epoch(10**6)  # evaluate with sigma open
 for rec in hist.epochs:
     print(f"epoch {rec['epoch'] + 1}: val NLL {rec['val_loss']:.3f}, frozen {rec['frozen'] or '-'}")
@@ -265,14 +261,7 @@ print(verdict)
 # derivative at t = 0; a second derivative of a fit amplifies small wobbles of the points).
 
 # %%
-l2_model, _ = train_or_load(
-    "06_trajectory_l2",
-    ModelConfig(kind="fusion", head="trajectory"),
-    TrainConfig(epochs=profile.train_epochs, batch_size=64, max_val_samples=4000),
-    Objective("trajectory"),
-    train,
-    val,
-)
+l2_model, _, _ = recipes.trajectory_l2(profile, train, val)
 rows = np.arange(0, len(val), max(1, len(val) // 4000))
 labels = val.trajectory[rows].astype(np.float64)
 _, _, _, v_label, a_label = trajectory_reference(labels)

@@ -360,9 +360,15 @@ def dataset_stats(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-def situation_shares(arrays: dict[str, np.ndarray]) -> dict[str, float]:
+def situation_shares(
+    arrays: dict[str, np.ndarray], rows: np.ndarray | None = None
+) -> dict[str, float]:
     """Shares of samples (0..1): on curves (|kappa| > 1e-4 1/m), in a lane change, overtaking to
-    the left / right, returning, following (blocked), with a noise burst active."""
+    the left / right, returning, following (blocked), with a noise burst active. ``rows``: only
+    these samples (default all)."""
+    if rows is not None:
+        keys = ("expert_state", "change_side", "overtaking", "curvature", "noise")
+        arrays = {k: arrays[k][rows] for k in keys}
     state, side, over = arrays["expert_state"], arrays["change_side"], arrays["overtaking"]
     change = state == CHANGE
     return {

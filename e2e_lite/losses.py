@@ -65,6 +65,9 @@ class Objective:
         self.wheelbase_m = wheelbase_m
         self.name = f"mse-{head}"
 
+    #: the training loop drops an epoch's last batch when it is smaller than this
+    min_batch: int = 2
+
     def start_epoch(self, epoch: int) -> None:
         """Called by the training loop before each epoch (a hook for schedules)."""
 
@@ -394,6 +397,7 @@ class CVaRObjective(Objective):
     def __init__(self, base: Objective, alpha: float = 0.9, min_tail: int = 10) -> None:
         _check_alpha(alpha, 1, lo_closed=False)
         self.base, self.alpha, self.min_tail = base, float(alpha), min_tail
+        self.min_batch = max(2, math.ceil(min_tail / (1.0 - self.alpha) - 1e-9))
         self.head, self.wheelbase_m = base.head, base.wheelbase_m
         self.name = f"cvar{self.alpha:g}({base.name})"
 

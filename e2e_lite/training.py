@@ -195,7 +195,8 @@ def fit(
         model.train()
         rng = np.random.default_rng([cfg.seed, epoch])
         batches = _batches(len(train), cfg.batch_size, rng)
-        if len(batches) > 1 and len(batches[-1]) < 2:  # batch norm needs two samples
+        # batch norm needs two samples, a CVaR batch enough for its tail
+        if len(batches) > 1 and len(batches[-1]) < getattr(objective, "min_batch", 2):
             batches = batches[:-1]
         total, count = 0.0, 0
         bar = tqdm(

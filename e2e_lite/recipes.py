@@ -1,0 +1,170 @@
+"""The course's trained drivers, one recipe each, shared by the chapters that train them and the
+chapters that reuse them (chapter 10 drives them all).
+
+Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.training.train_or_load`
+(so a valid checkpoint is reused, and a missing or stale one is retrained, seeded) and returns
+``(model, objective, history)``. The settings per profile:
+
+* every model: Adam 1e-3, batch 64, ``profile.train_epochs`` epochs, best validation epoch kept
+  (validation on up to 4,000 held-out samples);
+* GMM models (K = 2): gradient clipping at 10, sigma frozen for the first third of the epochs;
+* the affordance weight ``w``: a grid search (:func:`affordance_grid`) on a quarter of the
+  training set, two epochs per candidate, scored by held-out trajectory NLL;
+* CVaR: one epoch fine-tuning the GMM + affordance model on the worst 10 % of each batch of 256
+  (the tail then holds 25.6 samples), learning rate 1e-4.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .config import Profile
+from .data import DrivingData, DrivingDataset
+from .losses import CVaRObjective, GMMObjective, Objective, WithAffordance
+from .models import DrivingModel, ModelConfig
+from .training import History, TrainConfig, evaluate_loss, train_or_load
+
+Trained = tuple[DrivingModel, Objective, History]
+
+GMM_MODES = 2
+CVAR_ALPHA = 0.9
+
+
+def _train_cfg(profile: Profile, **changes: Any) -> TrainConfig:
+    base = {"epochs": profile.train_epochs, "batch_size": 64, "max_val_samples": 4000}
+    return TrainConfig(**{**base, **changes})
+
+
+def sigma_warmup(epochs: int) -> int:
+    """Epochs with sigma frozen: a third of the schedule (at least one when there are two or
+    more epochs, none for a single epoch)."""
+    return max(1, epochs // 3) if epochs > 1 else 0
+
+
+def trajectory_l2(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> Trained:
+    """Chapter 06: fusion network, 5-point trajectory head, L2 on normalised targets."""
+    objective = Objective("trajectory")
+    model, hist = train_or_load(
+        "06_trajectory_l2",
+        ModelConfig(kind="fusion", head="trajectory"),
+        _train_cfg(profile),
+        objective,
+        train,
+        val,
+        **kw,
+    )
+    return model, objective, hist
+
+
+def gmm_objective(profile: Profile, epochs: int | None = None) -> GMMObjective:
+    """The GMM NLL with the course's sigma warm-up for a schedule of ``epochs``."""
+    return GMMObjective(
+        n_modes=GMM_MODES, sigma_warmup_epochs=sigma_warmup(epochs or profile.train_epochs)
+    )
+
+
+def gmm(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> Trained:
+    """Chapter 07: the same network with a K = 2 mixture head."""
+    objective = gmm_objective(profile)
+    model, hist = train_or_load(
+        "07_gmm",
+        ModelConfig(kind="fusion", head="gmm", gmm_modes=GMM_MODES),
+        _train_cfg(profile, grad_clip=10.0),
+        objective,
+        train,
+        val,
+        **kw,
+    )
+    return model, objective, hist
+
+
+AFFORDANCE_CFG = ModelConfig(kind="fusion", head="gmm", gmm_modes=GMM_MODES, affordance=True)
+
+
+def affordance_grid(
+    profile: Profile, train: DrivingData, val: DrivingData, **kw: Any
+) -> dict[float, dict[str, float]]:
+    """Chapter 08's grid search over the affordance weight ``w``.
+
+    Each candidate trains on the same rows (every 4th training sample in the full profile, all in
+    the quick one) for 2 epochs (1 in quick) with seed 1, and is scored on the validation set.
+
+    Returns:
+        ``{w: {"trajectory_nll", "ADE_m", "gap_ego_mae_m"}}`` (held-out means).
+    """
+    grid = (0.0, 1.0) if profile.quick else (0.0, 0.1, 0.3, 1.0, 3.0)
+    epochs = 1 if profile.quick else 2
+    rows = np.arange(len(train)) if profile.quick else np.arange(0, len(train), 4)
+    cfg = _train_cfg(profile, epochs=epochs, max_val_samples=2000, grad_clip=10.0, seed=1)
+    scores = {}
+    for w in grid:
+        objective = WithAffordance(gmm_objective(profile, epochs), w)
+        model, _ = train_or_load(
+            f"08_grid_w{w:g}", AFFORDANCE_CFG, cfg, objective, train, val, train_rows=rows, **kw
+        )
+        objective.start_epoch(10**6)  # score with sigma open
+        _, metrics = evaluate_loss(model, objective, DrivingDataset(val))
+        scores[w] = {
+            "trajectory_nll": float(metrics["main loss"].mean()),
+            "ADE_m": float(metrics["ADE [m]"].mean()),
+            "gap_ego_mae_m": float(metrics["|err| gap_ego_m"].mean()),
+            "train_samples": len(rows),
+            "epochs": epochs,
+        }
+    return scores
+
+
+def choose_affordance_weight(scores: dict[float, dict[str, float]]) -> tuple[float, str]:
+    """The ``w`` with the lowest held-out trajectory NLL, and a line saying why. If ``w = 0``
+    wins, the best ``w > 0`` is returned instead (the chapter needs a head to study) and the line
+    says so."""
+    best = min(scores, key=lambda w: scores[w]["trajectory_nll"])
+    if best > 0 or len(scores) == 1:
+        return best, f"w = {best:g}: the lowest held-out trajectory NLL of the grid"
+    runner = min((w for w in scores if w > 0), key=lambda w: scores[w]["trajectory_nll"])
+    return runner, (
+        f"w = 0 had the lowest held-out trajectory NLL: the auxiliary loss did not help on this "
+        f"grid; training the best w > 0 (w = {runner:g}) so there is a head to study"
+    )
+
+
+def gmm_affordance(
+    profile: Profile, train: DrivingData, val: DrivingData, weight: float, **kw: Any
+) -> Trained:
+    """Chapter 08: the chapter-07 GMM plus the affordance head, loss GMM + ``weight`` x
+    affordance."""
+    objective = WithAffordance(gmm_objective(profile), weight)
+    model, hist = train_or_load(
+        "08_gmm_affordance",
+        AFFORDANCE_CFG,
+        _train_cfg(profile, grad_clip=10.0),
+        objective,
+        train,
+        val,
+        **kw,
+    )
+    return model, objective, hist
+
+
+def gmm_affordance_cvar(
+    profile: Profile, train: DrivingData, val: DrivingData, weight: float, **kw: Any
+) -> Trained:
+    """Chapter 09: one epoch of CVaR-0.9 fine-tuning from :func:`gmm_affordance`'s checkpoint
+    (trained first if missing), sigma open throughout."""
+    gmm_affordance(profile, train, val, weight, **kw)
+    objective = CVaRObjective(
+        WithAffordance(GMMObjective(n_modes=GMM_MODES, sigma_warmup_epochs=0), weight), CVAR_ALPHA
+    )
+    model, hist = train_or_load(
+        "09_gmm_affordance_cvar",
+        AFFORDANCE_CFG,
+        _train_cfg(profile, epochs=1, batch_size=256, lr=1e-4, grad_clip=10.0),
+        objective,
+        train,
+        val,
+        init_from="08_gmm_affordance",
+        **kw,
+    )
+    return model, objective, hist
