@@ -171,6 +171,29 @@ print(
 )
 
 # %% [markdown]
+# Where does the cost on the easy cases land? On straight validation frames where the expert
+# keeps its lane, compare the followed trajectory's lateral error at 1.5 s before and after.
+
+# %%
+easy = np.flatnonzero((val.expert_state == 0) & (np.abs(val.curvature) < 1e-4))
+easy = easy[:: max(1, len(easy) // 2000)]
+easy_report = {}
+for name, m in (("before", base), ("after", model)):
+    probe = TrajectoryAgent(m, sigma_floor=objective.sigma_floor)
+    chunks = np.array_split(easy, max(1, len(easy) // 256))
+    pts = np.concatenate([probe.trajectories_from(val.images[c], val.speed[c]) for c in chunks])
+    err_y5 = np.abs(pts[:, -1, 1] - val.trajectory[easy, -1, 1])
+    easy_report[name] = {
+        "lateral_error_1p5s_m": float(err_y5.mean()),
+        "share_swerving_over_1m": float(np.mean(np.abs(pts[:, -1, 1]) > 1.0)),
+    }
+    print(
+        f"{name} CVaR, {len(easy)} straight keep-lane frames: lateral error at 1.5 s "
+        f"{easy_report[name]['lateral_error_1p5s_m']:.3f} m, followed trajectory more than 1 m "
+        f"sideways in {easy_report[name]['share_swerving_over_1m']:.1%}"
+    )
+
+# %% [markdown]
 # ## 5. Closed loop
 #
 # Same validation tracks and seeds as chapters 05-08.
@@ -229,6 +252,7 @@ artifacts.write_metrics(
             "probe_samples": len(probe_rows),
         },
         "held_out": {k: float(v.mean()) for k, v in cvar_metrics.items()},
+        "easy_frames": easy_report,
         "result": res.to_dict(),
         "verdict_vs_affordance": verdict,
         "table_md": table,
