@@ -271,7 +271,9 @@ artifacts.write_metrics(
 #   show what it sees of the lane and the car ahead, and where it is wrong. Judge them against
 #   the floor printed beside them (always answering the mean): a head can train without learning.
 # * Whether the auxiliary task lowers collisions here is the verdict line above, measured on the
-#   same tracks and seeds as chapter 07; the paper reports 12.7 -> 0.83 per 100 miles.
+#   same tracks and seeds as chapter 07; the paper reports 12.7 -> 0.83 per 100 miles. The verdict
+#   compares two *training runs*, one per setting: it is only evidence for the auxiliary loss if
+#   two runs of the same setting agree far better than that (exercise 4 measures it).
 #
 # ## Exercises
 #
@@ -280,5 +282,8 @@ artifacts.write_metrics(
 #    closed-loop result moves?
 # 3. Use the predicted gap ahead as a brake: if it is below 20 m, set the followed trajectory's
 #    speed to zero. This is the seed of chapter 11's safety module.
-# 4. The grid search trains on a quarter of the data for two epochs. Is its winner the winner at
+# 4. Train the same network with `w = 0` (head present, unused) and, separately, chapter 07's GMM
+#    with `TrainConfig.seed=1`. How far apart are two training runs of one recipe in closed loop?
+#    Compare with the difference you would attribute to the affordance loss.
+# 5. The grid search trains on a quarter of the data for two epochs. Is its winner the winner at
 #    full length? Train two values of `w` at full length and compare.
