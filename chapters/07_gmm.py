@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from e2e_lite import artifacts, recipes
-from e2e_lite.agents import SPEED_SOURCES, TrajectoryAgent
+from e2e_lite.agents import SPEED_SOURCES, Recorder, TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
 from e2e_lite.config import active_profile
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect
@@ -295,31 +295,21 @@ for name, m in (("L2", l2_model), ("GMM", model)):
 # the paper's way (`trajectory`), the reference speed without the acceleration feed-forward
 # (`trajectory_no_ff`), and the road's speed limit held by the cruise control PilotNet uses
 # (`cruise`; the network then only steers). A recorder keeps the car's speed and what the
-# tracker reads from the followed trajectory at every decision.
+# tracker reads from the followed trajectory at every decision (`agents.Recorder`).
 
 
 # %%
-class Recorder:
-    """Wraps a trajectory agent; keeps (speed, v_ref, a_ref) of every car at every decision."""
-
-    def __init__(self, agent: TrajectoryAgent) -> None:
-        self.agent, self.camera, self.rows = agent, agent.camera, []
-
-    def reset(self, n: int) -> None:
-        self.agent.reset(n)
-
-    def act(self, obs):
-        act = self.agent.act(obs)
-        _, _, _, v_ref, a_ref = trajectory_reference(self.agent.last["points"])
-        self.rows.append(np.stack([obs.speed, v_ref, a_ref], axis=1))
-        return act
+def speeds(obs, agent):
+    """(speed, v_ref, a_ref) of every car: the car's, and what the tracker reads from the plan."""
+    _, _, _, v_ref, a_ref = trajectory_reference(agent.last["points"])
+    return np.stack([obs.speed, v_ref, a_ref], axis=1)
 
 
 diag_miles = 2.0 if profile.quick else 30.0
 diagnosis: dict[str, dict] = {}
 for name, m in (("L2", l2_model), ("GMM", model)):
     for speed in SPEED_SOURCES:
-        rec = Recorder(TrajectoryAgent(m, sigma_floor=objective.sigma_floor, speed=speed))
+        rec = Recorder(TrajectoryAgent(m, sigma_floor=objective.sigma_floor, speed=speed), speeds)
         r = evaluate(
             rec,
             world_cfg,

@@ -29,7 +29,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts, recipes
-from e2e_lite.agents import TrajectoryAgent
+from e2e_lite.agents import Recorder, TrajectoryAgent
 from e2e_lite.config import active_profile
 from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, DrivingDataset, affordances, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, results_table
@@ -145,23 +145,13 @@ print(f"saved {scatter_png}")
 
 
 # %%
-class AffordanceRecorder:
-    """Wraps a trajectory agent; keeps car 0's predicted and true affordances per decision."""
-
-    def __init__(self, agent: TrajectoryAgent) -> None:
-        self.agent, self.camera, self.rows = agent, agent.camera, []
-
-    def reset(self, n: int) -> None:
-        self.agent.reset(n)
-
-    def act(self, obs):
-        act = self.agent.act(obs)
-        truth = affordances(obs.worlds[:1], obs.s[:1], obs.d[:1], obs.heading_error[:1])[0]
-        self.rows.append((obs.time_s, self.agent.last["affordances"][0], truth))
-        return act
+def car0_affordances(obs, agent):
+    """(time, predicted, true affordances) of the first car."""
+    truth = affordances(obs.worlds[:1], obs.s[:1], obs.d[:1], obs.heading_error[:1])[0]
+    return obs.time_s, agent.last["affordances"][0], truth
 
 
-recorder = AffordanceRecorder(TrajectoryAgent(model, sigma_floor=objective.sigma_floor))
+recorder = Recorder(TrajectoryAgent(model, sigma_floor=objective.sigma_floor), car0_affordances)
 evaluate(
     recorder,
     world_cfg,

@@ -18,6 +18,9 @@ decision with the whole batch; the agent runs the network once on the B frames (
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 import torch
 
@@ -204,3 +207,25 @@ class TrajectoryAgent(NetworkAgent):
             feed_forward = a_ref if self.speed == "trajectory" else np.zeros_like(a_ref)
             accel = self.tracker.accel(obs.speed, v_ref, feed_forward)
         return Actuation(steer_rad=steer, accel_mps2=accel)
+
+
+class Recorder:
+    """Wraps an agent for the evaluator; after every decision calls ``record(obs, agent)`` and
+    keeps what it returns in :attr:`rows` (for diagnosis: what the agent saw and proposed).
+
+    Args:
+        agent: any policy (its ``camera``, if any, is passed through).
+        record: ``(observation, agent) -> row``; the agent's :attr:`last` is already filled.
+    """
+
+    def __init__(self, agent: Any, record: Callable[[Observation, Any], Any]) -> None:
+        self.agent, self.record, self.rows = agent, record, []
+        self.camera = getattr(agent, "camera", None)
+
+    def reset(self, n_worlds: int) -> None:
+        self.agent.reset(n_worlds)
+
+    def act(self, obs: Observation) -> Actuation:
+        act = self.agent.act(obs)
+        self.rows.append(self.record(obs, self.agent))
+        return act

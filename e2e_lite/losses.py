@@ -238,24 +238,14 @@ def most_likely(weights: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------ wrappers
-class WithAffordance(Objective):
-    """``base + weight x affordance loss`` (seed 000, section 3.4): the affordance head learns the
-    dataset's 9 affordances (normalised per affordance) from the same fused features.
+class WrappedObjective(Objective):
+    """An objective built on another one: everything is delegated to ``base`` (its settings such
+    as ``n_modes`` or ``sigma_floor`` read through) unless a subclass overrides it."""
 
-    The affordance loss of a sample is the mean over the 9 of the squared normalised error. With
-    ``weight = 0`` this is exactly ``base`` (the head is then not trained).
-
-    Args:
-        base: the main objective (e.g. :class:`GMMObjective`); its settings (``n_modes``,
-            ``sigma_floor``, ...) are read through this wrapper.
-        weight: ``w >= 0``.
-    """
-
-    def __init__(self, base: Objective, weight: float) -> None:
-        check_range("WithAffordance", "weight", weight, 0.0)
-        self.base, self.weight = base, float(weight)
+    def __init__(self, base: Objective) -> None:
+        self.base = base
         self.head, self.wheelbase_m = base.head, base.wheelbase_m
-        self.name = f"{base.name}+affordance{self.weight:g}"
+        self.min_batch = base.min_batch
 
     def __getattr__(self, name: str):  # n_modes, sigma_floor, modes(), ... of the base
         if name == "base":
@@ -270,6 +260,36 @@ class WithAffordance(Objective):
 
     def reduce(self, losses: torch.Tensor) -> torch.Tensor:
         return self.base.reduce(losses)
+
+    def per_sample(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        return self.base.per_sample(out, batch, model)
+
+    def metrics(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> dict[str, torch.Tensor]:
+        return self.base.metrics(out, batch, model)
+
+
+class WithAffordance(WrappedObjective):
+    """``base + weight x affordance loss`` (seed 000, section 3.4): the affordance head learns the
+    dataset's 9 affordances (normalised per affordance) from the same fused features.
+
+    The affordance loss of a sample is the mean over the 9 of the squared normalised error. With
+    ``weight = 0`` this is exactly ``base`` (the head is then not trained).
+
+    Args:
+        base: the main objective (e.g. :class:`GMMObjective`); its settings (``n_modes``,
+            ``sigma_floor``, ...) are read through this wrapper.
+        weight: ``w >= 0``.
+    """
+
+    def __init__(self, base: Objective, weight: float) -> None:
+        check_range("WithAffordance", "weight", weight, 0.0)
+        super().__init__(base)
+        self.weight = float(weight)
+        self.name = f"{base.name}+affordance{self.weight:g}"
 
     def affordance_loss(
         self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
@@ -382,7 +402,7 @@ def cvar_curve(
     return alphas, np.array([float(_tail_mean(values, float(a))) for a in alphas])
 
 
-class CVaRObjective(Objective):
+class CVaRObjective(WrappedObjective):
     """Train on the worst ``1 - alpha`` of every batch (seed 000, section 3.5).
 
     The per-sample losses and metrics are the base's; only :meth:`reduce` changes, to
@@ -396,31 +416,10 @@ class CVaRObjective(Objective):
 
     def __init__(self, base: Objective, alpha: float = 0.9, min_tail: int = 10) -> None:
         _check_alpha(alpha, 1, lo_closed=False)
-        self.base, self.alpha, self.min_tail = base, float(alpha), min_tail
+        super().__init__(base)
+        self.alpha, self.min_tail = float(alpha), min_tail
         self.min_batch = max(2, math.ceil(min_tail / (1.0 - self.alpha) - 1e-9))
-        self.head, self.wheelbase_m = base.head, base.wheelbase_m
         self.name = f"cvar{self.alpha:g}({base.name})"
-
-    def __getattr__(self, name: str):
-        if name == "base":
-            raise AttributeError(name)
-        return getattr(self.base, name)
-
-    def start_epoch(self, epoch: int) -> None:
-        self.base.start_epoch(epoch)
-
-    def frozen_prefixes(self, epoch: int) -> list[str]:
-        return self.base.frozen_prefixes(epoch)
-
-    def per_sample(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> torch.Tensor:
-        return self.base.per_sample(out, batch, model)
-
-    def metrics(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> dict[str, torch.Tensor]:
-        return self.base.metrics(out, batch, model)
 
     def reduce(self, losses: torch.Tensor) -> torch.Tensor:
         """:func:`cvar_loss` of the batch."""

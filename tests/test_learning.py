@@ -344,3 +344,19 @@ def test_trajectory_agent_speed_sources():
     assert acts["cruise"].accel_mps2[0] == pytest.approx(CruiseControl().accel(obs)[0])
     with pytest.raises(ValueError, match="speed must be one of"):
         TrajectoryAgent(model, speed="fast")
+
+
+def test_recorder_keeps_one_row_per_decision_and_passes_the_camera():
+    from e2e_lite.agents import Recorder
+    from e2e_lite.drivers import LaneKeeper
+
+    rec = Recorder(LaneKeeper(), lambda obs, agent: obs.time_s)
+    assert rec.camera is None
+    world_cfg = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(0, 0)))
+    evaluate(rec, world_cfg, EvalConfig(miles=0.05, n_worlds=2, n_tracks=1), progress=False)
+    assert len(rec.rows) > 10 and rec.rows == sorted(rec.rows) and rec.rows[0] == 0.0
+    torch.manual_seed(0)
+    model = prepare(
+        build_model(ModelConfig(head="trajectory", fusion_width=16)), torch.device("cpu")
+    )
+    assert Recorder(TrajectoryAgent(model.eval()), lambda o, a: None).camera is not None
