@@ -13,7 +13,7 @@ Names:
     data    samples collected per second (noisy expert, frames, label rollouts, affordances), and
             the expert's and the oracle's closed-loop simulated miles per wall-second.
     train   training samples per second at batch 64 through the real training loop.
-    closed-loop [--agent pilotnet|actuators]
+    closed-loop [--agent pilotnet|actuators|gmm]
             simulated miles per wall-second with camera + CNN in the loop, B = 16.
 """
 
@@ -30,7 +30,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .agents import ActuatorAgent, SteeringAgent
+from .agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
 from .artifacts import artifact_path
 from .camera import Camera, CameraConfig
 from .config import active_profile
@@ -183,6 +183,7 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     name, cfg = {
         "pilotnet": ("05_pilotnet", ModelConfig(kind="pilotnet", head="steer")),
         "actuators": ("05_actuators", ModelConfig(kind="fusion", head="actuators")),
+        "gmm": ("07_gmm", ModelConfig(kind="fusion", head="gmm", gmm_modes=2)),
     }[agent]
     path = artifact_path("checkpoints", f"{name}.pt")
     if path.exists():
@@ -192,7 +193,9 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
         torch.manual_seed(0)
         model = prepare(build_model(cfg), pick_device()).eval()
         source = "untrained network (no checkpoint yet)"
-    policy = SteeringAgent(model) if cfg.head == "steer" else ActuatorAgent(model)
+    policy = {"steer": SteeringAgent, "actuators": ActuatorAgent, "gmm": TrajectoryAgent}[cfg.head](
+        model
+    )
     world_cfg = WorldConfig.for_profile(active_profile([]))
     res = evaluate(
         policy,
@@ -228,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="fewer repetitions (a smoke run)")
     parser.add_argument(
         "--agent",
-        choices=["pilotnet", "actuators"],
+        choices=["pilotnet", "actuators", "gmm"],
         default="pilotnet",
         help="closed-loop: which learned driver",
     )

@@ -10,7 +10,12 @@ from e2e_lite import bench
 
 
 @pytest.mark.parametrize(
-    "argv", [["train", "--quick"], ["closed-loop", "--quick", "--agent", "actuators"]]
+    "argv",
+    [
+        ["train", "--quick"],
+        ["closed-loop", "--quick", "--agent", "actuators"],
+        ["closed-loop", "--quick", "--agent", "gmm"],
+    ],
 )
 def test_benchmark_command_prints_json(argv, capsys):
     assert bench.main([*argv, "--json"]) == 0
