@@ -37,7 +37,7 @@ from e2e_lite.data import (
     load_or_collect,
     load_or_make_recovery,
 )
-from e2e_lite.evaluation import EvalConfig, evaluate
+from e2e_lite.evaluation import EvalConfig, evaluate, results_table
 from e2e_lite.losses import Objective
 from e2e_lite.models import ModelConfig, build_model, count_parameters, pick_device
 from e2e_lite.training import TrainConfig, evaluate_loss, train_or_load
@@ -185,18 +185,7 @@ for name, agent in (
     results[name] = evaluate(agent, world_cfg, ev, desc=name)
     print(f"{name}: {results[name].summary()}")
 
-rows_md = [
-    "| driver | miles | collisions (car / rail) | per 100 mi [95% CI] | mph | time to collision | autonomy |",
-    "|---|---:|---:|---|---:|---:|---:|",
-]
-for name, r in results.items():
-    ttc = "-" if r.time_to_collision_s is None else f"{r.time_to_collision_s:.1f} s"
-    rows_md.append(
-        f"| {name} | {r.miles:.0f} | {r.collisions} ({r.car_collisions} / {r.rail_collisions}) | "
-        f"{r.collisions_per_100mi:.1f} [{r.ci95_per_100mi[0]:.1f}-{r.ci95_per_100mi[1]:.1f}] | "
-        f"{r.mean_speed_mph:.1f} | {ttc} | {r.autonomy_pct:.1f}% |"
-    )
-table = "\n".join(rows_md)
+table = results_table(list(results.items()))
 print(table)
 print(
     "paper (TORCS): Baseline E2E 183.3 per 100 mi; seed 002 (CARLA): time to collision 10.2 s vs 1.1 s"

@@ -26,7 +26,7 @@ from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
 from e2e_lite.config import active_profile
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect
-from e2e_lite.evaluation import EvalConfig, evaluate, observe
+from e2e_lite.evaluation import EvalConfig, evaluate, observe, results_table
 from e2e_lite.expert import Expert
 from e2e_lite.geometry import Track
 from e2e_lite.training import evaluate_loss
@@ -128,25 +128,9 @@ print(f"saved {fig2_png}")
 ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
 res = evaluate(TrajectoryAgent(model), world_cfg, ev, desc="trajectory L2")
 print(res.summary())
-rows_md = [
-    "| driver | per 100 mi [95% CI] | mph | time to collision | autonomy |",
-    "|---|---|---:|---:|---:|",
-]
-prev = artifacts.read_metrics("05_pilotnet_baseline")
-if prev is not None and prev.get("profile") == profile.name:
-    for name, r in prev["results"].items():
-        lo, hi = r["ci95_per_100mi"]
-        ttc = "-" if r["time_to_collision_s"] is None else f"{r['time_to_collision_s']:.1f} s"
-        rows_md.append(
-            f"| {name} (ch. 05) | {r['collisions_per_100mi']:.1f} [{lo:.1f}-{hi:.1f}] | "
-            f"{r['mean_speed_mph']:.1f} | {ttc} | {r['autonomy_pct']:.1f}% |"
-        )
-ttc = "-" if res.time_to_collision_s is None else f"{res.time_to_collision_s:.1f} s"
-rows_md.append(
-    f"| trajectory L2 + LQR | {res.collisions_per_100mi:.1f} [{res.ci95_per_100mi[0]:.1f}-"
-    f"{res.ci95_per_100mi[1]:.1f}] | {res.mean_speed_mph:.1f} | {ttc} | {res.autonomy_pct:.1f}% |"
-)
-table = "\n".join(rows_md)
+prev = artifacts.read_metrics("05_pilotnet_baseline", profile.name)
+earlier = [] if prev is None else [(f"{n} (ch. 05)", r) for n, r in prev["results"].items()]
+table = results_table([*earlier, ("trajectory L2 + LQR", res)])
 print(table)
 
 # %% [markdown]

@@ -210,8 +210,8 @@ if starts.size:
     print(
         f"{starts.size} overtake starts in the middle lane: the followed mode takes the expert's side in {side_ok:.0%}"
     )
-    l2 = artifacts.read_metrics("06_trajectory_regression")
-    if l2 is not None and l2.get("profile") == profile.name:
+    l2 = artifacts.read_metrics("06_trajectory_regression", profile.name)
+    if l2 is not None:
         print(f"chapter 06 (L2): {l2['averaging']['validation_starts']}")
 
 # %% [markdown]
@@ -223,8 +223,8 @@ res = evaluate(agent, world_cfg, ev, desc="trajectory GMM")
 print(res.summary())
 earlier = []
 for chapter, key in (("05_pilotnet_baseline", "results"), ("06_trajectory_regression", "result")):
-    m = artifacts.read_metrics(chapter)
-    if m is None or m.get("profile") != profile.name:
+    m = artifacts.read_metrics(chapter, profile.name)
+    if m is None:
         continue
     entries = m[key].items() if key == "results" else [("trajectory L2 + LQR", m[key])]
     for name, r in entries:

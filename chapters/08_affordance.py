@@ -92,8 +92,8 @@ print(
     f"held out: trajectory NLL {held['main loss']:.3f}, ADE {held['ADE [m]']:.3f} m, "
     f"FDE {held['FDE [m]']:.3f} m"
 )
-gmm07 = artifacts.read_metrics("07_gmm")
-if gmm07 is not None and gmm07.get("profile") == profile.name:
+gmm07 = artifacts.read_metrics("07_gmm", profile.name)
+if gmm07 is not None:
     print(
         f"chapter 07 (no affordance head): NLL {gmm07['held_out']['nll']:.3f}, "
         f"ADE {gmm07['held_out']['ADE [m]']:.3f} m"
@@ -202,8 +202,8 @@ for chapter, label in (
     ("06_trajectory_regression", "trajectory L2 + LQR"),
     ("07_gmm", "trajectory GMM + LQR"),
 ):
-    m = artifacts.read_metrics(chapter)
-    if m is not None and m.get("profile") == profile.name:
+    m = artifacts.read_metrics(chapter, profile.name)
+    if m is not None:
         rows_table.append((label, m["result"]))
 rows_table.append((f"GMM + affordance (w = {w_best:g}) + LQR", res))
 table = results_table(rows_table)

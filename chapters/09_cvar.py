@@ -84,8 +84,8 @@ print(
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
 val = load_or_collect(DataConfig.for_profile(profile, "val"))
-m08 = artifacts.read_metrics("08_affordance")
-if m08 is not None and m08.get("profile") == profile.name:
+m08 = artifacts.read_metrics("08_affordance", profile.name)
+if m08 is not None:
     w = float(m08["chosen_weight"])
     print(f"affordance weight from chapter 08: w = {w:g}")
 else:
@@ -93,7 +93,7 @@ else:
     print(f"chapter 08 has not run: grid search here, chosen {why}")
 base, base_objective, _ = recipes.gmm_affordance(profile, train, val, w)
 base_objective.start_epoch(10**6)
-base_losses, base_metrics = evaluate_loss(base, base_objective, DrivingDataset(val))
+base_losses, _ = evaluate_loss(base, base_objective, DrivingDataset(val))
 alphas, base_curve = cvar_curve(base_losses)
 print(
     f"chapter-08 model, held-out loss: mean {base_curve[0]:.3f}, CVaR-90 {base_curve[90]:.3f}, "
@@ -109,11 +109,12 @@ print(
 
 # %%
 rng = np.random.default_rng(9)
-probe_rows = rng.permutation(len(train))[: min(len(train), 256 * (8 if profile.quick else 24))]
+batch = recipes.CVAR_BATCH
+probe_rows = rng.permutation(len(train))[: min(len(train), batch * (8 if profile.quick else 24))]
 probe_losses, _ = evaluate_loss(base, base_objective, DrivingDataset(train, probe_rows))
 in_tail = np.zeros(len(probe_rows), bool)
-for start in range(0, len(probe_rows) - 255, 256):
-    chunk = slice(start, start + 256)
+for start in range(0, len(probe_rows) - batch + 1, batch):
+    chunk = slice(start, start + batch)
     in_tail[chunk] = probe_losses[chunk] >= np.quantile(probe_losses[chunk], recipes.CVAR_ALPHA)
 tail_rows, random_rows = probe_rows[in_tail], probe_rows
 shares_tail = situation_shares(train.arrays, tail_rows)
@@ -208,8 +209,8 @@ for chapter, label in (
     ("07_gmm", "trajectory GMM + LQR"),
     ("08_affordance", "GMM + affordance + LQR"),
 ):
-    m = artifacts.read_metrics(chapter)
-    if m is not None and m.get("profile") == profile.name:
+    m = artifacts.read_metrics(chapter, profile.name)
+    if m is not None:
         rows.append((label, m["result"]))
 rows.append(("GMM + affordance + CVaR-90 + LQR", res))
 table = results_table(rows)

@@ -33,6 +33,12 @@ from .tracker import LQRTracker, trajectory_reference
 from .vehicle import VehicleParams
 
 
+def _frames(obs: Observation) -> np.ndarray:
+    if obs.images is None:
+        raise ValueError("this agent needs camera frames: give it a `camera` attribute")
+    return obs.images
+
+
 class NetworkAgent:
     """Base: holds the model, the camera it was trained with and the device.
 
@@ -58,9 +64,7 @@ class NetworkAgent:
 
     def predict(self, obs: Observation) -> dict[str, torch.Tensor]:
         """The network's raw (normalised) outputs for the batch of frames in ``obs``."""
-        if obs.images is None:
-            raise ValueError("this agent needs camera frames: give it a `camera` attribute")
-        return self.predict_frames(obs.images, obs.speed)
+        return self.predict_frames(_frames(obs), obs.speed)
 
     def predict_frames(self, images: np.ndarray, speed_mps: np.ndarray) -> dict[str, torch.Tensor]:
         """The network's raw outputs for frames ``(B, H, W, 3)`` uint8 at speeds ``(B,)`` [m/s]
@@ -166,9 +170,7 @@ class TrajectoryAgent(NetworkAgent):
 
     def trajectories(self, obs: Observation) -> np.ndarray:
         """The trajectories to follow (B, 5, 2) [m]; fills :attr:`last`."""
-        if obs.images is None:
-            raise ValueError("this agent needs camera frames: give it a `camera` attribute")
-        return self.trajectories_from(obs.images, obs.speed)
+        return self.trajectories_from(_frames(obs), obs.speed)
 
     def trajectories_from(self, images: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
         """:meth:`trajectories` for frames ``(B, H, W, 3)`` uint8 at speeds ``(B,)`` [m/s]."""

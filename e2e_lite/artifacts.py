@@ -134,13 +134,17 @@ def write_metrics(chapter: str, metrics: dict[str, Any]) -> Path:
     return save_json(metrics_path(chapter), metrics)
 
 
-def read_metrics(chapter: str) -> dict[str, Any] | None:
-    """A chapter's metrics, or ``None`` when it has not written any (or they are unreadable)."""
+def read_metrics(chapter: str, profile: str | None = None) -> dict[str, Any] | None:
+    """A chapter's metrics, or ``None`` when it has not written any (or they are unreadable), or
+    when ``profile`` is given and they were written under another profile."""
     path = outputs_dir() / "metrics" / f"{Path(chapter).stem}.json"
     try:
-        return load_json(path)
+        metrics = load_json(path)
     except (OSError, ValueError):
         return None
+    if profile is not None and metrics.get("profile") != profile:
+        return None
+    return metrics
 
 
 def cached(

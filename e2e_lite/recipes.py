@@ -30,6 +30,7 @@ Trained = tuple[DrivingModel, Objective, History]
 
 GMM_MODES = 2
 CVAR_ALPHA = 0.9
+CVAR_BATCH = 256  # the tail of a batch then holds 25.6 samples
 
 
 def _train_cfg(profile: Profile, **changes: Any) -> TrainConfig:
@@ -160,7 +161,7 @@ def gmm_affordance_cvar(
     model, hist = train_or_load(
         "09_gmm_affordance_cvar",
         AFFORDANCE_CFG,
-        _train_cfg(profile, epochs=1, batch_size=256, lr=1e-4, grad_clip=10.0),
+        _train_cfg(profile, epochs=1, batch_size=CVAR_BATCH, lr=1e-4, grad_clip=10.0),
         objective,
         train,
         val,

@@ -71,6 +71,9 @@ def test_outputs_dir_follows_the_environment(tmp_path):
     p = artifacts.write_metrics("99_demo", {"headline": {"x": 1.5}})
     assert p == tmp_path / "outputs" / "metrics" / "99_demo.json"
     assert artifacts.read_metrics("99_demo") == {"headline": {"x": 1.5}}
+    artifacts.write_metrics("97_full", {"profile": "full"})
+    assert artifacts.read_metrics("97_full", "full") == {"profile": "full"}
+    assert artifacts.read_metrics("97_full", "quick") is None
     assert artifacts.read_metrics("98_missing") is None
 
 
