@@ -357,13 +357,15 @@ def _tail_mean(values: torch.Tensor, alpha: float) -> torch.Tensor:
     _check_alpha(alpha, values.numel(), lo_closed=True)
     k = (1.0 - alpha) * values.numel()
     ordered = torch.sort(values, descending=True).values
+    # k within rounding of an integer counts as that integer; dividing by the weights actually
+    # given (not by k) keeps the result a convex combination of the tail, so never above the max.
     whole = math.floor(k + 1e-9)
     frac = k - whole
     weights = torch.zeros_like(ordered)
     weights[:whole] = 1.0
     if whole < len(ordered) and frac > 1e-9:
         weights[whole] = frac
-    return (weights * ordered).sum() / k
+    return (weights * ordered).sum() / weights.sum()
 
 
 def cvar_loss(losses: torch.Tensor, alpha: float, min_tail: int = 10) -> torch.Tensor:

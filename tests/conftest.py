@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from e2e_lite.geometry import Track
 from e2e_lite.vehicle import VehicleParams
 from e2e_lite.world import ParkedCars, World
+
+# CI and the README's test command draw the same hypothesis examples every run, so a red build
+# means a change broke something; `HYPOTHESIS_PROFILE=explore pytest` searches with fresh random
+# examples (how the near-integer CVaR tail bug was found) and should be run after touching maths.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+settings.register_profile("explore", max_examples=1000, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 @pytest.fixture(autouse=True)

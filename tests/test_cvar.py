@@ -54,6 +54,14 @@ def test_cvar_is_monotone_in_alpha_and_bounded(values, a, b):
     assert x.mean() - 1e-9 <= cvar(x, lo) <= x.max() + 1e-9
 
 
+def test_cvar_near_integer_tail_sizes_stay_inside_the_data():
+    # k = (1 - alpha) n a hair below an integer (found by hypothesis): no value above the max
+    assert cvar(np.array([167.0]), 6e-12) == 167.0
+    assert cvar(np.array([-167.0]), 6e-12) == -167.0
+    x = np.array([1.0, 2.0, 3.0])
+    assert cvar(x, 1 / 3 + 1e-13) == pytest.approx(2.5, abs=1e-9)
+
+
 def test_cvar_curve_matches_pointwise_values():
     x = np.random.default_rng(1).exponential(size=500)
     alphas, values = cvar_curve(x)
