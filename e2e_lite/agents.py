@@ -18,6 +18,7 @@ decision with the whole batch; the agent runs the network once on the B frames (
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from typing import Any
 
@@ -61,6 +62,16 @@ class NetworkAgent:
 
     def reset(self, n_worlds: int) -> None:
         """Networks are stateless between decisions."""
+
+    def fork(self, k: int) -> list[NetworkAgent]:
+        """``k`` agents for :func:`~e2e_lite.evaluation.evaluate`'s parallel shards: they share
+        the model (read-only at inference) and controllers (stateless), each with its own
+        :attr:`last`."""
+        copies = [copy.copy(self) for _ in range(k)]
+        for agent in copies:
+            if hasattr(agent, "last"):
+                agent.last = {}
+        return copies
 
     def predict(self, obs: Observation) -> dict[str, torch.Tensor]:
         """The network's raw (normalised) outputs for the batch of frames in ``obs``."""

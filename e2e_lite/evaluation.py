@@ -23,8 +23,12 @@ Metrics (see :class:`EvalResult`):
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
@@ -368,6 +372,21 @@ class _WorldPool:
         return self._worlds[(car, index)]
 
 
+class _Shard:
+    """What one thread of :func:`evaluate` measured on its cars (summed by :func:`_merge`)."""
+
+    def __init__(self) -> None:
+        self.miles_m = 0.0
+        self.sim_s = 0.0
+        self.ttc: list[float] = []
+        self.censored = 0
+        self.interventions = 0
+        self.stalls = 0
+        self.tracks = 0
+        self.events: list[dict[str, Any]] = []
+        self.traces: dict[str, list[list[float]]] = {}
+
+
 def evaluate(
     policy: Policy,
     world_cfg: WorldConfig,
@@ -377,8 +396,16 @@ def evaluate(
     desc: str = "closed loop",
     record_traces: bool = False,
     stop_when: Callable[[], bool] | None = None,
+    workers: int | None = None,
 ) -> EvalResult:
     """Drive ``policy`` closed-loop until ``cfg.miles`` are driven; return the metrics.
+
+    Every car is independent: car ``i`` drives tracks ``i, i + B, ...`` from start lanes drawn
+    by its own generator (seeded by ``cfg.seed`` and ``i``) until it has driven ``miles / B``; so
+    the cars can be split into shards driven in parallel threads without changing what any car
+    does. A policy that can be split has a ``fork(k)`` method returning ``k`` independent copies
+    (the network agents: the model is shared, and its forward pass releases the GIL, so one shard
+    renders and steps physics while the other runs its convolutions).
 
     Args:
         policy: the driver (see :class:`Policy`).
@@ -390,16 +417,78 @@ def evaluate(
             ``result.traces["<split>-<track>"] = [[x, y], ...]``.
         stop_when: called after every decision; the drive ends early when it returns True (the
             data collector stops at a sample count this way). The metrics cover what was driven.
+        workers: threads (shards of cars); default: 2 when the policy has ``fork`` and the
+            machine has at least 2 cores, else 1; always 1 with ``stop_when``. The network sees
+            batches of ``B / workers`` frames on ``1 / workers`` of the cores, and float rounding
+            in its kernels can depend on both, so compare results measured with the same setting.
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
+    if workers is None:
+        workers = 2 if (os.cpu_count() or 1) >= 2 else 1
+    check_range("evaluate", "workers", workers, 1, integer=True)
+    if stop_when is not None or not hasattr(policy, "fork"):
+        workers = 1
+    workers = min(workers, n)
+    bar = tqdm(
+        total=round(cfg.miles, 2),
+        desc=desc,
+        unit="mi",
+        disable=not progress,
+        leave=False,
+        mininterval=0.5,
+        bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} mi [{elapsed}<{remaining}]",
+    )
+    lock = threading.Lock()
+
+    def advance(miles: float) -> None:
+        with lock:
+            bar.update(miles)
+
+    cars = np.array_split(np.arange(n), workers)
+    if workers == 1:
+        shards = [_drive(policy, world_cfg, cfg, cars[0], advance, record_traces, stop_when)]
+    else:
+        policies = policy.fork(workers)  # type: ignore[attr-defined]
+        torch = sys.modules.get("torch")  # loaded when the policy is a network
+        threads = None if torch is None else torch.get_num_threads()
+        interval = sys.getswitchinterval()
+        try:
+            if torch is not None:  # one core per shard instead of every shard on every core
+                torch.set_num_threads(max(1, threads // workers))
+            sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
+            with ThreadPoolExecutor(workers) as pool:
+                jobs = [
+                    pool.submit(_drive, p, world_cfg, cfg, c, advance, record_traces, None)
+                    for p, c in zip(policies, cars)
+                ]
+                shards = [job.result() for job in jobs]
+        finally:
+            sys.setswitchinterval(interval)
+            if torch is not None:
+                torch.set_num_threads(threads)
+    bar.close()
+    return _merge(shards, cfg, time.perf_counter() - t_wall)
+
+
+def _drive(
+    policy: Policy,
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    cars: np.ndarray,
+    advance: Callable[[float], None],
+    record_traces: bool,
+    stop_when: Callable[[], bool] | None,
+) -> _Shard:
+    """Drive the cars ``cars`` (their indices among ``cfg.n_worlds``) to their shares."""
+    out = _Shard()
+    n = len(cars)
     pool = _WorldPool(world_cfg, cfg.split)
-    rng = np.random.default_rng([cfg.seed, 7])
-    track_of = np.arange(n) % cfg.n_tracks
+    rngs = [np.random.default_rng([cfg.seed, 7, int(c)]) for c in cars]
     visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
-    fleet = Fleet([pool.get(i, int(t)) for i, t in enumerate(track_of)], world_cfg)
+    fleet = Fleet([pool.get(j, int(c) % cfg.n_tracks) for j, c in enumerate(cars)], world_cfg)
     dt_pol = world_cfg.sim.policy_period_s
-    share_m = cfg.miles * M_PER_MILE / n
+    share_m = cfg.miles * M_PER_MILE / cfg.n_worlds
     odometer = np.zeros(n)
     sim_time = np.zeros(n)
     active = np.ones(n, dtype=bool)
@@ -407,7 +496,7 @@ def evaluate(
 
     def spawn_new_track(i: int) -> None:
         w = fleet.worlds[i]
-        lane = int(rng.integers(0, w.track.n_lanes))
+        lane = int(rngs[i].integers(0, w.track.n_lanes))
         s0 = cfg.start_s_m
         # never start on top of a parked car
         while not w.lane_free(s0, lane, 10.0, 30.0):
@@ -430,25 +519,14 @@ def evaluate(
     offcentre_t = np.zeros(n)
     offcentre_counted = np.zeros(n, dtype=bool)
     slow_t = np.zeros(n)
-    ttc: list[float] = []
-    interventions = stalls = 0
-    events: list[dict[str, Any]] = []
-    traces: dict[str, list[list[float]]] = {}
     t_sim = 0.0
-    bar = tqdm(
-        total=round(cfg.miles, 2),
-        desc=desc,
-        unit="mi",
-        disable=not progress,
-        leave=False,
-        mininterval=0.5,
-        bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} mi [{elapsed}<{remaining}]",
-    )
+    reported = 0.0
     track0 = fleet.worlds[0].track  # every track shares the cross-section
     cam_cfg = getattr(policy, "camera", None)
     camera = None if cam_cfg is None else Camera(cam_cfg)
     images = None if camera is None else np.empty((n, *camera.shape), dtype=np.uint8)
-    cam_rng = np.random.default_rng([cfg.seed, 11])  # used only if the camera augments
+    # used only if the camera augments (then the frames depend on how cars are split in shards)
+    cam_rng = np.random.default_rng([cfg.seed, 11, int(cars[0])])
     lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
     lengths = np.array([w.track.length for w in fleet.worlds])  # of each car's current track [m]
     while active.any():
@@ -457,7 +535,8 @@ def evaluate(
         moving_on = np.flatnonzero(active & (s > lengths - cfg.end_margin_m)).tolist()
         for i in moving_on:
             visit[i] += 1
-            fleet.worlds[i] = pool.get(i, int((i + visit[i] * n) % cfg.n_tracks))
+            next_track = int((cars[i] + visit[i] * cfg.n_worlds) % cfg.n_tracks)
+            fleet.worlds[i] = pool.get(i, next_track)
             lengths[i] = fleet.worlds[i].track.length
             spawn_new_track(i)
             respawned[i] = True
@@ -478,7 +557,7 @@ def evaluate(
         if record_traces:
             for i in np.flatnonzero(active).tolist():
                 key = "-".join(map(str, fleet.worlds[i].track.track_id))
-                traces.setdefault(key, []).append(
+                out.traces.setdefault(key, []).append(
                     [float(fleet.state[i, 0]), float(fleet.state[i, 1])]
                 )
         xy_before = fleet.state[:, :2].copy()
@@ -492,7 +571,7 @@ def evaluate(
         off = np.min(np.abs(d[:, None] - lane_centers[None, :]), axis=1) > cfg.offcentre_m
         offcentre_t = np.where(active & off, offcentre_t + dt_pol, 0.0)
         new_int = (offcentre_t > cfg.offcentre_grace_s) & ~offcentre_counted
-        interventions += int(new_int.sum())
+        out.interventions += int(new_int.sum())
         offcentre_counted = (offcentre_counted | new_int) & (offcentre_t > 0)
         # collisions: one event per car per period, then a re-spawn
         for i, c in enumerate(contacts):
@@ -506,9 +585,9 @@ def evaluate(
             s_obst = (
                 s_i if car_idx is None else max(s_i, float(w.cars.s[car_idx]) + w.cars.length_m / 2)
             )
-            events.append(
+            out.events.append(
                 {
-                    "world": i,
+                    "world": int(cars[i]),
                     "track": list(w.track.track_id),
                     "kind": "rail" if car_idx is None else "car",
                     "car": car_idx,
@@ -522,15 +601,15 @@ def evaluate(
                     "miles": round(float(odometer[i] / M_PER_MILE), 4),
                 }
             )
-            ttc.append(float(episode_t[i]))
+            out.ttc.append(float(episode_t[i]))
             episode_t[i] = 0.0
-            interventions += 1
+            out.interventions += 1
             respawn(i, s_obst, d_i)
         # stalls
         slow_t = np.where(active & (fleet.state[:, V] < cfg.stall_speed_mps), slow_t + dt_pol, 0.0)
         for i in np.flatnonzero(slow_t > cfg.stall_time_s).tolist():
-            stalls += 1
-            interventions += 1
+            out.stalls += 1
+            out.interventions += 1
             slow_t[i] = 0.0
             s_i, d_i, _ = fleet.worlds[i].track.to_frenet_hint(
                 fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
@@ -539,16 +618,31 @@ def evaluate(
         active &= odometer < share_m
         if stop_when is not None and stop_when():
             active[:] = False
-        bar.update(max(0.0, float(np.minimum(odometer, share_m).sum() / M_PER_MILE) - bar.n))
-    bar.close()
+        done = float(np.minimum(odometer, share_m).sum() / M_PER_MILE)
+        advance(max(0.0, done - reported))
+        reported = max(reported, done)
+    out.miles_m = float(odometer.sum())
+    out.sim_s = float(sim_time.sum())
+    out.censored = int(np.count_nonzero(episode_t > 0))
+    out.tracks = int((visit + 1).sum())
+    return out
 
-    total_m = float(odometer.sum())
+
+def _merge(shards: list[_Shard], cfg: EvalConfig, wall: float) -> EvalResult:
+    """One :class:`EvalResult` from the shards' sums (events in car order, then time)."""
+    total_m = sum(sh.miles_m for sh in shards)
+    total_t = sum(sh.sim_s for sh in shards)
     miles = total_m / M_PER_MILE
+    events = sorted((e for sh in shards for e in sh.events), key=lambda e: e["world"])
+    ttc = [t for sh in shards for t in sh.ttc]
+    traces: dict[str, list[list[float]]] = {}
+    for sh in shards:
+        for key, pts in sh.traces.items():
+            traces.setdefault(key, []).extend(pts)
+    interventions = sum(sh.interventions for sh in shards)
     n_col = len(events)
     n_car = sum(e["kind"] == "car" for e in events)
-    total_t = float(sim_time.sum())
     lo, hi = poisson_ci(n_col, miles / 100.0)
-    wall = time.perf_counter() - t_wall
     return EvalResult(
         miles=miles,
         collisions=n_col,
@@ -558,15 +652,15 @@ def evaluate(
         ci95_per_100mi=(lo, hi),
         mean_speed_mph=total_m / total_t * MPS_TO_MPH,
         time_to_collision_s=float(np.mean(ttc)) if ttc else None,
-        episodes_censored=int(np.count_nonzero(episode_t > 0)),
+        episodes_censored=sum(sh.censored for sh in shards),
         miles_per_collision=miles / n_col if n_col else None,
         autonomy_pct=max(0.0, 1.0 - interventions * cfg.intervention_cost_s / total_t) * 100.0,
         interventions=interventions,
-        stalls=stalls,
+        stalls=sum(sh.stalls for sh in shards),
         sim_time_s=total_t,
         wall_time_s=wall,
         sim_miles_per_wall_s=miles / wall,
-        tracks_driven=int((visit + 1).sum()),
+        tracks_driven=sum(sh.tracks for sh in shards),
         events=events,
         traces=traces,
     )

@@ -149,6 +149,34 @@ def test_same_seed_same_counts_and_different_tracks_differ():
     assert [e["s_m"] for e in a.events] != [e["s_m"] for e in c.events]
 
 
+class ForkingKeeper(LaneKeeper):
+    """A lane keeper that can be split into shards (as the network agents can)."""
+
+    forks = 0
+
+    def fork(self, k: int) -> list[LaneKeeper]:
+        ForkingKeeper.forks += 1
+        return [LaneKeeper() for _ in range(k)]
+
+
+def test_parallel_shards_drive_exactly_what_one_thread_drives():
+    cfg = EvalConfig(miles=3.0, n_worlds=4, n_tracks=3)
+    one = evaluate(ForkingKeeper(), BUSY, cfg, progress=False, workers=1)
+    before = ForkingKeeper.forks
+    two = evaluate(ForkingKeeper(), BUSY, cfg, progress=False, workers=2, record_traces=True)
+    assert ForkingKeeper.forks == before + 1  # the shards really ran
+    assert one.collisions > 0 and one.events == two.events
+    assert one.miles == pytest.approx(two.miles, abs=1e-9)
+    assert one.sim_time_s == pytest.approx(two.sim_time_s, abs=1e-9)
+    assert (one.interventions, one.tracks_driven) == (two.interventions, two.tracks_driven)
+    assert sum(len(v) for v in two.traces.values()) > 0
+    # a policy without fork runs in one thread whatever is asked
+    plain = evaluate(LaneKeeper(), BUSY, cfg, progress=False, workers=2)
+    assert plain.events == one.events
+    with pytest.raises(ValueError, match="workers"):
+        evaluate(LaneKeeper(), BUSY, cfg, progress=False, workers=0)
+
+
 def test_stalled_car_is_respawned_and_the_evaluation_ends():
     res = evaluate(
         Parked(),

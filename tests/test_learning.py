@@ -263,6 +263,22 @@ def test_agents_give_valid_commands_in_closed_loop():
     assert np.ptp(steer) > 0  # the commands come from the frames, not a constant
 
 
+def test_network_agents_fork_into_parallel_shards_reproducibly():
+    """Two threads share one model; the result repeats; torch's thread count comes back."""
+    world_cfg = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(5, 5)))
+    torch.manual_seed(0)
+    model = prepare(build_model(ModelConfig(head="gmm", fusion_width=16)), torch.device("cpu"))
+    agent = TrajectoryAgent(model)
+    forks = agent.fork(2)
+    assert forks[0].model is model and forks[0] is not agent and forks[0].last is not agent.last
+    threads = torch.get_num_threads()
+    cfg = EvalConfig(miles=0.2, n_worlds=4, n_tracks=2)
+    a = evaluate(agent, world_cfg, cfg, progress=False, workers=2)
+    b = evaluate(agent, world_cfg, cfg, progress=False, workers=2)
+    assert torch.get_num_threads() == threads
+    assert a.events == b.events and a.miles == b.miles and a.miles >= 0.2
+
+
 def test_cruise_control_targets_the_road_speed_limit():
     from conftest import straight_world
 
