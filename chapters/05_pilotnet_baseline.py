@@ -25,7 +25,7 @@
 # %%
 import numpy as np
 
-from e2e_lite import artifacts
+from e2e_lite import artifacts, recipes
 from e2e_lite.agents import ActuatorAgent, SteeringAgent
 from e2e_lite.camera import Camera, CameraConfig, save_image
 from e2e_lite.config import active_profile
@@ -38,9 +38,8 @@ from e2e_lite.data import (
     load_or_make_recovery,
 )
 from e2e_lite.evaluation import EvalConfig, evaluate, results_table
-from e2e_lite.losses import Objective
-from e2e_lite.models import ModelConfig, build_model, count_parameters, pick_device
-from e2e_lite.training import TrainConfig, evaluate_loss, train_or_load
+from e2e_lite.models import build_model, count_parameters, pick_device
+from e2e_lite.training import evaluate_loss
 from e2e_lite.world import WorldConfig, make_world
 
 profile = active_profile()
@@ -59,8 +58,7 @@ print(f"{profile.name} profile; training on {device}")
 # baseline and every later driver sees the image through the same trunk.
 
 # %%
-pilot_cfg = ModelConfig(kind="pilotnet", head="steer")
-actuator_cfg = ModelConfig(kind="fusion", head="actuators")
+pilot_cfg, actuator_cfg = recipes.PILOTNET_CFG, recipes.ACTUATORS_CFG
 print(build_model(pilot_cfg))
 n_pilot = count_parameters(build_model(pilot_cfg))
 n_act = count_parameters(build_model(actuator_cfg))
@@ -123,17 +121,14 @@ print(
 # One loop for every chapter (`e2e_lite.training.fit`): Adam at 1e-3 without weight decay (the
 # paper), batches of 64, the best validation epoch kept (seed 002), per-epoch metrics JSON and a
 # training curve in `outputs/figures/train_<name>.png`. A checkpoint carries the model's settings,
-# its normalisation statistics and the dataset's key; running the chapter again reuses it.
+# its normalisation statistics and the dataset's key; running the chapter again reuses it. The
+# settings of each trained driver live in `e2e_lite/recipes.py`, so chapter 10 retrains or reuses
+# exactly these models.
 
 # %%
-tcfg = TrainConfig(epochs=profile.train_epochs, batch_size=64, max_val_samples=4000)
-steer_obj, act_obj = Objective("steer"), Objective("actuators")
-base_rows = np.arange(len(train))
-pilot, h_pilot = train_or_load("05_pilotnet", pilot_cfg, tcfg, steer_obj, train, val)
-pilot_aug, h_pilot_aug = train_or_load(
-    "05_pilotnet_views", pilot_cfg, tcfg, steer_obj, with_views, val
-)
-actuator, h_act = train_or_load("05_actuators", actuator_cfg, tcfg, act_obj, train, val)
+pilot, steer_obj, h_pilot = recipes.pilotnet(profile, train, val)
+pilot_aug, _, h_pilot_aug = recipes.pilotnet(profile, with_views, val, name="05_pilotnet_views")
+actuator, act_obj, h_act = recipes.actuators(profile, train, val)
 for name, h in (("PilotNet", h_pilot), ("PilotNet + views", h_pilot_aug), ("actuators", h_act)):
     print(
         f"{name}: best epoch {h.best_epoch + 1}/{len(h.epochs)}, {h.samples_per_s:,.0f} samples/s"

@@ -212,7 +212,12 @@ class TrajectoryAgent(NetworkAgent):
 
     def act(self, obs: Observation) -> Actuation:
         """Follow the predicted trajectory with the LQR tracker (speed as :attr:`speed` says)."""
-        e, psi, kappa, v_ref, a_ref = trajectory_reference(self.trajectories(obs))
+        return self.follow(self.trajectories(obs), obs)
+
+    def follow(self, points: np.ndarray, obs: Observation) -> Actuation:
+        """Commands that follow trajectories ``(B, 5, 2)`` [m] (car frame) with the tracker,
+        the speed as :attr:`speed` says (e.g. a trajectory the safety module chose instead)."""
+        e, psi, kappa, v_ref, a_ref = trajectory_reference(points)
         steer = self.tracker.steer(e, psi, kappa, obs.speed)
         if self.cruise is not None:
             accel = self.cruise.accel(obs)

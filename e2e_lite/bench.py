@@ -14,7 +14,8 @@ Names:
             the expert's and the oracle's closed-loop simulated miles per wall-second.
     train   training samples per second at batch 64 through the real training loop.
     closed-loop [--agent pilotnet|actuators|gmm]
-            simulated miles per wall-second with camera + CNN in the loop, B = 16.
+            simulated miles per wall-second with camera + CNN in the loop, B = 16, in one
+            thread and in two (evaluate's workers).
 """
 
 from __future__ import annotations
@@ -179,7 +180,8 @@ def bench_train(quick: bool) -> dict[str, float]:
 
 def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     """Closed-loop simulated miles per wall-second with camera + CNN in the loop, B = 16 worlds
-    (the chapter's checkpoint when it exists, else an untrained network of the same shape)."""
+    (the chapter's checkpoint when it exists, else an untrained network of the same shape), in
+    one thread (the chapters' evaluations) and in two (chapter 10's ablation)."""
     name, cfg = {
         "pilotnet": ("05_pilotnet", ModelConfig(kind="pilotnet", head="steer")),
         "actuators": ("05_actuators", ModelConfig(kind="fusion", head="actuators")),
@@ -197,19 +199,17 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
         model
     )
     world_cfg = WorldConfig.for_profile(active_profile([]))
-    res = evaluate(
-        policy,
-        world_cfg,
-        EvalConfig(miles=2.0 if quick else 20.0, n_worlds=16, n_tracks=16),
-        progress=False,
-    )
+    ev = EvalConfig(miles=2.0 if quick else 20.0, n_worlds=16, n_tracks=16)
     print(f"closed loop with {agent}: {source}")
-    return {
-        "sim_miles_per_wall_s": res.sim_miles_per_wall_s,
-        "sim_miles": res.miles,
-        "collisions_per_100mi": res.collisions_per_100mi,
-        "decisions_per_wall_s": res.sim_time_s / world_cfg.sim.policy_period_s / res.wall_time_s,
-    }
+    out: dict[str, float] = {}
+    for workers in (1, 2):
+        res = evaluate(policy, world_cfg, ev, progress=False, workers=workers)
+        out[f"threads{workers}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
+        out[f"threads{workers}_decisions_per_wall_s"] = (
+            res.sim_time_s / world_cfg.sim.policy_period_s / res.wall_time_s
+        )
+        out[f"threads{workers}_sim_miles"] = res.miles
+    return out
 
 
 BENCHMARKS: dict[str, Callable[..., dict[str, float]]] = {

@@ -74,6 +74,9 @@ class Profile:
         n_val_samples: expert samples collected on validation tracks (for validation losses).
         n_train_tracks: how many training tracks the collector cycles through.
         train_epochs: epochs of every network's training (chapters 05-09).
+        ablation_miles: closed-loop distance per driver in chapter 10's ablation [mi] (the
+            paper: more than 480).
+        replay_s: length of chapter 10's replays [s].
     """
 
     name: str
@@ -85,6 +88,8 @@ class Profile:
     n_val_samples: int
     n_train_tracks: int
     train_epochs: int
+    ablation_miles: float = 500.0
+    replay_s: float = 30.0
 
     def __post_init__(self) -> None:
         if self.name not in ("quick", "full"):
@@ -97,6 +102,8 @@ class Profile:
         check_range("Profile", "n_val_samples", self.n_val_samples, 1, integer=True)
         check_range("Profile", "n_train_tracks", self.n_train_tracks, 1, integer=True)
         check_range("Profile", "train_epochs", self.train_epochs, 1, integer=True)
+        check_range("Profile", "ablation_miles", self.ablation_miles, 0.0, lo_open=True)
+        check_range("Profile", "replay_s", self.replay_s, 0.0, lo_open=True)
 
     @property
     def quick(self) -> bool:
@@ -114,6 +121,8 @@ QUICK = Profile(
     n_val_samples=200,
     n_train_tracks=4,
     train_epochs=1,
+    ablation_miles=2.0,
+    replay_s=4.0,
 )
 # The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
 # 48,000 training samples (the paper had 500K) are 80 minutes of expert driving, ~120 km.
@@ -127,6 +136,8 @@ FULL = Profile(
     n_val_samples=8_000,
     n_train_tracks=32,
     train_epochs=3,
+    ablation_miles=500.0,
+    replay_s=30.0,
 )
 
 

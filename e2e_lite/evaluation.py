@@ -23,7 +23,6 @@ Metrics (see :class:`EvalResult`):
 
 from __future__ import annotations
 
-import os
 import sys
 import threading
 import time
@@ -224,16 +223,22 @@ def result_dict(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
     return r.to_dict(with_events=False) if isinstance(r, EvalResult) else r
 
 
-def results_table(rows: Sequence[tuple[str, EvalResult | dict[str, Any]]]) -> str:
+def results_table(
+    rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
+    extra: Sequence[tuple[str, Sequence[str]]] = (),
+) -> str:
     """A markdown table of closed-loop results (``EvalResult`` or its ``to_dict()``), one row per
     ``(driver, result)``: miles, collisions (car / rail), per 100 mi with the 95 % interval, mph,
-    time to collision, autonomy."""
+    time to collision, autonomy; then ``extra`` columns, each ``(header, one cell per row)``."""
+    for header, cells in extra:
+        if len(cells) != len(rows):
+            raise ValueError(f"column {header!r} has {len(cells)} cells for {len(rows)} rows")
     lines = [
         "| driver | miles | collisions (car / rail) | per 100 mi [95% CI] | mph | time to collision "
-        "| autonomy |",
-        "|---|---:|---:|---|---:|---:|---:|",
+        "| autonomy |" + "".join(f" {h} |" for h, _ in extra),
+        "|---|---:|---:|---|---:|---:|---:|" + "---:|" * len(extra),
     ]
-    for name, result in rows:
+    for k, (name, result) in enumerate(rows):
         r = result_dict(result)
         lo, hi = r["ci95_per_100mi"]
         ttc = "-" if r["time_to_collision_s"] is None else f"{r['time_to_collision_s']:.1f} s"
@@ -241,6 +246,7 @@ def results_table(rows: Sequence[tuple[str, EvalResult | dict[str, Any]]]) -> st
             f"| {name} | {r['miles']:.0f} | {r['collisions']} ({r['car_collisions']} / "
             f"{r['rail_collisions']}) | {r['collisions_per_100mi']:.1f} [{lo:.1f}-{hi:.1f}] | "
             f"{r['mean_speed_mph']:.1f} | {ttc} | {r['autonomy_pct']:.1f}% |"
+            + "".join(f" {cells[k]} |" for _, cells in extra)
         )
     return "\n".join(lines)
 
@@ -400,12 +406,14 @@ def evaluate(
 ) -> EvalResult:
     """Drive ``policy`` closed-loop until ``cfg.miles`` are driven; return the metrics.
 
-    Every car is independent: car ``i`` drives tracks ``i, i + B, ...`` from start lanes drawn
-    by its own generator (seeded by ``cfg.seed`` and ``i``) until it has driven ``miles / B``; so
-    the cars can be split into shards driven in parallel threads without changing what any car
-    does. A policy that can be split has a ``fork(k)`` method returning ``k`` independent copies
-    (the network agents: the model is shared, and its forward pass releases the GIL, so one shard
-    renders and steps physics while the other runs its convolutions).
+    Car ``i`` drives tracks ``i, i + B, ...`` until it has driven ``miles / B``. With
+    ``workers > 1`` the cars are split into that many shards, each driven by its own thread with
+    its own copy of the policy: a policy that can be split has a ``fork(k)`` method returning
+    ``k`` independent copies (the network agents: the model is shared and its forward pass
+    releases the GIL, so one shard renders and steps physics while the other runs convolutions).
+    Each shard draws its cars' start lanes from its own generator (shard 0's is the one a single
+    thread uses), so ``workers`` is part of the settings: compare drivers evaluated with the same
+    value (chapter 10 uses 2 for every driver).
 
     Args:
         policy: the driver (see :class:`Policy`).
@@ -417,15 +425,13 @@ def evaluate(
             ``result.traces["<split>-<track>"] = [[x, y], ...]``.
         stop_when: called after every decision; the drive ends early when it returns True (the
             data collector stops at a sample count this way). The metrics cover what was driven.
-        workers: threads (shards of cars); default: 2 when the policy has ``fork`` and the
-            machine has at least 2 cores, else 1; always 1 with ``stop_when``. The network sees
-            batches of ``B / workers`` frames on ``1 / workers`` of the cores, and float rounding
-            in its kernels can depend on both, so compare results measured with the same setting.
+        workers: threads (shards of cars), default 1; a policy without ``fork``, or a call
+            with ``stop_when``, always runs in one. The network then sees batches of
+            ``B / workers`` frames on ``1 / workers`` of the cores.
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
-    if workers is None:
-        workers = 2 if (os.cpu_count() or 1) >= 2 else 1
+    workers = 1 if workers is None else workers
     check_range("evaluate", "workers", workers, 1, integer=True)
     if stop_when is not None or not hasattr(policy, "fork"):
         workers = 1
@@ -447,7 +453,7 @@ def evaluate(
 
     cars = np.array_split(np.arange(n), workers)
     if workers == 1:
-        shards = [_drive(policy, world_cfg, cfg, cars[0], advance, record_traces, stop_when)]
+        shards = [_drive(policy, world_cfg, cfg, cars[0], 0, advance, record_traces, stop_when)]
     else:
         policies = policy.fork(workers)  # type: ignore[attr-defined]
         torch = sys.modules.get("torch")  # loaded when the policy is a network
@@ -459,8 +465,8 @@ def evaluate(
             sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
             with ThreadPoolExecutor(workers) as pool:
                 jobs = [
-                    pool.submit(_drive, p, world_cfg, cfg, c, advance, record_traces, None)
-                    for p, c in zip(policies, cars)
+                    pool.submit(_drive, p, world_cfg, cfg, c, k, advance, record_traces, None)
+                    for k, (p, c) in enumerate(zip(policies, cars))
                 ]
                 shards = [job.result() for job in jobs]
         finally:
@@ -476,15 +482,17 @@ def _drive(
     world_cfg: WorldConfig,
     cfg: EvalConfig,
     cars: np.ndarray,
+    shard: int,
     advance: Callable[[float], None],
     record_traces: bool,
     stop_when: Callable[[], bool] | None,
 ) -> _Shard:
-    """Drive the cars ``cars`` (their indices among ``cfg.n_worlds``) to their shares."""
+    """Drive the cars ``cars`` (their indices among ``cfg.n_worlds``) to their shares; start
+    lanes come from shard ``shard``'s generator."""
     out = _Shard()
     n = len(cars)
     pool = _WorldPool(world_cfg, cfg.split)
-    rngs = [np.random.default_rng([cfg.seed, 7, int(c)]) for c in cars]
+    rng = np.random.default_rng([cfg.seed, 7] if shard == 0 else [cfg.seed, 7, shard])
     visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
     fleet = Fleet([pool.get(j, int(c) % cfg.n_tracks) for j, c in enumerate(cars)], world_cfg)
     dt_pol = world_cfg.sim.policy_period_s
@@ -496,7 +504,7 @@ def _drive(
 
     def spawn_new_track(i: int) -> None:
         w = fleet.worlds[i]
-        lane = int(rngs[i].integers(0, w.track.n_lanes))
+        lane = int(rng.integers(0, w.track.n_lanes))
         s0 = cfg.start_s_m
         # never start on top of a parked car
         while not w.lane_free(s0, lane, 10.0, 30.0):
@@ -525,8 +533,8 @@ def _drive(
     cam_cfg = getattr(policy, "camera", None)
     camera = None if cam_cfg is None else Camera(cam_cfg)
     images = None if camera is None else np.empty((n, *camera.shape), dtype=np.uint8)
-    # used only if the camera augments (then the frames depend on how cars are split in shards)
-    cam_rng = np.random.default_rng([cfg.seed, 11, int(cars[0])])
+    # used only if the camera augments
+    cam_rng = np.random.default_rng([cfg.seed, 11] if shard == 0 else [cfg.seed, 11, shard])
     lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
     lengths = np.array([w.track.length for w in fleet.worlds])  # of each car's current track [m]
     while active.any():

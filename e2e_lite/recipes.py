@@ -44,6 +44,32 @@ def sigma_warmup(epochs: int) -> int:
     return max(1, epochs // 3) if epochs > 1 else 0
 
 
+PILOTNET_CFG = ModelConfig(kind="pilotnet", head="steer")
+ACTUATORS_CFG = ModelConfig(kind="fusion", head="actuators")
+
+
+def pilotnet(
+    profile: Profile, train: DrivingData, val: DrivingData, name: str = "05_pilotnet", **kw: Any
+) -> Trained:
+    """Chapter 05: PilotNet (seed 003), steering (curvature) only. ``train`` may hold recovery
+    views (chapter 05 trains ``"05_pilotnet_views"`` that way)."""
+    objective = Objective("steer")
+    model, hist = train_or_load(
+        name, PILOTNET_CFG, _train_cfg(profile), objective, train, val, **kw
+    )
+    return model, objective, hist
+
+
+def actuators(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> Trained:
+    """Chapter 05: the all-actuators baseline (seed 002 / the paper's Baseline E2E): image and
+    speed to steering and acceleration."""
+    objective = Objective("actuators")
+    model, hist = train_or_load(
+        "05_actuators", ACTUATORS_CFG, _train_cfg(profile), objective, train, val, **kw
+    )
+    return model, objective, hist
+
+
 def trajectory_l2(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> Trained:
     """Chapter 06: fusion network, 5-point trajectory head, L2 on normalised targets."""
     objective = Objective("trajectory")
@@ -129,6 +155,11 @@ def choose_affordance_weight(scores: dict[float, dict[str, float]]) -> tuple[flo
         f"w = 0 had the lowest held-out trajectory NLL: the auxiliary loss did not help on this "
         f"grid; training the best w > 0 (w = {runner:g}) so there is a head to study"
     )
+
+
+def affordance_weight(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> float:
+    """Chapter 08's choice of ``w`` (the grid's checkpoints are reused when valid)."""
+    return choose_affordance_weight(affordance_grid(profile, train, val, **kw))[0]
 
 
 def gmm_affordance(

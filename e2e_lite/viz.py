@@ -165,6 +165,9 @@ def collision_chart(
     rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
     title: str = "closed loop on the validation tracks",
     reference: Sequence[tuple[str, float]] = (),
+    marks: Sequence[float | None] = (),
+    marks_label: str = "paper",
+    log: bool = False,
 ) -> Figure:
     """Collisions per 100 miles as horizontal bars with their 95 % intervals.
 
@@ -174,6 +177,10 @@ def collision_chart(
         title: the axes title.
         reference: ``(label, collisions per 100 mi)`` drawn as dashed vertical lines (e.g. a
             paper's figure).
+        marks: one value per row (None: no mark) drawn as a red diamond on that row, e.g. the
+            paper's figure for the same method.
+        marks_label: the legend entry of the marks.
+        log: a symmetric-log x axis (linear below 1 per 100 mi), for rates spanning decades.
     """
     if not rows:
         raise ValueError("collision_chart needs at least one row")
@@ -189,12 +196,24 @@ def collision_chart(
     ax.errorbar(rate, y, xerr=[rate - lo, hi - rate], fmt="none", ecolor="black", capsize=4)
     for yi, r, h in zip(y, rate, hi):
         ax.text(h + 0.01 * max(hi.max(), 1.0), yi, f"{r:.1f}", va="center", fontsize=9)
+    if len(marks):
+        if len(marks) != len(rows):
+            raise ValueError(f"marks has {len(marks)} values for {len(rows)} rows")
+        mx = [(v, yi) for v, yi in zip(marks, y) if v is not None]
+        if mx:
+            ax.plot(*zip(*mx), "D", color="#c44e52", ms=7, label=marks_label, zorder=5)
+            ax.legend(loc="lower right", fontsize=8)
     for label, value in reference:
         ax.axvline(value, color="#c44e52", ls="--", lw=1)
         ax.text(value, len(rows) - 0.45, f" {label}", color="#c44e52", fontsize=8, va="bottom")
     ax.set_yticks(y, names)
     ax.set_xlabel("collisions per 100 miles (bar: measured; line: 95 % interval)")
-    ax.set_xlim(0, 1.15 * max(hi.max(), *(v for _, v in reference), 1.0))
+    top = max(hi.max(), *(v for _, v in reference), *(v for v in marks if v is not None), 1.0)
+    if log:
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.set_xlim(0, 2.0 * top)
+    else:
+        ax.set_xlim(0, 1.15 * top)
     ax.set_title(title)
     fig.tight_layout()
     return fig

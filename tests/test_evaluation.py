@@ -88,6 +88,11 @@ def test_results_table_has_a_row_per_driver():
     lines = table.splitlines()
     assert len(lines) == 4 and lines[2].startswith("| a | 100 | 3 (3 / 0) | 3.0 [")
     assert "| b | 50 | 0 (0 / 0) | 0.0 [0.0-7.4] |" in lines[3]
+    wide = results_table([("a", _result(3, 100.0))], extra=[("paper", ["12.7"])]).splitlines()
+    assert wide[0].endswith("| paper |") and wide[2].endswith("| 12.7 |")
+    assert wide[1].count("|") == lines[1].count("|") + 1
+    with pytest.raises(ValueError, match="paper"):
+        results_table([("a", _result(3, 100.0))], extra=[("paper", [])])
 
 
 def test_lane_keeper_on_an_empty_road_never_collides():
@@ -159,17 +164,19 @@ class ForkingKeeper(LaneKeeper):
         return [LaneKeeper() for _ in range(k)]
 
 
-def test_parallel_shards_drive_exactly_what_one_thread_drives():
+def test_parallel_shards_are_seeded_and_shard_zero_drives_as_one_thread():
     cfg = EvalConfig(miles=3.0, n_worlds=4, n_tracks=3)
-    one = evaluate(ForkingKeeper(), BUSY, cfg, progress=False, workers=1)
+    one = evaluate(ForkingKeeper(), BUSY, cfg, progress=False)  # default: one thread
     before = ForkingKeeper.forks
     two = evaluate(ForkingKeeper(), BUSY, cfg, progress=False, workers=2, record_traces=True)
-    assert ForkingKeeper.forks == before + 1  # the shards really ran
-    assert one.collisions > 0 and one.events == two.events
-    assert one.miles == pytest.approx(two.miles, abs=1e-9)
-    assert one.sim_time_s == pytest.approx(two.sim_time_s, abs=1e-9)
-    assert (one.interventions, one.tracks_driven) == (two.interventions, two.tracks_driven)
-    assert sum(len(v) for v in two.traces.values()) > 0
+    again = evaluate(ForkingKeeper(), BUSY, cfg, progress=False, workers=2)
+    assert ForkingKeeper.forks == before + 2  # the shards really ran
+    assert two.collisions > 0 and two.events == again.events and two.miles == again.miles
+    assert two.miles >= 3.0 and sum(len(v) for v in two.traces.values()) > 0
+    # shard 0 (cars 0-1) draws its start lanes from the single thread's generator; here the
+    # first start lanes are those of cars 0 and 1 in both runs, so their first collisions agree
+    first = [e for e in one.events if e["world"] == 0][:1]
+    assert first == [e for e in two.events if e["world"] == 0][:1]
     # a policy without fork runs in one thread whatever is asked
     plain = evaluate(LaneKeeper(), BUSY, cfg, progress=False, workers=2)
     assert plain.events == one.events
