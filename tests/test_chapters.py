@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from e2e_lite.ablation import DRIVERS
 from e2e_lite.course import find_chapters, select, summary_table
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,6 +39,15 @@ def test_chapter_runs_in_quick_profile(path, tmp_path):
         (tmp_path / "outputs" / "quick" / "metrics" / f"{path.stem}.json").read_text()
     )
     assert metrics["profile"] == "quick" and metrics["headline"]
+    if path.stem == "10_ablation":  # the ablation's table holds every driver, paper beside it
+        assert list(metrics["results"]) == [d.key for d in DRIVERS]
+        for d in DRIVERS:
+            assert f"| {d.label} |" in metrics["table_md"]
+        replays = tmp_path / "outputs" / "quick" / "replays"
+        assert {p.name for p in replays.glob("*.html")} == {
+            "index.html",
+            *(f"{d.key}.html" for d in DRIVERS),
+        }
 
 
 def test_chapters_are_percent_format_with_summary_and_exercises():

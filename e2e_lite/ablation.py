@@ -1,0 +1,201 @@
+"""Chapter 10's ablation: every driver of the course on the same validation tracks with the same
+seeds, beside the paper's Table 1 (seed 000) and seed 002's times to collision.
+
+The drivers, in the order of the table (:data:`DRIVERS`): the expert (the ceiling), the oracle
+(the LQR tracker following the expert's own trajectories: the ceiling of any trajectory network),
+PilotNet steering only, the all-actuators baseline (the paper's Baseline E2E), trajectory L2,
+trajectory GMM, GMM + affordance, GMM + affordance + CVaR. The trained ones come from
+:mod:`e2e_lite.recipes`, so they are the chapters' checkpoints when those are valid and are
+trained (seeded) when not.
+
+A closed-loop result is kept in ``<outputs>/evaluations/<driver>.json`` under a key made of the
+driver's weights, its settings and the evaluation's settings; running the chapter again reuses it
+when nothing changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from . import recipes
+from .agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
+from .artifacts import artifact_path, cached, load_json, save_json, settings_key
+from .config import Profile
+from .data import DataConfig, DrivingData, load_or_collect
+from .evaluation import EvalConfig, EvalResult, Policy, evaluate, results_table
+from .expert import Expert, Oracle
+from .world import WorldConfig
+
+
+@dataclass(frozen=True)
+class Driver:
+    """One row of the ablation.
+
+    Attributes:
+        key: short name (file names, JSON keys).
+        label: the row's name in tables and figures.
+        paper_per_100mi: seed 000's Table 1 for the same method, if it has one.
+        paper_ttc_s: seed 002's mean time to collision for the same method, if it has one [s].
+    """
+
+    key: str
+    label: str
+    paper_per_100mi: float | None = None
+    paper_ttc_s: float | None = None
+
+
+DRIVERS = (
+    Driver("expert", "expert (privileged, the ceiling)"),
+    Driver("oracle", "oracle: LQR on the expert's trajectories"),
+    Driver("pilotnet", "PilotNet, steering only", paper_ttc_s=10.2),
+    Driver("actuators", "Baseline E2E: image + speed -> actuators", 183.3, 1.1),
+    Driver("trajectory_l2", "trajectory L2 + LQR"),
+    Driver("gmm", "trajectory GMM + LQR", 12.7),
+    Driver("gmm_affordance", "GMM + affordance", 0.83),
+    Driver("gmm_affordance_cvar", "GMM + affordance + CVaR", 0.0),
+)
+#: seed 000: "Our agent drives smoothly in an average speed of 48 mile per hour".
+PAPER_MPH = 48.0
+#: seed 000: the paper's closed-loop distance, "more than 480 miles".
+PAPER_MILES = 480.0
+BY_KEY = {d.key: d for d in DRIVERS}
+#: threads of every ablation evaluation (part of its settings: see ``evaluate``'s ``workers``).
+WORKERS = 2
+
+
+def build_drivers(
+    profile: Profile,
+    keys: Sequence[str] | None = None,
+    train: DrivingData | None = None,
+    val: DrivingData | None = None,
+    **kw: Any,
+) -> dict[str, Policy]:
+    """The policies of ``keys`` (default: every driver), trained or reused via the recipes.
+
+    Args:
+        profile: sizes (and the data the recipes train on).
+        train, val: the chapter-04 datasets; loaded (or collected) when not given.
+        **kw: passed to the recipes (e.g. ``progress=False``).
+    """
+    keys = [d.key for d in DRIVERS] if keys is None else list(keys)
+    unknown = [k for k in keys if k not in BY_KEY]
+    if unknown:
+        raise ValueError(f"unknown drivers {unknown}; known: {[d.key for d in DRIVERS]}")
+    if any(k not in ("expert", "oracle") for k in keys):
+        train = train or load_or_collect(DataConfig.for_profile(profile, "train"))
+        val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
+    weight = None
+    out: dict[str, Policy] = {}
+    for key in keys:
+        if key == "expert":
+            out[key] = Expert()
+        elif key == "oracle":
+            out[key] = Oracle()
+        elif key == "pilotnet":
+            out[key] = SteeringAgent(recipes.pilotnet(profile, train, val, **kw)[0])
+        elif key == "actuators":
+            out[key] = ActuatorAgent(recipes.actuators(profile, train, val, **kw)[0])
+        elif key == "trajectory_l2":
+            out[key] = TrajectoryAgent(recipes.trajectory_l2(profile, train, val, **kw)[0])
+        elif key == "gmm":
+            out[key] = TrajectoryAgent(recipes.gmm(profile, train, val, **kw)[0])
+        else:
+            if weight is None:
+                weight = recipes.affordance_weight(profile, train, val, **kw)
+            recipe = (
+                recipes.gmm_affordance if key == "gmm_affordance" else recipes.gmm_affordance_cvar
+            )
+            out[key] = TrajectoryAgent(recipe(profile, train, val, weight, **kw)[0])
+    return out
+
+
+def fingerprint(policy: Policy) -> str:
+    """What identifies a driver's behaviour: its class, its settings and, for a network, a digest
+    of its weights and normalisation buffers."""
+    parts: list[Any] = [type(policy).__name__]
+    if isinstance(policy, NetworkAgent):
+        digest = hashlib.sha256()
+        for name, tensor in policy.model.state_dict().items():
+            digest.update(name.encode())
+            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+        parts += [digest.hexdigest(), repr(policy.model.cfg), getattr(policy, "speed", None)]
+        parts += [repr(policy.camera), str(policy.device)]
+    for attr in ("cfg", "preview_s"):
+        if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
+            parts.append(repr(getattr(policy, attr)))
+    if isinstance(policy, Oracle):
+        parts.append(repr(policy.expert.cfg))
+    inner = getattr(policy, "agent", None)  # a wrapper (e.g. the safety module) around a driver
+    if inner is not None:
+        parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
+    return settings_key(*parts)
+
+
+def evaluate_drivers(
+    drivers: dict[str, Policy],
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    *,
+    reuse: bool = True,
+    progress: bool = True,
+) -> dict[str, EvalResult | dict[str, Any]]:
+    """Every driver on the same tracks with the same seeds (``cfg``).
+
+    Every driver runs in :data:`WORKERS` threads. With ``reuse``, a result stored for the same
+    driver (:func:`fingerprint`), world, evaluation settings and thread count is read back
+    instead of driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other
+    driver is evaluated and stored.
+    """
+    out: dict[str, EvalResult | dict[str, Any]] = {}
+    workers = WORKERS
+    for key, policy in drivers.items():
+        label = BY_KEY[key].label if key in BY_KEY else key
+
+        def run(policy: Policy = policy, label: str = label) -> EvalResult:
+            res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
+            if progress:
+                print(f"{label}: {res.summary()}", flush=True)
+            return res
+
+        if not reuse:
+            out[key] = run()
+            continue
+        run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
+        path = artifact_path("evaluations", f"{key}.json")
+        result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
+        if progress and not isinstance(result, EvalResult):
+            print(f"{label}: reusing {path.name} ({result['miles']:.0f} mi)", flush=True)
+        out[key] = result
+    return out
+
+
+def _save_result(path: Path, result: EvalResult, key: str) -> None:
+    save_json(path, {"key": key, "result": result.to_dict()})
+
+
+def _load_result(path: Path) -> tuple[dict[str, Any], str]:
+    stored = load_json(path)
+    return stored["result"], stored["key"]
+
+
+def _fmt(value: float | None, unit: str = "") -> str:
+    return "-" if value is None else f"{value:g}{unit}"
+
+
+def ablation_table(results: dict[str, EvalResult | dict[str, Any]]) -> str:
+    """The markdown table: ours (miles, collisions car / rail, per 100 mi with the 95 % interval,
+    mph, time to collision, autonomy) beside the papers' figures for the same method."""
+    drivers = [BY_KEY.get(key, Driver(key, key)) for key in results]
+    return results_table(
+        [(d.label, r) for d, r in zip(drivers, results.values())],
+        extra=[
+            ("paper: per 100 mi (seed 000)", [_fmt(d.paper_per_100mi) for d in drivers]),
+            ("paper: time to collision (seed 002)", [_fmt(d.paper_ttc_s, " s") for d in drivers]),
+        ],
+    )
