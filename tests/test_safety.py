@@ -1,0 +1,167 @@
+"""The safety module: the rule on hand-made cases, the fallback order, and fewer collisions."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from e2e_lite.data import AFFORDANCE_NAMES
+from e2e_lite.evaluation import Actuation, EvalConfig, Observation, evaluate
+from e2e_lite.geometry import RoadConfig
+from e2e_lite.safety import SafeAgent, SafetyConfig, check, choose, keep_lane_brake
+from e2e_lite.tracker import LQRTracker, trajectory_reference
+from e2e_lite.world import TrafficConfig, WorldConfig
+
+T = 0.3 * np.arange(1, 6)
+
+
+def aff(gap_ego=60.0, gap_left=60.0, gap_right=60.0, offset=0.0, heading=0.0) -> np.ndarray:
+    """Affordances of a car in the middle lane of a 3 x 3.5 m road (edges 5.25 m away)."""
+    values = {
+        "heading_rad": heading,
+        "center_offset_m": offset,
+        "left_marking_m": 1.75 - offset,
+        "right_marking_m": 1.75 + offset,
+        "left_edge_m": 5.25 - offset,
+        "right_edge_m": 5.25 + offset,
+        "gap_ego_m": gap_ego,
+        "gap_left_m": gap_left,
+        "gap_right_m": gap_right,
+    }
+    return np.array([values[name] for name in AFFORDANCE_NAMES])
+
+
+def straight(speed=25.0, y_end=0.0) -> np.ndarray:
+    """Points at constant speed, moving sideways to ``y_end`` along a smooth curve."""
+    u = T / T[-1]
+    return np.stack([speed * T, y_end * u**2 * (3 - 2 * u)], axis=1)
+
+
+def test_a_trajectory_into_a_parked_car_is_rejected_at_a_short_gap_and_accepted_at_a_long_one():
+    short = check(straight(25.0), aff(gap_ego=30.0), 25.0, 0.0)
+    assert not short.ok and short.lane == "ego" and short.kind == "collision course"
+    # beyond what the car perceives: nothing seen, nothing to fear
+    assert check(straight(25.0), aff(gap_ego=60.0), 25.0, 0.0).ok
+    # a car 50 m ahead is not reached in 1.5 s, but the car could not stop for it afterwards
+    late = check(straight(25.0), aff(gap_ego=50.0), 25.0, 0.0)
+    assert not late.ok and late.kind == "cannot stop"
+    # the same gap at walking pace is fine
+    assert check(straight(5.0), aff(gap_ego=50.0), 5.0, 0.0).ok
+
+
+def test_changing_into_a_blocked_lane_is_rejected_and_into_a_free_one_accepted():
+    to_left = straight(25.0, y_end=3.5)
+    assert check(to_left, aff(gap_ego=40.0, gap_left=60.0), 25.0, 0.0).ok
+    blocked = check(to_left, aff(gap_ego=40.0, gap_left=25.0), 25.0, 0.0)
+    assert not blocked.ok and blocked.lane == "left"
+
+
+def test_a_trajectory_leaving_the_road_is_rejected():
+    off_road = check(straight(25.0, y_end=-5.0), aff(), 25.0, 0.0)
+    assert not off_road.ok and off_road.kind == "road edge" and off_road.lane == "right"
+    # the same points are on the road when the road bends the same way (radius 100 m)
+    bend = -1 / 100.0
+    pts = straight(25.0)
+    pts[:, 1] = bend * pts[:, 0] ** 2 / 2
+    assert check(pts, aff(), 25.0, bend).ok
+    assert not check(pts, aff(), 25.0, 0.0).ok  # ... and leave it on a straight road
+
+
+def test_fallback_order_heaviest_passing_mode_then_keep_lane_braking():
+    safe, unsafe = straight(25.0, y_end=3.5), straight(25.0)
+    a = aff(gap_ego=30.0, gap_left=60.0)
+    c = choose(np.stack([unsafe, safe]), np.array([0.3, 0.7]), a, 25.0, 0.0)
+    assert c.source == "network" and np.array_equal(c.points, safe)
+    c = choose(np.stack([unsafe, safe]), np.array([0.7, 0.3]), a, 25.0, 0.0)
+    assert c.source == "other mode" and np.array_equal(c.points, safe)
+    assert [v.ok for v in c.verdicts] == [False, True]
+    c = choose(np.stack([unsafe, unsafe]), np.array([0.5, 0.5]), a, 25.0, 0.0)
+    assert c.source == "fallback" and len(c.verdicts) == 2
+    assert np.allclose(c.points, keep_lane_brake(a, 25.0, 0.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    speed=st.floats(0.0, 40.0),
+    offset=st.floats(-2.0, 2.0),
+    heading=st.floats(-0.3, 0.3),
+    curvature=st.floats(-0.01, 0.01),
+)
+def test_keep_lane_braking_is_always_a_valid_trajectory(speed, offset, heading, curvature):
+    cfg = SafetyConfig()
+    pts = keep_lane_brake(aff(offset=offset, heading=heading), speed, curvature, cfg)
+    assert pts.shape == (5, 2) and np.all(np.isfinite(pts))
+    x = np.r_[0.0, pts[:, 0]]
+    assert np.all(np.diff(x) >= -1e-12)  # never backwards
+    steps = np.diff(x)
+    assert np.all(np.diff(steps) <= 1e-9)  # never faster
+    assert x[-1] <= speed * 1.5 + 1e-9
+    # it ends on the lane centre: the lateral offset it removes is the car's
+    delta = pts[-1, 1] + heading * pts[-1, 0] - curvature * pts[-1, 0] ** 2 / 2
+    assert delta == pytest.approx(-offset, abs=1e-9)
+
+
+def test_settings_are_validated():
+    with pytest.raises(ValueError, match="brake_mps2"):
+        SafetyConfig(brake_mps2=0.0)
+    with pytest.raises(ValueError, match="reaction_s"):
+        SafetyConfig(reaction_s=-1.0)
+    assert SafetyConfig().stopping_m(0.0) == SafetyConfig().margin_m
+    assert not check(np.full((5, 2), np.nan), aff(), 10.0, 0.0).ok
+
+
+class StraightOn:
+    """A scripted unsafe driver: proposes to hold its lane at 20 m/s whatever is ahead."""
+
+    camera = None
+
+    def __init__(self) -> None:
+        self.tracker = LQRTracker()
+        self.last: dict = {}
+
+    def reset(self, n_worlds: int) -> None:
+        pass
+
+    def fork(self, k: int) -> list:
+        return [copy.copy(self) for _ in range(k)]
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        lane_d = np.array([w.track.lane_center(int(k)) for w, k in zip(obs.worlds, obs.lane)])
+        x = 20.0 * T[None, :].repeat(len(obs.s), 0)
+        u = T / T[-1]
+        delta = -(obs.d - lane_d)[:, None] * (u * u * (3 - 2 * u))[None]
+        y = delta - obs.heading_error[:, None] * x + obs.curvature[:, None] * x**2 / 2
+        pts = np.stack([x, y], axis=-1)
+        self.last = {"points": pts}
+        return pts
+
+    def follow(self, points: np.ndarray, obs: Observation) -> Actuation:
+        e, psi, kappa, v_ref, a_ref = trajectory_reference(points)
+        steer = self.tracker.steer(e, psi, kappa, obs.speed)
+        return Actuation(steer, self.tracker.accel(obs.speed, v_ref, a_ref))
+
+    def act(self, obs: Observation) -> Actuation:
+        return self.follow(self.trajectories(obs), obs)
+
+
+def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    guarded = SafeAgent(StraightOn(), ground_truth=True)
+    safe = evaluate(guarded, world, cfg, progress=False, workers=2)
+    assert alone.car_collisions >= 5
+    assert safe.collisions < alone.collisions / 2
+    stats = guarded.stats.to_dict()
+    assert stats["interventions"] > 0 and stats["sources"]["fallback"] > 0
+    assert stats["decisions"] == round(safe.sim_time_s / 0.1)
+
+
+def test_the_perceived_check_needs_predicted_affordances():
+    world = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(2, 2)))
+    with pytest.raises(ValueError, match="affordances"):
+        evaluate(SafeAgent(StraightOn()), world, EvalConfig(miles=0.01, n_worlds=1, n_tracks=1))
