@@ -209,6 +209,13 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
             res.sim_time_s / world_cfg.sim.policy_period_s / res.wall_time_s
         )
         out[f"threads{workers}_sim_miles"] = res.miles
+        frames = max(1.0, res.timing_s["frames"])
+        for part in ("render", "policy", "physics"):  # thread-seconds per frame, in ms
+            out[f"threads{workers}_{part}_ms_per_frame"] = 1e3 * res.timing_s[part] / frames
+        loop = res.wall_time_s * workers - sum(
+            res.timing_s[p] for p in ("render", "policy", "physics")
+        )
+        out[f"threads{workers}_rest_ms_per_frame"] = 1e3 * loop / frames
     return out
 
 

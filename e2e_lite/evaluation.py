@@ -160,7 +160,12 @@ class EvalConfig:
 
 @dataclass
 class EvalResult:
-    """What a closed-loop evaluation measured. Distances in miles, times in seconds."""
+    """What a closed-loop evaluation measured. Distances in miles, times in seconds.
+
+    ``timing_s`` splits the wall time of the loop, summed over threads: ``render`` (camera
+    frames), ``policy`` (the driver's ``act``: the network and the tracker), ``physics``
+    (bicycle and pymunk steps); ``frames`` counts the frames rendered.
+    """
 
     miles: float
     collisions: int
@@ -180,6 +185,7 @@ class EvalResult:
     sim_miles_per_wall_s: float
     tracks_driven: int
     events: list[dict[str, Any]] = field(default_factory=list)
+    timing_s: dict[str, float] = field(default_factory=dict)
     traces: dict[str, list[list[float]]] = field(default_factory=dict)
 
     def to_dict(self, with_events: bool = True) -> dict[str, Any]:
@@ -391,6 +397,7 @@ class _Shard:
         self.tracks = 0
         self.events: list[dict[str, Any]] = []
         self.traces: dict[str, list[list[float]]] = {}
+        self.timing = {"render": 0.0, "policy": 0.0, "physics": 0.0, "frames": 0.0}
 
 
 def evaluate(
@@ -550,6 +557,7 @@ def _drive(
             respawned[i] = True
         if moving_on:
             s, d, road_h, kappa = fleet.lane_frame()
+        tick = time.perf_counter()
         if camera is not None:
             camera.render_batch(
                 [w.track for w in fleet.worlds],
@@ -559,9 +567,14 @@ def _drive(
                 rng=cam_rng,
                 out=images,
             )
+            out.timing["frames"] += n
+        tock = time.perf_counter()
+        out.timing["render"] += tock - tick
         obs = observe(fleet, respawned, t_sim, images, (s, d, road_h, kappa))
         respawned[:] = False
         act = policy.act(obs)
+        tick = time.perf_counter()
+        out.timing["policy"] += tick - tock
         if record_traces:
             for i in np.flatnonzero(active).tolist():
                 key = "-".join(map(str, fleet.worlds[i].track.track_id))
@@ -570,6 +583,7 @@ def _drive(
                 )
         xy_before = fleet.state[:, :2].copy()
         contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2), active)
+        out.timing["physics"] += time.perf_counter() - tick
         odometer += np.where(active, np.hypot(*(fleet.state[:, :2] - xy_before).T), 0.0)
         dt_active = np.where(active, dt_pol, 0.0)
         sim_time += dt_active
@@ -669,6 +683,7 @@ def _merge(shards: list[_Shard], cfg: EvalConfig, wall: float) -> EvalResult:
         wall_time_s=wall,
         sim_miles_per_wall_s=miles / wall,
         tracks_driven=sum(sh.tracks for sh in shards),
+        timing_s={k: sum(sh.timing[k] for sh in shards) for k in shards[0].timing},
         events=events,
         traces=traces,
     )

@@ -173,6 +173,10 @@ def test_parallel_shards_are_seeded_and_shard_zero_drives_as_one_thread():
     assert ForkingKeeper.forks == before + 2  # the shards really ran
     assert two.collisions > 0 and two.events == again.events and two.miles == again.miles
     assert two.miles >= 3.0 and sum(len(v) for v in two.traces.values()) > 0
+    # where the time went, summed over both threads (no camera: no frames)
+    assert two.timing_s["frames"] == 0 and two.timing_s["render"] < two.timing_s["physics"]
+    busy = sum(two.timing_s[k] for k in ("render", "policy", "physics"))
+    assert 0 < busy <= 2 * two.wall_time_s
     # shard 0 (cars 0-1) draws its start lanes from the single thread's generator; here the
     # first start lanes are those of cars 0 and 1 in both runs, so their first collisions agree
     first = [e for e in one.events if e["world"] == 0][:1]

@@ -277,6 +277,7 @@ def test_network_agents_fork_into_parallel_shards_reproducibly():
     b = evaluate(agent, world_cfg, cfg, progress=False, workers=2)
     assert torch.get_num_threads() == threads
     assert a.events == b.events and a.miles == b.miles and a.miles >= 0.2
+    assert a.timing_s["frames"] >= a.sim_time_s / 0.1 - 1e-6 and a.timing_s["render"] > 0
 
 
 def test_cruise_control_targets_the_road_speed_limit():
