@@ -242,6 +242,8 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
         for p in range(5):
             vis[f"plan/mode_{m}/p{p}"].set_object(g.Sphere(0.45), mat)
     vis["/Cameras/default/rotated/<object>"].set_property("position", [-18.0, 9.0, 0.0])
+    vis["/Grid"].set_property("visible", False)  # the default grid sits at the world's origin
+    vis["/Axes"].set_property("visible", False)
     anim = Animation(default_framerate=round(1.0 / ep.period_s))
     rear_to_centre = 1.35  # rear axle to the box centre [m] (about half the wheelbase)
     for f, (x, y, h) in enumerate(ep.states[:, :3]):
