@@ -195,14 +195,15 @@ def collision_chart(
     ax.barh(y, rate, color="#4c72b0", alpha=0.8)
     ax.errorbar(rate, y, xerr=[rate - lo, hi - rate], fmt="none", ecolor="black", capsize=4)
     for yi, r, h in zip(y, rate, hi):
-        ax.text(h + 0.01 * max(hi.max(), 1.0), yi, f"{r:.1f}", va="center", fontsize=9)
+        x_text = h * 1.12 + 0.05 if log else h + 0.01 * max(hi.max(), 1.0)
+        ax.text(x_text, yi, f"{r:.1f}", va="center", fontsize=9)
     if len(marks):
         if len(marks) != len(rows):
             raise ValueError(f"marks has {len(marks)} values for {len(rows)} rows")
         mx = [(v, yi) for v, yi in zip(marks, y) if v is not None]
         if mx:
             ax.plot(*zip(*mx), "D", color="#c44e52", ms=7, label=marks_label, zorder=5)
-            ax.legend(loc="lower right", fontsize=8)
+            ax.legend(loc="upper right", fontsize=8)
     for label, value in reference:
         ax.axvline(value, color="#c44e52", ls="--", lw=1)
         ax.text(value, len(rows) - 0.45, f" {label}", color="#c44e52", fontsize=8, va="bottom")
@@ -211,7 +212,7 @@ def collision_chart(
     top = max(hi.max(), *(v for _, v in reference), *(v for v in marks if v is not None), 1.0)
     if log:
         ax.set_xscale("symlog", linthresh=1.0)
-        ax.set_xlim(0, 2.0 * top)
+        ax.set_xlim(0, 3.0 * top)
     else:
         ax.set_xlim(0, 1.15 * top)
     ax.set_title(title)

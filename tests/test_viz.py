@@ -19,3 +19,17 @@ def test_collision_chart_draws_each_driver_with_its_interval(tmp_path):
     assert path.stat().st_size > 1000
     with pytest.raises(ValueError, match="at least one row"):
         collision_chart([])
+
+
+def test_collision_chart_marks_each_row_and_can_use_a_log_axis():
+    rows = [
+        ("a", {"collisions_per_100mi": 800.0, "ci95_per_100mi": [780.0, 820.0]}),
+        ("b", {"collisions_per_100mi": 0.5, "ci95_per_100mi": [0.1, 2.0]}),
+    ]
+    fig = collision_chart(rows, marks=[183.3, None], marks_label="paper", log=True)
+    ax = fig.axes[0]
+    assert ax.get_xscale() == "symlog" and ax.get_xlim()[1] >= 820.0
+    (line,) = [ln for ln in ax.get_lines() if ln.get_label() == "paper"]
+    assert list(line.get_xdata()) == [183.3] and list(line.get_ydata()) == [1]  # row "a" on top
+    with pytest.raises(ValueError, match="marks"):
+        collision_chart(rows, marks=[1.0])
