@@ -60,11 +60,17 @@ DRIVERS = (
     Driver("gmm_affordance", "GMM + affordance", 0.83),
     Driver("gmm_affordance_cvar", "GMM + affordance + CVaR", 0.0),
 )
+#: Controls for two of the steps (not in the paper): the GMM trained with another seed, and the
+#: affordance network trained with ``w = 0`` (its head then learns nothing; same architecture).
+CONTROLS = (
+    Driver("gmm_seed1", "trajectory GMM + LQR, training seed 1"),
+    Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),
+)
 #: seed 000: "Our agent drives smoothly in an average speed of 48 mile per hour".
 PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
-BY_KEY = {d.key: d for d in DRIVERS}
+BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS)}
 #: threads of every ablation evaluation (part of its settings: see ``evaluate``'s ``workers``).
 WORKERS = 2
 
@@ -76,7 +82,8 @@ def build_drivers(
     val: DrivingData | None = None,
     **kw: Any,
 ) -> dict[str, Policy]:
-    """The policies of ``keys`` (default: every driver), trained or reused via the recipes.
+    """The policies of ``keys`` (default: every row of :data:`DRIVERS`; :data:`CONTROLS` on
+    request), trained or reused via the recipes.
 
     Args:
         profile: sizes (and the data the recipes train on).
@@ -86,7 +93,7 @@ def build_drivers(
     keys = [d.key for d in DRIVERS] if keys is None else list(keys)
     unknown = [k for k in keys if k not in BY_KEY]
     if unknown:
-        raise ValueError(f"unknown drivers {unknown}; known: {[d.key for d in DRIVERS]}")
+        raise ValueError(f"unknown drivers {unknown}; known: {list(BY_KEY)}")
     if any(k not in ("expert", "oracle") for k in keys):
         train = train or load_or_collect(DataConfig.for_profile(profile, "train"))
         val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
@@ -105,6 +112,13 @@ def build_drivers(
             out[key] = TrajectoryAgent(recipes.trajectory_l2(profile, train, val, **kw)[0])
         elif key == "gmm":
             out[key] = TrajectoryAgent(recipes.gmm(profile, train, val, **kw)[0])
+        elif key == "gmm_seed1":
+            model = recipes.gmm(profile, train, val, seed=1, name="10_gmm_seed1", **kw)[0]
+            out[key] = TrajectoryAgent(model)
+        elif key == "gmm_affordance_w0":
+            name = "10_gmm_affordance_w0"
+            model = recipes.gmm_affordance(profile, train, val, 0.0, name=name, **kw)[0]
+            out[key] = TrajectoryAgent(model)
         else:
             if weight is None:
                 weight = recipes.affordance_weight(profile, train, val, **kw)

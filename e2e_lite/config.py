@@ -121,8 +121,8 @@ QUICK = Profile(
     n_val_samples=200,
     n_train_tracks=4,
     train_epochs=1,
-    ablation_miles=2.0,
-    replay_s=4.0,
+    ablation_miles=1.0,
+    replay_s=3.0,
 )
 # The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
 # 48,000 training samples (the paper had 500K) are 80 minutes of expert driving, ~120 km.

@@ -92,13 +92,21 @@ def gmm_objective(profile: Profile, epochs: int | None = None) -> GMMObjective:
     )
 
 
-def gmm(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> Trained:
-    """Chapter 07: the same network with a K = 2 mixture head."""
+def gmm(
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    seed: int = 0,
+    name: str = "07_gmm",
+    **kw: Any,
+) -> Trained:
+    """Chapter 07: the same network with a K = 2 mixture head (``seed``: the training seed;
+    chapter 10 trains a second one as a control)."""
     objective = gmm_objective(profile)
     model, hist = train_or_load(
-        "07_gmm",
+        name,
         ModelConfig(kind="fusion", head="gmm", gmm_modes=GMM_MODES),
-        _train_cfg(profile, grad_clip=10.0),
+        _train_cfg(profile, grad_clip=10.0, seed=seed),
         objective,
         train,
         val,
@@ -163,13 +171,18 @@ def affordance_weight(profile: Profile, train: DrivingData, val: DrivingData, **
 
 
 def gmm_affordance(
-    profile: Profile, train: DrivingData, val: DrivingData, weight: float, **kw: Any
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    weight: float,
+    name: str = "08_gmm_affordance",
+    **kw: Any,
 ) -> Trained:
     """Chapter 08: the chapter-07 GMM plus the affordance head, loss GMM + ``weight`` x
-    affordance."""
+    affordance (chapter 10's control trains the same network with ``weight = 0``)."""
     objective = WithAffordance(gmm_objective(profile), weight)
     model, hist = train_or_load(
-        "08_gmm_affordance",
+        name,
         AFFORDANCE_CFG,
         _train_cfg(profile, grad_clip=10.0),
         objective,
