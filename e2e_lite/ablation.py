@@ -167,12 +167,11 @@ def evaluate_drivers(
     driver is evaluated and stored.
     """
     out: dict[str, EvalResult | dict[str, Any]] = {}
-    workers = WORKERS
     for key, policy in drivers.items():
         label = BY_KEY[key].label if key in BY_KEY else key
 
         def run(policy: Policy = policy, label: str = label) -> EvalResult:
-            res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
+            res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=WORKERS)
             if progress:
                 print(f"{label}: {res.summary()}", flush=True)
             return res
@@ -180,7 +179,7 @@ def evaluate_drivers(
         if not reuse:
             out[key] = run()
             continue
-        run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
+        run_key = settings_key(fingerprint(policy), world_cfg, cfg, WORKERS, torch.__version__)
         path = artifact_path("evaluations", f"{key}.json")
         result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
         if progress and not isinstance(result, EvalResult):

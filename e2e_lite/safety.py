@@ -395,15 +395,18 @@ class SafeAgent:
                 audited.append(i)
             self._seen += 1
         if audited:
-            idx = audited
-            expert_pts = _expert_labels(obs, idx)
-            true_aff = affordances(
-                [obs.worlds[i] for i in idx], obs.s[idx], obs.d[idx], obs.heading_error[idx]
-            )
-            for j, i in enumerate(idx):
+            expert_pts = _expert_labels(obs, audited)
+            for j, i in enumerate(audited):
                 dx, dy = np.abs(expert_pts[j, -1] - proposal[i, -1])
                 false_alarms += int(dy <= 1.0 and dx <= 5.0)
-                if not self.ground_truth:
+            if not self.ground_truth:  # (the ground-truth check already saw the truth)
+                true_aff = affordances(
+                    [obs.worlds[i] for i in audited],
+                    obs.s[audited],
+                    obs.d[audited],
+                    obs.heading_error[audited],
+                )
+                for j, i in enumerate(audited):
                     gt = check(
                         proposal[i], true_aff[j], float(obs.speed[i]), obs.curvature[i], self.cfg
                     )
