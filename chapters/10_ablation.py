@@ -56,14 +56,17 @@ for key in drivers:
 # %% [markdown]
 # ## 2. Closed loop: the same tracks, the same seeds
 #
-# `evaluate` drives 16 cars in lockstep (in the full profile), car `i` on validation track `i`
-# from a start lane drawn by its own seeded generator, until the budget is spent; a collision is
-# counted once and the car is put back 15 m past the obstacle. Every driver meets exactly the
-# same parked cars from the same starts; only what it does differs.
+# `evaluate` drives 64 cars in lockstep (in the full profile), car `i` on validation track
+# `i mod 16` from a start lane drawn by a seeded generator, until the budget is spent; a
+# collision is counted once and the car is put back 15 m past the obstacle. Every driver meets
+# exactly the same parked cars from the same starts; only what it does differs. The cars are
+# split into two shards of 32, one per core (two forked processes on Linux, else two threads;
+# the results are the same either way): the network then sees batches of 32 frames, large
+# enough to run near its per-frame cost floor.
 
 # %%
 ev = EvalConfig(
-    miles=profile.ablation_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks
+    miles=profile.ablation_miles, n_worlds=profile.ablation_worlds, n_tracks=profile.n_val_tracks
 )
 results = ablation.evaluate_drivers(drivers, world_cfg, ev)
 table = ablation.ablation_table(results)

@@ -104,16 +104,17 @@ print(
 # %% [markdown]
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
 #
-# Same validation tracks, same seeds and the same two threads as chapter 10, so the row without
-# the module is chapter 10's own result (reused when it is stored). The module audits one
-# intervention in four: would a fresh expert, from the same state, have driven what the network
-# proposed (then the intervention was a **false alarm**)? And would the ground-truth rule have
-# accepted it (then **perception alone** caused it)?
+# Same validation tracks, same seeds and the same two shards of cars as chapter 10 (two threads
+# here: the module's counters are shared by its shards), so the row without the module is
+# chapter 10's own result (reused when it is stored). The module audits one intervention in
+# four: would a fresh expert, from the same state, have driven what the network proposed (then
+# the intervention was a **false alarm**)? And would the ground-truth rule have accepted it (then
+# **perception alone** caused it)?
 
 # %%
 # (the quick profile's barely trained network makes the module crawl: half a mile is enough)
 miles = 0.5 if profile.quick else profile.ablation_miles
-ev = EvalConfig(miles=miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+ev = EvalConfig(miles=miles, n_worlds=profile.ablation_worlds, n_tracks=profile.n_val_tracks)
 without = ablation.evaluate_drivers({key: agent}, world_cfg, ev)[key]
 guarded = {}
 stats = {}

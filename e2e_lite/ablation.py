@@ -71,7 +71,7 @@ PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
 BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS)}
-#: threads of every ablation evaluation (part of its settings: see ``evaluate``'s ``workers``).
+#: shards of every ablation evaluation (part of its settings: see ``evaluate``'s ``workers``).
 WORKERS = 2
 
 
@@ -161,8 +161,8 @@ def evaluate_drivers(
 ) -> dict[str, EvalResult | dict[str, Any]]:
     """Every driver on the same tracks with the same seeds (``cfg``).
 
-    Every driver runs in :data:`WORKERS` threads. With ``reuse``, a result stored for the same
-    driver (:func:`fingerprint`), world, evaluation settings and thread count is read back
+    Every driver runs in :data:`WORKERS` shards. With ``reuse``, a result stored for the same
+    driver (:func:`fingerprint`), world, evaluation settings and shard count is read back
     instead of driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other
     driver is evaluated and stored.
     """

@@ -60,6 +60,13 @@ class NetworkAgent:
         self.vehicle = vehicle or VehicleParams()
         self.device = next(model.parameters()).device
 
+    @property
+    def forks_in_processes(self) -> bool:
+        """Whether :func:`~e2e_lite.evaluation.evaluate` may drive this agent's forks in forked
+        processes: a fork keeps nothing the caller reads afterwards (:attr:`last` is per
+        decision), but CUDA cannot be used in a forked child, so only on the CPU."""
+        return self.device.type == "cpu"
+
     def reset(self, n_worlds: int) -> None:
         """Networks are stateless between decisions."""
 

@@ -14,8 +14,8 @@ Names:
             the expert's and the oracle's closed-loop simulated miles per wall-second.
     train   training samples per second at batch 64 through the real training loop.
     closed-loop [--agent pilotnet|actuators|gmm]
-            simulated miles per wall-second with camera + CNN in the loop, B = 16, in one
-            thread and in two (evaluate's workers).
+            simulated miles per wall-second with camera + CNN in the loop: B = 16 in one thread
+            (chapters 05-09), B = 64 in one thread, two threads and two processes (chapter 10).
 """
 
 from __future__ import annotations
@@ -179,9 +179,10 @@ def bench_train(quick: bool) -> dict[str, float]:
 
 
 def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
-    """Closed-loop simulated miles per wall-second with camera + CNN in the loop, B = 16 worlds
-    (the chapter's checkpoint when it exists, else an untrained network of the same shape), in
-    one thread (the chapters' evaluations) and in two (chapter 10's ablation)."""
+    """Closed-loop simulated miles per wall-second with camera + CNN in the loop (the chapter's
+    checkpoint when it exists, else an untrained network of the same shape): B = 16 worlds in one
+    thread (chapters 05-09's evaluations), and B = 64 (chapters 10-11) in one thread, in two
+    threads and in two forked processes (evaluate's ``workers=2``)."""
     name, cfg = {
         "pilotnet": ("05_pilotnet", ModelConfig(kind="pilotnet", head="steer")),
         "actuators": ("05_actuators", ModelConfig(kind="fusion", head="actuators")),
@@ -199,23 +200,29 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
         model
     )
     world_cfg = WorldConfig.for_profile(active_profile([]))
-    ev = EvalConfig(miles=2.0 if quick else 20.0, n_worlds=16, n_tracks=16)
     print(f"closed loop with {agent}: {source}")
     out: dict[str, float] = {}
-    for workers in (1, 2):
-        res = evaluate(policy, world_cfg, ev, progress=False, workers=workers)
-        out[f"threads{workers}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
-        out[f"threads{workers}_decisions_per_wall_s"] = (
+    runs = (
+        ("b16_1thread", 16, 1, "threads"),
+        ("b64_1thread", 64, 1, "threads"),
+        ("b64_2threads", 64, 2, "threads"),
+        ("b64_2processes", 64, 2, "processes"),
+    )
+    for label, n_worlds, workers, parallel in runs:
+        ev = EvalConfig(miles=2.0 if quick else 20.0, n_worlds=n_worlds, n_tracks=16)
+        res = evaluate(policy, world_cfg, ev, progress=False, workers=workers, parallel=parallel)
+        out[f"{label}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
+        out[f"{label}_decisions_per_wall_s"] = (
             res.sim_time_s / world_cfg.sim.policy_period_s / res.wall_time_s
         )
-        out[f"threads{workers}_sim_miles"] = res.miles
+        out[f"{label}_sim_miles"] = res.miles
         frames = max(1.0, res.timing_s["frames"])
-        for part in ("render", "policy", "physics"):  # thread-seconds per frame, in ms
-            out[f"threads{workers}_{part}_ms_per_frame"] = 1e3 * res.timing_s[part] / frames
+        for part in ("render", "policy", "physics"):  # shard-seconds per frame, in ms
+            out[f"{label}_{part}_ms_per_frame"] = 1e3 * res.timing_s[part] / frames
         loop = res.wall_time_s * workers - sum(
             res.timing_s[p] for p in ("render", "policy", "physics")
         )
-        out[f"threads{workers}_rest_ms_per_frame"] = 1e3 * loop / frames
+        out[f"{label}_rest_ms_per_frame"] = 1e3 * loop / frames
     return out
 
 

@@ -77,6 +77,9 @@ class Profile:
         ablation_miles: closed-loop distance per driver in chapter 10's ablation [mi] (the
             paper: more than 480).
         replay_s: length of chapter 10's replays [s].
+        ablation_worlds: cars driven in lockstep in chapters 10 and 11 (more than the chapters'
+            ``n_worlds``: the network's batches are then large enough to run near its per-frame
+            floor; see ``python -m e2e_lite.bench closed-loop``).
     """
 
     name: str
@@ -90,6 +93,7 @@ class Profile:
     train_epochs: int
     ablation_miles: float = 500.0
     replay_s: float = 30.0
+    ablation_worlds: int = 64
 
     def __post_init__(self) -> None:
         if self.name not in ("quick", "full"):
@@ -104,6 +108,7 @@ class Profile:
         check_range("Profile", "train_epochs", self.train_epochs, 1, integer=True)
         check_range("Profile", "ablation_miles", self.ablation_miles, 0.0, lo_open=True)
         check_range("Profile", "replay_s", self.replay_s, 0.0, lo_open=True)
+        check_range("Profile", "ablation_worlds", self.ablation_worlds, 1, integer=True)
 
     @property
     def quick(self) -> bool:
@@ -123,6 +128,7 @@ QUICK = Profile(
     train_epochs=1,
     ablation_miles=1.0,
     replay_s=3.0,
+    ablation_worlds=4,
 )
 # The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
 # 48,000 training samples (the paper had 500K) are 80 minutes of expert driving, ~120 km.
@@ -138,6 +144,7 @@ FULL = Profile(
     train_epochs=3,
     ablation_miles=500.0,
     replay_s=30.0,
+    ablation_worlds=64,
 )
 
 

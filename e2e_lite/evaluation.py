@@ -23,9 +23,12 @@ Metrics (see :class:`EvalResult`):
 
 from __future__ import annotations
 
+import multiprocessing
+import multiprocessing.connection
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -410,17 +413,21 @@ def evaluate(
     record_traces: bool = False,
     stop_when: Callable[[], bool] | None = None,
     workers: int | None = None,
+    parallel: str = "auto",
 ) -> EvalResult:
     """Drive ``policy`` closed-loop until ``cfg.miles`` are driven; return the metrics.
 
     Car ``i`` drives tracks ``i, i + B, ...`` until it has driven ``miles / B``. With
-    ``workers > 1`` the cars are split into that many shards, each driven by its own thread with
-    its own copy of the policy: a policy that can be split has a ``fork(k)`` method returning
-    ``k`` independent copies (the network agents: the model is shared and its forward pass
-    releases the GIL, so one shard renders and steps physics while the other runs convolutions).
-    Each shard draws its cars' start lanes from its own generator (shard 0's is the one a single
-    thread uses), so ``workers`` is part of the settings: compare drivers evaluated with the same
-    value (chapter 10 uses 2 for every driver).
+    ``workers > 1`` the cars are split into that many shards, each driven with its own copy of
+    the policy: a policy that can be split has a ``fork(k)`` method returning ``k`` independent
+    copies. The shards run in forked processes where that is possible (Linux, and a policy that
+    declares ``forks_in_processes``: the network agents), else in threads (the network's forward
+    pass releases the GIL, so one shard renders and steps physics while the other runs
+    convolutions, but their Python still takes turns). Either way the torch threads are shared
+    out (one core per shard on two cores) and the results are the same. Each shard draws its
+    cars' start lanes from its own generator (shard 0's is the one a single thread uses), so
+    ``workers`` is part of the settings: compare drivers evaluated with the same value (chapter
+    10 uses 2 for every driver).
 
     Args:
         policy: the driver (see :class:`Policy`).
@@ -435,11 +442,16 @@ def evaluate(
         workers: threads (shards of cars), default 1; a policy without ``fork``, or a call
             with ``stop_when``, always runs in one. The network then sees batches of
             ``B / workers`` frames on ``1 / workers`` of the cores.
+        parallel: how shards run: ``"auto"`` (processes where possible, see above),
+            ``"threads"`` or ``"processes"`` (Linux/macOS fork; the policy's forks must keep
+            nothing the caller reads after the call, since their state stays in the children).
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
     workers = 1 if workers is None else workers
     check_range("evaluate", "workers", workers, 1, integer=True)
+    if parallel not in ("auto", "threads", "processes"):
+        raise ValueError(f"parallel must be 'auto', 'threads' or 'processes', not {parallel!r}")
     if stop_when is not None or not hasattr(policy, "fork"):
         workers = 1
     workers = min(workers, n)
@@ -463,25 +475,103 @@ def evaluate(
         shards = [_drive(policy, world_cfg, cfg, cars[0], 0, advance, record_traces, stop_when)]
     else:
         policies = policy.fork(workers)  # type: ignore[attr-defined]
-        torch = sys.modules.get("torch")  # loaded when the policy is a network
-        threads = None if torch is None else torch.get_num_threads()
-        interval = sys.getswitchinterval()
-        try:
-            if torch is not None:  # one core per shard instead of every shard on every core
-                torch.set_num_threads(max(1, threads // workers))
-            sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
-            with ThreadPoolExecutor(workers) as pool:
-                jobs = [
-                    pool.submit(_drive, p, world_cfg, cfg, c, k, advance, record_traces, None)
-                    for k, (p, c) in enumerate(zip(policies, cars))
-                ]
-                shards = [job.result() for job in jobs]
-        finally:
-            sys.setswitchinterval(interval)
-            if torch is not None:
-                torch.set_num_threads(threads)
+        jobs = [
+            (p, world_cfg, cfg, c, k, record_traces) for k, (p, c) in enumerate(zip(policies, cars))
+        ]
+        if parallel == "auto":
+            parallel = "processes" if _processes_ok(policy) else "threads"
+        if parallel == "processes":
+            shards = _in_processes(jobs, advance)
+        else:
+            shards = _in_threads(jobs, advance)
     bar.close()
     return _merge(shards, cfg, time.perf_counter() - t_wall)
+
+
+def _processes_ok(policy: Policy) -> bool:
+    """Shards may run in forked processes: on Linux (fork is cheap and safe there), for a policy
+    whose forks keep nothing the caller reads afterwards (``forks_in_processes``)."""
+    return sys.platform.startswith("linux") and bool(getattr(policy, "forks_in_processes", False))
+
+
+def _in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Shard]:
+    """Drive each job's shard in its own thread (torch on ``1 / workers`` of the cores each)."""
+    torch = sys.modules.get("torch")  # loaded when the policy is a network
+    threads = None if torch is None else torch.get_num_threads()
+    interval = sys.getswitchinterval()
+    try:
+        if torch is not None:  # one core per shard instead of every shard on every core
+            torch.set_num_threads(max(1, threads // len(jobs)))
+        sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
+        with ThreadPoolExecutor(len(jobs)) as pool:
+            futures = [pool.submit(_drive, *job[:5], advance, job[5], None) for job in jobs]
+            return [f.result() for f in futures]
+    finally:
+        sys.setswitchinterval(interval)
+        if torch is not None:
+            torch.set_num_threads(threads)
+
+
+def _shard_child(job: tuple, miles: Any, conn: Any, torch_threads: int) -> None:
+    """Body of a forked shard process: drive, send the :class:`_Shard` (or the traceback) back."""
+    try:
+        torch = sys.modules.get("torch")
+        if torch is not None:
+            torch.set_num_threads(torch_threads)
+
+        def advance(m: float) -> None:
+            with miles.get_lock():
+                miles.value += m
+
+        conn.send(("ok", _drive(*job[:5], advance, job[5], None)))
+    except BaseException:  # everything goes back to the parent
+        conn.send(("error", traceback.format_exc()))
+    finally:
+        conn.close()
+
+
+def _in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Shard]:
+    """Drive each job's shard in a forked process: no shared GIL, so one shard's rendering and
+    physics never wait on the other's Python. The children inherit the policy and the worlds'
+    settings (nothing is pickled on the way in); each sends its :class:`_Shard` back."""
+    ctx = multiprocessing.get_context("fork")
+    torch = sys.modules.get("torch")
+    per_shard = 1 if torch is None else max(1, torch.get_num_threads() // len(jobs))
+    miles = [ctx.Value("d", 0.0) for _ in jobs]
+    pipes = [ctx.Pipe(duplex=False) for _ in jobs]
+    procs = [
+        ctx.Process(target=_shard_child, args=(job, m, send, per_shard), daemon=True)
+        for job, m, (_, send) in zip(jobs, miles, pipes)
+    ]
+    results: dict[int, _Shard] = {}
+    reported = 0.0
+    try:
+        for p in procs:
+            p.start()
+        for _, send in pipes:
+            send.close()  # the parent's copy: a dead child then reads as EOF
+        waiting = {recv: k for k, (recv, _) in enumerate(pipes)}
+        while waiting:
+            for recv in multiprocessing.connection.wait(list(waiting), timeout=0.5):
+                k = waiting.pop(recv)
+                try:
+                    status, payload = recv.recv()
+                except EOFError:
+                    raise RuntimeError(
+                        f"evaluation shard {k} died (exit code {procs[k].exitcode})"
+                    ) from None
+                if status != "ok":
+                    raise RuntimeError(f"evaluation shard {k} failed:\n{payload}")
+                results[k] = payload
+            done = sum(m.value for m in miles)
+            advance(done - reported)
+            reported = done
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+            p.join()
+    return [results[k] for k in range(len(jobs))]
 
 
 def _drive(

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
+import sys
 
 import numpy as np
 import pytest
@@ -186,6 +189,50 @@ def test_parallel_shards_are_seeded_and_shard_zero_drives_as_one_thread():
     assert plain.events == one.events
     with pytest.raises(ValueError, match="workers"):
         evaluate(LaneKeeper(), BUSY, cfg, progress=False, workers=0)
+
+
+class ProcessKeeper(ForkingKeeper):
+    """A splittable lane keeper whose shards may run in forked processes."""
+
+    forks_in_processes = True
+
+
+class Crashing(LaneKeeper):
+    """Fails at its first decision (in whichever shard drives it)."""
+
+    def act(self, obs):
+        raise ZeroDivisionError("this driver cannot drive")
+
+
+class Dying(LaneKeeper):
+    """Kills its own process at its first decision (as an out-of-memory kill would)."""
+
+    def act(self, obs):
+        os._exit(3)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked shards: Linux only")
+def test_shards_in_processes_give_the_threads_results_and_leave_no_process():
+    cfg = EvalConfig(miles=3.0, n_worlds=4, n_tracks=3)
+    threads = evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, parallel="threads")
+    procs = evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, parallel="processes")
+    auto = evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, record_traces=True)
+    assert threads.collisions > 0 and procs.events == threads.events == auto.events
+    assert procs.miles == threads.miles and procs.autonomy_pct == threads.autonomy_pct
+    assert auto.traces and procs.timing_s["physics"] > 0  # what the children measured came back
+    assert multiprocessing.active_children() == []
+    # a child's error comes back with its traceback; a killed child is reported, not waited for
+    for bad, match in ((Crashing, "ZeroDivisionError: this driver cannot drive"), (Dying, "died")):
+
+        class Bad(ProcessKeeper):
+            def fork(self, k, bad=bad):
+                return [bad() for _ in range(k)]
+
+        with pytest.raises(RuntimeError, match=match):
+            evaluate(Bad(), BUSY, cfg, progress=False, workers=2, parallel="processes")
+        assert multiprocessing.active_children() == []
+    with pytest.raises(ValueError, match="parallel"):
+        evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, parallel="gpu")
 
 
 def test_stalled_car_is_respawned_and_the_evaluation_ends():

@@ -264,7 +264,8 @@ def test_agents_give_valid_commands_in_closed_loop():
 
 
 def test_network_agents_fork_into_parallel_shards_reproducibly():
-    """Two threads share one model; the result repeats; torch's thread count comes back."""
+    """Two shards share one model; the result repeats, in threads or processes; torch's thread
+    count comes back."""
     world_cfg = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(5, 5)))
     torch.manual_seed(0)
     model = prepare(build_model(ModelConfig(head="gmm", fusion_width=16)), torch.device("cpu"))
@@ -278,6 +279,12 @@ def test_network_agents_fork_into_parallel_shards_reproducibly():
     assert torch.get_num_threads() == threads
     assert a.events == b.events and a.miles == b.miles and a.miles >= 0.2
     assert a.timing_s["frames"] >= a.sim_time_s / 0.1 - 1e-6 and a.timing_s["render"] > 0
+    # on the CPU the shards may be forked processes (the default on Linux): same drive
+    assert agent.forks_in_processes
+    t = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="threads")
+    p = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="processes")
+    assert t.events == p.events == a.events and t.miles == p.miles
+    assert torch.get_num_threads() == threads
 
 
 def test_cruise_control_targets_the_road_speed_limit():
