@@ -88,10 +88,10 @@ def frame_of(data, i: int) -> np.ndarray:
 
 
 def predict_rows(rows: np.ndarray) -> np.ndarray:
-    batch = DrivingDataset(val).batch(rows)
+    batch = DrivingDataset(val).batch(rows, device=next(model.parameters()).device)
     with torch.inference_mode():
         out = model(batch["image"], batch["speed"])["main"]
-    return model.denormalise(out).reshape(-1, 5, 2).numpy()
+    return model.denormalise(out).reshape(-1, 5, 2).cpu().numpy()
 
 
 rng = np.random.default_rng(0)

@@ -199,11 +199,11 @@ starts = np.flatnonzero(
 )
 side_ok = None
 if starts.size:
-    batch = DrivingDataset(val).batch(starts)
+    batch = DrivingDataset(val).batch(starts, device=next(model.parameters()).device)
     with torch.inference_mode():
         weights, means, _ = objective.modes(model(batch["image"], batch["speed"]), model)
-    modes = model.denormalise(means).reshape(len(starts), -1, 5, 2).numpy()
-    top = weights.argmax(dim=-1).numpy()
+    modes = model.denormalise(means).reshape(len(starts), -1, 5, 2).cpu().numpy()
+    top = weights.argmax(dim=-1).cpu().numpy()
     followed_y5 = modes[np.arange(len(starts)), top, -1, 1]
     expert_y5 = val.trajectory[starts, -1, 1]
     side_ok = float(np.mean(np.sign(followed_y5) == np.sign(expert_y5)))

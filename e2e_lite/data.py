@@ -631,8 +631,11 @@ class DrivingDataset(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         return self.batch(np.array([self.indices[i]]), squeeze=True)
 
-    def batch(self, rows: np.ndarray, squeeze: bool = False) -> dict[str, torch.Tensor]:
-        """Items of dataset rows ``rows`` stacked along a first axis (one copy, no Python loop)."""
+    def batch(
+        self, rows: np.ndarray, squeeze: bool = False, device: torch.device | str | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Items of dataset rows ``rows`` stacked along a first axis (one copy, no Python loop),
+        on ``device`` when given (a model's, e.g. ``next(model.parameters()).device``)."""
         a = self.data.arrays
         out = {
             # NHWC rows permuted to NCHW: a channels-last view, no second copy
@@ -642,4 +645,6 @@ class DrivingDataset(torch.utils.data.Dataset):
             "trajectory": torch.from_numpy(a["trajectory"][rows].reshape(len(rows), -1)),
             "affordances": torch.from_numpy(a["affordances"][rows]),
         }
+        if device is not None:
+            out = {k: v.to(device) for k, v in out.items()}
         return {k: v[0] for k, v in out.items()} if squeeze else out

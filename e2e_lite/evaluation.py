@@ -467,8 +467,8 @@ def evaluate(
     lock = threading.Lock()
 
     def advance(miles: float) -> None:
-        with lock:
-            bar.update(miles)
+        with lock:  # (the shards' rounded sums may overshoot the total by a hair)
+            bar.update(max(0.0, min(miles, bar.total - bar.n)))
 
     cars = np.array_split(np.arange(n), workers)
     if workers == 1:
