@@ -13,9 +13,10 @@
 # floor 0.01 standard deviations keeps 1/σ finite), and a log-sum-exp over the modes. The
 # constant `D/2 log 2π` is kept. At inference the paper follows the mean of the most likely mode.
 #
-# The paper's practicalities, each a switch here: batch norm in the hidden layers (`ModelConfig`),
-# normalised targets (chapter 06), gradient clipping (`TrainConfig.grad_clip`), and **sigma frozen
-# for the first epochs** (the paper: 5), then opened (`GMMObjective.sigma_warmup_epochs`).
+# The paper's practicalities, each a switch here: batch norm in the hidden layers
+# (`ModelConfig.batchnorm`), normalised targets (chapter 06; `GMMObjective.normalise_targets`),
+# gradient clipping (`TrainConfig.grad_clip`), and **sigma frozen for the first epochs** (the
+# paper: 5), then opened (`GMMObjective.sigma_warmup_epochs`).
 #
 # Run it with `python chapters/07_gmm.py` (add `--quick` for a run of seconds).
 

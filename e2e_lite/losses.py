@@ -54,16 +54,21 @@ class Objective:
     Args:
         head: the model's head (``steer``, ``actuators`` or ``trajectory``).
         wheelbase_m: to turn steering angles into curvatures [m].
+        normalise_targets: train on targets normalised per coordinate with the training set's
+            mean and standard deviation (the paper's practicality; otherwise the far
+            longitudinal points dominate); ``False`` trains on physical units (the model then
+            carries mean 0 and standard deviation 1).
     """
 
-    def __init__(self, head: str, wheelbase_m: float = 2.7) -> None:
+    def __init__(self, head: str, wheelbase_m: float = 2.7, normalise_targets: bool = True) -> None:
         if head not in ("steer", "actuators", "trajectory"):
             raise ValueError(
                 f"Objective.head={head!r} is invalid: must be steer, actuators or trajectory"
             )
         self.head = head
         self.wheelbase_m = wheelbase_m
-        self.name = f"mse-{head}"
+        self.normalise_targets = normalise_targets
+        self.name = f"mse-{head}" + ("" if normalise_targets else "-raw")
 
     #: the training loop drops an epoch's last batch when it is smaller than this
     min_batch: int = 2
@@ -169,6 +174,8 @@ class GMMObjective(Objective):
             mixture of squared errors) and the head's log-sigma layer is frozen; then opened
             (the paper froze sigma for 5 epochs).
         wheelbase_m: unused by the GMM; kept for the common interface.
+        normalise_targets: as :class:`Objective` (``False``: the floor and the warm-up's
+            sigma = 1 are then in metres).
     """
 
     def __init__(
@@ -177,6 +184,7 @@ class GMMObjective(Objective):
         sigma_floor: float = 0.01,
         sigma_warmup_epochs: int = 1,
         wheelbase_m: float = 2.7,
+        normalise_targets: bool = True,
     ) -> None:
         check_range("GMMObjective", "n_modes", n_modes, 1, 16, integer=True)
         check_range("GMMObjective", "sigma_floor", sigma_floor, 0.0, 1.0, lo_open=True)
@@ -186,7 +194,10 @@ class GMMObjective(Objective):
         self.sigma_floor = sigma_floor
         self.sigma_warmup_epochs = sigma_warmup_epochs
         self.wheelbase_m = wheelbase_m
-        self.name = f"gmm-nll-K{n_modes}-floor{sigma_floor}-warmup{sigma_warmup_epochs}"
+        self.normalise_targets = normalise_targets
+        self.name = f"gmm-nll-K{n_modes}-floor{sigma_floor}-warmup{sigma_warmup_epochs}" + (
+            "" if normalise_targets else "-raw"
+        )
         self.sigma_fixed = sigma_warmup_epochs > 0
 
     def start_epoch(self, epoch: int) -> None:

@@ -109,7 +109,8 @@ class History:
 
 
 def model_stats(cfg: ModelConfig, data: DrivingData, objective: Objective) -> dict[str, np.ndarray]:
-    """The normalisation a model of ``cfg`` trained on ``data`` carries (from the training set)."""
+    """The normalisation a model of ``cfg`` trained on ``data`` carries (from the training set;
+    the identity for the target when ``objective.normalise_targets`` is off)."""
     s = data.stats
     if cfg.target_size == 10:
         t_mean, t_std = s["trajectory_mean"].reshape(-1), s["trajectory_std"].reshape(-1)
@@ -118,6 +119,8 @@ def model_stats(cfg: ModelConfig, data: DrivingData, objective: Objective) -> di
     else:  # steering as curvature: statistics of tan(steer) / L
         kappa = np.tan(data.actuators[:, 0].astype(np.float64)) / objective.wheelbase_m
         t_mean, t_std = np.array([kappa.mean()]), np.array([max(kappa.std(), 1e-6)])
+    if not getattr(objective, "normalise_targets", True):
+        t_mean, t_std = np.zeros_like(t_mean), np.ones_like(t_std)
     return {
         "speed_mean": s["speed_mean"],
         "speed_std": s["speed_std"],

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from scipy.stats import multivariate_normal
 
 from e2e_lite.data import DrivingDataset, synthetic_data
-from e2e_lite.losses import GMMObjective, gmm_nll, log_sigma, most_likely, split_gmm
+from e2e_lite.losses import GMMObjective, Objective, gmm_nll, log_sigma, most_likely, split_gmm
 from e2e_lite.models import ModelConfig, build_model, prepare
 from e2e_lite.training import TrainConfig, fit, model_stats
 
@@ -140,3 +140,37 @@ def test_normalisation_round_trip():
         model.denormalise(model.normalise_target(x)), x, rtol=1e-6, atol=1e-5
     )
     assert model.normalise_target(x).mean(dim=0).abs().max() < 1e-4  # the stats are this data's
+
+
+@pytest.mark.parametrize(
+    "objective_of",
+    [
+        lambda n: GMMObjective(normalise_targets=n),
+        lambda n: Objective("trajectory", normalise_targets=n),
+    ],
+)
+def test_target_normalisation_is_a_switch(objective_of):
+    """Off: the model carries the identity and the loss sees metres; the two runs get
+    different checkpoint names (so one never reuses the other's)."""
+    data = synthetic_data(16)
+    cfg = ModelConfig(head="gmm" if isinstance(objective_of(True), GMMObjective) else "trajectory")
+    on, off = objective_of(True), objective_of(False)
+    assert on.name != off.name
+    stats = model_stats(cfg, data, off)
+    assert np.all(stats["target_mean"] == 0) and np.all(stats["target_std"] == 1)
+    assert np.any(model_stats(cfg, data, on)["target_std"] != 1)
+    model = build_model(cfg)
+    model.set_normalisation(stats)
+    x = torch.from_numpy(data.trajectory.reshape(16, 10))
+    torch.testing.assert_close(model.normalise_target(x), x)
+    model.eval()
+    batch = DrivingDataset(data).batch(np.arange(16))
+    with torch.no_grad():
+        out = model(batch["image"], batch["speed"])
+        loss = off.per_sample(out, batch, model)
+    if isinstance(off, GMMObjective):
+        logits, means, _ = split_gmm(out["main"], 2)
+        expected = gmm_nll(x, logits, means, torch.zeros_like(means))  # warm-up: sigma = 1 m
+    else:
+        expected = ((out["main"] - x) ** 2).mean(dim=1)
+    torch.testing.assert_close(loss, expected)
