@@ -104,9 +104,9 @@ print(
 # %% [markdown]
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
 #
-# Same validation tracks, same seeds and the same two shards of cars as chapter 10 (two threads
-# here: the module's counters are shared by its shards), so the row without the module is
-# chapter 10's own result (reused when it is stored). The module audits one intervention in
+# Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
+# sends the module's counters home), so the row without the module is chapter 10's own result
+# (reused when it is stored). The module audits one intervention in
 # four: would a fresh expert, from the same state, have driven what the network proposed (then
 # the intervention was a **false alarm**)? And would the ground-truth rule have accepted it (then
 # **perception alone** caused it)?
@@ -156,7 +156,7 @@ view = Camera(CameraConfig.human())
 tiles = []
 for name, _ in variants:
     for ex in guarded[name][1].examples()[:3]:
-        img = view.render(ex["world"].track, ex["world"].cars, tuple(ex["pose"]), ex["s"])
+        img = view.render(ex["track"], ex["cars"], tuple(ex["pose"]), ex["s"])
         for k in np.argsort(ex["weights"]):
             colour = ((40, 110, 230), (240, 140, 30))[k % 2]
             draw_trajectory(img, ex["modes"][k], view, colour, label=f"{ex['weights'][k]:.2f}")

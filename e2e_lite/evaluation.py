@@ -421,7 +421,7 @@ def evaluate(
     ``workers > 1`` the cars are split into that many shards, each driven with its own copy of
     the policy: a policy that can be split has a ``fork(k)`` method returning ``k`` independent
     copies. The shards run in forked processes where that is possible (Linux, and a policy that
-    declares ``forks_in_processes``: the network agents), else in threads (the network's forward
+    declares ``forks_in_processes``: the network agents and the safety module), else in threads (the network's forward
     pass releases the GIL, so one shard renders and steps physics while the other runs
     convolutions, but their Python still takes turns). Either way the torch threads are shared
     out (one core per shard on two cores) and the results are the same. Each shard draws its
@@ -523,7 +523,9 @@ def _shard_child(job: tuple, miles: Any, conn: Any, torch_threads: int) -> None:
             with miles.get_lock():
                 miles.value += m
 
-        conn.send(("ok", _drive(*job[:5], advance, job[5], None)))
+        shard = _drive(*job[:5], advance, job[5], None)
+        report = getattr(job[0], "shard_report", None)
+        conn.send(("ok", (shard, None if report is None else report())))
     except BaseException:  # everything goes back to the parent
         conn.send(("error", traceback.format_exc()))
     finally:
@@ -533,7 +535,9 @@ def _shard_child(job: tuple, miles: Any, conn: Any, torch_threads: int) -> None:
 def _in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Shard]:
     """Drive each job's shard in a forked process: no shared GIL, so one shard's rendering and
     physics never wait on the other's Python. The children inherit the policy and the worlds'
-    settings (nothing is pickled on the way in); each sends its :class:`_Shard` back."""
+    settings (nothing is pickled on the way in); each sends its :class:`_Shard` back, and, for
+    a policy with ``shard_report()``, that report, which the parent's copy of the fork takes in
+    with ``absorb_report(report)`` (how the safety module's counters come home)."""
     ctx = multiprocessing.get_context("fork")
     torch = sys.modules.get("torch")
     per_shard = 1 if torch is None else max(1, torch.get_num_threads() // len(jobs))
@@ -562,7 +566,9 @@ def _in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[_
                     ) from None
                 if status != "ok":
                     raise RuntimeError(f"evaluation shard {k} failed:\n{payload}")
-                results[k] = payload
+                results[k], report = payload
+                if report is not None:  # what the child's policy counted, into the parent's fork
+                    jobs[k][0].absorb_report(report)
             done = sum(m.value for m in miles)
             advance(done - reported)
             reported = done

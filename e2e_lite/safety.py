@@ -288,6 +288,28 @@ class SafetyStats:
         """Decisions where the followed mode was not driven."""
         return self.decisions - self.sources["network"]
 
+    def counts(self) -> dict[str, Any]:
+        """The counters as plain data (copies; picklable, unlike the lock)."""
+        return {
+            "decisions": self.decisions,
+            "audited": self.audited,
+            "sources": Counter(self.sources),
+            "kinds": Counter(self.kinds),
+            "false_alarms": self.false_alarms,
+            "perception_only": self.perception_only,
+        }
+
+    def add(self, counts: dict[str, Any], sign: int = 1) -> None:
+        """Add (``sign=-1``: subtract) counters given as :meth:`counts`, under the lock."""
+        with self.lock:
+            for name in ("decisions", "audited", "false_alarms", "perception_only"):
+                setattr(self, name, getattr(self, name) + sign * counts[name])
+            for name in ("sources", "kinds"):
+                table = getattr(self, name)
+                for key, n in counts[name].items():
+                    table[key] += sign * n
+                setattr(self, name, +table)  # drop zero counts
+
     def to_dict(self) -> dict[str, Any]:
         """Counts and rates, JSON-ready (examples left out)."""
         n, k = max(1, self.decisions), max(1, self.audited)
@@ -347,11 +369,33 @@ class SafeAgent:
         self._kept: list[dict[str, Any]] = []
         self._forks: list[SafeAgent] = []
         self._shard = 0
+        self._at_reset = self.stats.counts()
         self.last: dict[str, Any] = {}
+
+    @property
+    def forks_in_processes(self) -> bool:
+        """The forks may run in processes when the network agent's may: each child sends its
+        counts and kept examples back (:meth:`shard_report`, :meth:`absorb_report`)."""
+        return bool(getattr(self.agent, "forks_in_processes", False))
 
     def reset(self, n_worlds: int) -> None:
         """Reset the network agent; :attr:`stats` keep counting (forks share them)."""
         self.agent.reset(n_worlds)
+        self._at_reset = self.stats.counts()
+
+    def shard_report(self) -> dict[str, Any]:
+        """What this fork counted and kept since its :meth:`reset` (sent home by a forked
+        evaluation shard)."""
+        delta = SafetyStats()
+        delta.add(self.stats.counts())
+        delta.add(self._at_reset, sign=-1)
+        return {"counts": delta.counts(), "kept": self._kept}
+
+    def absorb_report(self, report: dict[str, Any]) -> None:
+        """Take in a :meth:`shard_report` of this fork's process: add its counts to the shared
+        :attr:`stats`, keep its examples."""
+        self.stats.add(report["counts"])
+        self._kept = list(report["kept"])
 
     def fork(self, k: int) -> list[SafeAgent]:
         """``k`` agents for parallel shards, sharing the model and the counters."""
@@ -417,7 +461,8 @@ class SafeAgent:
                     {
                         "shard": self._shard,
                         "time_s": obs.time_s,
-                        "world": obs.worlds[i],
+                        "track": obs.worlds[i].track,
+                        "cars": obs.worlds[i].cars,
                         "pose": obs.state[i, :3].copy(),
                         "s": float(obs.s[i]),
                         "speed": float(obs.speed[i]),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import sys
 
 import numpy as np
 import pytest
@@ -165,3 +166,25 @@ def test_the_perceived_check_needs_predicted_affordances():
     world = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(2, 2)))
     with pytest.raises(ValueError, match="affordances"):
         evaluate(SafeAgent(StraightOn()), world, EvalConfig(miles=0.01, n_worlds=1, n_tracks=1))
+
+
+class ForkableStraightOn(StraightOn):
+    forks_in_processes = True
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked shards: Linux only")
+def test_the_module_counts_the_same_in_threads_and_in_processes():
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=0.5, n_worlds=2, n_tracks=2)
+    runs = {}
+    for parallel in ("threads", "processes"):
+        guarded = SafeAgent(ForkableStraightOn(), ground_truth=True)
+        assert guarded.forks_in_processes
+        res = evaluate(guarded, world, cfg, progress=False, workers=2, parallel=parallel)
+        runs[parallel] = (res, guarded.stats.to_dict())
+    (r_t, s_t), (r_p, s_p) = runs["threads"], runs["processes"]
+    assert r_t.events == r_p.events and s_t == s_p and s_p["interventions"] > 0
+    # the counters keep counting over a second evaluation of the same agent (children report
+    # what they added, not the total they inherited)
+    evaluate(guarded, world, cfg, progress=False, workers=2, parallel="processes")
+    assert guarded.stats.to_dict()["decisions"] == 2 * s_p["decisions"]
