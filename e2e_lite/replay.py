@@ -40,6 +40,7 @@ from .camera import CAR_COLOURS, DASH_M, DASH_PERIOD_M, RAIL_HEIGHT_M, Camera, C
 from .camera import draw_trajectory as draw_on_frame
 from .evaluation import Actuation, Observation, Policy, drive
 from .geometry import Track
+from .vehicle import VehicleParams
 from .world import ParkedCars, World, WorldConfig
 
 MODE_COLOURS = ((40, 110, 230), (240, 140, 30), (60, 170, 80), (170, 60, 170))
@@ -60,6 +61,7 @@ class Episode:
         frames: camera views (RGB uint8) with the proposal drawn on them, one per decision.
         contact: ``"car"``, ``"rail"`` or None: how the drive ended.
         period_s: time between decisions [s].
+        vehicle: the driven car (its body is drawn around the rear axle the states give).
     """
 
     name: str
@@ -71,6 +73,7 @@ class Episode:
     frames: list[np.ndarray] = field(default_factory=list)
     contact: str | None = None
     period_s: float = 0.1
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
 
     @property
     def seconds(self) -> float:
@@ -147,6 +150,7 @@ def record(
         frames=pictures,
         contact=kind,
         period_s=world_cfg.sim.policy_period_s,
+        vehicle=world_cfg.vehicle,
     )
 
 
@@ -233,8 +237,9 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
         )
     # the ego and its proposals (5 points per mode)
     ego = vis["ego"]
+    veh = ep.vehicle
     ego.set_object(
-        g.Box([cars.length_m, cars.width_m, CAR_HEIGHT_M]), g.MeshLambertMaterial(color=0xE8322C)
+        g.Box([veh.length_m, veh.width_m, CAR_HEIGHT_M]), g.MeshLambertMaterial(color=0xE8322C)
     )
     n_modes = 0 if ep.modes is None else ep.modes.shape[1]
     for m in range(n_modes):
@@ -245,7 +250,7 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
     vis["/Grid"].set_property("visible", False)  # the default grid sits at the world's origin
     vis["/Axes"].set_property("visible", False)
     anim = Animation(default_framerate=round(1.0 / ep.period_s))
-    rear_to_centre = 1.35  # rear axle to the box centre [m] (about half the wheelbase)
+    rear_to_centre = veh.length_m / 2 - veh.rear_overhang_m  # rear axle to the body's centre [m]
     for f, (x, y, h) in enumerate(ep.states[:, :3]):
         with anim.at_frame(vis, f) as frame:
             cx, cy = x + rear_to_centre * np.cos(h), y + rear_to_centre * np.sin(h)
