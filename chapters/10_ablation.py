@@ -218,9 +218,15 @@ print(f"open {index} in a browser")
 #   cruise control. TORCS cars do not spawn slow among parked cars; ours do, 16 times per track.
 # * **Affordance**: better than the GMM beyond chance, but chapter 08 showed the head no better
 #   than always answering the training mean. Section 3b's controls ask whether the gain is the
-#   auxiliary loss at all: the same network trained with w = 0, and the GMM with a second seed,
-#   on the same roads. If they move as much as the step, one training run per row cannot
-#   attribute the step to the auxiliary loss.
+#   auxiliary loss at all. The GMM trained with a second seed collides as often as the first
+#   (within chance) but drives at 20 mph instead of 48: it brakes to a standstill over a
+#   thousand times (each a stall, re-spawned), chapter 07's braking failure at its worst. The
+#   same network as the affordance row trained with w = 0 collides more than either GMM. So
+#   three trainings without the auxiliary loss land anywhere between about 180 and 270 per 100
+#   miles and 20 and 50 mph, and the one training with it lands below all three. A single run
+#   falls below three others by chance one time in four: the step is suggestive here, not
+#   established, and training noise is as large as any step in the table except CVaR's.
+#   Attributing it needs several seeds per row (exercise 2).
 # * **CVaR**: the one-epoch fine-tune lowered the tail of the loss (chapter 09's Fig. 5) and made the
 #   car swerve on straight road; closed loop it is the worst driver, mostly on the rails.
 #
@@ -297,8 +303,10 @@ artifacts.write_metrics(
 #
 # 1. Evaluate every driver with a second seed (`EvalConfig(seed=1)`): which rows move beyond
 #    their intervals? What does that say about 100-mile verdicts?
-# 2. Retrain the GMM with `TrainConfig(seed=1)` and evaluate it here: is the difference between
-#    two training seeds smaller than the difference between the GMM and GMM + affordance?
+# 2. Section 3b has one run with the auxiliary loss against three without. Train two more seeds
+#    of each (`recipes.gmm(..., seed=2, name="x_gmm_seed2")`, `recipes.gmm_affordance(...,
+#    seed=2, name="x_aff_seed2")`, ...), evaluate them here and compare the two groups of three
+#    (e.g. a rank test on the rates): does the affordance step survive training noise?
 # 3. Drive the GMM drivers with `TrajectoryAgent(model, speed="cruise")`: which of the paper's
 #    steps reproduce once the longitudinal problem of chapter 07 is taken away?
 # 4. Open two replays side by side at a collision: did the network propose the collision, or

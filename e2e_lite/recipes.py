@@ -176,15 +176,17 @@ def gmm_affordance(
     val: DrivingData,
     weight: float,
     name: str = "08_gmm_affordance",
+    seed: int = 0,
     **kw: Any,
 ) -> Trained:
     """Chapter 08: the chapter-07 GMM plus the affordance head, loss GMM + ``weight`` x
-    affordance (chapter 10's control trains the same network with ``weight = 0``)."""
+    affordance (chapter 10's control trains the same network with ``weight = 0``; ``seed``: the
+    training seed, for more runs per row)."""
     objective = WithAffordance(gmm_objective(profile), weight)
     model, hist = train_or_load(
         name,
         AFFORDANCE_CFG,
-        _train_cfg(profile, grad_clip=10.0),
+        _train_cfg(profile, grad_clip=10.0, seed=seed),
         objective,
         train,
         val,
