@@ -130,7 +130,11 @@ for before, after, what, paper_way in STEPS:
 # %%
 controls = ablation.build_drivers(profile, [d.key for d in ablation.CONTROLS], train=train, val=val)
 control_results = ablation.evaluate_drivers(controls, world_cfg, ev)
-control_table = results_table([(ablation.BY_KEY[k].label, r) for k, r in control_results.items()])
+control_table = results_table(
+    [(ablation.BY_KEY[k].label, r) for k, r in control_results.items()],
+    # a stall: under 0.5 m/s for 20 s, re-spawned (a driver that brakes to a standstill)
+    extra=[("stalls", [f"{result_dict(r)['stalls']:,}" for r in control_results.values()])],
+)
 print(control_table)
 control_tests = {}
 for control, base, what in (
