@@ -124,7 +124,6 @@ for name, gt in variants:
     res = evaluate(safe, world_cfg, ev, desc=f"with the module ({name})", workers=ablation.WORKERS)
     guarded[name], stats[name] = (res, safe), safe.stats.to_dict()
     print(f"with the module ({name}): {res.summary()}")
-    print(f"  {stats[name]}")
 
 label = ablation.BY_KEY[key].label
 table = results_table(
