@@ -13,6 +13,8 @@ Names:
     data    samples collected per second (noisy expert, frames, label rollouts, affordances), and
             the expert's and the oracle's closed-loop simulated miles per wall-second.
     train   training samples per second at batch 64 through the real training loop.
+    network inference time per frame of the GMM fusion network by batch size, on one torch
+            thread and on all of them.
     closed-loop [--agent pilotnet|actuators|gmm]
             simulated miles per wall-second with camera + CNN in the loop: B = 16 in one thread
             (chapters 05-09), B = 64 in one thread, two threads and two processes (chapter 10).
@@ -41,7 +43,7 @@ from .evaluation import EvalConfig, evaluate
 from .expert import Expert, Oracle
 from .geometry import RoadConfig
 from .losses import Objective
-from .models import ModelConfig, build_model, pick_device, prepare
+from .models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
 from .training import TrainConfig, fit, load_checkpoint
 from .world import Fleet, TrafficConfig, WorldConfig, make_world
 
@@ -226,12 +228,47 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     return out
 
 
+def bench_network(quick: bool) -> dict[str, float]:
+    """Inference cost of the fusion network with a GMM head (chapters 07-11's drivers) per frame
+    [ms], by batch size, on one torch thread and on all of them (what a closed-loop shard pays)."""
+    device = pick_device()
+    torch.manual_seed(0)
+    model = prepare(build_model(ModelConfig(kind="fusion", head="gmm")), device).eval()
+    out: dict[str, float] = {}
+    threads = torch.get_num_threads()
+    rng = np.random.default_rng(0)
+    try:
+        for n_threads in sorted({1, threads}):
+            torch.set_num_threads(n_threads)
+            for batch in (8, 16, 32, 64):
+                frames = rng.integers(0, 256, (batch, 66, 200, 3), dtype=np.uint8)
+                image = images_to_tensor(frames, device)
+                speed = torch.full((batch, 1), 20.0, device=device)
+                reps = max(3, (200 if quick else 2_000) // batch)
+                with torch.inference_mode():
+                    for _ in range(3):  # warm-up (allocations, kernel choices)
+                        model(image, speed)
+                    if device.type == "cuda":
+                        torch.cuda.synchronize()
+                    t0 = time.perf_counter()
+                    for _ in range(reps):
+                        model(image, speed)
+                    if device.type == "cuda":
+                        torch.cuda.synchronize()
+                per_frame = (time.perf_counter() - t0) / (reps * batch)
+                out[f"threads{n_threads}_batch{batch}_ms_per_frame"] = 1e3 * per_frame
+    finally:
+        torch.set_num_threads(threads)
+    return out
+
+
 BENCHMARKS: dict[str, Callable[..., dict[str, float]]] = {
     "world": bench_world,
     "camera": bench_camera,
     "data": bench_data,
     "train": bench_train,
     "closed-loop": bench_closed_loop,
+    "network": bench_network,
 }
 
 

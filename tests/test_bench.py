@@ -13,6 +13,7 @@ from e2e_lite import bench
     "argv",
     [
         ["train", "--quick"],
+        ["network", "--quick"],
         ["closed-loop", "--quick", "--agent", "actuators"],
         ["closed-loop", "--quick", "--agent", "gmm"],
     ],
