@@ -62,9 +62,9 @@ class NetworkAgent:
 
     @property
     def forks_in_processes(self) -> bool:
-        """Whether :func:`~e2e_lite.evaluation.evaluate` may drive this agent's forks in forked
+        """Whether :func:`~e2e_lite.evaluation.evaluate` may drive this agent's forks in worker
         processes: a fork keeps nothing the caller reads afterwards (:attr:`last` is per
-        decision), but CUDA cannot be used in a forked child, so only on the CPU."""
+        decision). Only on the CPU: on a GPU one process with threads shares the device."""
         return self.device.type == "cpu"
 
     def reset(self, n_worlds: int) -> None:

@@ -23,8 +23,9 @@ Metrics (see :class:`EvalResult`):
 
 from __future__ import annotations
 
-import multiprocessing
-import multiprocessing.connection
+import pickle
+import queue
+import subprocess
 import sys
 import threading
 import time
@@ -165,9 +166,10 @@ class EvalConfig:
 class EvalResult:
     """What a closed-loop evaluation measured. Distances in miles, times in seconds.
 
-    ``timing_s`` splits the wall time of the loop, summed over threads: ``render`` (camera
+    ``timing_s`` splits the wall time of the loop, summed over shards: ``render`` (camera
     frames), ``policy`` (the driver's ``act``: the network and the tracker), ``physics``
-    (bicycle and pymunk steps); ``frames`` counts the frames rendered.
+    (bicycle and pymunk steps); ``frames`` counts the frames rendered; ``startup`` is the
+    wall-clock time shard processes took to start (an interpreter and the imports each).
     """
 
     miles: float
@@ -400,7 +402,9 @@ class _Shard:
         self.tracks = 0
         self.events: list[dict[str, Any]] = []
         self.traces: dict[str, list[list[float]]] = {}
-        self.timing = {"render": 0.0, "policy": 0.0, "physics": 0.0, "frames": 0.0}
+        # seconds per part (summed over shards); "startup": the wall-clock time the shard
+        # workers took to start (process shards only)
+        self.timing = {"render": 0.0, "policy": 0.0, "physics": 0.0, "frames": 0.0, "startup": 0.0}
 
 
 def evaluate(
@@ -420,14 +424,15 @@ def evaluate(
     Car ``i`` drives tracks ``i, i + B, ...`` until it has driven ``miles / B``. With
     ``workers > 1`` the cars are split into that many shards, each driven with its own copy of
     the policy: a policy that can be split has a ``fork(k)`` method returning ``k`` independent
-    copies. The shards run in forked processes where that is possible (Linux, and a policy that
-    declares ``forks_in_processes``: the network agents and the safety module), else in threads (the network's forward
-    pass releases the GIL, so one shard renders and steps physics while the other runs
-    convolutions, but their Python still takes turns). Either way the torch threads are shared
-    out (one core per shard on two cores) and the results are the same. Each shard draws its
-    cars' start lanes from its own generator (shard 0's is the one a single thread uses), so
-    ``workers`` is part of the settings: compare drivers evaluated with the same value (chapter
-    10 uses 2 for every driver).
+    copies. The shards run in worker processes (fresh interpreters, ``python -m
+    e2e_lite.shard_worker``, the job pickled to them) when the policy declares
+    ``forks_in_processes`` (the network agents on the CPU and the safety module), else in threads
+    (the network's forward pass releases the GIL, so one shard renders and steps physics while
+    the other runs convolutions, but their Python still takes turns). Either way the torch threads
+    are shared out (one core per shard on two cores) and the results are the same. Each shard
+    draws its cars' start lanes from its own generator (shard 0's is the one a single thread
+    uses), so ``workers`` is part of the settings: compare drivers evaluated with the same value
+    (chapter 10 uses 2 for every driver).
 
     Args:
         policy: the driver (see :class:`Policy`).
@@ -443,8 +448,8 @@ def evaluate(
             with ``stop_when``, always runs in one. The network then sees batches of
             ``B / workers`` frames on ``1 / workers`` of the cores.
         parallel: how shards run: ``"auto"`` (processes where possible, see above),
-            ``"threads"`` or ``"processes"`` (Linux/macOS fork; the policy's forks must keep
-            nothing the caller reads after the call, since their state stays in the children).
+            ``"threads"`` or ``"processes"`` (the policy must pickle, and its forks keep nothing
+            the caller reads afterwards unless they have ``shard_report``/``absorb_report``).
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
@@ -489,9 +494,12 @@ def evaluate(
 
 
 def _processes_ok(policy: Policy) -> bool:
-    """Shards may run in forked processes: on Linux (fork is cheap and safe there), for a policy
-    whose forks keep nothing the caller reads afterwards (``forks_in_processes``)."""
-    return sys.platform.startswith("linux") and bool(getattr(policy, "forks_in_processes", False))
+    """Shards may run in worker processes for a policy whose forks keep nothing the caller reads
+    afterwards (``forks_in_processes``) and that a fresh interpreter can unpickle (its class is
+    not defined in a script run as ``__main__``)."""
+    return bool(getattr(policy, "forks_in_processes", False)) and (
+        type(policy).__module__ != "__main__"
+    )
 
 
 def _in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Shard]:
@@ -512,71 +520,115 @@ def _in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Sh
             torch.set_num_threads(threads)
 
 
-def _shard_child(job: tuple, miles: Any, conn: Any, torch_threads: int) -> None:
-    """Body of a forked shard process: drive, send the :class:`_Shard` (or the traceback) back."""
+def _send(stream: Any, message: Any) -> None:
+    """One length-prefixed pickle on a binary stream (the shard workers' protocol)."""
+    blob = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(len(blob).to_bytes(8, "little") + blob)
+    stream.flush()
+
+
+def _receive(stream: Any) -> Any:
+    """The next message of :func:`_send` (EOFError when the writer is gone)."""
+    head = stream.read(8)
+    if len(head) < 8:
+        raise EOFError
+    blob = stream.read(int.from_bytes(head, "little"))
+    if len(blob) < int.from_bytes(head, "little"):
+        raise EOFError
+    return pickle.loads(blob)
+
+
+def shard_worker(inbox: Any, outbox: Any) -> None:
+    """Body of a shard process (``python -m e2e_lite.shard_worker``): read ``(sys.path, torch
+    threads, job)``, drive the shard, send progress ``("miles", m)`` now and then and finally
+    ``("ok", (shard, report))`` or ``("error", traceback)``."""
     try:
-        torch = sys.modules.get("torch")
-        if torch is not None:
+        path, torch_threads, job = None, 1, None
+        path = _receive(inbox)
+        sys.path[:] = path  # where the parent found the policy's classes
+        torch_threads, job = _receive(inbox)
+        if "torch" in sys.modules or torch_threads > 0:
+            import torch
+
             torch.set_num_threads(torch_threads)
+        _send(outbox, ("ready", None))
+        last = [time.perf_counter(), 0.0]
 
         def advance(m: float) -> None:
-            with miles.get_lock():
-                miles.value += m
+            last[1] += m
+            if time.perf_counter() - last[0] > 0.25:
+                _send(outbox, ("miles", last[1]))
+                last[:] = [time.perf_counter(), 0.0]
 
         shard = _drive(*job[:5], advance, job[5], None)
         report = getattr(job[0], "shard_report", None)
-        conn.send(("ok", (shard, None if report is None else report())))
+        _send(outbox, ("miles", last[1]))
+        _send(outbox, ("ok", (shard, None if report is None else report())))
     except BaseException:  # everything goes back to the parent
-        conn.send(("error", traceback.format_exc()))
-    finally:
-        conn.close()
+        _send(outbox, ("error", traceback.format_exc()))
 
 
 def _in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Shard]:
-    """Drive each job's shard in a forked process: no shared GIL, so one shard's rendering and
-    physics never wait on the other's Python. The children inherit the policy and the worlds'
-    settings (nothing is pickled on the way in); each sends its :class:`_Shard` back, and, for
-    a policy with ``shard_report()``, that report, which the parent's copy of the fork takes in
-    with ``absorb_report(report)`` (how the safety module's counters come home)."""
-    ctx = multiprocessing.get_context("fork")
+    """Drive each job's shard in a fresh Python process: no shared GIL, so one shard's rendering
+    and physics never wait on the other's Python, and no ``fork`` of a process whose torch threads
+    are running (that can deadlock the child). Each worker gets the job pickled (policy, model
+    included), sends its :class:`_Shard` back and, for a policy with ``shard_report()``, that
+    report, which the parent's copy of the fork takes in with ``absorb_report(report)`` (how the
+    safety module's counters come home). Starting a worker costs an interpreter and the imports
+    (a few seconds), small beside an evaluation of miles."""
     torch = sys.modules.get("torch")
-    per_shard = 1 if torch is None else max(1, torch.get_num_threads() // len(jobs))
-    miles = [ctx.Value("d", 0.0) for _ in jobs]
-    pipes = [ctx.Pipe(duplex=False) for _ in jobs]
-    procs = [
-        ctx.Process(target=_shard_child, args=(job, m, send, per_shard), daemon=True)
-        for job, m, (_, send) in zip(jobs, miles, pipes)
-    ]
+    per_shard = 0 if torch is None else max(1, torch.get_num_threads() // len(jobs))
+    messages: queue.Queue = queue.Queue()
+    procs = []
+
+    def listen(k: int, stream: Any) -> None:
+        try:
+            while True:
+                messages.put((k, _receive(stream)))
+        except (EOFError, OSError, ValueError):
+            messages.put((k, ("gone", None)))
+
     results: dict[int, _Shard] = {}
-    reported = 0.0
+    started, ready, startup_s = time.perf_counter(), 0, 0.0
     try:
-        for p in procs:
-            p.start()
-        for _, send in pipes:
-            send.close()  # the parent's copy: a dead child then reads as EOF
-        waiting = {recv: k for k, (recv, _) in enumerate(pipes)}
-        while waiting:
-            for recv in multiprocessing.connection.wait(list(waiting), timeout=0.5):
-                k = waiting.pop(recv)
-                try:
-                    status, payload = recv.recv()
-                except EOFError:
-                    raise RuntimeError(
-                        f"evaluation shard {k} died (exit code {procs[k].exitcode})"
-                    ) from None
-                if status != "ok":
-                    raise RuntimeError(f"evaluation shard {k} failed:\n{payload}")
+        for k, job in enumerate(jobs):
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "e2e_lite.shard_worker"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+            )
+            procs.append(proc)
+            _send(proc.stdin, list(sys.path))
+            _send(proc.stdin, (per_shard, job))
+            proc.stdin.close()
+            threading.Thread(target=listen, args=(k, proc.stdout), daemon=True).start()
+        while len(results) < len(jobs):
+            try:
+                k, (status, payload) = messages.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            if status == "miles":
+                advance(payload)
+            elif status == "ready":
+                ready += 1
+                if ready == len(jobs):
+                    startup_s = time.perf_counter() - started
+            elif status == "ok":
                 results[k], report = payload
-                if report is not None:  # what the child's policy counted, into the parent's fork
+                if report is not None:  # what the worker's policy counted, into the parent's fork
                     jobs[k][0].absorb_report(report)
-            done = sum(m.value for m in miles)
-            advance(done - reported)
-            reported = done
+            elif status == "error":
+                raise RuntimeError(f"evaluation shard {k} failed:\n{payload}")
+            elif k not in results:  # the worker's output ended before its result
+                raise RuntimeError(f"evaluation shard {k} died (exit code {procs[k].wait()})")
     finally:
-        for p in procs:
-            if p.is_alive():
-                p.terminate()
-            p.join()
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+            proc.stdout.close()
+    for shard in results.values():  # the workers' start, counted once in the merged timing
+        shard.timing["startup"] = startup_s / len(jobs)
     return [results[k] for k in range(len(jobs))]
 
 

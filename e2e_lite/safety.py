@@ -288,6 +288,13 @@ class SafetyStats:
         """Decisions where the followed mode was not driven."""
         return self.decisions - self.sources["network"]
 
+    def __getstate__(self) -> dict[str, Any]:  # the lock stays behind (a worker makes its own)
+        return {k: v for k, v in self.__dict__.items() if k != "lock"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.lock = threading.Lock()
+
     def counts(self) -> dict[str, Any]:
         """The counters as plain data (copies; picklable, unlike the lock)."""
         return {
@@ -384,8 +391,8 @@ class SafeAgent:
         self._at_reset = self.stats.counts()
 
     def shard_report(self) -> dict[str, Any]:
-        """What this fork counted and kept since its :meth:`reset` (sent home by a forked
-        evaluation shard)."""
+        """What this fork counted and kept since its :meth:`reset` (sent home by an
+        evaluation's shard process)."""
         delta = SafetyStats()
         delta.add(self.stats.counts())
         delta.add(self._at_reset, sign=-1)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import sys
 
 import numpy as np
 import pytest
@@ -172,7 +171,6 @@ class ForkableStraightOn(StraightOn):
     forks_in_processes = True
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked shards: Linux only")
 def test_the_module_counts_the_same_in_threads_and_in_processes():
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
     cfg = EvalConfig(miles=0.5, n_worlds=2, n_tracks=2)
