@@ -63,6 +63,12 @@ def test_normalisation_layer_is_fixed():
     assert not list(layer.parameters())
     out = layer(torch.tensor([0, 255], dtype=torch.uint8))
     assert out.tolist() == [-1.0, 1.0]
+    # bit for bit the formula, on uint8 and float input; a float input is left as it was
+    pixels = torch.randint(0, 256, (2, 3, 66, 200), dtype=torch.uint8)
+    assert torch.equal(layer(pixels), pixels.float() / 127.5 - 1.0)
+    floats = pixels.float()
+    assert torch.equal(layer(floats), pixels.float() / 127.5 - 1.0)
+    assert torch.equal(floats, pixels.float())
     net = build_model(ModelConfig(kind="pilotnet", head="steer"))
     names = [n for n, _ in net.named_parameters()]
     assert not any("normalise" in n or "mean" in n or "std" in n for n in names)
