@@ -68,7 +68,7 @@ for key in drivers:
 ev = EvalConfig(
     miles=profile.ablation_miles, n_worlds=profile.ablation_worlds, n_tracks=profile.n_val_tracks
 )
-results = ablation.evaluate_drivers(drivers, world_cfg, ev)
+results = ablation.evaluate_drivers(drivers, world_cfg, ev, workers=profile.ablation_workers)
 table = ablation.ablation_table(results)
 print(table)
 
@@ -129,7 +129,9 @@ for before, after, what, paper_way in STEPS:
 
 # %%
 controls = ablation.build_drivers(profile, [d.key for d in ablation.CONTROLS], train=train, val=val)
-control_results = ablation.evaluate_drivers(controls, world_cfg, ev)
+control_results = ablation.evaluate_drivers(
+    controls, world_cfg, ev, workers=profile.ablation_workers
+)
 control_table = results_table(
     [(ablation.BY_KEY[k].label, r) for k, r in control_results.items()],
     # a stall: under 0.5 m/s for 20 s, re-spawned (a driver that brakes to a standstill)

@@ -115,13 +115,17 @@ print(
 # (the quick profile's barely trained network makes the module crawl: half a mile is enough)
 miles = 0.5 if profile.quick else profile.ablation_miles
 ev = EvalConfig(miles=miles, n_worlds=profile.ablation_worlds, n_tracks=profile.n_val_tracks)
-without = ablation.evaluate_drivers({key: agent}, world_cfg, ev)[key]
+without = ablation.evaluate_drivers({key: agent}, world_cfg, ev, workers=profile.ablation_workers)[
+    key
+]
 guarded = {}
 stats = {}
 variants = (("perceived", False), ("ground truth", True))
 for name, gt in variants:
     safe = SafeAgent(TrajectoryAgent(model), cfg, ground_truth=gt, audit_every=4)
-    res = evaluate(safe, world_cfg, ev, desc=f"with the module ({name})", workers=ablation.WORKERS)
+    res = evaluate(
+        safe, world_cfg, ev, desc=f"with the module ({name})", workers=profile.ablation_workers
+    )
     guarded[name], stats[name] = (res, safe), safe.stats.to_dict()
     print(f"with the module ({name}): {res.summary()}")
 

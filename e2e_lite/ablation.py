@@ -71,7 +71,8 @@ PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
 BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS)}
-#: shards of every ablation evaluation (part of its settings: see ``evaluate``'s ``workers``).
+#: shards of every full-profile ablation evaluation (part of its settings: see ``evaluate``'s
+#: ``workers``; the quick profile's few cars drive in one, ``Profile.ablation_workers``).
 WORKERS = 2
 
 
@@ -158,10 +159,11 @@ def evaluate_drivers(
     *,
     reuse: bool = True,
     progress: bool = True,
+    workers: int = WORKERS,
 ) -> dict[str, EvalResult | dict[str, Any]]:
     """Every driver on the same tracks with the same seeds (``cfg``).
 
-    Every driver runs in :data:`WORKERS` shards. With ``reuse``, a result stored for the same
+    Every driver runs in ``workers`` shards. With ``reuse``, a result stored for the same
     driver (:func:`fingerprint`), world, evaluation settings and shard count is read back
     instead of driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other
     driver is evaluated and stored.
@@ -171,7 +173,7 @@ def evaluate_drivers(
         label = BY_KEY[key].label if key in BY_KEY else key
 
         def run(policy: Policy = policy, label: str = label) -> EvalResult:
-            res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=WORKERS)
+            res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
             if progress:
                 print(f"{label}: {res.summary()}", flush=True)
             return res
@@ -179,7 +181,7 @@ def evaluate_drivers(
         if not reuse:
             out[key] = run()
             continue
-        run_key = settings_key(fingerprint(policy), world_cfg, cfg, WORKERS, torch.__version__)
+        run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
         path = artifact_path("evaluations", f"{key}.json")
         result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
         if progress and not isinstance(result, EvalResult):

@@ -80,6 +80,8 @@ class Profile:
         ablation_worlds: cars driven in lockstep in chapters 10 and 11 (more than the chapters'
             ``n_worlds``: the network's batches are then large enough to run near its per-frame
             floor; see ``python -m e2e_lite.bench closed-loop``).
+        ablation_workers: shards (processes, or threads) those cars are split into; the quick
+            profile's 4 cars drive in one (a worker's start would cost more than its miles).
     """
 
     name: str
@@ -94,6 +96,7 @@ class Profile:
     ablation_miles: float = 500.0
     replay_s: float = 30.0
     ablation_worlds: int = 64
+    ablation_workers: int = 2
 
     def __post_init__(self) -> None:
         if self.name not in ("quick", "full"):
@@ -109,6 +112,7 @@ class Profile:
         check_range("Profile", "ablation_miles", self.ablation_miles, 0.0, lo_open=True)
         check_range("Profile", "replay_s", self.replay_s, 0.0, lo_open=True)
         check_range("Profile", "ablation_worlds", self.ablation_worlds, 1, integer=True)
+        check_range("Profile", "ablation_workers", self.ablation_workers, 1, integer=True)
 
     @property
     def quick(self) -> bool:
@@ -129,6 +133,7 @@ QUICK = Profile(
     ablation_miles=1.0,
     replay_s=3.0,
     ablation_worlds=4,
+    ablation_workers=1,
 )
 # The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
 # 48,000 training samples (the paper had 500K) are 80 minutes of expert driving, ~120 km.
@@ -145,6 +150,7 @@ FULL = Profile(
     ablation_miles=500.0,
     replay_s=30.0,
     ablation_worlds=64,
+    ablation_workers=2,
 )
 
 
