@@ -61,8 +61,8 @@ for key in drivers:
 # collision is counted once and the car is put back 15 m past the obstacle. Every driver meets
 # exactly the same parked cars from the same starts; only what it does differs. The cars are
 # split into two shards of 32, one per core (two worker processes, or two threads on a GPU; the
-# results are the same either way): the network then sees batches of 32 frames, large
-# enough to run near its per-frame cost floor.
+# results are the same either way): the network then sees batches of 32 frames, and one shard's
+# Python never waits for the other's.
 
 # %%
 ev = EvalConfig(

@@ -106,18 +106,17 @@ print(
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
 # sends the module's counters home), so the row without the module is chapter 10's own result
-# (reused when it is stored). The module audits one intervention in
-# four: would a fresh expert, from the same state, have driven what the network proposed (then
-# the intervention was a **false alarm**)? And would the ground-truth rule have accepted it (then
-# **perception alone** caused it)?
+# (reused when it is stored). The module audits one intervention in four: would a fresh expert,
+# from the same state, have driven what the network proposed (then the intervention was a
+# **false alarm**)? And would the ground-truth rule have accepted it (then **perception alone**
+# caused it)?
 
 # %%
 # (the quick profile's barely trained network makes the module crawl: half a mile is enough)
 miles = 0.5 if profile.quick else profile.ablation_miles
 ev = EvalConfig(miles=miles, n_worlds=profile.ablation_worlds, n_tracks=profile.n_val_tracks)
-without = ablation.evaluate_drivers({key: agent}, world_cfg, ev, workers=profile.ablation_workers)[
-    key
-]
+stored = ablation.evaluate_drivers({key: agent}, world_cfg, ev, workers=profile.ablation_workers)
+without = stored[key]
 guarded = {}
 stats = {}
 variants = (("perceived", False), ("ground truth", True))

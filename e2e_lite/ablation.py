@@ -26,7 +26,7 @@ import torch
 from . import recipes
 from .agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
 from .artifacts import artifact_path, cached, load_json, save_json, settings_key
-from .config import Profile
+from .config import FULL, Profile
 from .data import DataConfig, DrivingData, load_or_collect
 from .evaluation import EvalConfig, EvalResult, Policy, evaluate, results_table
 from .expert import Expert, Oracle
@@ -71,9 +71,9 @@ PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
 BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS)}
-#: shards of every full-profile ablation evaluation (part of its settings: see ``evaluate``'s
-#: ``workers``; the quick profile's few cars drive in one, ``Profile.ablation_workers``).
-WORKERS = 2
+#: shards of a full-profile ablation evaluation (part of its settings: see ``evaluate``'s
+#: ``workers``; the chapters pass their profile's ``ablation_workers``).
+WORKERS = FULL.ablation_workers
 
 
 def build_drivers(

@@ -219,8 +219,8 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
             res.sim_time_s / world_cfg.sim.policy_period_s / res.wall_time_s
         )
         out[f"{label}_sim_miles"] = res.miles
+        startup = res.timing_s.get("startup", 0.0)
         if parallel == "processes":  # the same, leaving out the workers' start (once per call)
-            startup = res.timing_s.get("startup", 0.0)
             out[f"{label}_startup_s"] = startup
             out[f"{label}_after_startup_sim_miles_per_wall_s"] = res.miles / (
                 res.wall_time_s - startup
@@ -228,7 +228,7 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
         frames = max(1.0, res.timing_s["frames"])
         for part in ("render", "policy", "physics"):  # shard-seconds per frame, in ms
             out[f"{label}_{part}_ms_per_frame"] = 1e3 * res.timing_s[part] / frames
-        loop = (res.wall_time_s - res.timing_s.get("startup", 0.0)) * workers - sum(
+        loop = (res.wall_time_s - startup) * workers - sum(
             res.timing_s[p] for p in ("render", "policy", "physics")
         )
         out[f"{label}_rest_ms_per_frame"] = 1e3 * loop / frames

@@ -444,8 +444,8 @@ def evaluate(
             ``result.traces["<split>-<track>"] = [[x, y], ...]``.
         stop_when: called after every decision; the drive ends early when it returns True (the
             data collector stops at a sample count this way). The metrics cover what was driven.
-        workers: threads (shards of cars), default 1; a policy without ``fork``, or a call
-            with ``stop_when``, always runs in one. The network then sees batches of
+        workers: shards of cars (threads or processes, see ``parallel``), default 1; a policy
+            without ``fork``, or a call with ``stop_when``, always runs in one. The network then sees batches of
             ``B / workers`` frames on ``1 / workers`` of the cores.
         parallel: how shards run: ``"auto"`` (processes where possible, see above),
             ``"threads"`` or ``"processes"`` (the policy must pickle, and its forks keep nothing
@@ -512,12 +512,18 @@ def _in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Sh
             torch.set_num_threads(max(1, threads // len(jobs)))
         sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
         with ThreadPoolExecutor(len(jobs)) as pool:
-            futures = [pool.submit(_drive, *job[:5], advance, job[5], None) for job in jobs]
+            futures = [pool.submit(_drive_job, job, advance) for job in jobs]
             return [f.result() for f in futures]
     finally:
         sys.setswitchinterval(interval)
         if torch is not None:
             torch.set_num_threads(threads)
+
+
+def _drive_job(job: tuple, advance: Callable[[float], None]) -> _Shard:
+    """Drive one shard's job ``(policy, world_cfg, cfg, cars, shard, record_traces)``."""
+    policy, world_cfg, cfg, cars, shard, record_traces = job
+    return _drive(policy, world_cfg, cfg, cars, shard, advance, record_traces, None)
 
 
 def _send(stream: Any, message: Any) -> None:
@@ -530,10 +536,9 @@ def _send(stream: Any, message: Any) -> None:
 def _receive(stream: Any) -> Any:
     """The next message of :func:`_send` (EOFError when the writer is gone)."""
     head = stream.read(8)
-    if len(head) < 8:
-        raise EOFError
-    blob = stream.read(int.from_bytes(head, "little"))
-    if len(blob) < int.from_bytes(head, "little"):
+    size = int.from_bytes(head, "little") if len(head) == 8 else -1
+    blob = stream.read(size) if size >= 0 else b""
+    if size < 0 or len(blob) < size:
         raise EOFError
     return pickle.loads(blob)
 
@@ -543,11 +548,9 @@ def shard_worker(inbox: Any, outbox: Any) -> None:
     threads, job)``, drive the shard, send progress ``("miles", m)`` now and then and finally
     ``("ok", (shard, report))`` or ``("error", traceback)``."""
     try:
-        path, torch_threads, job = None, 1, None
-        path = _receive(inbox)
-        sys.path[:] = path  # where the parent found the policy's classes
+        sys.path[:] = _receive(inbox)  # where the parent found the policy's classes
         torch_threads, job = _receive(inbox)
-        if "torch" in sys.modules or torch_threads > 0:
+        if torch_threads > 0:  # the parent ran torch (0: it had not imported it)
             import torch
 
             torch.set_num_threads(torch_threads)
@@ -560,7 +563,7 @@ def shard_worker(inbox: Any, outbox: Any) -> None:
                 _send(outbox, ("miles", last[1]))
                 last[:] = [time.perf_counter(), 0.0]
 
-        shard = _drive(*job[:5], advance, job[5], None)
+        shard = _drive_job(job, advance)
         report = getattr(job[0], "shard_report", None)
         _send(outbox, ("miles", last[1]))
         _send(outbox, ("ok", (shard, None if report is None else report())))
