@@ -127,7 +127,7 @@ print(
 # two plausible answers, left and right, with their weights.
 
 # %%
-agent = TrajectoryAgent(model, sigma_floor=objective.sigma_floor)
+agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
 dcfg = DataConfig.for_profile(profile, "val")
 
 
@@ -268,7 +268,7 @@ labels = val.trajectory[rows].astype(np.float64)
 _, _, _, v_label, a_label = trajectory_reference(labels)
 open_loop = {}
 for name, m in (("L2", l2_model), ("GMM", model)):
-    probe = TrajectoryAgent(m, sigma_floor=objective.sigma_floor)
+    probe = TrajectoryAgent(m, sigma_floor=objective.floor(m))
     chunks = [rows[i : i + 256] for i in range(0, len(rows), 256)]
     pts = np.concatenate([probe.trajectories_from(val.images[c], val.speed[c]) for c in chunks])
     _, _, _, v_pred, a_pred = trajectory_reference(pts)
@@ -310,7 +310,7 @@ diag_miles = 2.0 if profile.quick else 30.0
 diagnosis: dict[str, dict] = {}
 for name, m in (("L2", l2_model), ("GMM", model)):
     for speed in SPEED_SOURCES:
-        rec = Recorder(TrajectoryAgent(m, sigma_floor=objective.sigma_floor, speed=speed), speeds)
+        rec = Recorder(TrajectoryAgent(m, sigma_floor=objective.floor(m), speed=speed), speeds)
         r = evaluate(
             rec,
             world_cfg,

@@ -106,7 +106,7 @@ if gmm07 is not None:
 # in range), which shows as a column at the right edge.
 
 # %%
-agent = TrajectoryAgent(model, sigma_floor=objective.sigma_floor)
+agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
 rows = np.arange(0, len(val), max(1, len(val) // 3000))
 chunks = []
 for c in np.array_split(rows, max(1, len(rows) // 256)):
@@ -151,7 +151,7 @@ def car0_affordances(obs, agent):
     return obs.time_s, agent.last["affordances"][0], truth
 
 
-recorder = Recorder(TrajectoryAgent(model, sigma_floor=objective.sigma_floor), car0_affordances)
+recorder = Recorder(TrajectoryAgent(model, sigma_floor=objective.floor(model)), car0_affordances)
 evaluate(
     recorder,
     world_cfg,

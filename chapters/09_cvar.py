@@ -180,7 +180,7 @@ easy = np.flatnonzero((val.expert_state == 0) & (np.abs(val.curvature) < 1e-4))
 easy = easy[:: max(1, len(easy) // 2000)]
 easy_report = {}
 for name, m in (("before", base), ("after", model)):
-    probe = TrajectoryAgent(m, sigma_floor=objective.sigma_floor)
+    probe = TrajectoryAgent(m, sigma_floor=objective.floor(m))
     chunks = np.array_split(easy, max(1, len(easy) // 256))
     pts = np.concatenate([probe.trajectories_from(val.images[c], val.speed[c]) for c in chunks])
     err_y5 = np.abs(pts[:, -1, 1] - val.trajectory[easy, -1, 1])
@@ -200,7 +200,7 @@ for name, m in (("before", base), ("after", model)):
 # Same validation tracks and seeds as chapters 05-08.
 
 # %%
-agent = TrajectoryAgent(model, sigma_floor=objective.sigma_floor)
+agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
 ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
 res = evaluate(agent, world_cfg, ev, desc="GMM + affordance + CVaR")
 print(res.summary())

@@ -140,8 +140,9 @@ def fingerprint(policy: Policy) -> str:
             digest.update(name.encode())
             digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
         parts += [digest.hexdigest(), repr(policy.model.cfg), getattr(policy, "speed", None)]
+        parts += [getattr(policy, "preview_s", 0.0)]
         parts += [repr(policy.camera), str(policy.device)]
-    for attr in ("cfg", "preview_s"):
+    for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
         if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
             parts.append(repr(getattr(policy, attr)))
     if isinstance(policy, Oracle):

@@ -30,7 +30,7 @@ from .evaluation import Actuation, Observation
 from .expert import ExpertConfig, SpeedLimits
 from .losses import log_sigma, split_gmm
 from .models import DrivingModel, images_to_tensor
-from .tracker import LQRTracker, trajectory_reference
+from .tracker import SPEED_READINGS, LQRTracker, check_reading, follow_trajectory
 from .vehicle import VehicleParams
 
 
@@ -142,7 +142,11 @@ class ActuatorAgent(NetworkAgent):
 #: speed and acceleration read from the trajectory, ``a = a_ref + k (v_ref - v)``),
 #: ``"trajectory_no_ff"`` (reference speed only, no acceleration feed-forward) or ``"cruise"``
 #: (the trajectory steers, :class:`CruiseControl` holds the speed, as for PilotNet).
-SPEED_SOURCES = ("trajectory", "trajectory_no_ff", "cruise")
+SPEED_SOURCES = (*SPEED_READINGS, "cruise")
+#: The reading the course's trajectory drivers use (chapter 07, section 6c, measures it with the
+#: oracle plus network-sized noise on the training tracks and the held-out decoding errors).
+DEFAULT_PREVIEW_S = 0.0
+DEFAULT_SPEED = "trajectory"
 
 
 class TrajectoryAgent(NetworkAgent):
@@ -155,8 +159,11 @@ class TrajectoryAgent(NetworkAgent):
     Args:
         model: a trajectory or GMM model.
         tracker: the LQR tracker (default settings if None).
-        sigma_floor: the GMM's sigma floor (normalised units) used to report sigmas.
+        sigma_floor: the GMM's sigma floor used to report sigmas, in normalised units: a number,
+            or one per coordinate (``objective.floor(model)``).
         speed: where the speed command comes from, one of :data:`SPEED_SOURCES`.
+        preview_s: where along the predicted trajectory the tracker reads its references [s]
+            (:func:`~e2e_lite.tracker.trajectory_reference`; 0 = the car's position now).
 
     Attributes:
         last: the latest decision's ``{"points": (B, 5, 2) followed [m], "modes": (B, K, 5, 2) [m],
@@ -169,14 +176,14 @@ class TrajectoryAgent(NetworkAgent):
         self,
         model: DrivingModel,
         tracker: LQRTracker | None = None,
-        sigma_floor: float = 0.01,
-        speed: str = "trajectory",
+        sigma_floor: float | torch.Tensor = 0.01,
+        speed: str = DEFAULT_SPEED,
+        preview_s: float = DEFAULT_PREVIEW_S,
         **kwargs,
     ) -> None:
         super().__init__(model, **kwargs)
-        if speed not in SPEED_SOURCES:
-            raise ValueError(f"speed must be one of {SPEED_SOURCES}, not {speed!r}")
-        self.speed = speed
+        check_reading("TrajectoryAgent", preview_s, speed, SPEED_SOURCES)
+        self.speed, self.preview_s = speed, preview_s
         if model.cfg.head not in ("trajectory", "gmm"):
             raise ValueError(
                 f"TrajectoryAgent needs a trajectory or gmm head, not {model.cfg.head!r}"
@@ -224,13 +231,10 @@ class TrajectoryAgent(NetworkAgent):
     def follow(self, points: np.ndarray, obs: Observation) -> Actuation:
         """Commands that follow trajectories ``(B, 5, 2)`` [m] (car frame) with the tracker,
         the speed as :attr:`speed` says (e.g. a trajectory the safety module chose instead)."""
-        e, psi, kappa, v_ref, a_ref = trajectory_reference(points)
-        steer = self.tracker.steer(e, psi, kappa, obs.speed)
+        reading = "trajectory" if self.cruise is not None else self.speed
+        steer, accel = follow_trajectory(self.tracker, points, obs.speed, self.preview_s, reading)
         if self.cruise is not None:
             accel = self.cruise.accel(obs)
-        else:
-            feed_forward = a_ref if self.speed == "trajectory" else np.zeros_like(a_ref)
-            accel = self.tracker.accel(obs.speed, v_ref, feed_forward)
         return Actuation(steer_rad=steer, accel_mps2=accel)
 
 

@@ -3,7 +3,11 @@
 The collector drives the :class:`~e2e_lite.expert.Expert` through the closed-loop evaluator on
 the training (or validation) tracks, with random steering and acceleration *bursts* added to the
 commands it executes, so the recording also holds off-centre and off-heading states and the
-expert's recovery from them. One sample per policy step (10 Hz) stores:
+expert's recovery from them. Some bursts brake hard, and now and then a car is taken over and
+re-placed exactly as the evaluator re-places a car after a collision
+(:func:`~e2e_lite.evaluation.restart_state`: 20 m/s, below the cruise speed), so the data shows
+the expert getting back to speed from the states a learned driver restarts in (covariate shift;
+chapter 04 compares the two speed distributions). One sample per policy step (10 Hz) stores:
 
 =================  ==============  ===========================================================
 field              shape, dtype    meaning
@@ -133,19 +137,25 @@ class NoiseConfig:
 
     A car not in a burst starts one with probability ``rate_per_s * policy period`` per decision.
     A burst holds a steering offset of random sign and magnitude, and an acceleration offset, for
-    a random duration.
+    a random duration. A share ``brake_share`` of the bursts brake instead (acceleration offset
+    ``-brake_mps2``), taking 1-6 m/s off the speed, so the expert's recovery to its cruise speed
+    is labelled too.
 
     Attributes:
         rate_per_s: bursts per second of driving [1/s] (0 turns noise off).
         duration_s: (min, max) duration of a burst [s].
         steer_rad: (min, max) magnitude of the steering offset [rad].
         accel_mps2: the acceleration offset is uniform in +-this [m/s^2].
+        brake_share: share of bursts that brake, in [0, 1].
+        brake_mps2: (min, max) deceleration added by a braking burst [m/s^2].
     """
 
     rate_per_s: float = 0.12
     duration_s: tuple[float, float] = (0.5, 1.5)
     steer_rad: tuple[float, float] = (0.003, 0.015)
     accel_mps2: float = 1.0
+    brake_share: float = 0.25
+    brake_mps2: tuple[float, float] = (2.0, 4.0)
 
     def __post_init__(self) -> None:
         o = "NoiseConfig"
@@ -153,6 +163,8 @@ class NoiseConfig:
         check_pair(o, "duration_s", self.duration_s, lo=0.0)
         check_pair(o, "steer_rad", self.steer_rad, lo=0.0)
         check_range(o, "accel_mps2", self.accel_mps2, 0.0, 10.0)
+        check_range(o, "brake_share", self.brake_share, 0.0, 1.0)
+        check_pair(o, "brake_mps2", self.brake_mps2, lo=0.0)
 
 
 @dataclass(frozen=True)
@@ -168,6 +180,11 @@ class DataConfig:
         expert: the expert's settings.
         noise: the noise bursts.
         camera: the camera (66 x 200 by default).
+        restart_rate_per_s: take-overs per second of driving [1/s]: the car is re-placed as the
+            evaluator re-places it after a collision (:func:`~e2e_lite.evaluation.restart_state`).
+            The default, one per 20 s, is about twice as often as chapter 10's GMM collided (once
+            per 39 s of driving) and doubles the share of samples between 20 and 24 m/s (7.6 % ->
+            17.8 % on 16,000 training samples); chapter 04 measures it.
         seed: seeds the expert's draws, the noise and the start lanes.
     """
 
@@ -179,6 +196,7 @@ class DataConfig:
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
+    restart_rate_per_s: float = 0.05
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -188,6 +206,7 @@ class DataConfig:
         check_range(o, "n_samples", self.n_samples, 1, integer=True)
         check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
         check_range(o, "n_worlds", self.n_worlds, 1, 1024, integer=True)
+        check_range(o, "restart_rate_per_s", self.restart_rate_per_s, 0.0, 1.0)
         check_range(o, "seed", self.seed, 0, integer=True)
 
     @classmethod
@@ -208,7 +227,7 @@ class DataConfig:
     @property
     def key(self) -> str:
         """Settings key of the dataset these settings make."""
-        return settings_key("dataset-v1", self)
+        return settings_key("dataset-v2", self)
 
 
 FIELDS = (
@@ -302,13 +321,16 @@ class _Recorder:
     def act(self, obs: Observation) -> Actuation:
         traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
         clean = self.expert.act(obs)
-        self._update_noise(len(obs.s))
-        take = min(len(obs.s), self.cfg.n_samples - self.count)
+        n = len(obs.s)
+        self._update_noise(n)
+        take = min(n, self.cfg.n_samples - self.count)
         if take > 0:
             self._record(obs, clean, traj, take)
+        period = self.cfg.world.sim.policy_period_s
         return Actuation(
             steer_rad=clean.steer_rad + self.offset[:, 0],
             accel_mps2=clean.accel_mps2 + self.offset[:, 1],
+            restart=self.rng.random(n) < self.cfg.restart_rate_per_s * period,
         )
 
     def _update_noise(self, n: int) -> None:
@@ -323,7 +345,12 @@ class _Recorder:
             self.burst_left[start] = self.rng.uniform(*nz.duration_s, k)
             sign = self.rng.choice([-1.0, 1.0], k)
             self.offset[start, 0] = sign * self.rng.uniform(*nz.steer_rad, k)
-            self.offset[start, 1] = self.rng.uniform(-nz.accel_mps2, nz.accel_mps2, k)
+            brake = self.rng.random(k) < nz.brake_share
+            self.offset[start, 1] = np.where(
+                brake,
+                -self.rng.uniform(*nz.brake_mps2, k),
+                self.rng.uniform(-nz.accel_mps2, nz.accel_mps2, k),
+            )
 
     def _record(self, obs: Observation, clean: Actuation, traj: np.ndarray, take: int) -> None:
         sl = slice(self.count, self.count + take)
@@ -380,6 +407,33 @@ def situation_shares(
         "pass": float(np.mean(state == PASS)),
         "follow": float(np.mean(state == FOLLOW)),
         "noise": float(np.mean(arrays["noise"])),
+    }
+
+
+#: Below this speed a sample is "slow" [m/s]: the evaluator restarts cars at 20 m/s and the roads'
+#: cruise speed is 25 m/s.
+SLOW_MPS = 22.0
+#: Lane changes whose rear axle is still within this of its lane centre have just started [m].
+CHANGE_START_M = 0.5
+
+
+def situations(
+    arrays: dict[str, np.ndarray], rows: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
+    """Masks of the situations that decide collisions, each (N,) bool (``rows``: only these):
+
+    * ``"overtake_start"``: the expert has just started an overtake (in a lane change that is an
+      overtake, the rear axle still within :data:`CHANGE_START_M` of its lane centre);
+    * ``"slow"``: speed below :data:`SLOW_MPS` (the states a learned driver restarts in);
+    * ``"curve"``: on an arc (|curvature| > 1e-4 1/m).
+    """
+    take = (lambda x: x) if rows is None else (lambda x: x[rows])
+    state, over = take(arrays["expert_state"]), take(arrays["overtaking"]).astype(bool)
+    offset = take(arrays["affordances"])[:, AFFORDANCE_NAMES.index("center_offset_m")]
+    return {
+        "overtake_start": (state == CHANGE) & over & (np.abs(offset) < CHANGE_START_M),
+        "slow": take(arrays["speed"]) < SLOW_MPS,
+        "curve": np.abs(take(arrays["curvature"])) > 1e-4,
     }
 
 

@@ -85,10 +85,16 @@ class Observation:
 
 @dataclass
 class Actuation:
-    """A batch of actuator commands: road-wheel angle [rad] and acceleration [m/s^2], each ``(B,)``."""
+    """A batch of actuator commands: road-wheel angle [rad] and acceleration [m/s^2], each ``(B,)``.
+
+    ``restart`` (optional, ``(B,)`` bool) asks the evaluator to take car i over and re-place it
+    exactly as after a collision (:func:`restart_state`), without counting a collision: the data
+    collector's way of showing the expert the states a learned driver restarts from.
+    """
 
     steer_rad: np.ndarray
     accel_mps2: np.ndarray
+    restart: np.ndarray | None = None
 
 
 @runtime_checkable
@@ -126,6 +132,11 @@ class EvalConfig:
         intervention_cost_s: time charged per intervention in the autonomy metric [s].
         stall_speed_mps, stall_time_s: below this speed for this long is a stall [m/s, s].
         seed: seeds the start lanes.
+
+    Where cars (re)start is one rule, :func:`start_state` and :func:`restart_state`, shared with
+    the data collector. A restart is at ``start_speed_mps`` (20 m/s), below the roads' 25 m/s
+    cruise speed, as a car rejoining a highway after a stop would be; the expert's data must show
+    these states (chapter 04), the evaluation is not changed to avoid them.
     """
 
     miles: float = 100.0
@@ -170,6 +181,9 @@ class EvalResult:
     frames), ``policy`` (the driver's ``act``: the network and the tracker), ``physics``
     (bicycle and pymunk steps); ``frames`` counts the frames rendered; ``startup`` is the
     wall-clock time shard processes took to start (an interpreter and the imports each).
+    ``speed_hist[k]`` counts the decisions taken at a speed in ``[k, k + 1)`` m/s (the last bin
+    holds everything faster): the states the driver visited (chapter 04 compares them with the
+    data's).
     """
 
     miles: float
@@ -192,6 +206,7 @@ class EvalResult:
     events: list[dict[str, Any]] = field(default_factory=list)
     timing_s: dict[str, float] = field(default_factory=dict)
     traces: dict[str, list[list[float]]] = field(default_factory=dict)
+    speed_hist: list[int] = field(default_factory=list)
 
     def to_dict(self, with_events: bool = True) -> dict[str, Any]:
         """JSON-ready dict (traces left out; events optional)."""
@@ -367,6 +382,44 @@ def drive(
     return np.array(states), contacts
 
 
+SPEED_BINS = 41  # 1 m/s bins of EvalResult.speed_hist: 0-1, ..., 39-40, >= 40 m/s
+
+
+def speed_histogram(speeds_mps: np.ndarray) -> np.ndarray:
+    """Counts of ``speeds_mps`` in :data:`SPEED_BINS` bins of 1 m/s (the last one open), int64."""
+    bins = np.clip(np.asarray(speeds_mps, dtype=np.float64), 0.0, SPEED_BINS - 1).astype(np.int64)
+    return np.bincount(bins, minlength=SPEED_BINS)
+
+
+def start_state(world: World, lane: int, cfg: EvalConfig) -> tuple[float, float, float]:
+    """Where a car starts on a new track: ``(s [m], d [m], speed [m/s])``.
+
+    At ``cfg.start_s_m`` on the centre of ``lane`` (drawn by the caller), or of the next lane to
+    the left (cyclically) when a parked car is within 10 m behind to 30 m ahead, at
+    ``cfg.start_speed_mps``. The evaluator and the data collector both start cars here.
+    """
+    s0 = cfg.start_s_m
+    for _ in range(world.track.n_lanes):
+        if world.lane_free(s0, lane, 10.0, 30.0):
+            break
+        lane = (lane + 1) % world.track.n_lanes
+    return s0, float(world.track.lane_center(lane)), cfg.start_speed_mps
+
+
+def restart_state(
+    world: World, s_obstacle: float, d_now: float, cfg: EvalConfig
+) -> tuple[float, float, float]:
+    """Where a car restarts after a collision, a stall or a take-over: ``(s, d, speed)``.
+
+    :meth:`~e2e_lite.world.World.respawn_pose` (15 m past the obstacle, the nearest free lane),
+    never past the line where the car moves on to its next track, at ``cfg.start_speed_mps``.
+    """
+    s_new, lane = world.respawn_pose(s_obstacle, d_now)
+    # past the move-on line: the next decision moves the car to its next track before any physics
+    s_new = min(s_new, world.track.length - cfg.end_margin_m + 1.0)
+    return s_new, float(world.track.lane_center(lane)), cfg.start_speed_mps
+
+
 class _WorldPool:
     """Worlds of the evaluation split: a road and its cars are made once per track, and every car
     gets its own pymunk world of it (two cars on one track must not share an ego body)."""
@@ -400,6 +453,7 @@ class _Shard:
         self.interventions = 0
         self.stalls = 0
         self.tracks = 0
+        self.speed_hist = np.zeros(SPEED_BINS, dtype=np.int64)
         self.events: list[dict[str, Any]] = []
         self.traces: dict[str, list[list[float]]] = {}
         # seconds per part (summed over shards); "startup": the wall-clock time the shard
@@ -662,20 +716,17 @@ def _drive(
 
     def spawn_new_track(i: int) -> None:
         w = fleet.worlds[i]
-        lane = int(rng.integers(0, w.track.n_lanes))
-        s0 = cfg.start_s_m
-        # never start on top of a parked car
-        while not w.lane_free(s0, lane, 10.0, 30.0):
-            lane = (lane + 1) % w.track.n_lanes
-        fleet.place(i, s0, float(w.track.lane_center(lane)), cfg.start_speed_mps)
+        fleet.place(i, *start_state(w, int(rng.integers(0, w.track.n_lanes)), cfg))
 
     def respawn(i: int, s_obstacle: float, d_now: float) -> None:
-        w = fleet.worlds[i]
-        s_new, lane_new = w.respawn_pose(s_obstacle, d_now)
-        # past the move-on line: the next decision moves the car to its next track before any physics
-        s_new = min(s_new, w.track.length - cfg.end_margin_m + 1.0)
-        fleet.place(i, s_new, float(w.track.lane_center(lane_new)), cfg.start_speed_mps)
+        fleet.place(i, *restart_state(fleet.worlds[i], s_obstacle, d_now, cfg))
         respawned[i] = True
+
+    def position(i: int) -> tuple[float, float]:
+        s_i, d_i, _ = fleet.worlds[i].track.to_frenet_hint(
+            fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
+        )
+        return s_i, d_i
 
     for i in range(n):
         spawn_new_track(i)
@@ -723,6 +774,7 @@ def _drive(
         out.timing["render"] += tock - tick
         obs = observe(fleet, respawned, t_sim, images, (s, d, road_h, kappa))
         respawned[:] = False
+        out.speed_hist += speed_histogram(fleet.state[active, V])
         act = policy.act(obs)
         tick = time.perf_counter()
         out.timing["policy"] += tick - tock
@@ -751,9 +803,7 @@ def _drive(
             if not c:
                 continue
             w = fleet.worlds[i]
-            s_i, d_i, _ = w.track.to_frenet_hint(
-                fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
-            )
+            s_i, d_i = position(i)
             car_idx = next((j for kind, j in c if kind == "car"), None)
             s_obst = (
                 s_i if car_idx is None else max(s_i, float(w.cars.s[car_idx]) + w.cars.length_m / 2)
@@ -784,10 +834,13 @@ def _drive(
             out.stalls += 1
             out.interventions += 1
             slow_t[i] = 0.0
-            s_i, d_i, _ = fleet.worlds[i].track.to_frenet_hint(
-                fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
-            )
-            respawn(i, s_i, d_i)
+            respawn(i, *position(i))
+        # take-overs the policy asked for (the data collector's restarts; not collisions)
+        if act.restart is not None:
+            for i in np.flatnonzero(act.restart & active).tolist():
+                if not contacts[i] and not respawned[i]:
+                    episode_t[i] = 0.0
+                    respawn(i, *position(i))
         active &= odometer < share_m
         if stop_when is not None and stop_when():
             active[:] = False
@@ -837,4 +890,5 @@ def _merge(shards: list[_Shard], cfg: EvalConfig, wall: float) -> EvalResult:
         timing_s={k: sum(sh.timing[k] for sh in shards) for k in shards[0].timing},
         events=events,
         traces=traces,
+        speed_hist=[int(c) for c in sum(sh.speed_hist for sh in shards)],
     )

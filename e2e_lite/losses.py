@@ -35,6 +35,24 @@ from .data import AFFORDANCE_NAMES
 from .models import DrivingModel
 
 LOG_2PI = math.log(2.0 * math.pi)
+#: How trajectory targets are scaled before the loss (:func:`~e2e_lite.training.model_stats`):
+#: ``"coordinate"``: each of the 10 numbers by its own standard deviation (the paper's
+#: practicality); ``"axis"``: every x by one pooled standard deviation and every y by another
+#: (so an error keeps its size in metres within an axis: the 0.3 s lateral point, whose spread is
+#: about 6 cm, is no longer blown up 15-fold beside the 1.5 s one); ``"none"``: metres.
+TARGET_SCALES = ("coordinate", "axis", "none")
+
+
+def _target_scale(owner: str, normalise_targets: bool, target_scale: str | None) -> str:
+    scale = target_scale or ("coordinate" if normalise_targets else "none")
+    if scale not in TARGET_SCALES:
+        raise ValueError(
+            f"{owner}.target_scale={scale!r} is invalid: must be one of {TARGET_SCALES}"
+        )
+    return scale
+
+
+_SCALE_SUFFIX = {"coordinate": "", "axis": "-axis", "none": "-raw"}
 
 
 def target(head: str, batch: dict[str, torch.Tensor], wheelbase_m: float) -> torch.Tensor:
@@ -58,17 +76,26 @@ class Objective:
             mean and standard deviation (the paper's practicality; otherwise the far
             longitudinal points dominate); ``False`` trains on physical units (the model then
             carries mean 0 and standard deviation 1).
+        target_scale: one of :data:`TARGET_SCALES`; overrides ``normalise_targets`` when given
+            (``"axis"``: one scale per axis, trajectories only).
     """
 
-    def __init__(self, head: str, wheelbase_m: float = 2.7, normalise_targets: bool = True) -> None:
+    def __init__(
+        self,
+        head: str,
+        wheelbase_m: float = 2.7,
+        normalise_targets: bool = True,
+        target_scale: str | None = None,
+    ) -> None:
         if head not in ("steer", "actuators", "trajectory"):
             raise ValueError(
                 f"Objective.head={head!r} is invalid: must be steer, actuators or trajectory"
             )
         self.head = head
         self.wheelbase_m = wheelbase_m
-        self.normalise_targets = normalise_targets
-        self.name = f"mse-{head}" + ("" if normalise_targets else "-raw")
+        self.target_scale = _target_scale("Objective", normalise_targets, target_scale)
+        self.normalise_targets = self.target_scale != "none"
+        self.name = f"mse-{head}" + _SCALE_SUFFIX[self.target_scale]
 
     #: the training loop drops an epoch's last batch when it is smaller than this
     min_batch: int = 2
@@ -127,10 +154,12 @@ def split_gmm(out: torch.Tensor, n_modes: int) -> tuple[torch.Tensor, torch.Tens
     return out[..., 2 * k10 :], means, raw
 
 
-def log_sigma(raw: torch.Tensor, floor: float) -> torch.Tensor:
+def log_sigma(raw: torch.Tensor, floor: float | torch.Tensor) -> torch.Tensor:
     """``log(floor + exp(raw))``: a log standard deviation that is smooth in ``raw`` and never
-    below ``log(floor)`` (so ``1 / sigma`` stays finite)."""
-    return torch.logaddexp(raw, torch.full_like(raw, math.log(floor)))
+    below ``log(floor)`` (so ``1 / sigma`` stays finite). ``floor``: a number, or one per target
+    dimension (the last axis of ``raw``)."""
+    log_floor = torch.log(torch.as_tensor(floor, dtype=raw.dtype, device=raw.device))
+    return torch.logaddexp(raw, log_floor.expand_as(raw))
 
 
 def gmm_nll(
@@ -176,6 +205,10 @@ class GMMObjective(Objective):
         wheelbase_m: unused by the GMM; kept for the common interface.
         normalise_targets: as :class:`Objective` (``False``: the floor and the warm-up's
             sigma = 1 are then in metres).
+        target_scale: as :class:`Objective`.
+        sigma_floor_m: the floor in metres instead, the same for every point and axis
+            (``sigma_floor`` is then unused): :meth:`floor` turns it into each coordinate's
+            normalised units with the model's target scale.
     """
 
     def __init__(
@@ -185,20 +218,35 @@ class GMMObjective(Objective):
         sigma_warmup_epochs: int = 1,
         wheelbase_m: float = 2.7,
         normalise_targets: bool = True,
+        target_scale: str | None = None,
+        sigma_floor_m: float | None = None,
     ) -> None:
         check_range("GMMObjective", "n_modes", n_modes, 1, 16, integer=True)
         check_range("GMMObjective", "sigma_floor", sigma_floor, 0.0, 1.0, lo_open=True)
         check_range("GMMObjective", "sigma_warmup_epochs", sigma_warmup_epochs, 0, integer=True)
+        if sigma_floor_m is not None:
+            check_range("GMMObjective", "sigma_floor_m", sigma_floor_m, 0.0, 10.0, lo_open=True)
         self.head = "gmm"
         self.n_modes = n_modes
         self.sigma_floor = sigma_floor
+        self.sigma_floor_m = sigma_floor_m
         self.sigma_warmup_epochs = sigma_warmup_epochs
         self.wheelbase_m = wheelbase_m
-        self.normalise_targets = normalise_targets
-        self.name = f"gmm-nll-K{n_modes}-floor{sigma_floor}-warmup{sigma_warmup_epochs}" + (
-            "" if normalise_targets else "-raw"
+        self.target_scale = _target_scale("GMMObjective", normalise_targets, target_scale)
+        self.normalise_targets = self.target_scale != "none"
+        floor = f"floor{sigma_floor}" if sigma_floor_m is None else f"floor{sigma_floor_m:g}m"
+        self.name = (
+            f"gmm-nll-K{n_modes}-{floor}-warmup{sigma_warmup_epochs}"
+            + _SCALE_SUFFIX[self.target_scale]
         )
         self.sigma_fixed = sigma_warmup_epochs > 0
+
+    def floor(self, model: DrivingModel) -> float | torch.Tensor:
+        """The sigma floor in the model's normalised units: ``sigma_floor``, or ``sigma_floor_m``
+        divided by each coordinate's target scale, (10,)."""
+        if self.sigma_floor_m is None:
+            return self.sigma_floor
+        return self.sigma_floor_m / model.target_std
 
     def start_epoch(self, epoch: int) -> None:
         """Hold sigma at 1 during the warm-up epochs."""
@@ -213,14 +261,14 @@ class GMMObjective(Objective):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(weights (B, K), means (B, K, 10) normalised, log_sigma (B, K, 10))``."""
         logits, means, raw = split_gmm(out["main"], self.n_modes)
-        return torch.softmax(logits, dim=-1), means, log_sigma(raw, self.sigma_floor)
+        return torch.softmax(logits, dim=-1), means, log_sigma(raw, self.floor(model))
 
     def per_sample(
         self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
     ) -> torch.Tensor:
         """The NLL of each sample's normalised trajectory."""
         logits, means, raw = split_gmm(out["main"], self.n_modes)
-        log_sig = torch.zeros_like(raw) if self.sigma_fixed else log_sigma(raw, self.sigma_floor)
+        log_sig = torch.zeros_like(raw) if self.sigma_fixed else log_sigma(raw, self.floor(model))
         tgt = model.normalise_target(target("gmm", batch, self.wheelbase_m))
         return gmm_nll(tgt, logits, means, log_sig)
 
@@ -246,6 +294,51 @@ def most_likely(weights: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
     """The mean of the mode with the largest weight (the paper's inference): (B, D)."""
     top = weights.argmax(dim=-1)
     return means[torch.arange(len(top), device=top.device), top]
+
+
+def mode_split(modes_m: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How the two most likely modes of each sample differ at the last point (1.5 s):
+    ``(lateral |dy| [m], longitudinal |dx| [m])``, each (B,).
+
+    Args:
+        modes_m: (B, K, 5, 2) mode means in metres (car frame), K >= 2.
+        weights: (B, K) mixing weights.
+    """
+    modes_m, weights = np.asarray(modes_m), np.asarray(weights)
+    if modes_m.ndim != 4 or modes_m.shape[1] < 2 or weights.shape != modes_m.shape[:2]:
+        raise ValueError(
+            f"mode_split needs modes (B, K>=2, 5, 2) and weights (B, K); got {modes_m.shape}, "
+            f"{weights.shape}"
+        )
+    order = np.argsort(-weights, axis=1, kind="stable")[:, :2]
+    rows = np.arange(len(modes_m))[:, None]
+    first, second = modes_m[rows, order][:, 0, -1], modes_m[rows, order][:, 1, -1]  # (B, 2)
+    gap = np.abs(first - second)
+    return gap[:, 1], gap[:, 0]
+
+
+def side_shares(
+    followed_end_y_m: np.ndarray, expert_side: np.ndarray, committed_m: float = 0.9
+) -> dict[str, float]:
+    """Which way a followed trajectory goes where the expert changes lanes: the shares of samples
+    whose lateral offset at 1.5 s is past ``committed_m`` towards the expert's side
+    (``"expert_side"``), past it towards the other side (``"other_side"``), or neither
+    (``"keep"``).
+
+    Args:
+        followed_end_y_m: (N,) lateral offset of the followed trajectory at 1.5 s [m], left > 0.
+        expert_side: (N,) +1 when the expert goes left, -1 right.
+        committed_m: offset that counts as going to a side [m] (default a quarter lane).
+    """
+    y, side = np.asarray(followed_end_y_m, float), np.asarray(expert_side, float)
+    if y.shape != side.shape or not len(y):
+        raise ValueError(
+            f"side_shares needs two equal, non-empty arrays; got {y.shape}, {side.shape}"
+        )
+    towards = y * np.sign(side)
+    expert = float(np.mean(towards > committed_m))
+    other = float(np.mean(towards < -committed_m))
+    return {"expert_side": expert, "other_side": other, "keep": 1.0 - expert - other}
 
 
 # ------------------------------------------------------------------------------ wrappers

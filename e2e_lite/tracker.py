@@ -40,6 +40,10 @@ from .vehicle import VehicleParams
 # The paper's trajectory: 5 points, 0.3 s apart, 1.5 s ahead.
 N_POINTS = 5
 POINT_DT_S = 0.3
+#: How the speed command is read off a trajectory (:func:`follow_trajectory`): ``"trajectory"``
+#: (the paper: ``a = a_ref + k (v_ref - v)``) or ``"trajectory_no_ff"`` (``a = k (v_ref - v)``,
+#: no acceleration feed-forward).
+SPEED_READINGS = ("trajectory", "trajectory_no_ff")
 
 
 @dataclass(frozen=True)
@@ -276,10 +280,27 @@ def trajectory_reference(
     return -pos[..., 1], psi, kappa, speed, a_ref
 
 
+def check_reading(
+    owner: str, preview_s: float, speed: str, readings: tuple = SPEED_READINGS
+) -> None:
+    """Validate a trajectory reading: ``preview_s`` within the 1.5 s horizon, ``speed`` one of
+    ``readings``."""
+    check_range(owner, "preview_s", preview_s, 0.0, N_POINTS * POINT_DT_S)
+    if speed not in readings:
+        raise ValueError(f"{owner}.speed={speed!r} is invalid: must be one of {readings}")
+
+
 def follow_trajectory(
-    tracker: LQRTracker, points: np.ndarray, speed_mps: np.ndarray, preview_s: float = 0.0
+    tracker: LQRTracker,
+    points: np.ndarray,
+    speed_mps: np.ndarray,
+    preview_s: float = 0.0,
+    speed: str = "trajectory",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Steering [rad] and acceleration [m/s^2] that follow 5-point trajectories ``(B, 5, 2)``
-    (see :func:`trajectory_reference`) from the cars' speeds ``(B,)`` [m/s]."""
+    from the cars' speeds ``(B,)`` [m/s]: the references are read at ``preview_s`` (see
+    :func:`trajectory_reference`), the speed as ``speed`` says (:data:`SPEED_READINGS`)."""
+    check_reading("follow_trajectory", preview_s, speed)
     e, psi, kappa, v_ref, a_ref = trajectory_reference(points, preview_s)
-    return tracker.steer(e, psi, kappa, speed_mps), tracker.accel(speed_mps, v_ref, a_ref)
+    feed_forward = a_ref if speed == "trajectory" else 0.0
+    return tracker.steer(e, psi, kappa, speed_mps), tracker.accel(speed_mps, v_ref, feed_forward)

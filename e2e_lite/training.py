@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from .artifacts import artifact_path, atomic_write, save_json, settings_key
 from .config import check_range
-from .data import DrivingData, DrivingDataset
+from .data import DrivingData, DrivingDataset, situations
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
 from .viz import save_figure
@@ -35,6 +35,20 @@ from .viz import save_figure
 
 class CheckpointMismatch(ValueError):
     """A checkpoint was made with other settings, statistics or data than asked for."""
+
+
+SELECT_BY = ("val_loss", "decisive_ade")
+DECISIVE = "decisive ADE [m]"
+
+
+def decisive_errors(ade_m: np.ndarray, masks: dict[str, np.ndarray]) -> dict[str, float]:
+    """The held-out ADE [m] on each situation of ``masks`` (``"ADE <name> [m]"``; situations with
+    no sample are left out) and their unweighted mean (:data:`DECISIVE`)."""
+    out = {f"ADE {k} [m]": float(ade_m[m].mean()) for k, m in masks.items() if m.any()}
+    if not out:
+        raise ValueError("no validation sample falls in any decisive situation")
+    out[DECISIVE] = float(np.mean(list(out.values())))
+    return out
 
 
 @dataclass(frozen=True)
@@ -50,6 +64,11 @@ class TrainConfig:
         freeze: ``(name_prefix, first_epoch, stop_epoch)`` triples: parameters whose name starts
             with the prefix are frozen for epochs ``first_epoch <= e < stop_epoch`` (0-based).
         patience: stop after this many epochs without a better validation loss (None: never).
+        select_by: which epoch's weights are kept: ``"val_loss"`` (the lowest validation loss) or
+            ``"decisive_ade"`` (the lowest error of the followed trajectory on the situations that
+            decide collisions: the mean over overtake starts, slow frames and curves of each
+            one's held-out ADE, see :func:`~e2e_lite.data.situations`; trajectory heads only).
+            A GMM's NLL keeps falling as its sigmas sharpen while its driving gets worse.
         max_val_samples: validate on at most this many samples (evenly spaced) to save time.
         seed: seeds the weights, the dropout and the shuffling.
         device: ``"auto"`` (CUDA if present, else CPU), ``"cpu"`` or ``"cuda"``.
@@ -63,6 +82,7 @@ class TrainConfig:
     freeze: tuple[tuple[str, int, int], ...] = ()
     patience: int | None = None
     max_val_samples: int | None = None
+    select_by: str = "val_loss"
     seed: int = 0
     device: str = "auto"
 
@@ -79,6 +99,10 @@ class TrainConfig:
         if self.max_val_samples is not None:
             check_range(o, "max_val_samples", self.max_val_samples, 1, integer=True)
         check_range(o, "seed", self.seed, 0, integer=True)
+        if self.select_by not in SELECT_BY:
+            raise ValueError(
+                f"{o}.select_by={self.select_by!r} is invalid: must be one of {SELECT_BY}"
+            )
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"{o}.device={self.device!r} is invalid: must be auto, cpu or cuda")
         for prefix, first, stop in self.freeze:
@@ -110,10 +134,15 @@ class History:
 
 def model_stats(cfg: ModelConfig, data: DrivingData, objective: Objective) -> dict[str, np.ndarray]:
     """The normalisation a model of ``cfg`` trained on ``data`` carries (from the training set;
-    the identity for the target when ``objective.normalise_targets`` is off)."""
+    the identity for the target when ``objective.normalise_targets`` is off; for a trajectory
+    with ``objective.target_scale == "axis"``, one pooled standard deviation per axis,
+    ``sqrt(mean_k std_k^2)`` over the 5 points)."""
     s = data.stats
     if cfg.target_size == 10:
         t_mean, t_std = s["trajectory_mean"].reshape(-1), s["trajectory_std"].reshape(-1)
+        if getattr(objective, "target_scale", "coordinate") == "axis":
+            pooled = np.sqrt(np.mean(s["trajectory_std"].astype(np.float64) ** 2, axis=0))
+            t_std = np.tile(pooled, len(t_std) // 2).astype(np.float32)
     elif cfg.head == "actuators":
         t_mean, t_std = s["actuators_mean"], s["actuators_std"]
     else:  # steering as curvature: statistics of tan(steer) / L
@@ -173,7 +202,8 @@ def fit(
     name: str = "model",
     progress: bool = True,
 ) -> History:
-    """Train ``model`` in place; on return it holds the best validation epoch's weights.
+    """Train ``model`` in place; on return it holds the weights of the best epoch by
+    ``cfg.select_by`` (the validation loss, or the decisive-situation error).
 
     Writes ``<outputs>/training/<name>.json`` (the history) and ``<outputs>/figures/train_<name>.png``.
     """
@@ -186,6 +216,7 @@ def fit(
         val_ds = DrivingDataset(val.data, val.indices[keep])
     epochs: list[dict[str, Any]] = []
     best_loss, best_epoch, best_state = float("inf"), 0, None
+    masks = situations(val_ds.data.arrays, val_ds.indices) if cfg.select_by != "val_loss" else None
     t_start, n_seen, t_train = time.perf_counter(), 0, 0.0
     for epoch in range(cfg.epochs):
         t0 = time.perf_counter()
@@ -234,21 +265,32 @@ def fit(
             "frozen": frozen,
             "seconds": time.perf_counter() - t0,
         }
+        if masks is not None:
+            if "ADE [m]" not in val_metrics:
+                raise ValueError(
+                    f"TrainConfig.select_by={cfg.select_by!r} needs a trajectory head (ADE metric)"
+                )
+            record.update(decisive_errors(val_metrics["ADE [m]"], masks))
+        score = record["val_loss"] if masks is None else record[DECISIVE]
         epochs.append(record)
         if progress:
-            extras = ", ".join(f"{k} {v:.3g}" for k, v in record.items() if "MAE" in k or "DE" in k)
+            extras = ", ".join(
+                f"{k} {v:.3g}"
+                for k, v in record.items()
+                if k in ("ADE [m]", DECISIVE) or "MAE" in k
+            )
             print(
                 f"{name} epoch {epoch + 1}/{cfg.epochs}: train {record['train_loss']:.4f}, "
                 f"val {record['val_loss']:.4f}"
                 + (f" ({extras})" if extras else "")
                 + (f", frozen {frozen}" if frozen else "")
             )
-        if record["val_loss"] < best_loss:
-            best_loss, best_epoch = record["val_loss"], epoch
+        if score < best_loss:
+            best_loss, best_epoch = score, epoch
             best_state = copy.deepcopy(model.state_dict())
         elif cfg.patience is not None and epoch - best_epoch >= cfg.patience:
             if progress:
-                print(f"{name}: early stop, no better validation loss for {cfg.patience} epochs")
+                print(f"{name}: early stop, no better {cfg.select_by} for {cfg.patience} epochs")
             break
     for param in params.values():
         param.requires_grad_(True)

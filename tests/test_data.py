@@ -19,8 +19,10 @@ from e2e_lite.data import (
     collect,
     dataset_path,
     load_or_collect,
+    situations,
     throttle_brake,
 )
+from e2e_lite.evaluation import EvalConfig
 from e2e_lite.expert import CHANGE
 from e2e_lite.geometry import generate_track
 from e2e_lite.vehicle import VehicleParams
@@ -145,3 +147,54 @@ def test_bad_data_settings_raise():
         DataConfig(split="test")
     with pytest.raises(ValueError, match=r"NoiseConfig\.duration_s"):
         NoiseConfig(duration_s=(2.0, 1.0))
+
+
+def test_collector_starts_and_restarts_cars_with_the_evaluators_rule(monkeypatch):
+    """Every (re)start of the collector is placed by the evaluator's own functions, and the
+    recorded samples hold those states (position, lane centre, 20 m/s)."""
+    from e2e_lite import evaluation
+
+    placed: dict[str, list[tuple[float, float, float]]] = {"start": [], "restart": []}
+    for kind, name in (("start", "start_state"), ("restart", "restart_state")):
+        original = getattr(evaluation, name)
+
+        def spy(*args, _original=original, _kind=kind):
+            state = _original(*args)
+            placed[_kind].append(state)
+            return state
+
+        monkeypatch.setattr(evaluation, name, spy)
+    data = collect(small_cfg(restart_rate_per_s=0.5, n_samples=400), progress=False)
+    assert len(placed["start"]) == 4  # one per car
+    assert len(placed["restart"]) >= 5  # 0.5 per second over 10 s of driving per car
+    ev = EvalConfig()
+    recorded = np.stack([data.s, data.d, data.speed], axis=1)
+    found = 0
+    for s, d, v in placed["start"] + placed["restart"]:
+        assert v == ev.start_speed_mps
+        found += bool((np.abs(recorded - np.array([s, d, v])).max(axis=1) < 1e-3).any())
+    # each is the car's next sample, except where the sample budget ended first (one per car)
+    assert found >= len(placed["start"]) + len(placed["restart"]) - 4
+
+
+def test_restarts_and_braking_bursts_put_slow_samples_in_the_data():
+    quiet = small_cfg(n_samples=800, restart_rate_per_s=0.0, noise=NoiseConfig(brake_share=0.0))
+    busy = small_cfg(n_samples=800, restart_rate_per_s=0.2, noise=NoiseConfig(brake_share=1.0))
+    slow = [np.mean(collect(c, progress=False).speed < 22.0) for c in (quiet, busy)]
+    assert slow[1] > 2 * slow[0]
+
+
+def test_situation_masks_on_hand_made_rows():
+    arrays = {
+        "expert_state": np.array([CHANGE, CHANGE, 0, 0]),
+        "overtaking": np.array([True, True, False, False]),
+        "affordances": np.zeros((4, len(AFFORDANCE_NAMES))),
+        "speed": np.array([25.0, 25.0, 21.0, 25.0]),
+        "curvature": np.array([0.0, 0.0, 0.0, 0.002]),
+    }
+    arrays["affordances"][1, AFFORDANCE_NAMES.index("center_offset_m")] = 1.2  # mid-change
+    masks = situations(arrays)
+    assert masks["overtake_start"].tolist() == [True, False, False, False]
+    assert masks["slow"].tolist() == [False, False, True, False]
+    assert masks["curve"].tolist() == [False, False, False, True]
+    assert situations(arrays, np.array([2, 3]))["slow"].tolist() == [True, False]

@@ -107,6 +107,10 @@ def test_lane_keeper_on_an_empty_road_never_collides():
     assert res.autonomy_pct == 100.0
     assert res.time_to_collision_s is None
     assert 50.0 < res.mean_speed_mph < 56.5  # 25 m/s = 55.9 mph, from a 20 m/s start
+    # one speed per car per decision, binned by 1 m/s: the start at 20 m/s, then up to 25 m/s
+    hist = np.asarray(res.speed_hist)
+    assert hist.sum() == pytest.approx(res.sim_time_s / 0.1, abs=4)
+    assert hist[20] >= 4 and hist[24:26].sum() > 0.8 * hist.sum() and hist[:20].sum() == 0
 
 
 def test_straight_driver_hits_the_first_arc_rail():

@@ -155,6 +155,26 @@ def test_oracle_follows_the_labels_without_collision():
     assert res.collisions == 0 and res.mean_speed_mph > 45.0
 
 
+def test_oracle_with_point_noise_and_a_preview_is_seeded_and_still_drives():
+    cfg = small_world_cfg()
+    ev = EvalConfig(miles=1.0, n_worlds=4, n_tracks=4)
+    clean = evaluate(Oracle(), cfg, ev, progress=False)
+    noisy = [
+        evaluate(Oracle(preview_s=0.3, point_noise_m=0.2, seed=3), cfg, ev, progress=False)
+        for _ in range(2)
+    ]
+    assert noisy[0].to_dict() == {
+        **noisy[1].to_dict(),
+        "wall_time_s": noisy[0].wall_time_s,
+        "sim_miles_per_wall_s": noisy[0].sim_miles_per_wall_s,
+        "timing_s": noisy[0].timing_s,
+    }
+    assert noisy[0].speed_hist != clean.speed_hist  # the noise changed the drive
+    assert noisy[0].collisions == 0  # 20 cm of noise per point, read 0.3 s ahead, is harmless
+    with pytest.raises(ValueError, match="preview_s"):
+        Oracle(preview_s=-0.1)
+
+
 def test_speed_profile_respects_the_friction_limit_and_brakes_ahead():
     # only the curvature matters here: a straight, a 100 m radius arc, a straight
     track = Track([0.0, 500.0, 600.0], [0.0] * 3, [0.0] * 3, [0.0, 1 / 100, 0.0], [500, 100, 500])

@@ -19,7 +19,7 @@ from e2e_lite.artifacts import artifact_path
 from e2e_lite.data import DrivingDataset, synthetic_data
 from e2e_lite.evaluation import EvalConfig, evaluate
 from e2e_lite.geometry import RoadConfig
-from e2e_lite.losses import Objective, target
+from e2e_lite.losses import GMMObjective, Objective, target
 from e2e_lite.models import (
     TRUNK_FEATURES,
     FusionNet,
@@ -32,8 +32,10 @@ from e2e_lite.models import (
     prepare,
 )
 from e2e_lite.training import (
+    DECISIVE,
     CheckpointMismatch,
     TrainConfig,
+    decisive_errors,
     fit,
     load_checkpoint,
     model_stats,
@@ -372,7 +374,7 @@ def test_trajectory_agent_speed_sources():
     assert acts["trajectory"].accel_mps2[0] == pytest.approx(with_ff[0])
     assert acts["trajectory_no_ff"].accel_mps2[0] == pytest.approx(no_ff[0])
     assert acts["cruise"].accel_mps2[0] == pytest.approx(CruiseControl().accel(obs)[0])
-    with pytest.raises(ValueError, match="speed must be one of"):
+    with pytest.raises(ValueError, match="is invalid: must be one of"):
         TrajectoryAgent(model, speed="fast")
 
 
@@ -390,3 +392,44 @@ def test_recorder_keeps_one_row_per_decision_and_passes_the_camera():
         build_model(ModelConfig(head="trajectory", fusion_width=16)), torch.device("cpu")
     )
     assert Recorder(TrajectoryAgent(model.eval()), lambda o, a: None).camera is not None
+
+
+def test_decisive_errors_and_selection_by_them():
+    ade = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    masks = {
+        "overtake_start": np.array([True, True, False, False, False]),
+        "slow": np.array([False, False, True, False, False]),
+        "curve": np.zeros(5, dtype=bool),  # none: left out
+    }
+    out = decisive_errors(ade, masks)
+    assert out == {"ADE overtake_start [m]": 1.5, "ADE slow [m]": 3.0, DECISIVE: 2.25}
+    with pytest.raises(ValueError, match="decisive"):
+        decisive_errors(ade, {"curve": np.zeros(5, dtype=bool)})
+    # the kept epoch is the one with the lowest decisive error, recorded every epoch
+    data, val = synthetic_data(48, 0), synthetic_data(32, 1)
+    val.arrays["curvature"][:10] = 0.01  # some curves among the validation frames
+    cfg = ModelConfig(head="gmm", fusion_width=32)
+    _, hist = train_or_load(
+        "decisive",
+        cfg,
+        small_train_cfg(epochs=3, select_by="decisive_ade"),
+        GMMObjective(sigma_warmup_epochs=0),
+        data,
+        val,
+        progress=False,
+    )
+    scores = [e[DECISIVE] for e in hist.epochs]
+    assert hist.best_epoch == int(np.argmin(scores))
+    assert all("ADE curve [m]" in e and "ADE slow [m]" in e for e in hist.epochs)
+    with pytest.raises(ValueError, match="select_by"):
+        TrainConfig(select_by="nll")
+    with pytest.raises(ValueError, match="trajectory head"):
+        train_or_load(
+            "decisive_steer",
+            ModelConfig(head="actuators", fusion_width=32),
+            small_train_cfg(epochs=1, select_by="decisive_ade"),
+            Objective("actuators"),
+            data,
+            val,
+            progress=False,
+        )

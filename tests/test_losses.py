@@ -12,7 +12,16 @@ from hypothesis import strategies as st
 from scipy.stats import multivariate_normal
 
 from e2e_lite.data import DrivingDataset, synthetic_data
-from e2e_lite.losses import GMMObjective, Objective, gmm_nll, log_sigma, most_likely, split_gmm
+from e2e_lite.losses import (
+    GMMObjective,
+    Objective,
+    gmm_nll,
+    log_sigma,
+    mode_split,
+    most_likely,
+    side_shares,
+    split_gmm,
+)
 from e2e_lite.models import ModelConfig, build_model, prepare
 from e2e_lite.training import TrainConfig, fit, model_stats
 
@@ -174,3 +183,54 @@ def test_target_normalisation_is_a_switch(objective_of):
     else:
         expected = ((out["main"] - x) ** 2).mean(dim=1)
     torch.testing.assert_close(loss, expected)
+
+
+def test_mode_split_on_hand_made_mixtures():
+    modes = np.zeros((2, 3, 5, 2))
+    modes[0, 0, -1] = (37.0, 1.5)  # sample 0: left and right modes, 0.4 m apart in x
+    modes[0, 1, -1] = (37.4, -1.8)
+    modes[0, 2, -1] = (10.0, 0.0)  # the least likely: ignored
+    modes[1, 0, -1] = (30.0, 0.1)  # sample 1: a slow and a fast keep-lane mode
+    modes[1, 2, -1] = (36.0, 0.1)
+    weights = np.array([[0.5, 0.4, 0.1], [0.6, 0.1, 0.3]])
+    lateral, longitudinal = mode_split(modes, weights)
+    np.testing.assert_allclose(lateral, [3.3, 0.0], atol=1e-12)
+    np.testing.assert_allclose(longitudinal, [0.4, 6.0], atol=1e-12)
+    with pytest.raises(ValueError, match="mode_split"):
+        mode_split(modes[:, :1], weights[:, :1])
+
+
+def test_side_shares_on_hand_made_offsets():
+    y = np.array([2.0, 1.0, -1.5, 0.2, -2.0, 0.5])
+    side = np.array([1, 1, 1, 1, -1, -1])  # the expert goes left, left, left, left, right, right
+    shares = side_shares(y, side)
+    assert shares == pytest.approx({"expert_side": 3 / 6, "other_side": 1 / 6, "keep": 2 / 6})
+    assert side_shares(y, side, committed_m=1.2)["expert_side"] == pytest.approx(2 / 6)
+    with pytest.raises(ValueError, match="side_shares"):
+        side_shares(y, side[:3])
+
+
+def test_axis_scale_and_a_floor_in_metres():
+    """Per axis: every x shares one scale and every y another; the floor in metres becomes
+    floor / scale per coordinate, and the NLL respects it."""
+    data = synthetic_data(32)
+    data.arrays["trajectory"][:, :, 1] *= np.arange(1, 6) / 5.0  # lateral spread grows with time
+    from e2e_lite.data import dataset_stats
+
+    data.stats.update(dataset_stats(data.arrays))
+    obj = GMMObjective(target_scale="axis", sigma_floor_m=0.1)
+    assert obj.name.endswith("floor0.1m-warmup1-axis")
+    cfg = ModelConfig(head="gmm", fusion_width=16)
+    model = build_model(cfg)
+    model.set_normalisation(model_stats(cfg, data, obj))
+    std = model.target_std.reshape(5, 2)
+    assert torch.all(std[:, 0] == std[0, 0]) and torch.all(std[:, 1] == std[0, 1])
+    per_coord = data.stats["trajectory_std"].astype(np.float64)
+    assert float(std[0, 1]) == pytest.approx(np.sqrt(np.mean(per_coord[:, 1] ** 2)), rel=1e-5)
+    torch.testing.assert_close(obj.floor(model), 0.1 / model.target_std)
+    out = {"main": torch.zeros(4, 42)}
+    out["main"][:, 20:40] = -50.0  # raw log-sigma far below the floor
+    _, _, log_sig = obj.modes(out, model)
+    torch.testing.assert_close(torch.exp(log_sig[0, 0]) * model.target_std, torch.full((10,), 0.1))
+    with pytest.raises(ValueError, match="target_scale"):
+        GMMObjective(target_scale="pixel")

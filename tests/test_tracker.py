@@ -155,3 +155,47 @@ def test_speed_control_is_bounded():
 def test_bad_tracker_settings_raise():
     with pytest.raises(ValueError, match=r"TrackerConfig\.steer_max_rad"):
         TrackerConfig(steer_max_rad=0.0)
+
+
+def _arc_pose(v0: float, accel: float, kappa: float, t: float) -> tuple[float, float, float, float]:
+    """Exact ``(x, y, heading, speed)`` at time ``t`` of a car starting at the origin along +x at
+    ``v0`` [m/s], accelerating at ``accel`` [m/s^2] on a circle of curvature ``kappa`` [1/m]
+    (heading = kappa x distance; position integrated finely)."""
+    tt = np.linspace(0.0, t, 20_001)
+    v = v0 + accel * tt
+    heading = kappa * (v0 * tt + accel * tt**2 / 2)
+    return (
+        float(np.trapezoid(v * np.cos(heading), tt)),
+        float(np.trapezoid(v * np.sin(heading), tt)),
+        float(heading[-1]),
+        float(v[-1]),
+    )
+
+
+@pytest.mark.parametrize("v0, accel, kappa", [(20.0, 1.5, 0.004), (25.0, -2.0, -0.01)])
+@pytest.mark.parametrize("preview_s", [0.3, 0.6, 0.9])
+def test_preview_reading_of_a_constant_acceleration_arc(v0, accel, kappa, preview_s):
+    pts = np.array([_arc_pose(v0, accel, kappa, t)[:2] for t in T])
+    e, psi, kap, v_ref, a_ref = trajectory_reference(pts, preview_s)
+    _, y, heading, speed = _arc_pose(v0, accel, kappa, preview_s)
+    assert e == pytest.approx(-y, abs=1e-3)  # the path is y to the left of the car: e = -y
+    assert psi == pytest.approx(-heading, abs=1e-3)
+    assert kap == pytest.approx(kappa, abs=1e-4)
+    assert v_ref == pytest.approx(speed, abs=0.02)
+    assert a_ref == pytest.approx(accel, abs=0.05)
+    # the reading at t = 0 is the least-squares end point: its acceleration is the worst read
+    a0 = trajectory_reference(pts, 0.0)[4]
+    assert abs(a0 - accel) > abs(a_ref - accel)
+
+
+def test_speed_reading_without_feed_forward_ignores_the_acceleration():
+    tracker = LQRTracker()
+    points = np.stack([25.0 * T - 1.0 * T**2, np.zeros(5)], axis=-1)  # braking at 2 m/s^2
+    _, a_ff = follow_trajectory(tracker, points[None], np.array([25.0]), 0.0, "trajectory")
+    _, a_no = follow_trajectory(tracker, points[None], np.array([25.0]), 0.0, "trajectory_no_ff")
+    assert a_ff[0] == pytest.approx(-2.0, abs=0.05)
+    assert a_no[0] == pytest.approx(0.0, abs=0.05)  # v_ref = v now: no feedback either
+    with pytest.raises(ValueError, match="speed"):
+        follow_trajectory(tracker, points[None], np.array([25.0]), 0.0, "cruise")
+    with pytest.raises(ValueError, match="preview_s"):
+        follow_trajectory(tracker, points[None], np.array([25.0]), 2.0)
