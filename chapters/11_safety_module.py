@@ -105,11 +105,11 @@ print(
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
-# sends the module's counters home), so the row without the module is chapter 10's own result
-# (reused when it is stored). The module audits one intervention in four: would a fresh expert,
-# from the same state, have driven what the network proposed (then the intervention was a
-# **false alarm**)? And would the ground-truth rule have accepted it (then **perception alone**
-# caused it)?
+# sends the module's counters home). The row without the module is the same network (chapter
+# 10's training seed 0) over the same miles, stored and reused. The module audits one
+# intervention in four: would a fresh expert, from the same state, have driven what the network
+# proposed (then the intervention was a **false alarm**)? And would the ground-truth rule have
+# accepted it (then **perception alone** caused it)?
 
 # %%
 # (the quick profile's barely trained network makes the module crawl: half a mile is enough)

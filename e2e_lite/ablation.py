@@ -8,16 +8,21 @@ trajectory GMM, GMM + affordance, GMM + affordance + CVaR. The trained ones come
 :mod:`e2e_lite.recipes`, so they are the chapters' checkpoints when those are valid and are
 trained (seeded) when not.
 
-A closed-loop result is kept in ``<outputs>/evaluations/<driver>.json`` under a key made of the
-driver's weights, its settings and the evaluation's settings; running the chapter again reuses it
-when nothing changed.
+Each learned row is trained with several seeds (:func:`build_seeded_drivers`; seed 0 is the
+chapters' own checkpoint, seeds 1, 2, ... are ``10_<name>_seed<k>``); the row's miles are shared
+among the seeds and their counts pooled (:func:`~e2e_lite.evaluation.pool_results`), each seed's
+result kept under ``seeds``.
+
+A closed-loop result is kept in ``<outputs>/evaluations/<driver>.json`` (``<driver>_seed<k>.json``
+per seed) under a key made of the driver's weights, its settings and the evaluation's settings;
+running the chapter again reuses it when nothing changed.
 """
 
 from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +33,15 @@ from .agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
 from .artifacts import artifact_path, cached, load_json, save_json, settings_key
 from .config import FULL, Profile
 from .data import DataConfig, DrivingData, load_or_collect
-from .evaluation import EvalConfig, EvalResult, Policy, evaluate, results_table
+from .evaluation import (
+    EvalConfig,
+    EvalResult,
+    Policy,
+    evaluate,
+    pool_results,
+    result_dict,
+    results_table,
+)
 from .expert import Expert, Oracle
 from .world import WorldConfig
 
@@ -60,12 +73,11 @@ DRIVERS = (
     Driver("gmm_affordance", "GMM + affordance", 0.83),
     Driver("gmm_affordance_cvar", "GMM + affordance + CVaR", 0.0),
 )
-#: Controls for two of the steps (not in the paper): the GMM trained with another seed, and the
-#: affordance network trained with ``w = 0`` (its head then learns nothing; same architecture).
-CONTROLS = (
-    Driver("gmm_seed1", "trajectory GMM + LQR, training seed 1"),
-    Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),
-)
+#: A control for the affordance step (not in the paper): the affordance network trained with
+#: ``w = 0`` (its head then learns nothing; same architecture, same seeds).
+CONTROLS = (Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),)
+#: The drivers with no training (one run each: they have no training seed).
+UNTRAINED = ("expert", "oracle")
 #: seed 000: "Our agent drives smoothly in an average speed of 48 mile per hour".
 PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
@@ -81,6 +93,7 @@ def build_drivers(
     keys: Sequence[str] | None = None,
     train: DrivingData | None = None,
     val: DrivingData | None = None,
+    seed: int = 0,
     **kw: Any,
 ) -> dict[str, Policy]:
     """The policies of ``keys`` (default: every row of :data:`DRIVERS`; :data:`CONTROLS` on
@@ -89,6 +102,7 @@ def build_drivers(
     Args:
         profile: sizes (and the data the recipes train on).
         train, val: the chapter-04 datasets; loaded (or collected) when not given.
+        seed: the training seed of the learned drivers (0: the chapters' checkpoints).
         **kw: passed to the recipes (e.g. ``progress=False``).
     """
     keys = [d.key for d in DRIVERS] if keys is None else list(keys)
@@ -100,34 +114,67 @@ def build_drivers(
         val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
     weight = None
     out: dict[str, Policy] = {}
+    seeded = {"seed": seed, **kw}
     for key in keys:
         if key == "expert":
             out[key] = Expert()
         elif key == "oracle":
             out[key] = Oracle()
         elif key == "pilotnet":
-            out[key] = SteeringAgent(recipes.pilotnet(profile, train, val, **kw)[0])
+            name = recipes.seeded_name("05_pilotnet", seed)
+            out[key] = SteeringAgent(recipes.pilotnet(profile, train, val, name, **seeded)[0])
         elif key == "actuators":
-            out[key] = ActuatorAgent(recipes.actuators(profile, train, val, **kw)[0])
+            name = recipes.seeded_name("05_actuators", seed)
+            out[key] = ActuatorAgent(recipes.actuators(profile, train, val, name, **seeded)[0])
         elif key == "trajectory_l2":
-            out[key] = TrajectoryAgent(recipes.trajectory_l2(profile, train, val, **kw)[0])
+            name = recipes.seeded_name("06_trajectory_l2", seed)
+            out[key] = TrajectoryAgent(
+                recipes.trajectory_l2(profile, train, val, name, **seeded)[0]
+            )
         elif key == "gmm":
-            out[key] = TrajectoryAgent(recipes.gmm(profile, train, val, **kw)[0])
-        elif key == "gmm_seed1":
-            model = recipes.gmm(profile, train, val, seed=1, name="10_gmm_seed1", **kw)[0]
-            out[key] = TrajectoryAgent(model)
+            name = recipes.seeded_name("07_gmm", seed)
+            out[key] = TrajectoryAgent(recipes.gmm(profile, train, val, name=name, **seeded)[0])
         elif key == "gmm_affordance_w0":
-            name = "10_gmm_affordance_w0"
-            model = recipes.gmm_affordance(profile, train, val, 0.0, name=name, **kw)[0]
+            name = f"10_gmm_affordance_w0_seed{seed}"
+            model = recipes.gmm_affordance(profile, train, val, 0.0, name=name, **seeded)[0]
             out[key] = TrajectoryAgent(model)
         else:
             if weight is None:
                 weight = recipes.affordance_weight(profile, train, val, **kw)
-            recipe = (
-                recipes.gmm_affordance if key == "gmm_affordance" else recipes.gmm_affordance_cvar
-            )
-            out[key] = TrajectoryAgent(recipe(profile, train, val, weight, **kw)[0])
+            if key == "gmm_affordance":
+                name = recipes.seeded_name("08_gmm_affordance", seed)
+                model = recipes.gmm_affordance(profile, train, val, weight, name=name, **seeded)[0]
+            else:
+                model = recipes.gmm_affordance_cvar(profile, train, val, weight, **seeded)[0]
+            out[key] = TrajectoryAgent(model)
     return out
+
+
+def build_seeded_drivers(
+    profile: Profile,
+    keys: Sequence[str] | None = None,
+    seeds: int | None = None,
+    train: DrivingData | None = None,
+    val: DrivingData | None = None,
+    **kw: Any,
+) -> dict[str, Policy | list[Policy]]:
+    """Like :func:`build_drivers`, but every learned driver as a list of ``seeds`` policies
+    (training seeds ``0 .. seeds - 1``; default ``profile.ablation_seeds``); the expert and the
+    oracle stay single (nothing of theirs is trained)."""
+    seeds = profile.ablation_seeds if seeds is None else seeds
+    keys = [d.key for d in DRIVERS] if keys is None else list(keys)
+    if any(k not in UNTRAINED for k in keys):
+        train = train or load_or_collect(DataConfig.for_profile(profile, "train"))
+        val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
+    per_seed = [build_drivers(profile, keys, train, val, seed=k, **kw) for k in range(seeds)]
+    return {
+        key: per_seed[0][key] if key in UNTRAINED else [p[key] for p in per_seed] for key in keys
+    }
+
+
+def first(policy: Policy | Sequence[Policy]) -> Policy:
+    """The seed-0 policy of a row of :func:`build_seeded_drivers` (the policy itself if single)."""
+    return policy[0] if isinstance(policy, (list, tuple)) else policy
 
 
 def fingerprint(policy: Policy) -> str:
@@ -154,7 +201,7 @@ def fingerprint(policy: Policy) -> str:
 
 
 def evaluate_drivers(
-    drivers: dict[str, Policy],
+    drivers: dict[str, Policy | Sequence[Policy]],
     world_cfg: WorldConfig,
     cfg: EvalConfig,
     *,
@@ -164,31 +211,56 @@ def evaluate_drivers(
 ) -> dict[str, EvalResult | dict[str, Any]]:
     """Every driver on the same tracks with the same seeds (``cfg``).
 
-    Every driver runs in ``workers`` shards. With ``reuse``, a result stored for the same
-    driver (:func:`fingerprint`), world, evaluation settings and shard count is read back
-    instead of driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other
-    driver is evaluated and stored.
+    Every driver runs in ``workers`` shards. A driver given as a list (one policy per training
+    seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed, each on the
+    same tracks from the same starts, and its result is :func:`~e2e_lite.evaluation.pool_results`
+    of theirs (a dict with ``seeds``). With ``reuse``, a result stored for the same driver
+    (:func:`fingerprint`), world, evaluation settings and shard count is read back instead of
+    driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other driver is
+    evaluated and stored.
     """
     out: dict[str, EvalResult | dict[str, Any]] = {}
     for key, policy in drivers.items():
         label = BY_KEY[key].label if key in BY_KEY else key
-
-        def run(policy: Policy = policy, label: str = label) -> EvalResult:
-            res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
-            if progress:
-                print(f"{label}: {res.summary()}", flush=True)
-            return res
-
-        if not reuse:
-            out[key] = run()
-            continue
-        run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
-        path = artifact_path("evaluations", f"{key}.json")
-        result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
-        if progress and not isinstance(result, EvalResult):
-            print(f"{label}: reusing {path.name} ({result['miles']:.0f} mi)", flush=True)
-        out[key] = result
+        if isinstance(policy, (list, tuple)):
+            share = replace(cfg, miles=cfg.miles / len(policy))
+            parts = [
+                _evaluate_one(f"{key}_seed{k}", f"{label} (seed {k})", p, world_cfg, share,
+                              reuse, progress, workers)
+                for k, p in enumerate(policy)
+            ]  # fmt: skip
+            out[key] = pool_results(parts, cfg.intervention_cost_s)
+        else:
+            out[key] = _evaluate_one(key, label, policy, world_cfg, cfg, reuse, progress, workers)
     return out
+
+
+def _evaluate_one(
+    file: str,
+    label: str,
+    policy: Policy,
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    reuse: bool,
+    progress: bool,
+    workers: int,
+) -> EvalResult | dict[str, Any]:
+    """One driver's evaluation, stored as ``evaluations/<file>.json`` (see :func:`evaluate_drivers`)."""
+
+    def run() -> EvalResult:
+        res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
+        if progress:
+            print(f"{label}: {res.summary()}", flush=True)
+        return res
+
+    if not reuse:
+        return run()
+    run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
+    path = artifact_path("evaluations", f"{file}.json")
+    result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
+    if progress and not isinstance(result, EvalResult):
+        print(f"{label}: reusing {path.name} ({result['miles']:.0f} mi)", flush=True)
+    return result
 
 
 def _save_result(path: Path, result: EvalResult, key: str) -> None:
@@ -204,13 +276,21 @@ def _fmt(value: float | None, unit: str = "") -> str:
     return "-" if value is None else f"{value:g}{unit}"
 
 
+def per_seed(result: EvalResult | dict[str, Any]) -> str:
+    """A pooled result's per-seed rates, ``"a / b / c"`` per 100 mi (``"-"`` for one run)."""
+    seeds = result_dict(result).get("seeds") or []
+    return " / ".join(f"{s['collisions_per_100mi']:.1f}" for s in seeds) or "-"
+
+
 def ablation_table(results: dict[str, EvalResult | dict[str, Any]]) -> str:
     """The markdown table: ours (miles, collisions car / rail, per 100 mi with the 95 % interval,
-    mph, time to collision, autonomy) beside the papers' figures for the same method."""
+    mph, time to collision, autonomy, the rate of each training seed) beside the papers' figures
+    for the same method."""
     drivers = [BY_KEY.get(key, Driver(key, key)) for key in results]
     return results_table(
         [(d.label, r) for d, r in zip(drivers, results.values())],
         extra=[
+            ("per seed, per 100 mi", [per_seed(r) for r in results.values()]),
             ("paper: per 100 mi (seed 000)", [_fmt(d.paper_per_100mi) for d in drivers]),
             ("paper: time to collision (seed 002)", [_fmt(d.paper_ttc_s, " s") for d in drivers]),
         ],

@@ -277,6 +277,53 @@ def results_table(
     return "\n".join(lines)
 
 
+def pool_results(
+    results: Sequence[EvalResult | dict[str, Any]], intervention_cost_s: float = 6.0
+) -> dict[str, Any]:
+    """One result from several evaluations of the same kind of driver (e.g. one per training
+    seed), as if they were one drive: counts, miles and times summed, rates, the interval, mean
+    speed, autonomy (``intervention_cost_s`` per intervention, as :class:`EvalConfig`) and the
+    time to collision recomputed from the sums; ``seeds`` keeps each input (as
+    :func:`result_dict`, without events)."""
+    rs = [{k: v for k, v in result_dict(r).items() if k != "events"} for r in results]
+    if not rs:
+        raise ValueError("pool_results needs at least one result")
+    total = {
+        k: sum(r[k] for r in rs)
+        for k in (
+            "miles",
+            "collisions",
+            "car_collisions",
+            "rail_collisions",
+            "episodes_censored",
+            "interventions",
+            "stalls",
+            "sim_time_s",
+            "wall_time_s",
+            "tracks_driven",
+        )
+    }
+    n, miles, sim_s = total["collisions"], total["miles"], total["sim_time_s"]
+    # the mean episode length: each seed's mean weighted by its count of ended episodes
+    ttc = [(r["time_to_collision_s"], r["collisions"]) for r in rs if r["collisions"]]
+    hist = [r.get("speed_hist") or [] for r in rs]
+    return {
+        **total,
+        "collisions_per_100mi": 100.0 * n / miles,
+        "ci95_per_100mi": poisson_ci(n, miles / 100.0),
+        "mean_speed_mph": sum(r["mean_speed_mph"] * r["sim_time_s"] for r in rs) / sim_s,
+        "time_to_collision_s": sum(t * k for t, k in ttc) / n if n else None,
+        "miles_per_collision": miles / n if n else None,
+        "autonomy_pct": max(0.0, 1.0 - total["interventions"] * intervention_cost_s / sim_s) * 100,
+        "sim_miles_per_wall_s": miles / max(total["wall_time_s"], 1e-9),
+        "timing_s": {
+            k: sum(r.get("timing_s", {}).get(k, 0.0) for r in rs) for k in rs[0].get("timing_s", {})
+        },
+        "speed_hist": [int(sum(c)) for c in zip(*hist)] if all(hist) else [],
+        "seeds": rs,
+    }
+
+
 def compare_rates(
     a: EvalResult | dict[str, Any], b: EvalResult | dict[str, Any], level: float = 0.95
 ) -> dict[str, Any]:

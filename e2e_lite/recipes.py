@@ -59,35 +59,60 @@ PILOTNET_CFG = ModelConfig(kind="pilotnet", head="steer")
 ACTUATORS_CFG = ModelConfig(kind="fusion", head="actuators")
 
 
+def seeded_name(name: str, seed: int) -> str:
+    """The checkpoint name of training seed ``seed`` of the recipe whose seed-0 checkpoint is
+    ``name`` (chapter 10 trains seeds 1, 2, ... beside the chapters' own seed 0)."""
+    return name if seed == 0 else f"10_{name.split('_', 1)[1]}_seed{seed}"
+
+
 def pilotnet(
-    profile: Profile, train: DrivingData, val: DrivingData, name: str = "05_pilotnet", **kw: Any
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    name: str = "05_pilotnet",
+    seed: int = 0,
+    **kw: Any,
 ) -> Trained:
     """Chapter 05: PilotNet (seed 003), steering (curvature) only. ``train`` may hold recovery
-    views (chapter 05 trains ``"05_pilotnet_views"`` that way)."""
+    views (chapter 05 trains ``"05_pilotnet_views"`` that way); ``seed``: the training seed."""
     objective = Objective("steer")
     model, hist = train_or_load(
-        name, PILOTNET_CFG, _train_cfg(profile), objective, train, val, **kw
+        name, PILOTNET_CFG, _train_cfg(profile, seed=seed), objective, train, val, **kw
     )
     return model, objective, hist
 
 
-def actuators(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> Trained:
+def actuators(
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    name: str = "05_actuators",
+    seed: int = 0,
+    **kw: Any,
+) -> Trained:
     """Chapter 05: the all-actuators baseline (seed 002 / the paper's Baseline E2E): image and
     speed to steering and acceleration."""
     objective = Objective("actuators")
     model, hist = train_or_load(
-        "05_actuators", ACTUATORS_CFG, _train_cfg(profile), objective, train, val, **kw
+        name, ACTUATORS_CFG, _train_cfg(profile, seed=seed), objective, train, val, **kw
     )
     return model, objective, hist
 
 
-def trajectory_l2(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> Trained:
+def trajectory_l2(
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    name: str = "06_trajectory_l2",
+    seed: int = 0,
+    **kw: Any,
+) -> Trained:
     """Chapter 06: fusion network, 5-point trajectory head, L2 on normalised targets."""
     objective = Objective("trajectory")
     model, hist = train_or_load(
-        "06_trajectory_l2",
+        name,
         ModelConfig(kind="fusion", head="trajectory"),
-        _train_cfg(profile, select_by=TRAJECTORY_SELECT_BY),
+        _train_cfg(profile, select_by=TRAJECTORY_SELECT_BY, seed=seed),
         objective,
         train,
         val,
@@ -218,20 +243,26 @@ def gmm_affordance(
 
 
 def gmm_affordance_cvar(
-    profile: Profile, train: DrivingData, val: DrivingData, weight: float, **kw: Any
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    weight: float,
+    seed: int = 0,
+    **kw: Any,
 ) -> Trained:
-    """Chapter 09: one epoch of CVaR-0.9 fine-tuning from :func:`gmm_affordance`'s checkpoint
-    (trained first if missing), sigma open throughout."""
-    gmm_affordance(profile, train, val, weight, **kw)
+    """Chapter 09: one epoch of CVaR-0.9 fine-tuning from :func:`gmm_affordance`'s checkpoint of
+    the same training ``seed`` (trained first if missing), sigma open throughout."""
+    parent = seeded_name("08_gmm_affordance", seed)
+    gmm_affordance(profile, train, val, weight, name=parent, seed=seed, **kw)
     objective = CVaRObjective(WithAffordance(gmm_objective(profile, warmup=0), weight), CVAR_ALPHA)
     model, hist = train_or_load(
-        "09_gmm_affordance_cvar",
+        seeded_name("09_gmm_affordance_cvar", seed),
         AFFORDANCE_CFG,
-        _train_cfg(profile, epochs=1, batch_size=CVAR_BATCH, lr=1e-4, grad_clip=10.0),
+        _train_cfg(profile, epochs=1, batch_size=CVAR_BATCH, lr=1e-4, grad_clip=10.0, seed=seed),
         objective,
         train,
         val,
-        init_from="08_gmm_affordance",
+        init_from=parent,
         **kw,
     )
     return model, objective, hist

@@ -181,6 +181,9 @@ def collision_chart(
             paper's figure for the same method.
         marks_label: the legend entry of the marks.
         log: a symmetric-log x axis (linear below 1 per 100 mi), for rates spanning decades.
+
+    A pooled result (:func:`~e2e_lite.evaluation.pool_results`, with ``seeds``) also gets one
+    grey dot per training seed with that seed's 95 % interval, spread around its bar.
     """
     if not rows:
         raise ValueError("collision_chart needs at least one row")
@@ -194,6 +197,20 @@ def collision_chart(
     y = np.arange(len(rows))[::-1]
     ax.barh(y, rate, color="#4c72b0", alpha=0.8)
     ax.errorbar(rate, y, xerr=[rate - lo, hi - rate], fmt="none", ecolor="black", capsize=4)
+    seeds_shown = False
+    for yi, res in zip(y, results):
+        per_seed = [result_dict(r) for r in res.get("seeds") or []]
+        for j, sr in enumerate(per_seed):
+            dy = 0.25 * (j - (len(per_seed) - 1) / 2) / max(1, len(per_seed) - 1) * 2
+            sl, sh = sr["ci95_per_100mi"]
+            sv = sr["collisions_per_100mi"]
+            ax.errorbar(
+                [sv], [yi + dy], xerr=[[sv - sl], [sh - sv]], fmt="o", color="0.35", ms=3.5,
+                elinewidth=0.8, capsize=0, zorder=4,
+                label=None if seeds_shown else "one training seed (95 % interval)",
+            )  # fmt: skip
+            seeds_shown = True
+            hi = np.maximum(hi, np.where(y == yi, sh, 0.0))
     for yi, r, h in zip(y, rate, hi):
         x_text = h * 1.12 + 0.05 if log else h + 0.01 * max(hi.max(), 1.0)
         ax.text(x_text, yi, f"{r:.1f}", va="center", fontsize=9)
@@ -203,7 +220,8 @@ def collision_chart(
         mx = [(v, yi) for v, yi in zip(marks, y) if v is not None]
         if mx:
             ax.plot(*zip(*mx), "D", color="#c44e52", ms=7, label=marks_label, zorder=5)
-            ax.legend(loc="upper right", fontsize=8)
+    if seeds_shown or any(v is not None for v in marks):
+        ax.legend(loc="upper right", fontsize=8)
     for label, value in reference:
         ax.axvline(value, color="#c44e52", ls="--", lw=1)
         ax.text(value, len(rows) - 0.45, f" {label}", color="#c44e52", fontsize=8, va="bottom")

@@ -79,3 +79,26 @@ def test_fingerprint_follows_weights_and_settings():
 def test_unknown_driver_is_refused():
     with pytest.raises(ValueError, match="unknown drivers"):
         ablation.build_drivers(QUICK, ["pilotnet", "nonsense"])
+
+
+def test_a_row_of_seeds_shares_the_miles_and_pools_the_counts():
+    seeds = [TrajectoryAgent(_tiny("gmm", seed=k)) for k in range(2)]
+    out = ablation.evaluate_drivers({"gmm": seeds}, WORLD, CFG, progress=False)
+    pooled = out["gmm"]
+    assert len(pooled["seeds"]) == 2
+    assert pooled["miles"] == pytest.approx(CFG.miles, rel=0.05)
+    assert all(s["miles"] == pytest.approx(CFG.miles / 2, rel=0.1) for s in pooled["seeds"])
+    assert pooled["collisions"] == sum(s["collisions"] for s in pooled["seeds"])
+    rates = " / ".join(f"{s['collisions_per_100mi']:.1f}" for s in pooled["seeds"])
+    assert f"| {rates} |" in ablation.ablation_table(out)
+    # each seed is stored on its own and read back
+    again = ablation.evaluate_drivers({"gmm": seeds}, WORLD, CFG, progress=False)
+    assert again["gmm"]["collisions_per_100mi"] == pooled["collisions_per_100mi"]
+
+
+def test_seeded_names_keep_the_chapters_checkpoint_for_seed_zero():
+    from e2e_lite.recipes import seeded_name
+
+    assert seeded_name("07_gmm", 0) == "07_gmm"
+    assert seeded_name("07_gmm", 2) == "10_gmm_seed2"
+    assert seeded_name("09_gmm_affordance_cvar", 1) == "10_gmm_affordance_cvar_seed1"

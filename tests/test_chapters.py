@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from e2e_lite.ablation import DRIVERS
+from e2e_lite.ablation import DRIVERS, UNTRAINED
 from e2e_lite.course import find_chapters, select, summary_table
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,6 +43,15 @@ def test_chapter_runs_in_quick_profile(path, tmp_path):
         assert list(metrics["results"]) == [d.key for d in DRIVERS]
         for d in DRIVERS:
             assert f"| {d.label} |" in metrics["table_md"]
+            # learned rows pool their training seeds (2 in the quick profile), each kept
+            seeds = metrics["results"][d.key].get("seeds")
+            if d.key in UNTRAINED:
+                assert seeds is None
+            else:
+                assert len(seeds) == 2, d.key
+                assert (
+                    sum(s["collisions"] for s in seeds) == metrics["results"][d.key]["collisions"]
+                )
         replays = tmp_path / "outputs" / "quick" / "replays"
         assert {p.name for p in replays.glob("*.html")} == {
             "index.html",

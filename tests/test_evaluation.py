@@ -12,6 +12,7 @@ from conftest import straight_world
 from e2e_lite.drivers import LaneChanger, LaneKeeper
 from e2e_lite.evaluation import (
     M_PER_MILE,
+    MPS_TO_MPH,
     Actuation,
     EvalConfig,
     Observation,
@@ -20,6 +21,7 @@ from e2e_lite.evaluation import (
     drive,
     evaluate,
     poisson_ci,
+    pool_results,
     results_table,
 )
 from e2e_lite.geometry import RoadConfig
@@ -336,3 +338,30 @@ def test_drive_a_hand_made_scene_until_the_collision():
     assert states[-1, 0] == pytest.approx(50.0 + 60.0, abs=1.0)  # 3 s at 20 m/s
     states, contacts = drive(blind, straight_world([120.0], [1]), cfg, 50.0, 0.0, 20.0, 10.0)
     assert contacts == [("car", 0)] and len(states) < 101
+
+
+def test_pooled_results_are_one_drive_of_the_summed_counts():
+    a = evaluate(LaneKeeper(), BUSY, EvalConfig(miles=1.0, n_worlds=2, n_tracks=2), progress=False)
+    b = evaluate(
+        LaneKeeper(), BUSY, EvalConfig(miles=2.0, n_worlds=2, n_tracks=2, seed=3), progress=False
+    )
+    pooled = pool_results([a, b])
+    assert pooled["miles"] == pytest.approx(a.miles + b.miles)
+    assert pooled["collisions"] == a.collisions + b.collisions > 0
+    assert pooled["collisions_per_100mi"] == pytest.approx(
+        100 * (a.collisions + b.collisions) / (a.miles + b.miles)
+    )
+    assert pooled["ci95_per_100mi"] == poisson_ci(pooled["collisions"], pooled["miles"] / 100)
+    ttc_sum = a.time_to_collision_s * a.collisions + b.time_to_collision_s * b.collisions
+    assert pooled["time_to_collision_s"] == pytest.approx(ttc_sum / pooled["collisions"])
+    assert pooled["mean_speed_mph"] == pytest.approx(
+        (a.miles + b.miles) * M_PER_MILE / (a.sim_time_s + b.sim_time_s) * MPS_TO_MPH
+    )
+    assert [s["collisions"] for s in pooled["seeds"]] == [a.collisions, b.collisions]
+    assert sum(pooled["speed_hist"]) == sum(a.speed_hist) + sum(b.speed_hist)
+    # one result pools to itself
+    alone = pool_results([a])
+    for key in ("collisions_per_100mi", "mean_speed_mph", "autonomy_pct", "time_to_collision_s"):
+        assert alone[key] == pytest.approx(getattr(a, key)), key
+    with pytest.raises(ValueError, match="at least one"):
+        pool_results([])
