@@ -478,14 +478,17 @@ def _load(path: Path) -> tuple[DrivingData, str]:
     return DrivingData(arrays, stats, info), info["key"]
 
 
-def dataset_path(cfg: DataConfig) -> Path:
-    """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz``."""
-    return artifact_path("data", f"{cfg.split}-{cfg.n_samples}.npz")
+def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:
+    """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz``, or
+    ``<outputs>/data/<name>.npz`` for a variant kept beside it (e.g. chapter 07's data collected
+    the old way)."""
+    return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}'}.npz")
 
 
-def load_or_collect(cfg: DataConfig, progress: bool = True) -> DrivingData:
-    """The dataset of ``cfg`` from disk if it was made by these settings; else collect and save it."""
-    return cached(dataset_path(cfg), cfg.key, lambda: collect(cfg, progress), _save, _load)
+def load_or_collect(cfg: DataConfig, progress: bool = True, name: str | None = None) -> DrivingData:
+    """The dataset of ``cfg`` from disk if it was made by these settings; else collect and save it
+    (``name``: see :func:`dataset_path`)."""
+    return cached(dataset_path(cfg, name), cfg.key, lambda: collect(cfg, progress), _save, _load)
 
 
 def describe(data: DrivingData) -> str:
