@@ -40,11 +40,13 @@ from e2e_lite.agents import (
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
 from e2e_lite.config import active_profile
 from e2e_lite.data import (
+    AFFORDANCE_NAMES,
     SLOW_MPS,
     DataConfig,
     DrivingDataset,
     NoiseConfig,
     load_or_collect,
+    road_lateral,
     situations,
 )
 from e2e_lite.evaluation import (
@@ -254,8 +256,11 @@ print(f"saved {fig3_png}")
 # * **how the two modes split** at 1.5 s: sideways (|dy|) against along the road (|dx|), on all
 #   frames and on middle-lane overtake starts;
 # * on **middle-lane overtake starts** (the expert has just begun to pass a parked car from the
-#   middle lane, either side free): how often the followed mode is committed (more than a quarter
-#   lane, 0.9 m, at 1.5 s) to the expert's side, to the other side, or to neither.
+#   middle lane, and its own trajectory is committed to a side): how often the followed mode is
+#   committed (more than a quarter lane, 0.9 m, at 1.5 s) to the expert's side, to the other side,
+#   or to neither. Sides are read in the road's frame (`data.road_lateral`: the car-frame offset
+#   with the heading error and the road's bend taken out), so a curve or a car pointing slightly
+#   sideways is not taken for a lane change.
 
 # %%
 coord_objective = recipes.gmm_objective(profile, target_scale="coordinate", sigma_floor_m=None)
@@ -263,7 +268,11 @@ coord_model, _, _ = recipes.gmm(
     profile, train, val, name="07_gmm_coordinate", objective=coord_objective
 )
 l2_model, _, _ = recipes.trajectory_l2(profile, train, val)
-mid_starts = np.flatnonzero(situations(val.arrays)["overtake_start"] & (val.lane == 1))
+heading_error = val.affordances[:, AFFORDANCE_NAMES.index("heading_rad")]
+label_side = road_lateral(val.trajectory, heading_error, val.curvature)
+mid_starts = np.flatnonzero(
+    situations(val.arrays)["overtake_start"] & (val.lane == 1) & (np.abs(label_side) > 0.9)
+)
 probe_rows = np.arange(0, len(val), max(1, len(val) // 4000))
 
 
@@ -292,7 +301,10 @@ for name, m, obj in (
         report.update(split_lateral_m=float(lat.mean()), split_longitudinal_m=float(lon.mean()))
     if mid_starts.size:
         at_starts = predict_rows(probe, mid_starts)
-        sides = side_shares(at_starts["points"][:, -1, 1], val.change_side[mid_starts])
+        followed_side = road_lateral(
+            at_starts["points"], heading_error[mid_starts], val.curvature[mid_starts]
+        )
+        sides = side_shares(followed_side, np.sign(label_side[mid_starts]))
         report.update(sides)
         if "modes" in at_starts:
             lat_s, lon_s = mode_split(at_starts["modes"], at_starts["weights"])

@@ -413,7 +413,8 @@ def situation_shares(
 #: Below this speed a sample is "slow" [m/s]: the evaluator restarts cars at 20 m/s and the roads'
 #: cruise speed is 25 m/s.
 SLOW_MPS = 22.0
-#: Lane changes whose rear axle is still within this of its lane centre have just started [m].
+#: An overtake whose rear axle has moved less than this from its lane centre towards its side has
+#: just started [m].
 CHANGE_START_M = 0.5
 
 
@@ -423,18 +424,35 @@ def situations(
     """Masks of the situations that decide collisions, each (N,) bool (``rows``: only these):
 
     * ``"overtake_start"``: the expert has just started an overtake (in a lane change that is an
-      overtake, the rear axle still within :data:`CHANGE_START_M` of its lane centre);
+      overtake, the rear axle has moved less than :data:`CHANGE_START_M` from its lane centre
+      towards the change's side: the change's end, near the target lane's centre, is left out);
     * ``"slow"``: speed below :data:`SLOW_MPS` (the states a learned driver restarts in);
     * ``"curve"``: on an arc (|curvature| > 1e-4 1/m).
     """
     take = (lambda x: x) if rows is None else (lambda x: x[rows])
     state, over = take(arrays["expert_state"]), take(arrays["overtaking"]).astype(bool)
     offset = take(arrays["affordances"])[:, AFFORDANCE_NAMES.index("center_offset_m")]
+    moved = offset * take(arrays["change_side"])  # towards the change's side [m]
     return {
-        "overtake_start": (state == CHANGE) & over & (np.abs(offset) < CHANGE_START_M),
+        "overtake_start": (state == CHANGE) & over & (moved >= 0.0) & (moved < CHANGE_START_M),
         "slow": take(arrays["speed"]) < SLOW_MPS,
         "curve": np.abs(take(arrays["curvature"])) > 1e-4,
     }
+
+
+def road_lateral(points_m: np.ndarray, heading_rad: np.ndarray, curvature: np.ndarray) -> np.ndarray:
+    """The lateral offset [m] of the last of each trajectory's points from where the car would be
+    keeping its lane, in the road's frame (left positive), ``(B,)``: the car-frame ``y`` plus what
+    the car's heading error turns away (``psi x``) minus the road's own bend (``kappa x^2 / 2``).
+    So "which side" does not depend on the car's heading or on the curve (small-angle forms).
+
+    Args:
+        points_m: (B, 5, 2) car-frame trajectories [m].
+        heading_rad: (B,) heading minus the road's [rad] (the ``heading_rad`` affordance).
+        curvature: (B,) the road's curvature [1/m].
+    """
+    x, y = np.asarray(points_m)[:, -1, 0], np.asarray(points_m)[:, -1, 1]
+    return y + np.asarray(heading_rad) * x - np.asarray(curvature) * x * x / 2.0
 
 
 def collect(cfg: DataConfig, progress: bool = True) -> DrivingData:

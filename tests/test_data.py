@@ -19,6 +19,7 @@ from e2e_lite.data import (
     collect,
     dataset_path,
     load_or_collect,
+    road_lateral,
     situations,
     throttle_brake,
 )
@@ -191,10 +192,24 @@ def test_situation_masks_on_hand_made_rows():
         "affordances": np.zeros((4, len(AFFORDANCE_NAMES))),
         "speed": np.array([25.0, 25.0, 21.0, 25.0]),
         "curvature": np.array([0.0, 0.0, 0.0, 0.002]),
+        "change_side": np.array([1, -1, 0, 0]),
     }
-    arrays["affordances"][1, AFFORDANCE_NAMES.index("center_offset_m")] = 1.2  # mid-change
+    # row 1 is near the end of a change to the right: left of its new lane's centre
+    arrays["affordances"][1, AFFORDANCE_NAMES.index("center_offset_m")] = 0.3
     masks = situations(arrays)
     assert masks["overtake_start"].tolist() == [True, False, False, False]
     assert masks["slow"].tolist() == [False, False, True, False]
     assert masks["curve"].tolist() == [False, False, False, True]
     assert situations(arrays, np.array([2, 3]))["slow"].tolist() == [True, False]
+
+
+def test_road_lateral_removes_heading_and_curve():
+    x = np.arange(1, 6) * 7.5
+    straight = np.stack([x, np.zeros(5)], axis=1)[None]
+    # heading 0.02 rad left of the road: the road ahead appears to the right by 0.02 x
+    turned = np.stack([x, -0.02 * x], axis=1)[None]
+    bend = np.stack([x, 0.002 * x**2 / 2], axis=1)[None]  # a left curve, keeping the lane
+    np.testing.assert_allclose(road_lateral(straight, np.zeros(1), np.zeros(1)), [0.0])
+    np.testing.assert_allclose(road_lateral(turned, np.array([0.02]), np.zeros(1)), [0.0])
+    np.testing.assert_allclose(road_lateral(bend, np.zeros(1), np.array([0.002])), [0.0])
+    np.testing.assert_allclose(road_lateral(straight, np.array([0.02]), np.zeros(1)), [0.75])
