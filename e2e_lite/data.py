@@ -440,7 +440,9 @@ def situations(
     }
 
 
-def road_lateral(points_m: np.ndarray, heading_rad: np.ndarray, curvature: np.ndarray) -> np.ndarray:
+def road_lateral(
+    points_m: np.ndarray, heading_rad: np.ndarray, curvature: np.ndarray
+) -> np.ndarray:
     """The lateral offset [m] of the last of each trajectory's points from where the car would be
     keeping its lane, in the road's frame (left positive), ``(B,)``: the car-frame ``y`` plus what
     the car's heading error turns away (``psi x``) minus the road's own bend (``kappa x^2 / 2``).
