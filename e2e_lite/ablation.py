@@ -192,8 +192,8 @@ def fingerprint(policy: Policy) -> str:
     for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
         if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
             parts.append(repr(getattr(policy, attr)))
-    if isinstance(policy, Oracle):
-        parts.append(repr(policy.expert.cfg))
+    if isinstance(policy, Oracle):  # its noise draws depend on its seed
+        parts += [repr(policy.expert.cfg), policy.seed]
     inner = getattr(policy, "agent", None)  # a wrapper (e.g. the safety module) around a driver
     if inner is not None:
         parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
