@@ -137,9 +137,7 @@ print(f"L/tan(δ) = {radius:.4f} m; driven radius {r_measured.min():.4f}-{r_meas
 # nearest free lane centre, aligned with the road, and driving goes on.
 
 # %%
-eval_cfg = EvalConfig(
-    miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks
-)
+eval_cfg = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 results = {}
 for name, driver in (("lane keeper", LaneKeeper()), ("lane changer", LaneChanger())):
     results[name] = evaluate(driver, world_cfg, eval_cfg, desc=name, record_traces=True)

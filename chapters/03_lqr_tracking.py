@@ -292,7 +292,7 @@ follower = LaneCentreFollower()
 res = evaluate(
     follower,
     empty_roads,
-    EvalConfig(miles=miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks),
+    EvalConfig(miles=miles, n_worlds=profile.n_worlds),
     desc="LQR lane centre",
 )
 errs = np.concatenate(follower.errors)

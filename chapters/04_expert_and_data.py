@@ -171,7 +171,7 @@ print(
 # controller loses nothing.
 
 # %%
-ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 expert = Expert()
 res_expert = evaluate(expert, world_cfg, ev, desc="expert")
 print("expert:", res_expert.summary())

@@ -170,7 +170,7 @@ for name, row in held_out.items():
 # does both itself. Same tracks, same seeds for every driver.
 
 # %%
-ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 results = {}
 for name, agent in (
     ("PilotNet (steering)", SteeringAgent(pilot)),

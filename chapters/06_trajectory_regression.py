@@ -125,7 +125,7 @@ print(f"saved {fig2_png}")
 # validation tracks and seeds as chapter 05.
 
 # %%
-ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 res = evaluate(TrajectoryAgent(model), world_cfg, ev, desc="trajectory L2")
 print(res.summary())
 prev = artifacts.read_metrics("05_pilotnet_baseline", profile.name)

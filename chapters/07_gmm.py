@@ -338,7 +338,7 @@ for name, r in mode_report.items():
 # ## 5. Closed loop
 
 # %%
-ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 res = evaluate(agent, world_cfg, ev, desc="trajectory GMM")
 print(res.summary())
 earlier = []
@@ -432,7 +432,7 @@ for name, m in (("L2", l2_model), ("GMM", model)):
         r = evaluate(
             rec,
             world_cfg,
-            EvalConfig(miles=diag_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks),
+            EvalConfig(miles=diag_miles, n_worlds=profile.n_worlds),
             desc=f"{name}, speed from {speed}",
         )
         log = np.concatenate(rec.rows)
@@ -518,9 +518,7 @@ print(f"GMM held-out RMSE per point [m]: x {np.round(noise_m[:, 0], 2).tolist()}
       f"y {np.round(noise_m[:, 1], 2).tolist()}")  # fmt: skip
 previews = (0.0, 0.3, 0.6)
 reading_miles = 0.5 if profile.quick else 20.0
-train_ev = EvalConfig(
-    miles=reading_miles, n_worlds=profile.n_worlds, split="train", n_tracks=profile.n_train_tracks
-)
+train_ev = EvalConfig(miles=reading_miles, n_worlds=profile.n_worlds, split="train")
 masks = situations(val.arrays, probe_rows)
 masks["other"] = ~(masks["overtake_start"] | masks["slow"] | masks["curve"])
 reading = {"noise_m": noise_m.tolist(), "oracle": {}, "decoding": {}}
@@ -594,7 +592,6 @@ for name, m, obj, starts in runs:
             EvalConfig(
                 miles=0.5 if profile.quick else diag_miles,
                 n_worlds=profile.n_worlds,
-                n_tracks=profile.n_val_tracks,
                 start_speed_mps=start,
             ),
             desc=f"GMM on {name}, restarts at {start:g} m/s",

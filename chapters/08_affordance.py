@@ -155,7 +155,7 @@ recorder = Recorder(TrajectoryAgent(model, sigma_floor=objective.floor(model)), 
 evaluate(
     recorder,
     world_cfg,
-    EvalConfig(miles=0.5 if profile.quick else 3.0, n_worlds=2, n_tracks=profile.n_val_tracks),
+    EvalConfig(miles=0.5 if profile.quick else 3.0, n_worlds=2),
     desc="recording a drive",
 )
 t = np.array([r[0] for r in recorder.rows])
@@ -194,7 +194,7 @@ print(
 # chapter 07's headline.
 
 # %%
-ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 res = evaluate(agent, world_cfg, ev, desc="GMM + affordance")
 print(res.summary())
 rows_table = []

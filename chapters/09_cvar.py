@@ -201,7 +201,7 @@ for name, m in (("before", base), ("after", model)):
 
 # %%
 agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
-ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds, n_tracks=profile.n_val_tracks)
+ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 res = evaluate(agent, world_cfg, ev, desc="GMM + affordance + CVaR")
 print(res.summary())
 rows = []

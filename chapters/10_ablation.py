@@ -72,9 +72,7 @@ for key, policy in drivers.items():
 # Python never waits for the other's.
 
 # %%
-ev = EvalConfig(
-    miles=profile.ablation_miles, n_worlds=profile.ablation_worlds, n_tracks=profile.n_val_tracks
-)
+ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
 results = ablation.evaluate_drivers(drivers, world_cfg, ev, workers=profile.ablation_workers)
 table = ablation.ablation_table(results)
 print(table)
@@ -283,7 +281,12 @@ artifacts.write_metrics(
         "profile": profile.name,
         "headline": {f"{k} collisions/100mi": res_d[k]["collisions_per_100mi"] for k in results},
         "miles_per_driver": ev.miles,
-        "eval": {"n_worlds": ev.n_worlds, "n_tracks": ev.n_tracks, "seed": ev.seed},
+        "eval": {
+            "n_worlds": ev.n_worlds,
+            "n_tracks": ev.n_tracks,
+            "first_track": ev.first_track,
+            "seed": ev.seed,
+        },
         "results": {k: {**res_d[k], "events": None} for k in results},
         "paper": {
             d.key: {"per_100mi": d.paper_per_100mi, "ttc_s": d.paper_ttc_s}

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,7 @@ from .evaluation import (
     EvalConfig,
     EvalResult,
     Policy,
+    disjoint_runs,
     evaluate,
     pool_results,
     result_dict,
@@ -212,8 +213,9 @@ def evaluate_drivers(
     """Every driver on the same tracks with the same seeds (``cfg``).
 
     Every driver runs in ``workers`` shards. A driver given as a list (one policy per training
-    seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed, each on the
-    same tracks from the same starts, and its result is :func:`~e2e_lite.evaluation.pool_results`
+    seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed, each seed on
+    tracks of its own (:func:`~e2e_lite.evaluation.disjoint_runs`; seed ``k`` of every driver on
+    the same tracks), and its result is :func:`~e2e_lite.evaluation.pool_results`
     of theirs (a dict with ``seeds``). With ``reuse``, a result stored for the same driver
     (:func:`fingerprint`), world, evaluation settings and shard count is read back instead of
     driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other driver is
@@ -223,11 +225,11 @@ def evaluate_drivers(
     for key, policy in drivers.items():
         label = BY_KEY[key].label if key in BY_KEY else key
         if isinstance(policy, (list, tuple)):
-            share = replace(cfg, miles=cfg.miles / len(policy))
+            runs = disjoint_runs(cfg, world_cfg, len(policy))
             parts = [
-                _evaluate_one(f"{key}_seed{k}", f"{label} (seed {k})", p, world_cfg, share,
+                _evaluate_one(f"{key}_seed{k}", f"{label} (seed {k})", p, world_cfg, run,
                               reuse, progress, workers)
-                for k, p in enumerate(policy)
+                for k, (p, run) in enumerate(zip(policy, runs))
             ]  # fmt: skip
             out[key] = pool_results(parts, cfg.intervention_cost_s)
         else:

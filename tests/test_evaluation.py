@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,11 +19,13 @@ from e2e_lite.evaluation import (
     Observation,
     Policy,
     compare_rates,
+    disjoint_runs,
     drive,
     evaluate,
     poisson_ci,
     pool_results,
     results_table,
+    track_index,
 )
 from e2e_lite.geometry import RoadConfig
 from e2e_lite.world import TrafficConfig, WorldConfig
@@ -279,6 +282,33 @@ def test_cars_move_on_to_their_next_tracks():
     assert res.miles * M_PER_MILE == pytest.approx(5.0 * M_PER_MILE, rel=0.01)
 
 
+def test_no_road_is_driven_twice_by_default():
+    # 3 cars, 2 mi = 3.2 km each on 3 km tracks: each car needs two tracks, no two share one
+    cfg = EvalConfig(miles=6.0, n_worlds=3)
+    res = evaluate(LaneKeeper(), BUSY, cfg, progress=False, record_traces=True)
+    assert sorted(res.traces) == [f"val-{i}" for i in range(6)] and res.tracks_driven == 6
+    assert [track_index(cfg, 1, k) for k in range(3)] == [1, 4, 7]
+    # cycling through a fixed few repeats roads (the old default, kept for tests and demos)
+    few = EvalConfig(miles=3.0, n_worlds=3, n_tracks=2, first_track=1)
+    assert [track_index(few, 0, k) for k in range(3)] == [1, 0, 1]
+
+
+def test_disjoint_runs_share_the_miles_on_roads_of_their_own():
+    cfg = EvalConfig(miles=6.0, n_worlds=2, first_track=5)
+    runs = disjoint_runs(cfg, BUSY, 3)
+    assert [r.miles for r in runs] == [2.0, 2.0, 2.0]
+    assert all(replace(r, first_track=0) == replace(runs[0], first_track=0) for r in runs)
+    roads = []
+    for run in runs:
+        res = evaluate(LaneKeeper(), BUSY, run, progress=False, record_traces=True)
+        roads.append(set(res.traces))
+        assert res.miles == pytest.approx(2.0, rel=0.01)
+    assert all(roads) and not (roads[0] & roads[1] or roads[0] & roads[2] or roads[1] & roads[2])
+    assert "val-5" in roads[0]
+    with pytest.raises(ValueError, match="n"):
+        disjoint_runs(cfg, BUSY, 0)
+
+
 def test_lane_changer_beats_lane_keeper():
     cfg = EvalConfig(miles=4.0, n_worlds=4, n_tracks=4)
     keep = evaluate(LaneKeeper(), BUSY, cfg, progress=False)
@@ -294,6 +324,10 @@ def test_policy_protocol_and_config_validation():
         EvalConfig(split="everything")
     with pytest.raises(ValueError, match="n_worlds"):
         EvalConfig(n_worlds=0)
+    with pytest.raises(ValueError, match="n_tracks"):
+        EvalConfig(n_tracks=0)
+    with pytest.raises(ValueError, match="first_track"):
+        EvalConfig(first_track=-1)
 
 
 class Looking(LaneKeeper):
