@@ -89,16 +89,37 @@ def settings_key(*settings: Any, length: int = 12) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:length]
 
 
+def _process_umask() -> int:
+    """The process's umask (read once, at import, when no other thread can create files)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _process_umask()
+
+
+def _temp_beside(path: Path, suffix: str) -> tuple[int, str]:
+    """A temporary file in ``path``'s folder, with the permissions a plain ``open`` would give.
+
+    ``mkstemp`` creates files as 0600; a renamed temporary would make every artifact private.
+    """
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    os.fchmod(fd, 0o666 & ~_UMASK)
+    return fd, tmp
+
+
 @contextlib.contextmanager
 def atomic_write(path: Path | str, mode: str = "wb") -> Iterator[Any]:
     """Open a temporary file beside ``path``; rename it onto ``path`` only if the block succeeds.
 
     Usage: ``with atomic_write(p) as f: f.write(data)``. On an exception the temporary file is
-    removed and ``path`` is left as it was.
+    removed and ``path`` is left as it was. The file gets the permissions the umask allows
+    (0644 under the usual 022), as a plain ``open`` would give.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = _temp_beside(path, ".tmp")
     try:
         with os.fdopen(fd, mode) as f:
             yield f
@@ -176,7 +197,7 @@ def cached(
                 print(f"[artifacts] {path.name} was made by other settings; rebuilding")
     value = build()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    fd, tmp = _temp_beside(path, path.suffix)
     os.close(fd)
     try:
         save(Path(tmp), value, key)

@@ -136,3 +136,21 @@ def test_quick_profile_writes_to_its_own_folder(tmp_path, monkeypatch):
     assert artifacts.outputs_dir() == tmp_path / "outputs" / "quick"
     monkeypatch.setenv("E2E_LITE_QUICK", "0")
     assert artifacts.outputs_dir() == tmp_path / "outputs"
+
+
+@pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_written_files_honour_the_umask(tmp_path, monkeypatch, umask, mode):
+    """Artifacts are shared (a teacher's outputs/ folder): the temporary file must not stay 0600."""
+    monkeypatch.setattr(artifacts, "_UMASK", umask)
+    artifacts.save_json(tmp_path / "m.json", {"a": 1})
+    with artifacts.atomic_write(tmp_path / "f.bin") as f:
+        f.write(b"x")
+    artifacts.cached(tmp_path / "c.npz", "k", lambda: np.arange(3), _save, _load)
+    for name in ("m.json", "f.bin", "c.npz"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == mode, name
+
+
+def test_the_umask_read_at_import_is_the_process_umask():
+    current = os.umask(0o022)
+    os.umask(current)
+    assert artifacts._UMASK == current
