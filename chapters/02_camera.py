@@ -30,16 +30,16 @@ from e2e_lite.camera import (
     render_topdown,
     save_image,
 )
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.geometry import generate_track
 from e2e_lite.viz import save_figure
 from e2e_lite.world import ParkedCars, WorldConfig, make_world
 
-profile = active_profile()
+profile = start_chapter(2)
 world_cfg = WorldConfig.for_profile(profile)
 cam = Camera()  # the network's camera: 66 x 200
 human = Camera(CameraConfig.human())  # the same optics at 240 x 640, for people
-print(f"{profile.name} profile; network camera {cam.shape}, human camera {human.shape}")
+print(f"network camera {cam.shape}, human camera {human.shape}")
 
 # %% [markdown]
 # ## 1. The pinhole model

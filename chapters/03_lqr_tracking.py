@@ -23,7 +23,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.geometry import Track
 from e2e_lite.tracker import (
@@ -41,11 +41,11 @@ from e2e_lite.vehicle import VehicleParams, bicycle_step, make_state
 from e2e_lite.viz import save_figure
 from e2e_lite.world import TrafficConfig, WorldConfig
 
-profile = active_profile()
+profile = start_chapter(3)
 veh = VehicleParams()
 cfg = TrackerConfig()
 tracker = LQRTracker(cfg, veh)
-print(f"{profile.name} profile; wheelbase {veh.wheelbase_m} m, policy period {cfg.period_s} s")
+print(f"wheelbase {veh.wheelbase_m} m, policy period {cfg.period_s} s")
 
 # %% [markdown]
 # ## 1. The lateral error model

@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.data import (
     AFFORDANCE_NAMES,
     SLOW_MPS,
@@ -45,10 +45,9 @@ from e2e_lite.geometry import Track
 from e2e_lite.viz import draw_road, save_figure
 from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
 
-profile = active_profile()
+profile = start_chapter(4)
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
-print(f"{profile.name} profile")
 
 # %% [markdown]
 # ## 1. The state machine

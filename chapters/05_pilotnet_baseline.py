@@ -28,7 +28,7 @@ import numpy as np
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import ActuatorAgent, SteeringAgent
 from e2e_lite.camera import Camera, CameraConfig, save_image
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.data import (
     DataConfig,
     DrivingDataset,
@@ -42,10 +42,10 @@ from e2e_lite.models import build_model, count_parameters, pick_device
 from e2e_lite.training import evaluate_loss
 from e2e_lite.world import WorldConfig, make_world
 
-profile = active_profile()
+profile = start_chapter(5)
 world_cfg = WorldConfig.for_profile(profile)
 device = pick_device()
-print(f"{profile.name} profile; training on {device}")
+print(f"training on {device}")
 
 # %% [markdown]
 # ## 1. PilotNet

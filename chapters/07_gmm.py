@@ -38,7 +38,7 @@ from e2e_lite.agents import (
     TrajectoryAgent,
 )
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.data import (
     AFFORDANCE_NAMES,
     SLOW_MPS,
@@ -66,11 +66,10 @@ from e2e_lite.training import DECISIVE, evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
 
-profile = active_profile()
+profile = start_chapter(7)
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
 net_cam = Camera(CameraConfig())
-print(f"{profile.name} profile")
 
 # %% [markdown]
 # ## 1. The loss, by hand

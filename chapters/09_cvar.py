@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import save_image
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect, situation_shares
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, results_table
 from e2e_lite.losses import cvar, cvar_curve, cvar_loss
@@ -37,9 +37,8 @@ from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
 
-profile = active_profile()
+profile = start_chapter(9)
 world_cfg = WorldConfig.for_profile(profile)
-print(f"{profile.name} profile")
 
 # %% [markdown]
 # ## 1. CVaR by hand

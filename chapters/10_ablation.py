@@ -32,13 +32,13 @@
 
 # %%
 from e2e_lite import ablation, artifacts, replay
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.data import DataConfig, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, result_dict, results_table
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig, make_world
 
-profile = active_profile()
+profile = start_chapter(10)
 world_cfg = WorldConfig.for_profile(profile)
 print(
     f"{profile.name} profile: {profile.ablation_miles:g} miles per driver, "

@@ -40,16 +40,16 @@ import numpy as np
 from e2e_lite import ablation, artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
-from e2e_lite.config import active_profile
+from e2e_lite.course import start_chapter
 from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, result_dict, results_table
 from e2e_lite.safety import SafeAgent, SafetyConfig, check
 from e2e_lite.world import WorldConfig
 
-profile = active_profile()
+profile = start_chapter(11)
 world_cfg = WorldConfig.for_profile(profile)
 cfg = SafetyConfig()
-print(f"{profile.name} profile; {cfg}")
+print(f"{cfg}")
 
 # %% [markdown]
 # ## 1. The rule on the expert's own trajectories

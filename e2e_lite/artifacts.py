@@ -26,12 +26,19 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from .config import quick_requested
+from .config import in_notebook, quick_requested
 
 OUTPUTS_ENV = "E2E_LITE_OUTPUTS"
 _REPO_ROOT = Path(__file__).resolve().parents[1]
 
 T = TypeVar("T")
+
+
+def _default_root() -> Path:
+    """``outputs/`` beside ``pyproject.toml`` in a source checkout, else ``./outputs``."""
+    if (_REPO_ROOT / "pyproject.toml").exists():
+        return _REPO_ROOT / "outputs"
+    return Path.cwd() / "outputs"
 
 
 def outputs_dir() -> Path:
@@ -42,15 +49,30 @@ def outputs_dir() -> Path:
     place); else ``./outputs``. Under the quick profile, its ``quick/`` subfolder.
     """
     env = os.environ.get(OUTPUTS_ENV)
-    if env:
-        root = Path(env)
-    elif (_REPO_ROOT / "pyproject.toml").exists():
-        root = _REPO_ROOT / "outputs"
-    else:
-        root = Path.cwd() / "outputs"
+    root = Path(env) if env else _default_root()
     if quick_requested():
         root = root / "quick"
     root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def check_outputs_writable() -> Path:
+    """The outputs folder, after checking that a file can be written there.
+
+    Raises ``OSError`` with one line naming the folder, the reason and the setting to change.
+    """
+    root = Path(os.environ.get(OUTPUTS_ENV) or _default_root())
+    try:
+        root = outputs_dir()
+        fd, tmp = tempfile.mkstemp(prefix=".write-check.", dir=root)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as err:
+        reason = err.strerror or type(err).__name__
+        raise OSError(
+            f"cannot write to the outputs folder {root}: {reason} "
+            f"(set {OUTPUTS_ENV} to a folder you can write)"
+        ) from None
     return root
 
 
@@ -130,6 +152,18 @@ def atomic_write(path: Path | str, mode: str = "wb") -> Iterator[Any]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def show_in_notebook(png: Path | str) -> None:
+    """Show a saved PNG inline when running in a Jupyter kernel; do nothing elsewhere.
+
+    Every figure writer calls it, so a chapter run as a notebook shows its figures where they are
+    made, and saves them to ``outputs/figures`` either way.
+    """
+    if in_notebook():
+        from IPython.display import Image, display
+
+        display(Image(filename=str(png)))
 
 
 def save_json(path: Path | str, obj: Any) -> Path:

@@ -43,7 +43,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .artifacts import atomic_write
+from .artifacts import atomic_write, show_in_notebook
 from .config import check_range
 from .geometry import Track, positions_on
 from .vehicle import VehicleParams
@@ -674,11 +674,13 @@ def _car_to_topdown(fwd_left: np.ndarray, row0: float, col0: float, m_per_px: fl
 
 
 def save_image(path: Path | str, rgb: np.ndarray) -> Path:
-    """Write an RGB image as PNG (OpenCV wants BGR), atomically. Returns the path."""
+    """Write an RGB image as PNG (OpenCV wants BGR), atomically; shown inline in a notebook.
+    Returns the path."""
     path = Path(path)
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
     if not ok:
         raise OSError(f"could not encode {path}")
     with atomic_write(path) as f:
         f.write(buf.tobytes())
+    show_in_notebook(path)
     return path

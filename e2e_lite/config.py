@@ -124,6 +124,17 @@ class Profile:
         """True in the quick profile."""
         return self.name == "quick"
 
+    @property
+    def caveat(self) -> str:
+        """A line to print under every table of results: empty in the full profile."""
+        if not self.quick:
+            return ""
+        return (
+            "\n(quick profile: a smoke test of the code, networks trained for seconds on "
+            f"{self.n_train_samples} samples and {self.ablation_miles:g}-{self.eval_miles:g} miles "
+            "driven per row; these numbers are not results)"
+        )
+
 
 QUICK = Profile(
     name="quick",
@@ -161,14 +172,60 @@ FULL = Profile(
 )
 
 
+QUICK_ON = ("1", "true", "yes")
+QUICK_OFF = ("", "0", "false", "no")
+
+
+def in_notebook() -> bool:
+    """True inside a Jupyter kernel (where ``sys.argv`` is the kernel's, not the chapter's)."""
+    if "ipykernel" not in sys.modules:
+        return False
+    try:
+        from IPython import get_ipython
+    except ImportError:
+        return False
+    shell = get_ipython()
+    return shell is not None and getattr(shell, "kernel", None) is not None
+
+
 def quick_requested(argv: Sequence[str] | None = None, environ: dict | None = None) -> bool:
-    """Whether the quick profile is asked for, by ``--quick`` in ``argv`` or ``E2E_LITE_QUICK``."""
-    argv = sys.argv[1:] if argv is None else argv
+    """Whether the quick profile is asked for, by ``--quick`` in ``argv`` or ``E2E_LITE_QUICK``.
+
+    ``argv`` defaults to the script's arguments, and to none inside a notebook (the kernel's own
+    arguments are not the chapter's); there, set the variable in the first cell instead
+    (``%env E2E_LITE_QUICK=1``). A value of the variable outside 1/true/yes/0/false/no (any case)
+    raises ``ValueError`` naming them.
+    """
+    if argv is None:
+        argv = [] if in_notebook() else sys.argv[1:]
     environ = os.environ if environ is None else environ
-    flag = environ.get(QUICK_ENV, "").strip().lower()
-    if flag not in ("", "0", "1", "true", "false", "yes", "no"):
-        raise ValueError(f"{QUICK_ENV}={flag!r} is invalid: must be one of 0, 1, true, false")
-    return QUICK_FLAG in argv or flag in ("1", "true", "yes")
+    raw = environ.get(QUICK_ENV, "")
+    flag = raw.strip().lower()
+    if flag not in QUICK_ON + QUICK_OFF:
+        accepted = ", ".join(v for v in QUICK_ON + QUICK_OFF if v)
+        raise ValueError(
+            f"{QUICK_ENV}={raw!r} is invalid: must be one of {accepted} (any case) or empty"
+        )
+    return QUICK_FLAG in argv or flag in QUICK_ON
+
+
+def _progress_bar() -> type:
+    """tqdm's notebook bar inside a kernel with ipywidgets, else the text bar (which also works in
+    a notebook: ``tqdm.auto`` would warn "IProgress not found" there and still fall back)."""
+    if in_notebook():
+        try:
+            import ipywidgets  # noqa: F401
+            from tqdm.notebook import tqdm as notebook_tqdm
+
+            return notebook_tqdm
+        except ImportError:
+            pass
+    from tqdm.std import tqdm as text_tqdm
+
+    return text_tqdm
+
+
+tqdm = _progress_bar()
 
 
 def active_profile(argv: Sequence[str] | None = None, environ: dict | None = None) -> Profile:

@@ -5,6 +5,10 @@
 Shows which chapter runs and how long each took, stops at the first failure (the chapter's own
 error is on screen above the message), and ends with a table of each chapter's headline figures,
 read from ``<outputs>/metrics/<chapter>.json`` (the ``"headline"`` entry each chapter writes).
+
+Each chapter starts with :func:`start_chapter`: it reads the chapter's flags (``--quick``,
+``--help``; anything else stops with one line and exit code 2), picks the profile, checks that
+the outputs folder can be written, and says what the quick profile's numbers are.
 """
 
 from __future__ import annotations
@@ -15,13 +19,97 @@ import re
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple, NoReturn
 
-from .artifacts import read_metrics
-from .config import QUICK_ENV, quick_requested
+from .artifacts import check_outputs_writable, read_metrics
+from .config import QUICK_ENV, Profile, active_profile, in_notebook, quick_requested
 
 _REPO_ROOT = Path(__file__).resolve().parents[1]
 _CHAPTER_RE = re.compile(r"^(\d{2})_[a-z0-9_]+\.py$")
+
+
+class ChapterInfo(NamedTuple):
+    """What ``--help`` says about a chapter: its purpose and its measured time on 2 CPU cores.
+
+    Attributes:
+        purpose: one line.
+        quick_s: the quick profile, from an empty outputs folder [s].
+        full_min: the full profile, building everything it needs that earlier chapters did not
+            [min].
+    """
+
+    purpose: str
+    quick_s: int
+    full_min: int
+
+
+# times measured with `python -m e2e_lite.course [--quick]` on the 2-core development machine
+# (README, "Timings"); the full-profile times assume the earlier chapters' artifacts exist
+CHAPTERS: dict[int, ChapterInfo] = {
+    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 15, 2),
+    2: ChapterInfo("the rasterised front camera the networks see", 10, 1),
+    3: ChapterInfo("LQR tracking: following a trajectory with steering and acceleration", 15, 2),
+    4: ChapterInfo("the rule-based expert and the driving dataset", 20, 15),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", 25, 20),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", 15, 12),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 40, 45),
+    8: ChapterInfo("the affordance auxiliary loss", 25, 25),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", 20, 10),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 55, 90),
+    11: ChapterInfo("the safety module on the affordances", 30, 25),
+}
+
+
+class _ChapterParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (``prog: error: ...``) and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def start_chapter(number: int, argv: Sequence[str] | None = None) -> Profile:
+    """What every chapter does first; returns the profile it runs under.
+
+    As a script: parses ``argv`` (default ``sys.argv[1:]``). ``--quick`` picks the quick profile,
+    ``--help`` prints the chapter's purpose and measured times and exits, anything else exits
+    with one line and code 2 (a typo must not start hours of full-profile work). In a notebook
+    the kernel's arguments are ignored; set ``%env E2E_LITE_QUICK=1`` in the first cell for the
+    quick profile. A bad ``E2E_LITE_QUICK`` or an outputs folder that cannot be written stops
+    here, with one line (exit code 2 in a script, an error in a notebook), before any work.
+    """
+    info = CHAPTERS[number]
+    notebook = in_notebook()
+    prog = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else f"chapter {number:02d}"
+    if not notebook:
+        parser = _ChapterParser(
+            prog=prog,
+            description=f"Chapter {number:02d}: {info.purpose}.",
+            epilog=(
+                f"Measured on 2 CPU cores: about {info.quick_s} s with --quick, about "
+                f"{info.full_min} min in the full profile (earlier chapters' artifacts reused)."
+            ),
+            allow_abbrev=False,
+        )
+        parser.add_argument(
+            "--quick",
+            action="store_true",
+            help="the quick profile: a smoke test in seconds (tiny data, untrained networks)",
+        )
+        parser.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        profile = active_profile(argv=[] if notebook else argv)
+        root = check_outputs_writable()
+    except (ValueError, OSError) as err:
+        if notebook:
+            raise RuntimeError(str(err)) from None
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    print(f"Chapter {number:02d}, {profile.name} profile; outputs in {root}")
+    if profile.quick:
+        print(profile.caveat.strip())
+    return profile
 
 
 def find_chapters(directory: Path | None = None) -> list[tuple[int, Path]]:

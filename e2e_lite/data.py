@@ -45,11 +45,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from .artifacts import artifact_path, cached, settings_key, to_json
 from .camera import Camera, CameraConfig
-from .config import Profile, check_pair, check_range
+from .config import Profile, check_pair, check_range, tqdm
 from .evaluation import Actuation, EvalConfig, EvalResult, Observation, evaluate
 from .expert import CHANGE, FOLLOW, PASS, Expert, ExpertConfig
 from .tracker import N_POINTS, LQRTracker, follow_trajectory

@@ -38,10 +38,9 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from scipy.stats import binomtest, chi2
-from tqdm.auto import tqdm
 
 from .camera import Camera
-from .config import check_range
+from .config import check_range, tqdm
 from .geometry import SPLITS
 from .vehicle import H, V
 from .world import Fleet, World, WorldConfig, make_world

@@ -18,10 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from .camera import Camera
-from .config import check_pair, check_range
+from .config import check_pair, check_range, tqdm
 from .evaluation import Policy, observe
 from .geometry import Track
 from .world import Fleet, ParkedCars, World, WorldConfig

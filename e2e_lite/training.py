@@ -23,10 +23,9 @@ from typing import Any
 import numpy as np
 import torch
 from matplotlib.figure import Figure
-from tqdm.auto import tqdm
 
 from .artifacts import artifact_path, atomic_write, save_json, settings_key
-from .config import check_range
+from .config import check_range, tqdm
 from .data import DrivingData, DrivingDataset, situations
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare

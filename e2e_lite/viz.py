@@ -15,7 +15,7 @@ from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
-from .artifacts import atomic_write
+from .artifacts import atomic_write, show_in_notebook
 from .evaluation import EvalResult, result_dict
 from .geometry import Track
 from .world import ParkedCars
@@ -27,10 +27,11 @@ CAR = "#d62728"
 
 
 def save_figure(fig: Figure, path: Path | str, dpi: int = 110) -> Path:
-    """Save ``fig`` as PNG, atomically. Returns the path."""
+    """Save ``fig`` as PNG, atomically; shown inline in a notebook. Returns the path."""
     path = Path(path)
     with atomic_write(path) as f:
         fig.savefig(f, format="png", dpi=dpi, bbox_inches="tight")
+    show_in_notebook(path)
     return path
 
 

@@ -59,6 +59,55 @@ def test_chapter_runs_in_quick_profile(path, tmp_path):
         }
 
 
+def _run_chapter(args: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(CHAPTERS[4][1]), *args],  # chapter 05: hours in the full profile
+        env=env, cwd=cwd, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+
+
+def test_a_typo_or_a_bad_setting_stops_a_chapter_at_once_with_one_line(tmp_path):
+    env = _env(tmp_path)
+    del env["E2E_LITE_QUICK"]  # a typo must not start the full profile
+    typo = _run_chapter(["--quikc"], env, tmp_path)
+    assert typo.returncode == 2 and typo.stdout == ""
+    assert typo.stderr.strip().count("\n") == 0 and "--quikc" in typo.stderr
+    helped = _run_chapter(["--help"], env, tmp_path)
+    assert helped.returncode == 0 and "PilotNet" in helped.stdout
+    words = " ".join(helped.stdout.split())  # argparse wraps to the terminal's width
+    assert "--quick" in words and " s with --quick" in words and " min in the full profile" in words
+    assert not (tmp_path / "outputs").exists()  # nothing was started
+    bad_quick = _run_chapter([], {**env, "E2E_LITE_QUICK": "maybe"}, tmp_path)
+    assert bad_quick.returncode == 2 and bad_quick.stderr.strip().count("\n") == 0
+    for accepted in ("1", "true", "yes", "0", "false", "no"):
+        assert accepted in bad_quick.stderr
+    blocked = tmp_path / "file"
+    blocked.write_text("a file where the outputs folder should be")
+    unwritable = _run_chapter(["--quick"], {**env, "E2E_LITE_OUTPUTS": str(blocked)}, tmp_path)
+    assert unwritable.returncode == 2 and unwritable.stderr.strip().count("\n") == 0
+    assert str(blocked) in unwritable.stderr and "E2E_LITE_OUTPUTS" in unwritable.stderr
+
+
+def test_chapter_01_as_a_notebook_shows_its_figures(tmp_path, monkeypatch):
+    """Executed as a notebook (jupytext -> nbclient), the quick profile switched on in the first
+    cell as the README says: the figures appear inline and the progress bars do not warn."""
+    jupytext = pytest.importorskip("jupytext")
+    nbclient = pytest.importorskip("nbclient")
+    nbformat = pytest.importorskip("nbformat")
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path / "outputs"))
+    monkeypatch.delenv("E2E_LITE_QUICK", raising=False)
+    nb = jupytext.read(CHAPTERS[0][1])
+    nb.cells.insert(0, nbformat.v4.new_code_cell("%env E2E_LITE_QUICK=1"))
+    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3", resources={
+        "metadata": {"path": str(tmp_path)}}).execute()  # fmt: skip
+    outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+    images = [o for o in outputs if "image/png" in o.get("data", {})]
+    text = "".join(o.get("text", "") for o in outputs if o.get("output_type") == "stream")
+    assert len(images) >= 1
+    assert "quick profile" in text and "IProgress" not in text
+    assert (tmp_path / "outputs" / "quick" / "figures" / "01_highway.png").exists()
+
+
 def test_chapters_are_percent_format_with_summary_and_exercises():
     assert CHAPTERS, "no chapters found"
     for _, path in CHAPTERS:
