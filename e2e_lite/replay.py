@@ -12,7 +12,8 @@ What the scene shows: the road (surface, edge lines, dashed dividers, guard rail
 cars, the ego car, and the car's declared intent at each decision: the 5 trajectory points it
 proposed (for a GMM, every mode in its own colour, each point's size growing with the mode's
 weight; the followed mode is the largest), drawn in the world where the car meant to be 0.3 to
-1.5 s later. The viewer's camera follows the car.
+1.5 s later. The viewer's camera follows the car from behind (the scene moves, see
+:func:`build_scene`).
 """
 
 from __future__ import annotations
@@ -166,6 +167,9 @@ class RecordingWindow:
         self.commands.append(umsgpack.packb(command.lower()))
 
 
+CHASE_CAMERA_M = [-18.0, 9.0, 0.0]  # behind, up, side in the camera's y-up frame [m]
+
+
 def _hex(rgb: tuple[int, int, int]) -> int:
     return (rgb[0] << 16) | (rgb[1] << 8) | rgb[2]
 
@@ -246,7 +250,13 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
         mat = g.MeshLambertMaterial(color=_hex(MODE_COLOURS[m % len(MODE_COLOURS)]))
         for p in range(5):
             vis[f"plan/mode_{m}/p{p}"].set_object(g.Sphere(0.45), mat)
-    vis["/Cameras/default/rotated/<object>"].set_property("position", [-18.0, 9.0, 0.0])
+    # A chase view. meshcat's orbit controls aim the camera at the *world* origin whatever frame
+    # the camera sits in, so moving the camera with the car left it looking back at the origin.
+    # Instead the scene moves: every object lives under /meshcat, whose transform each frame is
+    # the inverse of the car's pose, so the car stays at the origin facing +x, and the camera
+    # sits 18 m behind it and 9 m up (the camera's frame is y-up), looking at it; dragging
+    # orbits around the car.
+    vis["/Cameras/default/rotated/<object>"].set_property("position", CHASE_CAMERA_M)
     vis["/Grid"].set_property("visible", False)  # the default grid sits at the world's origin
     vis["/Axes"].set_property("visible", False)
     anim = Animation(default_framerate=round(1.0 / ep.period_s))
@@ -255,7 +265,7 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
         with anim.at_frame(vis, f) as frame:
             cx, cy = x + rear_to_centre * np.cos(h), y + rear_to_centre * np.sin(h)
             frame["ego"].set_transform(_pose(cx, cy, CAR_HEIGHT_M / 2, h))
-            frame["/Cameras/default"].set_transform(_pose(cx, cy, 0.0, h))
+            frame["/meshcat"].set_transform(np.linalg.inv(_pose(cx, cy, 0.0, h)))
             if ep.modes is not None and f < len(ep.modes):
                 c, si = np.cos(h), np.sin(h)
                 for m in range(n_modes):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import base64
 import os
 import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,7 @@ from e2e_lite.models import ModelConfig, build_model, prepare
 from e2e_lite.world import TrafficConfig, WorldConfig, make_world
 
 WORLD = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(6, 6)))
+EMPTY_WORLD = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(0, 0)))
 
 
 def _processes() -> dict[int, str]:
@@ -106,3 +109,62 @@ def test_a_driver_without_proposals_replays_and_a_collision_ends_it(tmp_path):
     assert "collided with a car" in page
     with pytest.raises(ValueError, match="frames"):
         replay.export_gif(ep, tmp_path / "k.gif")
+
+
+class Proposing(LaneKeeper):
+    """A lane keeper that also declares two modes: straight on (weight 0.7) and a drift left."""
+
+    def act(self, obs):
+        act = super().act(obs)
+        n = len(obs.s)
+        ahead = np.linspace(6.0, 30.0, 5)
+        straight = np.stack([ahead, np.zeros(5)], -1)
+        left = np.stack([ahead, np.linspace(0.3, 3.0, 5)], -1)
+        self.last = {
+            "modes": np.repeat(np.stack([left, straight])[None], n, 0),
+            "weights": np.repeat(np.array([[0.3, 0.7]]), n, 0),
+        }
+        return act
+
+
+def _browser() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
+        if shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _screenshot(browser: str, page: Path, out: Path, at_ms: int) -> np.ndarray:
+    """The page as headless Chromium draws it (software WebGL) after ``at_ms`` of page time."""
+    subprocess.run(
+        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
+         "--enable-unsafe-swiftshader", "--hide-scrollbars", "--window-size=800,600",
+         f"--virtual-time-budget={at_ms}", f"--screenshot={out}", page.as_uri()],
+        capture_output=True, timeout=120, check=True,
+    )  # fmt: skip
+    with Image.open(out) as im:
+        return np.asarray(im.convert("RGB")).astype(int)
+
+
+@pytest.mark.skipif(
+    _browser() is None, reason="no Chromium or Chrome on this machine (.ci/run installs one)"
+)
+def test_the_replay_camera_shows_the_car_and_its_modes_in_a_real_browser(tmp_path):
+    """The chase view: at the start and the end of the animation the red car and the heavier
+    (orange) mode's spheres are drawn near the middle of the frame."""
+    world = make_world(EMPTY_WORLD, "val", 0)
+    ep = replay.record(Proposing(), world, EMPTY_WORLD, "proposer", 30.0, 1, 4.0, frames=False)
+    assert ep.contact is None and ep.seconds >= 3.9
+    page = replay.export_html(ep, tmp_path / "proposer.html", "browser test")
+    for at_ms in (800, 6000):  # early in the 4 s animation, and after it ended
+        rgb = _screenshot(_browser(), page, tmp_path / f"shot_{at_ms}.png", at_ms)
+        h, w, _ = rgb.shape
+        middle = rgb[h // 5 : 4 * h // 5, w // 5 : 4 * w // 5]  # the caption sits top left
+        r, g, b = middle[..., 0], middle[..., 1], middle[..., 2]
+        car = (r > 140) & (g < 90) & (b < 90)
+        orange = (r > 170) & (g > 90) & (g < 175) & (b < 80)
+        assert car.sum() > 200, (at_ms, car.sum())
+        assert orange.sum() > 20, (at_ms, orange.sum())
+        # and not elsewhere only: the car's pixels are centred horizontally
+        cols = np.flatnonzero(car.any(0))
+        assert abs(cols.mean() - middle.shape[1] / 2) < middle.shape[1] / 6, cols.mean()
