@@ -247,7 +247,8 @@ def _evaluate_one(
     progress: bool,
     workers: int,
 ) -> EvalResult | dict[str, Any]:
-    """One driver's evaluation, stored as ``evaluations/<file>.json`` (see :func:`evaluate_drivers`)."""
+    """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` (see
+    :func:`evaluate_drivers`)."""
 
     def run() -> EvalResult:
         res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
@@ -258,7 +259,9 @@ def _evaluate_one(
     if not reuse:
         return run()
     run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
-    path = artifact_path("evaluations", f"{file}.json")
+    # the settings' key is part of the name: two evaluations of one driver with other settings
+    # (chapter 11 drives chapter 10's network over other miles) keep a file each
+    path = artifact_path("evaluations", f"{file}-{run_key}.json")
     result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
     if progress and not isinstance(result, EvalResult):
         print(f"{label}: reusing {path.name} ({result['miles']:.0f} mi)", flush=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -48,6 +50,18 @@ def test_same_seeds_give_the_same_table_and_a_stored_result_is_reused():
     other = {"gmm": TrajectoryAgent(_tiny("gmm", seed=1))}
     fresh = ablation.evaluate_drivers(other, WORLD, CFG, progress=False)
     assert isinstance(fresh["gmm"], EvalResult)
+
+
+def test_evaluations_with_other_settings_are_kept_side_by_side():
+    """Chapter 11 drives chapter 10's network over other miles: neither replaces the other."""
+    keeper = {"side_by_side": LaneKeeper()}
+    short = replace(CFG, miles=0.2)
+    assert isinstance(ablation.evaluate_drivers(keeper, WORLD, CFG)["side_by_side"], EvalResult)
+    assert isinstance(ablation.evaluate_drivers(keeper, WORLD, short)["side_by_side"], EvalResult)
+    long_again = ablation.evaluate_drivers(keeper, WORLD, CFG, progress=False)["side_by_side"]
+    short_again = ablation.evaluate_drivers(keeper, WORLD, short, progress=False)["side_by_side"]
+    assert isinstance(long_again, dict) and isinstance(short_again, dict)  # both read back
+    assert long_again["miles"] > short_again["miles"]
 
 
 def test_table_has_every_driver_with_the_papers_figures():
