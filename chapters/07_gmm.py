@@ -37,7 +37,7 @@ from e2e_lite.agents import (
     Recorder,
     TrajectoryAgent,
 )
-from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
+from e2e_lite.camera import Camera, CameraConfig, draw_trajectory
 from e2e_lite.course import start_chapter
 from e2e_lite.data import (
     AFFORDANCE_NAMES,
@@ -177,17 +177,36 @@ agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
 dcfg = DataConfig.for_profile(profile, "val")
 
 
+MODE_RGB = [(255, 60, 40), (40, 120, 255), (250, 200, 0), (200, 0, 200)]
+EXPERT_RGB = (40, 200, 40)
+
+
 def draw_modes(img: np.ndarray, last: dict, b: int = 0) -> np.ndarray:
-    colours = [(255, 60, 40), (40, 120, 255), (250, 200, 0), (200, 0, 200)]
+    """Each mode's 5 points on the camera view, in its colour (the legend is in the figure)."""
     for k in range(last["modes"].shape[1]):
-        draw_trajectory(
-            img,
-            last["modes"][b, k],
-            human,
-            colour=colours[k % 4],
-            label=f"{last['weights'][b, k]:.2f}",
-        )
+        draw_trajectory(img, last["modes"][b, k], human, colour=MODE_RGB[k % 4])
     return img
+
+
+def modes_panels(ax_img, ax_xy, img, last, title, expert=None) -> None:
+    """The camera view with the modes drawn, and below it the same modes top-down in the car's
+    frame (metres), each labelled with its weight."""
+    ax_img.imshow(img)
+    ax_img.set_axis_off()
+    ax_img.set_title(title, fontsize=10)
+    for k in range(last["modes"].shape[1]):
+        pts = last["modes"][0, k]
+        ax_xy.plot(pts[:, 1], pts[:, 0], "o-", color=np.array(MODE_RGB[k % 4]) / 255,
+                   label=f"mode {k + 1}, weight {last['weights'][0, k]:.2f}")  # fmt: skip
+    if expert is not None:
+        ax_xy.plot(expert[:, 1], expert[:, 0], "s--", color=np.array(EXPERT_RGB) / 255,
+                   label="expert's trajectory")  # fmt: skip
+    ax_xy.plot([0], [0], "k^", label="the car (rear axle)")
+    ax_xy.set_xlim(4.5, -4.5)  # left of the car is drawn on the left
+    ax_xy.set_xlabel("lateral position y, left positive [m]")
+    ax_xy.set_ylabel("ahead x [m]")
+    ax_xy.grid(alpha=0.3)
+    ax_xy.legend(fontsize=8, loc="lower left")
 
 
 # unimodal: a straight validation sample in lane keeping, no car within 60 m
@@ -205,7 +224,7 @@ obs = observe(fleet, True, images=val.images[i][None])
 agent.trajectories(obs)
 uni = {k: v.copy() for k, v in agent.last.items()}
 left_img = draw_modes(human.render(w_val.track, w_val.cars, pose), uni)
-draw_trajectory(left_img, val.trajectory[i], human, colour=(40, 200, 40), label="expert")
+draw_trajectory(left_img, val.trajectory[i], human, colour=EXPERT_RGB)
 
 # bimodal: chapter 06's scene
 straight = Track([0.0], [0.0], [0.0], [0.0], [900.0])
@@ -220,10 +239,20 @@ obs = observe(
 agent.trajectories(obs)
 bi = {k: v.copy() for k, v in agent.last.items()}
 right_img = draw_modes(human.render(straight, scene.cars, tuple(fleet.state[0, :3])), bi)
-fig3_png = save_image(
-    artifacts.artifact_path("figures", "07_gmm_modes.png"),
-    np.concatenate([left_img, right_img], axis=1),
+fig = Figure(figsize=(11, 6.5), layout="constrained")
+axes = fig.subplots(2, 2, height_ratios=[1, 1.6])
+modes_panels(
+    axes[0, 0],
+    axes[1, 0],
+    left_img,
+    uni,
+    "a straight validation frame, no car within 60 m",
+    expert=val.trajectory[i],
 )
+modes_panels(axes[0, 1], axes[1, 1], right_img, bi,
+             "chapter 06's scene: a parked car 44 m ahead")  # fmt: skip
+fig.suptitle("The GMM's modes at 0.3-1.5 s: on the camera view and top-down", fontsize=11)
+fig3_png = save_figure(fig, artifacts.artifact_path("figures", "07_gmm_modes.png"))
 gap_uni = float(np.abs(uni["modes"][0, 0, -1] - uni["modes"][0, 1, -1]).max())
 print(
     f"straight road: weights {np.round(uni['weights'][0], 2).tolist()}, modes {gap_uni:.2f} m apart at 1.5 s"
