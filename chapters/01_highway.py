@@ -24,7 +24,7 @@ import e2e_lite
 from e2e_lite import artifacts
 from e2e_lite.course import start_chapter
 from e2e_lite.drivers import LaneChanger, LaneKeeper
-from e2e_lite.evaluation import EvalConfig, evaluate, poisson_ci
+from e2e_lite.evaluation import EvalConfig, evaluate, miles_text, poisson_ci
 from e2e_lite.geometry import generate_track
 from e2e_lite.viz import highway_figure, save_figure
 from e2e_lite.world import WorldConfig, make_world
@@ -33,7 +33,7 @@ profile = start_chapter(1)
 world_cfg = WorldConfig.for_profile(profile)
 print(
     f"e2e-lite {e2e_lite.__version__}, {profile.name} profile: tracks of "
-    f"{profile.track_length_m / 1000:.0f} km, {profile.eval_miles:g} miles per driver"
+    f"{profile.track_length_m / 1000:.0f} km, {miles_text(profile.eval_miles)} per driver"
 )
 
 # %% [markdown]

@@ -330,7 +330,7 @@ artifacts.write_metrics(
 )
 print(
     "| driver | miles | collisions | lateral RMS | mph |\n|---|---:|---:|---:|---:|\n"
-    f"| LQR lane centre (no parked cars) | {res.miles:.0f} | {res.collisions} | {rms_cm:.1f} cm | "
+    f"| LQR lane centre (no parked cars) | {res.miles:.3g} | {res.collisions} | {rms_cm:.1f} cm | "
     f"{res.mean_speed_mph:.1f} |"
 )
 

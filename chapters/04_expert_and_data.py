@@ -354,7 +354,7 @@ artifacts.write_metrics(
 print(
     "| driver | miles | collisions | per 100 mi [95% CI] | mph |\n|---|---:|---:|---:|---:|\n"
     + "\n".join(
-        f"| {name} | {r.miles:.0f} | {r.collisions} | {r.collisions_per_100mi:.1f} "
+        f"| {name} | {r.miles:.3g} | {r.collisions} | {r.collisions_per_100mi:.1f} "
         f"[{r.ci95_per_100mi[0]:.1f}-{r.ci95_per_100mi[1]:.1f}] | {r.mean_speed_mph:.1f} |"
         for name, r in (
             ("expert (ceiling)", res_expert),

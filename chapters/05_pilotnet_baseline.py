@@ -181,7 +181,7 @@ for name, agent in (
     print(f"{name}: {results[name].summary()}")
 
 table = results_table(list(results.items()))
-print(table)
+print(table + profile.caveat)
 print(
     "paper (TORCS): Baseline E2E 183.3 per 100 mi; seed 002 (CARLA): time to collision 10.2 s vs 1.1 s"
 )

@@ -130,7 +130,7 @@ print(res.summary())
 prev = artifacts.read_metrics("05_pilotnet_baseline", profile.name)
 earlier = [] if prev is None else [(f"{n} (ch. 05)", r) for n, r in prev["results"].items()]
 table = results_table([*earlier, ("trajectory L2 + LQR", res)])
-print(table)
+print(table + profile.caveat)
 
 # %% [markdown]
 # ## 5. The failure: averaging two answers

@@ -53,6 +53,7 @@ from e2e_lite.evaluation import (
     EvalConfig,
     compare_rates,
     evaluate,
+    miles_text,
     observe,
     results_table,
     speed_histogram,
@@ -378,10 +379,10 @@ for chapter, key in (("05_pilotnet_baseline", "results"), ("06_trajectory_regres
     for name, r in entries:
         earlier.append((name, r))
 table = results_table([*earlier, ("trajectory GMM + LQR", res)])
-print(table)
+print(table + profile.caveat)
 chart = collision_chart(
     [*earlier, ("trajectory GMM + LQR", res)],
-    title=f"chapters 05-07, {res.miles:.0f} miles each, same validation tracks and seeds",
+    title=f"chapters 05-07, {miles_text(round(res.miles, 1))} each, same validation tracks and seeds",
 )
 chart_png = save_figure(chart, artifacts.artifact_path("figures", "07_collisions.png"))
 print(f"saved {chart_png}")
@@ -485,7 +486,7 @@ for key, d in diagnosis.items():
         f"{d['v_ref_minus_speed_mps']:+.2f} m/s | {d['a_ref_mps2']:+.2f} m/s2 |"
     )
 diag_table = "\n".join(diag_md)
-print(f"{diag_miles:.0f} miles each:\n{diag_table}")
+print(f"{miles_text(diag_miles)} each:\n{diag_table}{profile.caveat}")
 slow_share = float(np.mean(train.speed < 22.0))
 print(
     f"expert data: mean speed {train.speed.mean():.2f} m/s; samples below 22 m/s {slow_share:.1%}"
@@ -550,7 +551,7 @@ train_ev = EvalConfig(miles=reading_miles, n_worlds=profile.n_worlds, split="tra
 masks = situations(val.arrays, probe_rows)
 masks["other"] = ~(masks["overtake_start"] | masks["slow"] | masks["curve"])
 reading = {"noise_m": noise_m.tolist(), "oracle": {}, "decoding": {}}
-print(f"oracle + that noise, {reading_miles:g} miles each on the training tracks:")
+print(f"oracle + that noise, {miles_text(reading_miles)} each on the training tracks:")
 for preview in previews:
     pred = trajectory_reference(followed["points"], preview)
     true = trajectory_reference(label_pts, preview)

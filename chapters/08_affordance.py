@@ -32,7 +32,7 @@ from e2e_lite import artifacts, recipes
 from e2e_lite.agents import Recorder, TrajectoryAgent
 from e2e_lite.course import start_chapter
 from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, DrivingDataset, affordances, load_or_collect
-from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, results_table
+from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
@@ -206,7 +206,7 @@ for chapter, label in (
         rows_table.append((label, m["result"]))
 rows_table.append((f"GMM + affordance (w = {w_best:g}) + LQR", res))
 table = results_table(rows_table)
-print(table)
+print(table + profile.caveat)
 gmm_row = dict(rows_table).get("trajectory GMM + LQR")
 verdict = (
     "GMM + affordance vs GMM: " + compare_rates(res, gmm_row)["verdict"]
@@ -216,7 +216,7 @@ verdict = (
 print(verdict)
 chart = collision_chart(
     rows_table,
-    title=f"{res.miles:.0f} miles each, same validation tracks and seeds",
+    title=f"{miles_text(round(res.miles, 1))} each, same validation tracks and seeds",
 )
 chart_png = save_figure(chart, artifacts.artifact_path("figures", "08_collisions.png"))
 

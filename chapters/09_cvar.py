@@ -31,7 +31,7 @@ from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import save_image
 from e2e_lite.course import start_chapter
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect, situation_shares
-from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, results_table
+from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
 from e2e_lite.losses import cvar, cvar_curve, cvar_loss
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
@@ -150,11 +150,17 @@ model, objective, hist = recipes.gmm_affordance_cvar(profile, train, val, w)
 objective.start_epoch(10**6)
 cvar_losses, cvar_metrics = evaluate_loss(model, objective, DrivingDataset(val))
 _, tuned_curve = cvar_curve(cvar_losses)
-print(
-    f"after CVaR-90: mean {tuned_curve[0]:.3f} (was {base_curve[0]:.3f}), CVaR-90 "
-    f"{tuned_curve[90]:.3f} (was {base_curve[90]:.3f}), CVaR-99 {tuned_curve[99]:.3f} "
-    f"(was {base_curve[99]:.3f})"
-)
+
+
+def change(before: float, after: float) -> str:
+    """``before -> after`` with the direction and the relative change spelled out."""
+    word = "lower" if after < before else "higher" if after > before else "equal"
+    return f"{before:.3f} -> {after:.3f} ({word}, {100 * (after - before) / abs(before):+.2f} %)"
+
+
+print("held-out loss before -> after the CVaR-90 fine-tune:")
+for name, k in (("mean", 0), ("CVaR-90", 90), ("CVaR-99", 99)):
+    print(f"  {name}: {change(base_curve[k], tuned_curve[k])}")
 fig = Figure(figsize=(8, 4.5))
 ax = fig.subplots()
 ax.plot(100 * alphas, base_curve, label="chapter 08 (mean loss)", color="tab:blue")
@@ -165,9 +171,24 @@ ax.set_title("the paper's Fig. 5: the tail of the loss before and after CVaR")
 ax.legend()
 curve_png = save_figure(fig, artifacts.artifact_path("figures", "09_cvar_curve.png"))
 lower = tuned_curve < base_curve
+
+
+def spans(percent: np.ndarray) -> str:
+    """Whole percentages as runs: [0, 1, 2, 7] -> "0-2, 7"."""
+    runs, start = [], None
+    for k, p in enumerate(percent):
+        start = p if start is None else start
+        if k + 1 == len(percent) or percent[k + 1] != p + 1:
+            runs.append(f"{start}" if start == p else f"{start}-{p}")
+            start = None
+    return ", ".join(runs) or "none"
+
+
+pct = np.round(100 * alphas).astype(int)
 print(
-    f"after the fine-tune the CVaR is lower at {int(lower.sum())} of {len(alphas)} alphas "
-    f"(mean: {'lower' if lower[0] else 'not lower'}); saved {curve_png}"
+    f"the fine-tune's CVaR is lower than the base's at {int(lower.sum())} of {len(alphas)} alphas "
+    f"(alpha [%]: {spans(pct[lower])}) and not lower at alpha [%]: {spans(pct[~lower])}; "
+    f"saved {curve_png}"
 )
 
 # %% [markdown]
@@ -213,7 +234,7 @@ for chapter, label in (
         rows.append((label, m["result"]))
 rows.append(("GMM + affordance + CVaR-90 + LQR", res))
 table = results_table(rows)
-print(table)
+print(table + profile.caveat)
 aff = dict(rows).get("GMM + affordance + LQR")
 verdict = (
     "CVaR vs without: " + compare_rates(res, aff)["verdict"]
@@ -222,7 +243,9 @@ verdict = (
 )
 print(verdict)
 chart_png = save_figure(
-    collision_chart(rows, title=f"{res.miles:.0f} miles each, same validation tracks and seeds"),
+    collision_chart(
+        rows, title=f"{miles_text(round(res.miles, 1))} each, same validation tracks and seeds"
+    ),
     artifacts.artifact_path("figures", "09_collisions.png"),
 )
 

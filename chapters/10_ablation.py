@@ -34,14 +34,14 @@
 from e2e_lite import ablation, artifacts, replay
 from e2e_lite.course import start_chapter
 from e2e_lite.data import DataConfig, load_or_collect
-from e2e_lite.evaluation import EvalConfig, compare_rates, result_dict, results_table
+from e2e_lite.evaluation import EvalConfig, compare_rates, miles_text, result_dict, results_table
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig, make_world
 
 profile = start_chapter(10)
 world_cfg = WorldConfig.for_profile(profile)
 print(
-    f"{profile.name} profile: {profile.ablation_miles:g} miles per driver, "
+    f"{miles_text(profile.ablation_miles)} per driver, "
     f"{profile.ablation_seeds} training seeds per learned driver"
 )
 
@@ -75,7 +75,7 @@ for key, policy in drivers.items():
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
 results = ablation.evaluate_drivers(drivers, world_cfg, ev, workers=profile.ablation_workers)
 table = ablation.ablation_table(results)
-print(table)
+print(table + profile.caveat)
 
 # %% [markdown]
 # ## 3. The paper's steps, tested
@@ -147,7 +147,7 @@ control_table = results_table(
         ("stalls", [f"{result_dict(r)['stalls']:,}" for r in control_results.values()]),
     ],
 )
-print(control_table)
+print(control_table + profile.caveat)
 control_tests = {}
 for control, base, what in (
     ("gmm_affordance_w0", "gmm_affordance", "affordance network, w = 0 vs the chosen w"),
@@ -170,7 +170,7 @@ marks = [ablation.BY_KEY[k].paper_per_100mi for k in results]
 chart_png = save_figure(
     collision_chart(
         rows,
-        title=f"{ev.miles:g} {'mile' if ev.miles == 1 else 'miles'} per driver "
+        title=f"{miles_text(ev.miles)} per driver "
         f"({profile.ablation_seeds} training seeds each), same validation tracks and starts",
         marks=marks,
         marks_label="seed 000, Table 1",
@@ -204,9 +204,7 @@ for key, policy in drivers.items():
         seconds=profile.replay_s,
     )
     r = result_dict(results[key])
-    caption = (
-        f"{r['collisions_per_100mi']:.1f} collisions per 100 miles over {r['miles']:.0f} miles"
-    )
+    caption = f"{r['collisions_per_100mi']:.1f} collisions per 100 miles over {miles_text(round(r['miles'], 1))}"
     page = replay.export_html(ep, replay_dir / f"{key}.html", caption)
     gif = replay.export_gif(ep, replay_dir / f"{key}.gif")
     ending = f"collided with a {ep.contact}" if ep.contact else "no collision"

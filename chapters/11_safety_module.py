@@ -132,7 +132,7 @@ label = ablation.BY_KEY[key].label
 table = results_table(
     [(label, without)] + [(f"{label} + safety module ({n})", guarded[n][0]) for n, _ in variants]
 )
-print(table)
+print(table + profile.caveat)
 print("| module | interventions | other mode / fallback | false alarms | perception only |")
 print("|---|---:|---:|---:|---:|")
 for name, _ in variants:

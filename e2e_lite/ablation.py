@@ -264,7 +264,7 @@ def _evaluate_one(
     path = artifact_path("evaluations", f"{file}-{run_key}.json")
     result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
     if progress and not isinstance(result, EvalResult):
-        print(f"{label}: reusing {path.name} ({result['miles']:.0f} mi)", flush=True)
+        print(f"{label}: reusing {path.name} ({result['miles']:.3g} mi)", flush=True)
     return result
 
 

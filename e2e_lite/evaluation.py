@@ -242,6 +242,11 @@ class EvalResult:
         )
 
 
+def miles_text(miles: float) -> str:
+    """``"1 mile"``, ``"0.5 miles"``, ``"500 miles"``: a distance for prose."""
+    return f"{miles:g} {'mile' if miles == 1 else 'miles'}"
+
+
 def poisson_ci(count: int, exposure: float, level: float = 0.95) -> tuple[float, float]:
     """Exact (Garwood) confidence interval of a Poisson rate: ``count`` events over ``exposure``.
 
@@ -283,7 +288,7 @@ def results_table(
         lo, hi = r["ci95_per_100mi"]
         ttc = "-" if r["time_to_collision_s"] is None else f"{r['time_to_collision_s']:.1f} s"
         lines.append(
-            f"| {name} | {r['miles']:.0f} | {r['collisions']} ({r['car_collisions']} / "
+            f"| {name} | {r['miles']:.3g} | {r['collisions']} ({r['car_collisions']} / "
             f"{r['rail_collisions']}) | {r['collisions_per_100mi']:.1f} [{lo:.1f}-{hi:.1f}] | "
             f"{r['mean_speed_mph']:.1f} | {ttc} | {r['autonomy_pct']:.1f}% |"
             + "".join(f" {cells[k]} |" for _, cells in extra)
