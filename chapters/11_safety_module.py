@@ -34,16 +34,20 @@
 # Run it with `python chapters/11_safety_module.py` (add `--quick` for a run of seconds).
 
 # %%
-import cv2
+import textwrap
+
 import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from e2e_lite import ablation, artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
-from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
+from e2e_lite.camera import Camera, CameraConfig, draw_trajectory
 from e2e_lite.course import start_chapter
 from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, result_dict, results_table
 from e2e_lite.safety import SafeAgent, SafetyConfig, check
+from e2e_lite.viz import save_figure
 from e2e_lite.world import WorldConfig
 
 profile = start_chapter(11)
@@ -149,26 +153,43 @@ for name, v in verdicts.items():
 # %% [markdown]
 # ## 3. Interventions, frame by frame
 #
-# What the network proposed (one colour per mode, the weight printed), why the module rejected
-# the heaviest mode, and what was driven instead (green). Views re-rendered from the decision's
-# pose with the wide camera.
+# What the network proposed (one colour per mode, its weight in the caption), why the module
+# rejected the heaviest mode, and what was driven instead (green). Views re-rendered from the
+# decision's pose with the wide camera; one column per module.
 
 # %%
 view = Camera(CameraConfig.human())
-tiles = []
-for name, _ in variants:
-    for ex in guarded[name][1].examples()[:3]:
-        img = view.render(ex["track"], ex["cars"], tuple(ex["pose"]), ex["s"])
-        for k in np.argsort(ex["weights"]):
-            colour = ((40, 110, 230), (240, 140, 30))[k % 2]
-            draw_trajectory(img, ex["modes"][k], view, colour, label=f"{ex['weights'][k]:.2f}")
-        draw_trajectory(img, ex["chosen"], view, (40, 200, 60), label=ex["source"])
-        cv2.putText(img, f"{name}: {ex['reason']}"[:92], (6, 16), 0, 0.38, (0, 0, 0), 1)
-        tiles.append(img)
-if tiles:
-    grid_png = save_image(
-        artifacts.artifact_path("figures", "11_interventions.png"), np.concatenate(tiles)
-    )
+MODE_RGB = ((40, 110, 230), (240, 140, 30))
+DRIVEN_RGB = (40, 200, 60)
+examples = {name: guarded[name][1].examples()[:3] for name, _ in variants}
+n_rows = max(len(v) for v in examples.values())
+if n_rows:
+    fig = Figure(figsize=(13, 3.3 * n_rows + 0.6), layout="constrained")
+    axes = np.array(fig.subplots(n_rows, len(variants), squeeze=False))
+    for col, (name, _) in enumerate(variants):
+        for row in range(n_rows):
+            ax = axes[row, col]
+            ax.set_axis_off()
+            if row >= len(examples[name]):
+                continue
+            ex = examples[name][row]
+            img = view.render(ex["track"], ex["cars"], tuple(ex["pose"]), ex["s"])
+            for k in np.argsort(ex["weights"]):
+                draw_trajectory(img, ex["modes"][k], view, MODE_RGB[k % 2])
+            draw_trajectory(img, ex["chosen"], view, DRIVEN_RGB)
+            ax.imshow(img)
+            weights = ", ".join(
+                f"{('blue', 'orange')[k % 2]} {w:.2f}" for k, w in enumerate(ex["weights"])
+            )
+            caption = f"{name}: {ex['reason']}. Mode weights: {weights}; driven: {ex['source']}."
+            ax.set_title(textwrap.fill(caption, 80), fontsize=8, loc="left")
+    fig.legend(
+        handles=[Line2D([], [], color=np.array(c) / 255, marker="o", label=t)
+                 for c, t in ((MODE_RGB[0], "mode 1"), (MODE_RGB[1], "mode 2"),
+                              (DRIVEN_RGB, "what was driven"))],
+        loc="outside lower center", ncols=3, fontsize=9,
+    )  # fmt: skip
+    grid_png = save_figure(fig, artifacts.artifact_path("figures", "11_interventions.png"))
     print(f"saved {grid_png}")
 else:
     grid_png = None
