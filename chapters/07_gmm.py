@@ -453,7 +453,7 @@ def speeds(obs, agent):
     return np.stack([obs.speed, v_ref, a_ref], axis=1)
 
 
-diag_miles = 0.5 if profile.quick else 30.0
+diag_miles = 0.2 if profile.quick else 30.0
 diagnosis: dict[str, dict] = {}
 for name, m in (("L2", l2_model), ("GMM", model)):
     for speed in SPEED_SOURCES:
@@ -546,7 +546,7 @@ noise_m = np.sqrt(np.mean((followed["points"] - label_pts) ** 2, axis=0))  # (5,
 print(f"GMM held-out RMSE per point [m]: x {np.round(noise_m[:, 0], 2).tolist()}, "
       f"y {np.round(noise_m[:, 1], 2).tolist()}")  # fmt: skip
 previews = (0.0, 0.3, 0.6)
-reading_miles = 0.5 if profile.quick else 20.0
+reading_miles = 0.2 if profile.quick else 20.0
 train_ev = EvalConfig(miles=reading_miles, n_worlds=profile.n_worlds, split="train")
 masks = situations(val.arrays, probe_rows)
 masks["other"] = ~(masks["overtake_start"] | masks["slow"] | masks["curve"])
@@ -619,7 +619,7 @@ for name, m, obj, starts in runs:
             TrajectoryAgent(m, sigma_floor=obj.floor(m)),
             world_cfg,
             EvalConfig(
-                miles=0.5 if profile.quick else diag_miles,
+                miles=diag_miles,
                 n_worlds=profile.n_worlds,
                 start_speed_mps=start,
             ),

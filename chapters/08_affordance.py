@@ -154,7 +154,7 @@ recorder = Recorder(TrajectoryAgent(model, sigma_floor=objective.floor(model)), 
 evaluate(
     recorder,
     world_cfg,
-    EvalConfig(miles=0.5 if profile.quick else 3.0, n_worlds=2),
+    EvalConfig(miles=0.2 if profile.quick else 3.0, n_worlds=2),
     desc="recording a drive",
 )
 t = np.array([r[0] for r in recorder.rows])

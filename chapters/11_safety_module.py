@@ -116,8 +116,8 @@ print(
 # accepted it (then **perception alone** caused it)?
 
 # %%
-# (the quick profile's barely trained network makes the module crawl: half a mile is enough)
-miles = 0.5 if profile.quick else profile.ablation_miles
+# (the quick profile's barely trained network makes the module crawl: a fifth of a mile is enough)
+miles = 0.2 if profile.quick else profile.ablation_miles
 ev = EvalConfig(miles=miles, n_worlds=profile.ablation_worlds)
 stored = ablation.evaluate_drivers({key: agent}, world_cfg, ev, workers=profile.ablation_workers)
 without = stored[key]

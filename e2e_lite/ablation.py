@@ -189,6 +189,8 @@ def fingerprint(policy: Policy) -> str:
             digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
         parts += [digest.hexdigest(), repr(policy.model.cfg), getattr(policy, "speed", None)]
         parts += [getattr(policy, "preview_s", 0.0)]
+        if getattr(policy, "decode", "top") != "top":  # (so the stored keys of "top" stay)
+            parts.append(policy.decode)
         parts += [repr(policy.camera), str(policy.device)]
     for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
         if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):

@@ -146,6 +146,7 @@ SPEED_SOURCES = (*SPEED_READINGS, "cruise")
 #: The reading the course's trajectory drivers use (chapter 07, section 6c, measures it with the
 #: oracle plus network-sized noise on the training tracks and the held-out decoding errors).
 DEFAULT_PREVIEW_S = 0.0
+DECODES = ("top", "mean")  # which trajectory of a GMM a TrajectoryAgent follows
 DEFAULT_SPEED = "trajectory"
 
 
@@ -164,6 +165,9 @@ class TrajectoryAgent(NetworkAgent):
         speed: where the speed command comes from, one of :data:`SPEED_SOURCES`.
         preview_s: where along the predicted trajectory the tracker reads its references [s]
             (:func:`~e2e_lite.tracker.trajectory_reference`; 0 = the car's position now).
+        decode: for a GMM, which trajectory is followed, one of :data:`DECODES`: ``"top"`` (the
+            paper's: the mean of the heaviest mode) or ``"mean"`` (the mixture's mean, the
+            weighted average of the modes: what an L2 head estimates; a diagnostic control).
 
     Attributes:
         last: the latest decision's ``{"points": (B, 5, 2) followed [m], "modes": (B, K, 5, 2) [m],
@@ -179,11 +183,16 @@ class TrajectoryAgent(NetworkAgent):
         sigma_floor: float | torch.Tensor = 0.01,
         speed: str = DEFAULT_SPEED,
         preview_s: float = DEFAULT_PREVIEW_S,
+        decode: str = "top",
         **kwargs,
     ) -> None:
         super().__init__(model, **kwargs)
         check_reading("TrajectoryAgent", preview_s, speed, SPEED_SOURCES)
-        self.speed, self.preview_s = speed, preview_s
+        if decode not in DECODES:
+            raise ValueError(
+                f"TrajectoryAgent.decode={decode!r} is invalid: must be one of {DECODES}"
+            )
+        self.speed, self.preview_s, self.decode = speed, preview_s, decode
         if model.cfg.head not in ("trajectory", "gmm"):
             raise ValueError(
                 f"TrajectoryAgent needs a trajectory or gmm head, not {model.cfg.head!r}"
@@ -213,8 +222,11 @@ class TrajectoryAgent(NetworkAgent):
         weights = torch.softmax(logits, dim=-1)
         modes = model.denormalise(means)
         sig = torch.exp(log_sigma(raw, self.sigma_floor)) * model.target_std
-        top = weights.argmax(dim=-1)
-        pts = modes[torch.arange(len(top), device=top.device), top]
+        if self.decode == "mean":
+            pts = (weights[..., None] * modes).sum(dim=1)
+        else:
+            top = weights.argmax(dim=-1)
+            pts = modes[torch.arange(len(top), device=top.device), top]
         self.last = {
             "points": pts.reshape(-1, 5, 2).double().cpu().numpy(),
             "modes": modes.reshape(*modes.shape[:2], 5, 2).double().cpu().numpy(),

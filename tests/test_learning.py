@@ -332,6 +332,17 @@ def test_trajectory_agent_keeps_every_mode():
     top = last["weights"].argmax(axis=1)
     np.testing.assert_allclose(pts, last["modes"][np.arange(2), top])
     assert np.all(last["sigmas"] > 0) and "affordances" not in last
+    # the diagnostic decoding follows the mixture's mean, the modes' weighted average
+    mean_agent = TrajectoryAgent(model, decode="mean")
+    averaged = mean_agent.trajectories(obs)
+    expected = np.einsum("bk,bkpc->bpc", last["weights"], last["modes"])
+    np.testing.assert_allclose(averaged, expected, rtol=1e-5, atol=1e-6)  # float32 maths
+    np.testing.assert_allclose(mean_agent.last["modes"], last["modes"])
+    with pytest.raises(ValueError, match="decode"):
+        TrajectoryAgent(model, decode="median")
+    from e2e_lite.ablation import fingerprint
+
+    assert fingerprint(mean_agent) != fingerprint(agent)
     with_aff = prepare(
         build_model(ModelConfig(head="gmm", affordance=True, fusion_width=16)), torch.device("cpu")
     ).eval()
