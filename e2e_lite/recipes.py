@@ -145,14 +145,18 @@ def gmm(
     seed: int = 0,
     name: str = "07_gmm",
     objective: GMMObjective | None = None,
+    modes: int = GMM_MODES,
     **kw: Any,
 ) -> Trained:
     """Chapter 07: the same network with a K = 2 mixture head (``seed``: the training seed;
-    ``objective``: another loss than :func:`gmm_objective`'s, for chapter 07's comparisons)."""
-    objective = objective or gmm_objective(profile)
+    ``objective``: another loss than :func:`gmm_objective`'s, and ``modes``: another K, for
+    chapter 07's comparisons; K = 1 is the same NLL without a choice of modes)."""
+    objective = objective or gmm_objective(profile, n_modes=modes)
+    if objective.n_modes != modes:
+        raise ValueError(f"the objective has {objective.n_modes} modes, the model {modes}")
     model, hist = train_or_load(
         name,
-        ModelConfig(kind="fusion", head="gmm", gmm_modes=GMM_MODES),
+        ModelConfig(kind="fusion", head="gmm", gmm_modes=modes),
         _train_cfg(profile, grad_clip=10.0, seed=seed, select_by=TRAJECTORY_SELECT_BY),
         objective,
         train,

@@ -18,3 +18,15 @@ def test_affordance_weight_is_chosen_on_trajectory_nll():
     scores[0.0]["trajectory_nll"] = 1.0
     w, why = choose_affordance_weight(scores)
     assert w == 0.3 and "did not help" in why
+
+
+def test_a_gmm_recipe_with_one_mode_and_a_mismatch_refused():
+    """K = 1 (chapter 07's control: the same NLL, no choice of modes) builds a one-mode head."""
+    import pytest
+
+    from e2e_lite.config import QUICK
+    from e2e_lite.recipes import gmm, gmm_objective
+
+    with pytest.raises(ValueError, match="modes"):
+        gmm(QUICK, None, None, objective=gmm_objective(QUICK), modes=1)
+    assert gmm_objective(QUICK, n_modes=1).n_modes == 1
