@@ -125,12 +125,22 @@ for before, after, what, paper_way in STEPS:
     print(f"{what}: {rate_b:.1f} -> {rate_a:.1f} per 100 mi, p = {test['p_value']:.2g}: {outcome}")
 
 # %% [markdown]
-# ## 3b. A control: is the affordance step the auxiliary loss?
+# ## 3b. Controls: which part of a step did it?
 #
-# The affordance network trained with **w = 0**, with the same seeds on the same tracks (the same
-# architecture; its affordance head then learns nothing), so any difference to the GMM +
-# affordance row is the auxiliary loss's, or chance's. The seeds' spread in each row (the table's
-# "per seed" column, the chart's grey dots) says how large training noise is.
+# Each control changes one thing, with the same seeds on the same tracks:
+#
+# * **w = 0**: the affordance network trained without its auxiliary loss (same architecture; its
+#   affordance head then learns nothing). Any difference to the GMM + affordance row is the
+#   auxiliary loss's, or chance's.
+# * **the mixture's mean**: the GMM row's own checkpoints, following the weighted average of the
+#   modes instead of the heaviest one. If averaging the answers hurts (the paper's argument for
+#   the GMM), this row drives worse than the GMM row.
+# * **K = 1**: the GMM's loss, floor and schedule with a single mode. No choice between modes is
+#   left, so its gap to L2 is the negative log-likelihood's (learned sigmas weigh the samples),
+#   and its gap to the GMM row is the choice's.
+#
+# The seeds' spread in each row (the table's "per seed" column, the chart's grey dots) says how
+# large training noise is.
 
 # %%
 controls = ablation.build_seeded_drivers(
@@ -152,6 +162,9 @@ control_tests = {}
 for control, base, what in (
     ("gmm_affordance_w0", "gmm_affordance", "affordance network, w = 0 vs the chosen w"),
     ("gmm_affordance_w0", "gmm", "affordance network with w = 0 vs the GMM"),
+    ("gmm_mean", "gmm", "GMM following the mixture's mean vs its heaviest mode"),
+    ("gmm_k1", "gmm", "one mode vs two (the same NLL)"),
+    ("gmm_k1", "trajectory_l2", "one-mode NLL vs L2"),
 ):
     verdict = compare_rates(control_results[control], results[base])["verdict"]
     control_tests[what] = verdict

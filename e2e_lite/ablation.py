@@ -74,9 +74,17 @@ DRIVERS = (
     Driver("gmm_affordance", "GMM + affordance", 0.83),
     Driver("gmm_affordance_cvar", "GMM + affordance + CVaR", 0.0),
 )
-#: A control for the affordance step (not in the paper): the affordance network trained with
-#: ``w = 0`` (its head then learns nothing; same architecture, same seeds).
-CONTROLS = (Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),)
+#: Controls (not in the paper), same seeds and roads as the rows:
+#: ``gmm_affordance_w0``, the affordance network trained with ``w = 0`` (its head then learns
+#: nothing): is the affordance step the auxiliary loss? ``gmm_mean``, the GMM row's checkpoints
+#: following the mixture's mean (the modes' weighted average) instead of the heaviest mode: does
+#: choosing a mode matter? ``gmm_k1``, the GMM's loss and schedule with one mode: is the GMM row's
+#: gap to L2 the choice between modes, or the NLL?
+CONTROLS = (
+    Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),
+    Driver("gmm_mean", "GMM, following the mixture's mean"),
+    Driver("gmm_k1", "GMM loss with one mode (K = 1)"),
+)
 #: The drivers with no training (one run each: they have no training seed).
 UNTRAINED = ("expert", "oracle")
 #: seed 000: "Our agent drives smoothly in an average speed of 48 mile per hour".
@@ -132,9 +140,15 @@ def build_drivers(
             out[key] = TrajectoryAgent(
                 recipes.trajectory_l2(profile, train, val, name, **seeded)[0]
             )
-        elif key == "gmm":
+        elif key in ("gmm", "gmm_mean"):
             name = recipes.seeded_name("07_gmm", seed)
-            out[key] = TrajectoryAgent(recipes.gmm(profile, train, val, name=name, **seeded)[0])
+            model = recipes.gmm(profile, train, val, name=name, **seeded)[0]
+            out[key] = TrajectoryAgent(model, decode="mean" if key == "gmm_mean" else "top")
+        elif key == "gmm_k1":
+            name = f"10_gmm_k1_seed{seed}"
+            out[key] = TrajectoryAgent(
+                recipes.gmm(profile, train, val, name=name, modes=1, **seeded)[0]
+            )
         elif key == "gmm_affordance_w0":
             name = f"10_gmm_affordance_w0_seed{seed}"
             model = recipes.gmm_affordance(profile, train, val, 0.0, name=name, **seeded)[0]
