@@ -34,7 +34,15 @@
 from e2e_lite import ablation, artifacts, replay
 from e2e_lite.course import start_chapter
 from e2e_lite.data import DataConfig, load_or_collect
-from e2e_lite.evaluation import EvalConfig, compare_rates, miles_text, result_dict, results_table
+from e2e_lite.evaluation import (
+    COLLISION_KINDS,
+    EvalConfig,
+    collision_kinds,
+    compare_rates,
+    miles_text,
+    result_dict,
+    results_table,
+)
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig, make_world
 
@@ -169,6 +177,23 @@ for control, base, what in (
     verdict = compare_rates(control_results[control], results[base])["verdict"]
     control_tests[what] = verdict
     print(f"{what}: {verdict}")
+
+# %% [markdown]
+# ## 3c. Where the collisions are
+#
+# Each collision by kind (`evaluation.collision_kinds`): a guard rail; a parked car in the
+# driver's own lane while it is centred in that lane (it neither left the lane nor stopped); a
+# parked car hit off centre (changing lanes, or clipped beside). Pooled over the seeds.
+
+# %%
+every = {**results, **control_results}
+kinds = {k: collision_kinds(r, world_cfg) for k, r in every.items() if k not in ablation.UNTRAINED}
+print("| driver | collisions | " + " | ".join(COLLISION_KINDS) + " |")
+print("|---|---:|" + "---:|" * len(COLLISION_KINDS))
+for k, c in kinds.items():
+    cells = " | ".join(str(c[kind]) for kind in COLLISION_KINDS)
+    print(f"| {ablation.BY_KEY[k].label} | {result_dict(every[k])['collisions']} | {cells} |")
+print(profile.caveat.strip())
 
 # %% [markdown]
 # ## 4. The chart
@@ -306,6 +331,7 @@ artifacts.write_metrics(
         "paper_mph": ablation.PAPER_MPH,
         "steps": steps,
         "controls": {k: {**result_dict(r), "events": None} for k, r in control_results.items()},
+        "collision_kinds": kinds,
         "control_tests": control_tests,
         "discussion": lines,
         "table_md": table,

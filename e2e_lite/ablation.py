@@ -145,7 +145,7 @@ def build_drivers(
             model = recipes.gmm(profile, train, val, name=name, **seeded)[0]
             out[key] = TrajectoryAgent(model, decode="mean" if key == "gmm_mean" else "top")
         elif key == "gmm_k1":
-            name = f"10_gmm_k1_seed{seed}"
+            name = recipes.seeded_name("07_gmm_k1", seed)
             out[key] = TrajectoryAgent(
                 recipes.gmm(profile, train, val, name=name, modes=1, **seeded)[0]
             )

@@ -296,14 +296,52 @@ def results_table(
     return "\n".join(lines)
 
 
+#: How :func:`collision_kinds` sorts a collision.
+COLLISION_KINDS = ("rail", "parked car in its lane, car centred", "parked car, off centre")
+
+
+def collision_kinds(
+    result: EvalResult | dict[str, Any], world_cfg: WorldConfig, split: str = "val"
+) -> dict[str, int]:
+    """Count a result's collisions by kind (:data:`COLLISION_KINDS`).
+
+    A car collision is *in its lane, car centred* when the parked car's centre is within a third
+    of a lane width of the ego's lateral position and the ego is within 0.8 m of a lane centre:
+    the driver stayed in a lane with a parked car ahead and neither left it nor stopped. Every
+    other car collision happened off centre (changing lanes, or clipping a car beside). The
+    parked car's position comes from the track the event names (rebuilt from its seed).
+    """
+    counts = dict.fromkeys(COLLISION_KINDS, 0)
+    worlds: dict[int, World] = {}
+    events = result.events if isinstance(result, EvalResult) else result["events"]
+    for e in events:
+        if e["kind"] == "rail":
+            counts["rail"] += 1
+            continue
+        index = int(e["track"][1])
+        if index not in worlds:
+            worlds[index] = make_world(world_cfg, split, index)
+        track, d_ego = worlds[index].track, float(e["d_m"])
+        d_car = float(worlds[index].cars.d[e["car"]])
+        centres = track.lane_center(np.arange(track.n_lanes))
+        centred = float(np.min(np.abs(d_ego - centres))) <= 0.8
+        in_lane = abs(d_ego - d_car) < track.lane_width / 3
+        counts[COLLISION_KINDS[1] if centred and in_lane else COLLISION_KINDS[2]] += 1
+    return counts
+
+
 def pool_results(
     results: Sequence[EvalResult | dict[str, Any]], intervention_cost_s: float = 6.0
 ) -> dict[str, Any]:
     """One result from several evaluations of the same kind of driver (e.g. one per training
     seed), as if they were one drive: counts, miles and times summed, rates, the interval, mean
     speed, autonomy (``intervention_cost_s`` per intervention, as :class:`EvalConfig`) and the
-    time to collision recomputed from the sums; ``seeds`` keeps each input (as
+    time to collision recomputed from the sums; ``events``: every input's, in input order (a
+    car's ``world`` number is its index in its own evaluation); ``seeds`` keeps each input (as
     :func:`result_dict`, without events)."""
+    events = [
+        e for r in results for e in (r.events if isinstance(r, EvalResult) else r.get("events", []))
+    ]
     rs = [{k: v for k, v in result_dict(r).items() if k != "events"} for r in results]
     if not rs:
         raise ValueError("pool_results needs at least one result")
@@ -339,6 +377,7 @@ def pool_results(
             k: sum(r.get("timing_s", {}).get(k, 0.0) for r in rs) for k in rs[0].get("timing_s", {})
         },
         "speed_hist": [int(sum(c)) for c in zip(*hist)] if all(hist) else [],
+        "events": events,
         "seeds": rs,
     }
 

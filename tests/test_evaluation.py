@@ -393,9 +393,33 @@ def test_pooled_results_are_one_drive_of_the_summed_counts():
     )
     assert [s["collisions"] for s in pooled["seeds"]] == [a.collisions, b.collisions]
     assert sum(pooled["speed_hist"]) == sum(a.speed_hist) + sum(b.speed_hist)
+    assert pooled["events"] == a.events + b.events  # (classified by collision_kinds)
     # one result pools to itself
     alone = pool_results([a])
     for key in ("collisions_per_100mi", "mean_speed_mph", "autonomy_pct", "time_to_collision_s"):
         assert alone[key] == pytest.approx(getattr(a, key)), key
     with pytest.raises(ValueError, match="at least one"):
         pool_results([])
+
+
+def test_collision_kinds_sort_hand_made_events():
+    from e2e_lite.evaluation import COLLISION_KINDS, collision_kinds
+    from e2e_lite.world import make_world
+
+    world = make_world(BUSY, "val", 1)
+    track, cars = world.track, world.cars
+    centres = track.lane_center(np.arange(track.n_lanes))
+    lane_d = float(centres[np.argmin(np.abs(centres - cars.d[0]))])  # the car's own lane
+
+    def event(kind, d, car=0):
+        return {"kind": kind, "track": ["val", 1], "car": car, "d_m": d}
+
+    events = [
+        event("car", lane_d),  # rear-ended it, centred in its lane
+        event("car", lane_d + 0.3),  # the same, a little off
+        event("car", lane_d + track.lane_width / 2),  # half-way into the next lane
+        event("rail", track.half_width + 1.0, None),
+    ]
+    counts = collision_kinds({"events": events}, BUSY)
+    assert counts == dict(zip(COLLISION_KINDS, (1, 2, 1)))
+    assert collision_kinds({"events": []}, BUSY) == dict.fromkeys(COLLISION_KINDS, 0)
