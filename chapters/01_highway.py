@@ -16,20 +16,22 @@
 # Run it with `python chapters/01_highway.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(1)  # flags, profile, outputs folder: checked before any work
+
 import math
 
 import numpy as np
 
 import e2e_lite
 from e2e_lite import artifacts
-from e2e_lite.course import start_chapter
 from e2e_lite.drivers import LaneChanger, LaneKeeper
 from e2e_lite.evaluation import EvalConfig, evaluate, miles_text, poisson_ci
 from e2e_lite.geometry import generate_track
 from e2e_lite.viz import highway_figure, save_figure
 from e2e_lite.world import WorldConfig, make_world
 
-profile = start_chapter(1)
 world_cfg = WorldConfig.for_profile(profile)
 print(
     f"e2e-lite {e2e_lite.__version__}, {profile.name} profile: tracks of "

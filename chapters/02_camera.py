@@ -15,6 +15,10 @@
 # Run it with `python chapters/02_camera.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(2)  # flags, profile, outputs folder: checked before any work
+
 import math
 import time
 
@@ -30,12 +34,10 @@ from e2e_lite.camera import (
     render_topdown,
     save_image,
 )
-from e2e_lite.course import start_chapter
 from e2e_lite.geometry import generate_track
 from e2e_lite.viz import save_figure
 from e2e_lite.world import ParkedCars, WorldConfig, make_world
 
-profile = start_chapter(2)
 world_cfg = WorldConfig.for_profile(profile)
 cam = Camera()  # the network's camera: 66 x 200
 human = Camera(CameraConfig.human())  # the same optics at 240 x 640, for people

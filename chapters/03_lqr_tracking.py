@@ -16,6 +16,10 @@
 # Run it with `python chapters/03_lqr_tracking.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(3)  # flags, profile, outputs folder: checked before any work
+
 import math
 
 import control
@@ -23,7 +27,6 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.course import start_chapter
 from e2e_lite.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.geometry import Track
 from e2e_lite.tracker import (
@@ -41,7 +44,6 @@ from e2e_lite.vehicle import VehicleParams, bicycle_step, make_state
 from e2e_lite.viz import save_figure
 from e2e_lite.world import TrafficConfig, WorldConfig
 
-profile = start_chapter(3)
 veh = VehicleParams()
 cfg = TrackerConfig()
 tracker = LQRTracker(cfg, veh)

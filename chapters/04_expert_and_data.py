@@ -22,6 +22,10 @@
 # Run it with `python chapters/04_expert_and_data.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(4)  # flags, profile, outputs folder: checked before any work
+
 import dataclasses
 
 import numpy as np
@@ -29,7 +33,6 @@ from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
-from e2e_lite.course import start_chapter
 from e2e_lite.data import (
     AFFORDANCE_NAMES,
     SLOW_MPS,
@@ -45,7 +48,6 @@ from e2e_lite.geometry import Track
 from e2e_lite.viz import draw_road, save_figure
 from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
 
-profile = start_chapter(4)
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
 

@@ -23,12 +23,15 @@
 # Run it with `python chapters/05_pilotnet_baseline.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(5)  # flags, profile, outputs folder: checked before any work
+
 import numpy as np
 
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import ActuatorAgent, SteeringAgent
 from e2e_lite.camera import Camera, CameraConfig, save_image
-from e2e_lite.course import start_chapter
 from e2e_lite.data import (
     DataConfig,
     DrivingDataset,
@@ -42,7 +45,6 @@ from e2e_lite.models import build_model, count_parameters, pick_device
 from e2e_lite.training import evaluate_loss
 from e2e_lite.world import WorldConfig, make_world
 
-profile = start_chapter(5)
 world_cfg = WorldConfig.for_profile(profile)
 device = pick_device()
 print(f"training on {device}")

@@ -18,13 +18,16 @@
 # Run it with `python chapters/06_trajectory_regression.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(6)  # flags, profile, outputs folder: checked before any work
+
 import numpy as np
 import torch
 
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
-from e2e_lite.course import start_chapter
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect
 from e2e_lite.evaluation import EvalConfig, evaluate, observe, results_table
 from e2e_lite.expert import Expert
@@ -32,7 +35,6 @@ from e2e_lite.geometry import Track
 from e2e_lite.training import evaluate_loss
 from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
 
-profile = start_chapter(6)
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
 

@@ -21,6 +21,10 @@
 # Run it with `python chapters/07_gmm.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(7)  # flags, profile, outputs folder: checked before any work
+
 import dataclasses
 import math
 
@@ -38,7 +42,6 @@ from e2e_lite.agents import (
     TrajectoryAgent,
 )
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.course import start_chapter
 from e2e_lite.data import (
     AFFORDANCE_NAMES,
     SLOW_MPS,
@@ -69,7 +72,6 @@ from e2e_lite.training import DECISIVE, evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
 
-profile = start_chapter(7)
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
 net_cam = Camera(CameraConfig())

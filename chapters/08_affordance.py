@@ -25,19 +25,21 @@
 # Run it with `python chapters/08_affordance.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(8)  # flags, profile, outputs folder: checked before any work
+
 import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import Recorder, TrajectoryAgent
-from e2e_lite.course import start_chapter
 from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, DrivingDataset, affordances, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
 
-profile = start_chapter(8)
 world_cfg = WorldConfig.for_profile(profile)
 
 # %% [markdown]

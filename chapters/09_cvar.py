@@ -22,6 +22,10 @@
 # Run it with `python chapters/09_cvar.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(9)  # flags, profile, outputs folder: checked before any work
+
 import numpy as np
 import torch
 from matplotlib.figure import Figure
@@ -29,7 +33,6 @@ from matplotlib.figure import Figure
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import save_image
-from e2e_lite.course import start_chapter
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect, situation_shares
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
 from e2e_lite.losses import cvar, cvar_curve, cvar_loss
@@ -37,7 +40,6 @@ from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
 
-profile = start_chapter(9)
 world_cfg = WorldConfig.for_profile(profile)
 
 # %% [markdown]

@@ -31,8 +31,11 @@
 # Run it with `python chapters/10_ablation.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite import ablation, artifacts, replay
 from e2e_lite.course import start_chapter
+
+profile = start_chapter(10)  # flags, profile, outputs folder: checked before any work
+
+from e2e_lite import ablation, artifacts, replay
 from e2e_lite.data import DataConfig, load_or_collect
 from e2e_lite.evaluation import (
     COLLISION_KINDS,
@@ -46,7 +49,6 @@ from e2e_lite.evaluation import (
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig, make_world
 
-profile = start_chapter(10)
 world_cfg = WorldConfig.for_profile(profile)
 print(
     f"{miles_text(profile.ablation_miles)} per driver, "

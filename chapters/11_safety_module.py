@@ -34,6 +34,10 @@
 # Run it with `python chapters/11_safety_module.py` (add `--quick` for a run of seconds).
 
 # %%
+from e2e_lite.course import start_chapter
+
+profile = start_chapter(11)  # flags, profile, outputs folder: checked before any work
+
 import textwrap
 
 import numpy as np
@@ -43,14 +47,12 @@ from matplotlib.lines import Line2D
 from e2e_lite import ablation, artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.course import start_chapter
 from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, result_dict, results_table
 from e2e_lite.safety import SafeAgent, SafetyConfig, check
 from e2e_lite.viz import save_figure
 from e2e_lite.world import WorldConfig
 
-profile = start_chapter(11)
 world_cfg = WorldConfig.for_profile(profile)
 cfg = SafetyConfig()
 print(f"{cfg}")

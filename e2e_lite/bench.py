@@ -212,7 +212,7 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
         ("b64_2processes", 64, 2, "processes"),
     )
     for label, n_worlds, workers, parallel in runs:
-        ev = EvalConfig(miles=2.0 if quick else 20.0, n_worlds=n_worlds, n_tracks=16)
+        ev = EvalConfig(miles=0.5 if quick else 20.0, n_worlds=n_worlds, n_tracks=16)
         res = evaluate(policy, world_cfg, ev, progress=False, workers=workers, parallel=parallel)
         out[f"{label}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
         out[f"{label}_decisions_per_wall_s"] = (

@@ -1,6 +1,11 @@
-"""Run the course: every chapter script in order, each in its own process with plain ``python``.
+"""Run the course: every chapter script in order.
 
     python -m e2e_lite.course [--quick] [--only N ...] [--from N] [--chapters DIR]
+                              [--processes auto|one|each]
+
+The full profile runs each chapter in its own process with plain ``python`` (hours of work,
+isolated); the quick profile runs them all in this one (``runpy``), so torch's and the other
+imports are paid once instead of eleven times.
 
 Shows which chapter runs and how long each took, stops at the first failure (the chapter's own
 error is on screen above the message), and ends with a table of each chapter's headline figures,
@@ -14,11 +19,14 @@ the outputs folder can be written, and says what the quick profile's numbers are
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import re
+import runpy
 import subprocess
 import sys
 import time
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple, NoReturn
@@ -162,6 +170,35 @@ def summary_table(rows: list[tuple[str, float, dict | None]]) -> str:
     return "\n".join(lines)
 
 
+def run_in_process(path: Path, flags: list[str], env: dict[str, str]) -> int:
+    """Run a chapter script in this interpreter (``runpy``, as ``__main__``, from the repository
+    root, with ``flags`` as its arguments and ``env`` as the environment); returns its exit code
+    (1 after printing the traceback of an error). The interpreter's imports (torch and its
+    compiler, python-control, matplotlib: several seconds) are then paid once for the course."""
+    saved_argv, saved_cwd, saved_env = sys.argv, os.getcwd(), dict(os.environ)
+    sys.argv = [str(path), *flags]
+    os.environ.clear()
+    os.environ.update(env)
+    os.chdir(path.parent.parent)
+    try:
+        runpy.run_path(str(path), run_name="__main__")
+        return 0
+    except SystemExit as exit_:  # as the interpreter would: a message goes to stderr, code 1
+        if exit_.code is None or isinstance(exit_.code, int):
+            return exit_.code or 0
+        print(exit_.code, file=sys.stderr)
+        return 1
+    except Exception:
+        traceback.print_exc()
+        return 1
+    finally:
+        sys.argv = saved_argv
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
+        gc.collect()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     parser = argparse.ArgumentParser(
@@ -173,8 +210,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", type=int, nargs="+", metavar="N", help="run only these chapters")
     parser.add_argument("--from", dest="start", type=int, metavar="N", help="start at chapter N")
     parser.add_argument("--chapters", type=Path, help="the chapters folder")
+    parser.add_argument(
+        "--processes",
+        choices=("auto", "one", "each"),
+        default="auto",
+        help="run the chapters in this one process (imports paid once) or each in its own; "
+        "auto: one for --quick, each otherwise",
+    )
     args = parser.parse_args(argv)
     quick = args.quick or quick_requested([])
+    in_process = args.processes == "one" or (args.processes == "auto" and quick)
     try:
         chapters = select(find_chapters(args.chapters), args.only, args.start)
     except (FileNotFoundError, ValueError) as err:
@@ -190,17 +235,22 @@ def main(argv: list[str] | None = None) -> int:
     for k, (_, path) in enumerate(chapters, 1):
         print(f"\n==> [{k}/{len(chapters)}] {path.stem}", flush=True)
         t0 = time.perf_counter()
-        cmd = [sys.executable, str(path)] + (["--quick"] if quick else [])
-        proc = subprocess.run(cmd, env=env, cwd=path.parent.parent)
+        flags = ["--quick"] if quick else []
+        if in_process:
+            code = run_in_process(path, flags, env)
+        else:
+            code = subprocess.run(
+                [sys.executable, str(path), *flags], env=env, cwd=path.parent.parent
+            ).returncode
         seconds = time.perf_counter() - t0
-        if proc.returncode != 0:
+        if code != 0:
             print(
-                f"\n!! {path.stem} failed (exit code {proc.returncode}) after {seconds:.1f} s; "
+                f"\n!! {path.stem} failed (exit code {code}) after {seconds:.1f} s; "
                 f"its error is above. Fix it, then resume with --from {path.stem[:2]}",
                 file=sys.stderr,
                 flush=True,
             )
-            return proc.returncode
+            return code
         print(f"<== {path.stem} done in {seconds:.1f} s", flush=True)
         rows.append((path.stem, seconds, read_metrics(path.stem)))
     print(

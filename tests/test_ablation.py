@@ -18,7 +18,7 @@ from e2e_lite.models import ModelConfig, build_model, prepare
 from e2e_lite.world import TrafficConfig, WorldConfig
 
 WORLD = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_cars=(8, 8)))
-CFG = EvalConfig(miles=0.4, n_worlds=4, n_tracks=2)
+CFG = EvalConfig(miles=0.2, n_worlds=4, n_tracks=2)
 
 
 def _tiny(head: str, seed: int = 0):
@@ -55,7 +55,7 @@ def test_same_seeds_give_the_same_table_and_a_stored_result_is_reused():
 def test_evaluations_with_other_settings_are_kept_side_by_side():
     """Chapter 11 drives chapter 10's network over other miles: neither replaces the other."""
     keeper = {"side_by_side": LaneKeeper()}
-    short = replace(CFG, miles=0.2)
+    short = replace(CFG, miles=CFG.miles / 2)
     assert isinstance(ablation.evaluate_drivers(keeper, WORLD, CFG)["side_by_side"], EvalResult)
     assert isinstance(ablation.evaluate_drivers(keeper, WORLD, short)["side_by_side"], EvalResult)
     long_again = ablation.evaluate_drivers(keeper, WORLD, CFG, progress=False)["side_by_side"]

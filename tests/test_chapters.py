@@ -24,20 +24,23 @@ def _env(tmp_path: Path) -> dict[str, str]:
     return env
 
 
-@pytest.mark.parametrize("path", [p for _, p in CHAPTERS], ids=[p.stem for _, p in CHAPTERS])
-def test_chapter_runs_in_quick_profile(path, tmp_path):
+@pytest.fixture(scope="module")
+def quick_course(tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path]:
+    """The whole course in the quick profile, as a user runs it (``python -m e2e_lite.course
+    --quick``: every chapter script run as ``__main__`` in one interpreter)."""
+    tmp = tmp_path_factory.mktemp("course")
     proc = subprocess.run(
-        [sys.executable, str(path)],
-        env=_env(tmp_path),
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    metrics = json.loads(
-        (tmp_path / "outputs" / "quick" / "metrics" / f"{path.stem}.json").read_text()
-    )
+        [sys.executable, "-m", "e2e_lite.course", "--quick", "--chapters", str(ROOT / "chapters")],
+        env=_env(tmp), cwd=tmp, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    return proc, tmp / "outputs" / "quick"
+
+
+@pytest.mark.parametrize("path", [p for _, p in CHAPTERS], ids=[p.stem for _, p in CHAPTERS])
+def test_chapter_runs_in_quick_profile(path, quick_course):
+    proc, outputs = quick_course
+    assert f"<== {path.stem} done in" in proc.stdout, (proc.stdout[-2000:], proc.stderr[-3000:])
+    metrics = json.loads((outputs / "metrics" / f"{path.stem}.json").read_text())
     assert metrics["profile"] == "quick" and metrics["headline"]
     if path.stem == "10_ablation":  # the ablation's table holds every driver, paper beside it
         assert list(metrics["results"]) == [d.key for d in DRIVERS]
@@ -52,11 +55,19 @@ def test_chapter_runs_in_quick_profile(path, tmp_path):
                 assert (
                     sum(s["collisions"] for s in seeds) == metrics["results"][d.key]["collisions"]
                 )
-        replays = tmp_path / "outputs" / "quick" / "replays"
+        replays = outputs / "replays"
         assert {p.name for p in replays.glob("*.html")} == {
             "index.html",
             *(f"{d.key}.html" for d in DRIVERS),
         }
+
+
+def test_the_quick_course_takes_seconds(quick_course):
+    """Every chapter and the total are timed (the README's timing table quotes a run)."""
+    proc, _ = quick_course
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "All 11 chapters passed in" in proc.stdout or len(CHAPTERS) != 11
+    assert proc.stdout.count(" done in ") == len(CHAPTERS)
 
 
 def _run_chapter(args: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
@@ -130,6 +141,8 @@ def test_course_runner_runs_a_chapter_and_prints_the_table(tmp_path):
             "1",
             "--chapters",
             str(ROOT / "chapters"),
+            "--processes",
+            "each",  # chapter 01 as a plain `python chapters/01_highway.py --quick`
         ],
         env=_env(tmp_path),
         capture_output=True,
@@ -141,14 +154,23 @@ def test_course_runner_runs_a_chapter_and_prints_the_table(tmp_path):
     assert "| 01_highway |" in proc.stdout and "collisions/100mi" in proc.stdout
 
 
-def test_course_runner_stops_at_a_failing_chapter(tmp_path):
+@pytest.mark.parametrize("processes", ["one", "each"])
+def test_course_runner_stops_at_a_failing_chapter(tmp_path, processes):
     chapters = tmp_path / "chapters"
     chapters.mkdir()
     (chapters / "01_ok.py").write_text("print('fine')\n")
     (chapters / "02_broken.py").write_text("raise SystemExit('boom: a broken chapter')\n")
     (chapters / "03_never.py").write_text("print('should not run')\n")
     proc = subprocess.run(
-        [sys.executable, "-m", "e2e_lite.course", "--chapters", str(chapters)],
+        [
+            sys.executable,
+            "-m",
+            "e2e_lite.course",
+            "--chapters",
+            str(chapters),
+            "--processes",
+            processes,
+        ],
         env=_env(tmp_path),
         capture_output=True,
         text=True,
