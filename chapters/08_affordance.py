@@ -123,8 +123,9 @@ for j, (ax, name) in enumerate(zip(axes, AFFORDANCE_NAMES)):
     ax.scatter(true[:, j], pred[:, j], s=3, alpha=0.3)
     ax.plot([lo, hi], [lo, hi], color="black", lw=1)
     ax.set_title(f"{name}: MAE {mae[name]:.3g}", fontsize=10)
-    ax.set_xlabel("true")
-    ax.set_ylabel("predicted")
+    unit = "rad" if name.endswith("_rad") else "m"  # the names carry their units
+    ax.set_xlabel(f"true [{unit}]")
+    ax.set_ylabel(f"predicted [{unit}]")
 fig.tight_layout()
 scatter_png = save_figure(fig, artifacts.artifact_path("figures", "08_affordance_scatter.png"))
 # the floor to beat: always answering the training set's mean
