@@ -53,20 +53,22 @@ class ChapterInfo(NamedTuple):
     full_min: int
 
 
-# times measured with `python -m e2e_lite.course [--quick]` on the 2-core development machine
-# (README, "Timings"); the full-profile times assume the earlier chapters' artifacts exist
+# Times on the 2-core development machine: quick, each chapter alone from an empty outputs folder
+# (`python -m e2e_lite.course --quick --processes each`, imports included; inside the course's one
+# interpreter they are 5-12 s shorter); full, the README's measured runs with the earlier
+# chapters' artifacts reused
 CHAPTERS: dict[int, ChapterInfo] = {
-    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 15, 2),
-    2: ChapterInfo("the rasterised front camera the networks see", 10, 1),
-    3: ChapterInfo("LQR tracking: following a trajectory with steering and acceleration", 15, 2),
-    4: ChapterInfo("the rule-based expert and the driving dataset", 20, 15),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", 25, 20),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", 15, 12),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 40, 45),
-    8: ChapterInfo("the affordance auxiliary loss", 25, 25),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", 20, 10),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 55, 90),
-    11: ChapterInfo("the safety module on the affordances", 30, 25),
+    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 2),
+    2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
+    3: ChapterInfo("LQR tracking: following a trajectory with steering and acceleration", 4, 2),
+    4: ChapterInfo("the rule-based expert and the driving dataset", 13, 15),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", 16, 20),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", 11, 12),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 25, 45),
+    8: ChapterInfo("the affordance auxiliary loss", 16, 25),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", 12, 10),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 90),
+    11: ChapterInfo("the safety module on the affordances", 15, 25),
 }
 
 

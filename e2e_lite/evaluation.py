@@ -268,6 +268,11 @@ def result_dict(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
     return r.to_dict(with_events=False) if isinstance(r, EvalResult) else r
 
 
+def result_events(r: EvalResult | dict[str, Any]) -> list[dict[str, Any]]:
+    """A result's collision events (an ``EvalResult``'s, or a stored or pooled dict's)."""
+    return r.events if isinstance(r, EvalResult) else r.get("events", [])
+
+
 def results_table(
     rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
     extra: Sequence[tuple[str, Sequence[str]]] = (),
@@ -313,8 +318,7 @@ def collision_kinds(
     """
     counts = dict.fromkeys(COLLISION_KINDS, 0)
     worlds: dict[int, World] = {}
-    events = result.events if isinstance(result, EvalResult) else result["events"]
-    for e in events:
+    for e in result_events(result):
         if e["kind"] == "rail":
             counts["rail"] += 1
             continue
@@ -323,7 +327,7 @@ def collision_kinds(
             worlds[index] = make_world(world_cfg, split, index)
         track, d_ego = worlds[index].track, float(e["d_m"])
         d_car = float(worlds[index].cars.d[e["car"]])
-        centres = track.lane_center(np.arange(track.n_lanes))
+        centres = track.lane_center(np.arange(track.n_lanes))  # (every track: one cross-section)
         centred = float(np.min(np.abs(d_ego - centres))) <= 0.8
         in_lane = abs(d_ego - d_car) < track.lane_width / 3
         counts[COLLISION_KINDS[1] if centred and in_lane else COLLISION_KINDS[2]] += 1
@@ -339,9 +343,7 @@ def pool_results(
     time to collision recomputed from the sums; ``events``: every input's, in input order (a
     car's ``world`` number is its index in its own evaluation); ``seeds`` keeps each input (as
     :func:`result_dict`, without events)."""
-    events = [
-        e for r in results for e in (r.events if isinstance(r, EvalResult) else r.get("events", []))
-    ]
+    events = [e for r in results for e in result_events(r)]
     rs = [{k: v for k, v in result_dict(r).items() if k != "events"} for r in results]
     if not rs:
         raise ValueError("pool_results needs at least one result")
