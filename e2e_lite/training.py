@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -124,11 +124,18 @@ class History:
     best_epoch: int
     seconds: float
     samples_per_s: float
+    #: Adam's state after the kept epoch (saved in the checkpoint, not in the JSON history), so a
+    #: fine-tune can continue the optimiser instead of restarting it; None when not known.
+    optimizer_state: dict[str, Any] | None = field(default=None, repr=False, compare=False)
 
     @property
     def best(self) -> dict[str, Any]:
         """The best epoch's record."""
         return self.epochs[self.best_epoch]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The history as JSON-ready data (without the optimiser state)."""
+        return {k: v for k, v in asdict(self).items() if k != "optimizer_state"}
 
 
 def model_stats(cfg: ModelConfig, data: DrivingData, objective: Objective) -> dict[str, np.ndarray]:
@@ -200,21 +207,30 @@ def fit(
     *,
     name: str = "model",
     progress: bool = True,
+    optimizer_state: dict[str, Any] | None = None,
 ) -> History:
     """Train ``model`` in place; on return it holds the weights of the best epoch by
-    ``cfg.select_by`` (the validation loss, or the decisive-situation error).
+    ``cfg.select_by`` (the validation loss, or the decisive-situation error), and the history
+    holds Adam's state after that epoch.
+
+    ``optimizer_state``: continue that Adam state (a fine-tune of the checkpoint it was saved
+    with: its moment estimates and step count carry over) at ``cfg.lr``; None starts a fresh Adam.
 
     Writes ``<outputs>/training/<name>.json`` (the history) and ``<outputs>/figures/train_<name>.png``.
     """
     device = next(model.parameters()).device
     params = dict(model.named_parameters())
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if optimizer_state is not None:
+        opt.load_state_dict(optimizer_state)
+        for group in opt.param_groups:  # the state carries over, the rate is this run's
+            group["lr"], group["weight_decay"] = cfg.lr, cfg.weight_decay
     val_ds = val
     if cfg.max_val_samples is not None and len(val) > cfg.max_val_samples:
         keep = np.linspace(0, len(val) - 1, cfg.max_val_samples).round().astype(int)
         val_ds = DrivingDataset(val.data, val.indices[keep])
     epochs: list[dict[str, Any]] = []
-    best_loss, best_epoch, best_state = float("inf"), 0, None
+    best_loss, best_epoch, best_state, best_opt = float("inf"), 0, None, None
     masks = situations(val_ds.data.arrays, val_ds.indices) if cfg.select_by != "val_loss" else None
     t_start, n_seen, t_train = time.perf_counter(), 0, 0.0
     for epoch in range(cfg.epochs):
@@ -243,7 +259,7 @@ def fit(
         for rows in bar:
             batch = _to(train.batch(train.indices[rows]), device)
             out = model(batch["image"], batch["speed"])
-            loss = objective.reduce(objective.per_sample(out, batch, model))
+            loss = objective.batch_loss(out, batch, model)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip is not None:
@@ -287,6 +303,7 @@ def fit(
         if score < best_loss:
             best_loss, best_epoch = score, epoch
             best_state = copy.deepcopy(model.state_dict())
+            best_opt = copy.deepcopy(opt.state_dict())
         elif cfg.patience is not None and epoch - best_epoch >= cfg.patience:
             if progress:
                 print(f"{name}: early stop, no better {cfg.select_by} for {cfg.patience} epochs")
@@ -300,8 +317,9 @@ def fit(
         best_epoch=best_epoch,
         seconds=time.perf_counter() - t_start,
         samples_per_s=n_seen / max(t_train, 1e-9),
+        optimizer_state=best_opt,
     )
-    save_json(artifact_path("training", f"{name}.json"), asdict(history))
+    save_json(artifact_path("training", f"{name}.json"), history.to_dict())
     save_figure(training_curve(history, name), artifact_path("figures", f"train_{name}.png"))
     return history
 
@@ -351,7 +369,8 @@ def save_checkpoint(
         "data_key": data_key,
         "normalisation": model.normalisation(),
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "history": None if history is None else asdict(history),
+        "history": None if history is None else history.to_dict(),
+        "optimizer": None if history is None else history.optimizer_state,
     }
     with atomic_write(path) as f:
         torch.save(blob, f)
@@ -405,6 +424,7 @@ def load_checkpoint(
     model = prepare(model, torch.device(device))
     model.eval()
     meta = {k: blob[k] for k in ("key", "train_config", "objective", "data_key", "history")}
+    meta["optimizer"] = blob.get("optimizer")  # None in checkpoints saved before it was kept
     return model, meta
 
 
@@ -418,6 +438,8 @@ def train_or_load(
     *,
     train_rows: np.ndarray | None = None,
     init_from: str | None = None,
+    carry_optimizer: bool = False,
+    keep_optimizer: bool = False,
     progress: bool = True,
 ) -> tuple[DrivingModel, History]:
     """The model ``name`` from ``<outputs>/checkpoints/<name>.pt`` if it was trained with these
@@ -431,6 +453,11 @@ def train_or_load(
         init_from: fine-tune: start from the weights of checkpoint ``<init_from>.pt`` (same model
             settings and data; its key joins this checkpoint's, so a retrained parent makes this
             one stale). Raises :class:`CheckpointMismatch` when it is missing or does not fit.
+        carry_optimizer: with ``init_from``, continue the parent's Adam state (at this run's
+            learning rate) instead of a fresh Adam; the parent must have kept it
+            (``keep_optimizer``), else :class:`CheckpointMismatch`.
+        keep_optimizer: a stored checkpoint without its optimiser state (saved before the course
+            kept it) is retrained, so a fine-tune can carry the state on.
         progress: progress bars and per-epoch lines.
     """
     device = pick_device(train_cfg.device)
@@ -443,7 +470,7 @@ def train_or_load(
     path = artifact_path("checkpoints", f"{name}.pt")
     stats = model_stats(model_cfg, train_data, objective)
     key = checkpoint_key(model_cfg, train_cfg, objective, data_key)
-    parent = None
+    parent, parent_meta = None, {"optimizer": None}
     if init_from is not None:
         parent_path = artifact_path("checkpoints", f"{init_from}.pt")
         if not parent_path.exists():
@@ -452,15 +479,26 @@ def train_or_load(
             )
         parent, parent_meta = load_checkpoint(parent_path, model_cfg, data_key, stats, device)
         key = settings_key(key, parent_meta["key"])
+        if carry_optimizer:
+            if parent_meta["optimizer"] is None:
+                raise CheckpointMismatch(
+                    f"{name} continues the optimiser of {init_from}, but {parent_path.name} has "
+                    "no optimiser state: retrain it with keep_optimizer=True"
+                )
+            key = settings_key(key, "optimizer carried")
+    elif carry_optimizer:
+        raise ValueError("carry_optimizer needs init_from: whose optimiser would it carry?")
     if path.exists():
         try:
             model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
-            if meta["key"] == key and meta["history"] is not None:
+            kept = meta["optimizer"] is not None or not keep_optimizer
+            if meta["key"] == key and meta["history"] is not None and kept:
                 if progress:
                     print(f"[checkpoints] {name}: reusing {path.name}")
                 return model, History(**meta["history"])
             if progress:
-                print(f"[checkpoints] {name}: trained with other settings; retraining")
+                why = "other settings" if kept else "no optimiser state kept"
+                print(f"[checkpoints] {name}: trained with {why}; retraining")
         except CheckpointMismatch as err:
             if progress:
                 print(f"[checkpoints] {name}: {err}; retraining")
@@ -482,6 +520,7 @@ def train_or_load(
         train_cfg,
         name=name,
         progress=progress,
+        optimizer_state=parent_meta["optimizer"] if carry_optimizer else None,
     )
     model.eval()
     save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)

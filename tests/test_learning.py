@@ -444,3 +444,58 @@ def test_decisive_errors_and_selection_by_them():
             val,
             progress=False,
         )
+
+
+def test_a_fine_tune_continues_its_parents_optimiser(capsys):
+    """``carry_optimizer``: the fine-tune's first step is the step the parent's training would
+    have taken next (same Adam moments and step count), not a fresh Adam's."""
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
+    cfg = ModelConfig(head="trajectory", fusion_width=32, dropout=0.0)
+    obj = Objective("trajectory")
+    one_step = small_train_cfg(epochs=1, batch_size=32)  # one batch: the whole set
+    _, hist = train_or_load("parent", cfg, one_step, obj, data, val, progress=False)
+    assert hist.optimizer_state is not None
+    _, meta = load_checkpoint(artifact_path("checkpoints", "parent.pt"))
+    assert meta["optimizer"]["state"]  # Adam's moments are in the checkpoint
+    child, _ = train_or_load(
+        "child", cfg, one_step, obj, data, val, init_from="parent", carry_optimizer=True
+    )
+    fresh, _ = train_or_load("fresh_adam", cfg, one_step, obj, data, val, init_from="parent")
+    # the uninterrupted run's next step, by hand: the parent, its Adam state, one more batch
+    model, _ = load_checkpoint(artifact_path("checkpoints", "parent.pt"))
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=one_step.lr)
+    opt.load_state_dict(meta["optimizer"])
+    order = np.random.default_rng([one_step.seed, 0]).permutation(len(data))  # fit's epoch 0
+    batch = DrivingDataset(data).batch(order)
+    loss = obj.reduce(obj.per_sample(model(batch["image"], batch["speed"]), batch, model))
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    moved_apart = 0
+    for (name, want), got, other in zip(
+        model.named_parameters(), child.parameters(), fresh.parameters(), strict=True
+    ):
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5, msg=name)
+        moved_apart += not torch.allclose(other, want, atol=1e-6, rtol=1e-5)
+    assert moved_apart > 0  # a fresh Adam takes another step: the test can tell them apart
+
+
+def test_carrying_the_optimiser_needs_a_parent_that_kept_it(capsys):
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
+    cfg = ModelConfig(head="trajectory", fusion_width=32)
+    obj, tcfg = Objective("trajectory"), small_train_cfg(epochs=1)
+    train_or_load("old", cfg, tcfg, obj, data, val, progress=False)
+    path = artifact_path("checkpoints", "old.pt")
+    blob = torch.load(path, weights_only=False)
+    blob["optimizer"] = None  # as saved before the course kept optimiser states
+    torch.save(blob, path)
+    with pytest.raises(CheckpointMismatch, match="no optimiser state"):
+        train_or_load("kid", cfg, tcfg, obj, data, val, init_from="old", carry_optimizer=True)
+    with pytest.raises(ValueError, match="needs init_from"):
+        train_or_load("kid", cfg, tcfg, obj, data, val, carry_optimizer=True)
+    train_or_load("old", cfg, tcfg, obj, data, val)  # still reused without the request
+    assert "reusing" in capsys.readouterr().out
+    train_or_load("old", cfg, tcfg, obj, data, val, keep_optimizer=True)
+    assert "no optimiser state kept" in capsys.readouterr().out
+    train_or_load("kid", cfg, tcfg, obj, data, val, init_from="old", carry_optimizer=True)
