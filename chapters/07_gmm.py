@@ -314,7 +314,7 @@ def predict_rows(probe: TrajectoryAgent, rows: np.ndarray) -> dict[str, np.ndarr
     parts: dict[str, list[np.ndarray]] = {}
     for c in np.array_split(rows, max(1, math.ceil(len(rows) / 256))):
         parts.setdefault("points", []).append(probe.trajectories_from(val.images[c], val.speed[c]))
-        for key in ("modes", "weights"):
+        for key in ("modes", "weights", "sigmas"):
             if key in probe.last:
                 parts.setdefault(key, []).append(probe.last[key])
     return {k: np.concatenate(v) for k, v in parts.items()}
@@ -708,29 +708,70 @@ scenes_png = save_figure(fig, artifacts.artifact_path("figures", "07_overtake_sc
 print(f"saved {scenes_png} (25 scenes per driver: green passed, red collided, orange stuck)")
 
 # %% [markdown]
-# ## 8. Where the GMM's extra collisions are, and two controls
+# ## 8. Where the GMM's extra collisions are, and three controls
 #
 # Section 5 and chapter 10 (three training seeds per row, 500 miles each) find the GMM colliding
-# more than L2. Two controls separate the candidate causes, on the same tracks and seeds:
+# more than L2. First a held-out measurement of what the likelihood does that L2's squared error
+# does not. For the mode responsible for a sample, the NLL's gradient on its mean is
+#
+# $$\frac{\partial\,\mathrm{NLL}}{\partial \mu_{kd}} = -\,r_k\,\frac{y_d - \mu_{kd}}{\sigma_{kd}^2},$$
+#
+# with $r_k$ the mode's responsibility: each sample's pull on the means is its error divided by
+# the variance the network predicts for it. Where the network has learned that the future is
+# uncertain, it learns the mean *least*, and those are the frames that decide collisions.
+#
+# Then three controls separate the candidate causes, on the same tracks and seeds:
 #
 # * **the mixture's mean**: the *same* GMM checkpoint, following the weighted average of its
 #   modes instead of the heaviest. If the modes are two real answers, averaging them must drive
 #   worse (the paper's argument, chapter 06's failure);
 # * **K = 1**: the same NLL, floor, warm-up and epoch choice with a single mode. It has no choice
 #   to make, so its gap to L2 is the loss's (a learned sigma weighs each sample), and its gap to
-#   the GMM is the choice's.
+#   the GMM is the choice's;
+# * **sigma held at 1**: the GMM recipe whose warm-up never ends (`recipes.gmm(...,
+#   sigma_fixed=True)`): two modes and their weights, every sigma 1, so the loss is a soft mixture
+#   of squared errors and no sample is weighed by a learned sigma.
 #
 # Each collision is also sorted by kind (`evaluation.collision_kinds`): a guard rail, a parked car
 # in the driver's own lane while the car is centred in it (it neither left the lane nor stopped),
 # or a parked car hit off centre (during a lane change, or clipped beside).
 
 # %%
+held_gmm = predict_rows(TrajectoryAgent(model, sigma_floor=objective.floor(model)), probe_rows)
+heaviest = held_gmm["weights"].argmax(axis=1)
+followed_sigma = held_gmm["sigmas"][np.arange(len(heaviest)), heaviest]  # (N, 5, 2) [m]
+pull = 1.0 / followed_sigma**2  # each coordinate's weight on the mean, 1 / sigma^2 [1/m^2]
+sigma_report = {}
+print("followed mode's sigma at 1.5 s [m] (median) and each frame's weight on the mean")
+print("(1 / sigma^2 averaged over the 5 points, median, relative to the other frames):")
+print(f"  {'situation':16s} {'frames':>6s} {'sigma y':>8s} {'sigma x':>8s} {'weight y':>9s} "
+      f"{'weight x':>9s}")  # fmt: skip
+for name, m in masks.items():
+    sigma_report[name] = {
+        "frames": int(m.sum()),
+        "sigma_y_1p5s_m": float(np.median(followed_sigma[m, -1, 1])),
+        "sigma_x_1p5s_m": float(np.median(followed_sigma[m, -1, 0])),
+        **{
+            f"weight_{axis}": float(
+                np.median(pull[m, :, j].mean(1)) / np.median(pull[masks["other"], :, j].mean(1))
+            )
+            for j, axis in ((1, "y"), (0, "x"))
+        },
+    }
+    r = sigma_report[name]
+    print(f"  {name:16s} {r['frames']:6d} {r['sigma_y_1p5s_m']:8.3f} {r['sigma_x_1p5s_m']:8.3f} "
+          f"{r['weight_y']:9.2f} {r['weight_x']:9.2f}")  # fmt: skip
+
+# %%
+# %%
 k1_model, k1_objective, _ = recipes.gmm(profile, train, val, name="07_gmm_k1", modes=1)
+fixed_model, _, _ = recipes.gmm(profile, train, val, name="07_gmm_sigma_fixed", sigma_fixed=True)
 controls = (
     ("trajectory L2 + LQR", TrajectoryAgent(l2_model)),
     ("trajectory GMM + LQR (heaviest mode)", TrajectoryAgent(model)),
     ("the same GMM, following the mixture's mean", TrajectoryAgent(model, decode="mean")),
     ("GMM loss with one mode (K = 1)", TrajectoryAgent(k1_model)),
+    ("GMM with sigma held at 1", TrajectoryAgent(fixed_model)),
 )
 control_ev = EvalConfig(miles=diag_miles, n_worlds=profile.n_worlds)
 control_rows, kinds = [], {}
@@ -744,7 +785,7 @@ control_table = results_table(
 )
 print(f"{miles_text(diag_miles)} each:\n{control_table}{profile.caveat}")
 by_name = dict(control_rows)
-for a, b in ((2, 1), (3, 1), (3, 0), (1, 0)):
+for a, b in ((2, 1), (3, 1), (3, 0), (4, 1), (4, 0), (1, 0)):
     na, nb = controls[a][0], controls[b][0]
     print(f"{na} vs {nb}: {compare_rates(by_name[na], by_name[nb])['verdict']}")
 
@@ -816,6 +857,7 @@ artifacts.write_metrics(
                 for n, r in control_rows
             },
             "table_md": control_table,
+            "sigma_by_situation": sigma_report,
         },
         "table_md": table,
         "figures": [

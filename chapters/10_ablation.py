@@ -148,6 +148,12 @@ for before, after, what, paper_way in STEPS:
 # * **K = 1**: the GMM's loss, floor and schedule with a single mode. No choice between modes is
 #   left, so its gap to L2 is the negative log-likelihood's (learned sigmas weigh the samples),
 #   and its gap to the GMM row is the choice's.
+# * **the fine-tune with the mean**: the CVaR row's fine-tune (same parent, epoch, batches, rate
+#   and carried optimiser) reducing each batch by its mean: is the CVaR step CVaR's, or one more
+#   epoch's?
+# * **sigma held at 1**: the GMM recipe whose sigma warm-up lasts the whole training, so two
+#   modes are learned with a soft mixture of squared errors and no learned sigma weighs a sample
+#   (chapter 07, section 8 measures how the learned sigmas weigh the decisive frames).
 #
 # The seeds' spread in each row (the table's "per seed" column, the chart's grey dots) says how
 # large training noise is.
@@ -175,8 +181,13 @@ for control, base, what in (
     ("gmm_mean", "gmm", "GMM following the mixture's mean vs its heaviest mode"),
     ("gmm_k1", "gmm", "one mode vs two (the same NLL)"),
     ("gmm_k1", "trajectory_l2", "one-mode NLL vs L2"),
+    ("gmm_sigma_fixed", "gmm", "GMM with sigma held at 1 vs learned sigmas"),
+    ("gmm_sigma_fixed", "trajectory_l2", "GMM with sigma held at 1 vs L2"),
+    ("gmm_affordance_cvar", "gmm_affordance_control", "CVaR fine-tune vs the same with the mean"),
+    ("gmm_affordance_control", "gmm_affordance", "the fine-tune with the mean vs its base"),
 ):
-    verdict = compare_rates(control_results[control], results[base])["verdict"]
+    both = {**results, **control_results}
+    verdict = compare_rates(both[control], both[base])["verdict"]
     control_tests[what] = verdict
     print(f"{what}: {verdict}")
 

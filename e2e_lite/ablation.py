@@ -79,11 +79,16 @@ DRIVERS = (
 #: nothing): is the affordance step the auxiliary loss? ``gmm_mean``, the GMM row's checkpoints
 #: following the mixture's mean (the modes' weighted average) instead of the heaviest mode: does
 #: choosing a mode matter? ``gmm_k1``, the GMM's loss and schedule with one mode: is the GMM row's
-#: gap to L2 the choice between modes, or the NLL?
+#: gap to L2 the choice between modes, or the NLL? ``gmm_sigma_fixed``, the GMM with every sigma
+#: held at 1 for the whole training (the warm-up never ends): is it the learned sigmas?
+#: ``gmm_affordance_control``, the CVaR row's fine-tune with the batch mean instead of CVaR: is the
+#: CVaR step CVaR, or one more epoch?
 CONTROLS = (
     Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),
     Driver("gmm_mean", "GMM, following the mixture's mean"),
     Driver("gmm_k1", "GMM loss with one mode (K = 1)"),
+    Driver("gmm_sigma_fixed", "GMM with sigma held at 1"),
+    Driver("gmm_affordance_control", "GMM + affordance, the fine-tune with the mean"),
 )
 #: The drivers with no training (one run each: they have no training seed).
 UNTRAINED = ("expert", "oracle")
@@ -149,6 +154,11 @@ def build_drivers(
             out[key] = TrajectoryAgent(
                 recipes.gmm(profile, train, val, name=name, modes=1, **seeded)[0]
             )
+        elif key == "gmm_sigma_fixed":
+            name = recipes.seeded_name("07_gmm_sigma_fixed", seed)
+            out[key] = TrajectoryAgent(
+                recipes.gmm(profile, train, val, name=name, sigma_fixed=True, **seeded)[0]
+            )
         elif key == "gmm_affordance_w0":
             name = f"10_gmm_affordance_w0_seed{seed}"
             model = recipes.gmm_affordance(profile, train, val, 0.0, name=name, **seeded)[0]
@@ -160,7 +170,10 @@ def build_drivers(
                 name = recipes.seeded_name("08_gmm_affordance", seed)
                 model = recipes.gmm_affordance(profile, train, val, weight, name=name, **seeded)[0]
             else:
-                model = recipes.gmm_affordance_cvar(profile, train, val, weight, **seeded)[0]
+                reduction = "mean" if key == "gmm_affordance_control" else "cvar"
+                model = recipes.gmm_affordance_cvar(
+                    profile, train, val, weight, reduction=reduction, **seeded
+                )[0]
             out[key] = TrajectoryAgent(model)
     return out
 

@@ -16,10 +16,12 @@ Two wrappers change an objective without touching it (seed 000, sections 3.4 and
 
 * :class:`WithAffordance` adds ``w x`` the squared error of the affordance head (chapter 08);
 * :class:`CVaRObjective` reduces a batch by :func:`cvar_loss` instead of the mean, so only the
-  worst ``1 - alpha`` of each batch is trained on (chapter 09). :func:`cvar` is the statistic.
+  worst ``1 - alpha`` of each batch is trained on (chapter 09), worst by the loss itself or by
+  the followed trajectory's error. :func:`cvar` is the statistic. It wraps the others (it is the
+  outermost wrapper).
 
-Every objective reduces its per-sample losses with :meth:`Objective.reduce` (the mean unless a
-wrapper says otherwise); the training loop calls nothing else.
+The training loop calls :meth:`Objective.batch_loss` and nothing else: :meth:`Objective.reduce`
+(the mean unless a wrapper says otherwise) of the per-sample losses.
 """
 
 from __future__ import annotations
@@ -110,6 +112,12 @@ class Objective:
     def reduce(self, losses: torch.Tensor) -> torch.Tensor:
         """The batch loss the optimiser minimises, from per-sample losses (B,): their mean."""
         return losses.mean()
+
+    def batch_loss(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """What the training loop minimises for a batch: :meth:`reduce` of :meth:`per_sample`."""
+        return self.reduce(self.per_sample(out, batch, model))
 
     def per_sample(
         self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
@@ -457,19 +465,30 @@ def _check_alpha(alpha: float, n: int, lo_closed: bool) -> None:
         raise ValueError("CVaR of an empty set of losses is undefined: give at least one sample")
 
 
-def _tail_mean(values: torch.Tensor, alpha: float) -> torch.Tensor:
-    _check_alpha(alpha, values.numel(), lo_closed=True)
-    k = (1.0 - alpha) * values.numel()
-    ordered = torch.sort(values, descending=True).values
+def _tail_weights(n: int, alpha: float, like: torch.Tensor) -> torch.Tensor:
+    """Weights of the n samples sorted worst first: 1 for the whole tail, the fraction left for
+    the boundary sample, 0 below it."""
+    k = (1.0 - alpha) * n
     # k within rounding of an integer counts as that integer; dividing by the weights actually
     # given (not by k) keeps the result a convex combination of the tail, so never above the max.
     whole = math.floor(k + 1e-9)
     frac = k - whole
-    weights = torch.zeros_like(ordered)
+    weights = torch.zeros(n, dtype=like.dtype, device=like.device)
     weights[:whole] = 1.0
-    if whole < len(ordered) and frac > 1e-9:
+    if whole < n and frac > 1e-9:
         weights[whole] = frac
-    return (weights * ordered).sum() / weights.sum()
+    return weights
+
+
+def _tail_mean(
+    values: torch.Tensor, alpha: float, rank: torch.Tensor | None = None
+) -> torch.Tensor:
+    """The mean of ``values`` over the worst ``1 - alpha`` share, worst by ``rank`` (default: by
+    the values themselves)."""
+    _check_alpha(alpha, values.numel(), lo_closed=True)
+    order = torch.argsort(values.detach() if rank is None else rank, descending=True)
+    weights = _tail_weights(values.numel(), alpha, values)
+    return (weights * values[order]).sum() / weights.sum()
 
 
 def cvar_loss(losses: torch.Tensor, alpha: float, min_tail: int = 10) -> torch.Tensor:
@@ -508,25 +527,58 @@ def cvar_curve(
     return alphas, np.array([float(_tail_mean(values, float(a))) for a in alphas])
 
 
+#: What a CVaR fine-tune ranks a batch's samples by to find its tail: ``"loss"`` (the paper's:
+#: the loss trained on, for a GMM mostly its sigma terms) or ``"followed_error"`` (the followed
+#: mode's trajectory error, ADE [m]: the samples the driver gets most wrong).
+RANK_BY = ("loss", "followed_error")
+
+
 class CVaRObjective(WrappedObjective):
     """Train on the worst ``1 - alpha`` of every batch (seed 000, section 3.5).
 
-    The per-sample losses and metrics are the base's; only :meth:`reduce` changes, to
-    :func:`cvar_loss`. Validation losses stay per-sample means, comparable with the base's.
+    The per-sample losses and metrics are the base's; only the batch's reduction changes, to the
+    mean over its tail (:func:`cvar_loss` when the tail is ranked by the loss itself). Validation
+    losses stay per-sample means, comparable with the base's.
 
     Args:
         base: the objective whose tail is trained on (e.g. ``WithAffordance(GMMObjective(), w)``).
         alpha: in (0, 1) (the paper: 0.9).
         min_tail: see :func:`cvar_loss`.
+        rank_by: one of :data:`RANK_BY`; ``"followed_error"`` needs a trajectory or GMM base.
     """
 
-    def __init__(self, base: Objective, alpha: float = 0.9, min_tail: int = 10) -> None:
+    def __init__(
+        self, base: Objective, alpha: float = 0.9, min_tail: int = 10, rank_by: str = "loss"
+    ) -> None:
         _check_alpha(alpha, 1, lo_closed=False)
+        if rank_by not in RANK_BY:
+            raise ValueError(f"CVaRObjective.rank_by={rank_by!r} is invalid: must be in {RANK_BY}")
         super().__init__(base)
-        self.alpha, self.min_tail = float(alpha), min_tail
+        self.alpha, self.min_tail, self.rank_by = float(alpha), min_tail, rank_by
         self.min_batch = max(2, math.ceil(min_tail / (1.0 - self.alpha) - 1e-9))
-        self.name = f"cvar{self.alpha:g}({base.name})"
+        ranked = "" if rank_by == "loss" else "-by-followed-error"
+        self.name = f"cvar{self.alpha:g}{ranked}({base.name})"
 
     def reduce(self, losses: torch.Tensor) -> torch.Tensor:
-        """:func:`cvar_loss` of the batch."""
+        """:func:`cvar_loss` of the batch (the tail ranked by the losses)."""
         return cvar_loss(losses, self.alpha, self.min_tail)
+
+    def batch_loss(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """The mean loss over the batch's tail, ranked as :attr:`rank_by` says."""
+        losses = self.per_sample(out, batch, model)
+        if self.rank_by == "loss":
+            return self.reduce(losses)
+        cvar_loss(losses.detach(), self.alpha, self.min_tail)  # the same checks and warning
+        return _tail_mean(losses, self.alpha, rank=self.tail_rank(out, batch, model))
+
+    def tail_rank(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """Each sample's rank score, (B,), larger is worse: the loss, or the followed
+        trajectory's ADE [m]."""
+        if self.rank_by == "loss":
+            return self.per_sample(out, batch, model).detach()
+        with torch.no_grad():
+            return self.base.metrics(out, batch, model)["ADE [m]"]

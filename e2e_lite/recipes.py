@@ -15,7 +15,8 @@ Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.tra
 * the affordance weight ``w``: a grid search (:func:`affordance_grid`) on a quarter of the
   training set, two epochs per candidate, scored by held-out trajectory NLL;
 * CVaR: one epoch fine-tuning the GMM + affordance model on the worst 10 % of each batch of 256
-  (the tail then holds 25.6 samples), learning rate 1e-4.
+  (the tail then holds 25.6 samples), continuing the base training's Adam state at learning rate
+  1e-4; its control is the same fine-tune with the batch mean.
 """
 
 from __future__ import annotations
@@ -146,12 +147,19 @@ def gmm(
     name: str = "07_gmm",
     objective: GMMObjective | None = None,
     modes: int = GMM_MODES,
+    sigma_fixed: bool = False,
     **kw: Any,
 ) -> Trained:
     """Chapter 07: the same network with a K = 2 mixture head (``seed``: the training seed;
     ``objective``: another loss than :func:`gmm_objective`'s, and ``modes``: another K, for
-    chapter 07's comparisons; K = 1 is the same NLL without a choice of modes)."""
-    objective = objective or gmm_objective(profile, n_modes=modes)
+    chapter 07's comparisons; K = 1 is the same NLL without a choice of modes; ``sigma_fixed``:
+    the warm-up lasts the whole schedule, so every sigma stays 1 and the loss is a soft mixture
+    of squared errors, chapter 07's control for the learned sigmas)."""
+    if objective is None:
+        warmup = profile.train_epochs if sigma_fixed else None
+        objective = gmm_objective(profile, n_modes=modes, warmup=warmup)
+    elif sigma_fixed:
+        raise ValueError("give sigma_fixed or an objective, not both")
     if objective.n_modes != modes:
         raise ValueError(f"the objective has {objective.n_modes} modes, the model {modes}")
     model, hist = train_or_load(
@@ -246,27 +254,63 @@ def gmm_affordance(
     return model, objective, hist
 
 
+#: How chapter 09's fine-tunes reduce a batch (:func:`gmm_affordance_cvar`): the paper's CVaR
+#: and its control, the plain mean with every other setting the same.
+REDUCTIONS = ("cvar", "mean")
+#: The fine-tune's learning rate: a tenth of the base training's, continuing its Adam state.
+CVAR_LR = 1e-4
+#: What the CVaR fine-tune ranks its tail by (:data:`~e2e_lite.losses.RANK_BY`).
+CVAR_RANK_BY = "loss"
+
+
+def finetune_settings(
+    profile: Profile, weight: float, seed: int = 0, reduction: str = "cvar"
+) -> tuple[Objective, TrainConfig]:
+    """The objective and training settings of chapter 09's fine-tunes: the chapter-08 loss (sigma
+    open), reduced by CVaR-0.9 or, for the control, by the mean; one epoch, batches of 256,
+    learning rate :data:`CVAR_LR`. The two differ in the reduction only."""
+    if reduction not in REDUCTIONS:
+        raise ValueError(f"reduction={reduction!r} is invalid: must be one of {REDUCTIONS}")
+    base = WithAffordance(gmm_objective(profile, warmup=0), weight)
+    objective = (
+        CVaRObjective(base, CVAR_ALPHA, rank_by=CVAR_RANK_BY) if reduction == "cvar" else base
+    )
+    cfg = _train_cfg(
+        profile, epochs=1, batch_size=CVAR_BATCH, lr=CVAR_LR, grad_clip=10.0, seed=seed
+    )
+    return objective, cfg
+
+
 def gmm_affordance_cvar(
     profile: Profile,
     train: DrivingData,
     val: DrivingData,
     weight: float,
     seed: int = 0,
+    reduction: str = "cvar",
     **kw: Any,
 ) -> Trained:
-    """Chapter 09: one epoch of CVaR-0.9 fine-tuning from :func:`gmm_affordance`'s checkpoint of
-    the same training ``seed`` (trained first if missing), sigma open throughout."""
+    """Chapter 09: one epoch of fine-tuning :func:`gmm_affordance`'s checkpoint of the same
+    training ``seed`` (trained first if missing, or if it did not keep its optimiser state),
+    continuing its Adam state at a tenth of the rate, sigma open throughout.
+
+    ``reduction="cvar"``: CVaR-0.9 of each batch of 256 (the tail holds 25.6 samples);
+    ``"mean"``: the control, the same fine-tune with the batch mean (checkpoint
+    ``09_gmm_affordance_control``): what one more epoch does without CVaR.
+    """
     parent = seeded_name("08_gmm_affordance", seed)
-    gmm_affordance(profile, train, val, weight, name=parent, seed=seed, **kw)
-    objective = CVaRObjective(WithAffordance(gmm_objective(profile, warmup=0), weight), CVAR_ALPHA)
+    gmm_affordance(profile, train, val, weight, name=parent, seed=seed, keep_optimizer=True, **kw)
+    objective, cfg = finetune_settings(profile, weight, seed, reduction)
+    name = "09_gmm_affordance_cvar" if reduction == "cvar" else "09_gmm_affordance_control"
     model, hist = train_or_load(
-        seeded_name("09_gmm_affordance_cvar", seed),
+        seeded_name(name, seed),
         AFFORDANCE_CFG,
-        _train_cfg(profile, epochs=1, batch_size=CVAR_BATCH, lr=1e-4, grad_clip=10.0, seed=seed),
+        cfg,
         objective,
         train,
         val,
         init_from=parent,
+        carry_optimizer=True,
         **kw,
     )
     return model, objective, hist

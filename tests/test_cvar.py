@@ -162,3 +162,50 @@ def test_training_loop_reduces_with_the_objectives_reduce():
     )
     assert len(calls) == 2
     assert all(tail > mean for tail, mean in calls)  # the tail mean, not the mean
+
+
+def test_the_control_fine_tune_differs_from_cvar_only_in_the_reduction():
+    from e2e_lite.config import FULL
+    from e2e_lite.recipes import finetune_settings
+
+    cvar_obj, cvar_cfg = finetune_settings(FULL, 3.0, seed=1, reduction="cvar")
+    mean_obj, mean_cfg = finetune_settings(FULL, 3.0, seed=1, reduction="mean")
+    assert cvar_cfg == mean_cfg and cvar_cfg.batch_size * (1 - cvar_obj.alpha) >= 25
+    assert isinstance(cvar_obj, CVaRObjective) and not isinstance(mean_obj, CVaRObjective)
+    assert cvar_obj.base.name == mean_obj.name  # the same loss per sample
+    assert cvar_obj.name != mean_obj.name  # so different checkpoints
+    losses = torch.arange(256, dtype=torch.float32)
+    assert mean_obj.reduce(losses) == losses.mean()
+    assert cvar_obj.reduce(losses) == pytest.approx(float(losses[-26:].sum() - 0.4 * 230) / 25.6)
+    with pytest.raises(ValueError, match="reduction"):
+        finetune_settings(FULL, 3.0, reduction="median")
+
+
+def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples():
+    """rank_by="followed_error": the tail is the samples with the largest ADE, whatever their
+    loss; gradients reach those samples only."""
+    from e2e_lite.losses import Objective
+
+    class Fixed(Objective):
+        def __init__(self, losses, ade):
+            super().__init__("trajectory")
+            self.losses, self.ade = losses, ade
+
+        def per_sample(self, out, batch, model):
+            return self.losses
+
+        def metrics(self, out, batch, model):
+            return {"ADE [m]": self.ade}
+
+    losses = torch.tensor([5.0, 1.0, 4.0, 2.0, 3.0], requires_grad=True)
+    ade = torch.tensor([0.1, 0.9, 0.2, 0.8, 0.3])  # worst driven: samples 1 and 3
+    by_error = CVaRObjective(Fixed(losses, ade), alpha=0.6, min_tail=1, rank_by="followed_error")
+    value = by_error.batch_loss({}, {}, None)
+    assert float(value.detach()) == pytest.approx((1.0 + 2.0) / 2)
+    value.backward()
+    assert torch.equal(losses.grad > 0, torch.tensor([False, True, False, True, False]))
+    by_loss = CVaRObjective(Fixed(losses, ade), alpha=0.6, min_tail=1)
+    assert float(by_loss.batch_loss({}, {}, None).detach()) == pytest.approx((5.0 + 4.0) / 2)
+    assert by_error.name != by_loss.name
+    with pytest.raises(ValueError, match="rank_by"):
+        CVaRObjective(Fixed(losses, ade), rank_by="sigma")
