@@ -36,6 +36,7 @@ from e2e_lite import artifacts, recipes
 from e2e_lite.agents import Recorder, TrajectoryAgent
 from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, DrivingDataset, affordances, load_or_collect
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
+from e2e_lite.losses import AFFORDANCE_GOALS, affordance_errors
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
@@ -129,13 +130,22 @@ for j, (ax, name) in enumerate(zip(axes, AFFORDANCE_NAMES)):
 fig.tight_layout()
 scatter_png = save_figure(fig, artifacts.artifact_path("figures", "08_affordance_scatter.png"))
 # the floor to beat: always answering the training set's mean
-mae_const = {
-    n: float(np.mean(np.abs(a_mean[j] - true[:, j]))) for j, n in enumerate(AFFORDANCE_NAMES)
-}
-for name, v in mae.items():
-    print(f"  {name:16s} MAE {v:.3f}   (always the training mean: {mae_const[name]:.3f})")
+errors = affordance_errors(pred, true, a_mean)
+mae_const = {n: errors[n]["mean_predictor"]["mae"] for n in AFFORDANCE_NAMES}
+print(f"  {'affordance':22s} {'MAE':>8s} {'mean pred.':>10s} {'RMSE':>8s} {'mean pred.':>10s}")
+for name, e in errors.items():
+    m, c = e["model"], e["mean_predictor"]
+    print(f"  {name:22s} {m['mae']:8.3f} {c['mae']:10.3f} {m['rmse']:8.3f} {c['rmse']:10.3f}")
 learned = [n for n in AFFORDANCE_NAMES if mae[n] < 0.8 * mae_const[n]]
 print(f"clearly better than the mean (MAE < 80 % of it): {', '.join(learned) or 'none'}")
+goals = {
+    f"{name} {kind}": errors[name]["model"][kind] / errors[name]["mean_predictor"][kind]
+    for name, kind in AFFORDANCE_GOALS
+    if name in errors
+}
+for what, ratio in goals.items():
+    print(f"{what}: {ratio:.2f} of the mean predictor's ({'met' if ratio <= 0.5 else 'not met'}: "
+          "the goal is at most half)")  # fmt: skip
 print(f"saved {scatter_png}")
 
 # %% [markdown]
@@ -243,6 +253,8 @@ artifacts.write_metrics(
         "held_out": held,
         "affordance_mae": mae,
         "affordance_mae_constant": mae_const,
+        "affordance_error": errors,
+        "affordance_goals": goals,
         "affordances_learned": learned,
         "drive_gap_mae_m": drive_mae,
         "verdict_vs_gmm": verdict,

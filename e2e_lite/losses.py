@@ -28,12 +28,13 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import Any
 
 import numpy as np
 import torch
 
 from .config import check_range
-from .data import AFFORDANCE_NAMES
+from .data import AFFORDANCE_NAMES, GAP_CAP_M
 from .models import DrivingModel
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -347,6 +348,62 @@ def side_shares(
     expert = float(np.mean(towards > committed_m))
     other = float(np.mean(towards < -committed_m))
     return {"expert_side": expert, "other_side": other, "keep": 1.0 - expert - other}
+
+
+#: Chapter 08's goals for the affordance head on held-out frames: the error that must be at most
+#: half the mean predictor's (issue 16): MAE of the gap on frames with a car ahead, RMSE of the
+#: lane-centre offset and the heading.
+AFFORDANCE_GOALS = (
+    ("gap_ego_m_car_ahead", "mae"),
+    ("center_offset_m", "rmse"),
+    ("heading_rad", "rmse"),
+)
+
+
+def affordance_errors(
+    pred: np.ndarray, true: np.ndarray, train_mean: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Held-out errors of predicted affordances against the floor to beat: always answering the
+    training set's mean.
+
+    Args:
+        pred, true: (N, 9) predicted and true affordances (units of :data:`AFFORDANCE_NAMES`).
+        train_mean: (9,) the training set's mean of each.
+
+    Returns:
+        ``{name: {"model": {"mae", "rmse"}, "mean_predictor": {"mae", "rmse"}, "frames": n}}``
+        for each affordance, plus ``"gap_ego_m_car_ahead"``: the gap on the frames with a parked
+        car ahead in the own lane (true gap below :data:`~e2e_lite.data.GAP_CAP_M`), where
+        knowing the gap matters (elsewhere the answer is the cap).
+    """
+    pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
+    train_mean = np.asarray(train_mean, np.float64).reshape(-1)
+    n_aff = len(AFFORDANCE_NAMES)
+    if pred.shape != true.shape or pred.ndim != 2 or pred.shape[1] != n_aff or not len(pred):
+        raise ValueError(
+            f"affordance_errors needs (N, {n_aff}) predictions and truths, N >= 1; got "
+            f"{pred.shape}, {true.shape}"
+        )
+
+    def errors(p: np.ndarray, t: np.ndarray, mean: float) -> dict[str, Any]:
+        return {
+            "model": {
+                "mae": float(np.abs(p - t).mean()),
+                "rmse": float(np.sqrt(((p - t) ** 2).mean())),
+            },
+            "mean_predictor": {
+                "mae": float(np.abs(mean - t).mean()),
+                "rmse": float(np.sqrt(((mean - t) ** 2).mean())),
+            },
+            "frames": len(t),
+        }
+
+    out = {n: errors(pred[:, j], true[:, j], train_mean[j]) for j, n in enumerate(AFFORDANCE_NAMES)}
+    gap = AFFORDANCE_NAMES.index("gap_ego_m")
+    ahead = true[:, gap] < GAP_CAP_M
+    if ahead.any():
+        out["gap_ego_m_car_ahead"] = errors(pred[ahead, gap], true[ahead, gap], train_mean[gap])
+    return out
 
 
 # ------------------------------------------------------------------------------ wrappers

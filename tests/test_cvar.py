@@ -209,3 +209,29 @@ def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples(
     assert by_error.name != by_loss.name
     with pytest.raises(ValueError, match="rank_by"):
         CVaRObjective(Fixed(losses, ade), rank_by="sigma")
+
+
+def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset():
+    from e2e_lite.data import AFFORDANCE_NAMES, GAP_CAP_M
+    from e2e_lite.losses import affordance_errors
+
+    true = np.zeros((4, 9))
+    gap = AFFORDANCE_NAMES.index("gap_ego_m")
+    off = AFFORDANCE_NAMES.index("center_offset_m")
+    true[:, gap] = [GAP_CAP_M, GAP_CAP_M, 20.0, 40.0]  # a car ahead on the last two frames
+    true[:, off] = [1.0, -1.0, 1.0, -1.0]
+    pred = true.copy()
+    pred[:, gap] = [GAP_CAP_M, 50.0, 26.0, 40.0]
+    pred[:, off] = [0.5, -0.5, 0.5, -0.5]
+    mean = np.zeros(9)
+    mean[gap] = 45.0
+    e = affordance_errors(pred, true, mean)
+    assert e["center_offset_m"]["model"] == {"mae": 0.5, "rmse": 0.5}
+    assert e["center_offset_m"]["mean_predictor"] == {"mae": 1.0, "rmse": 1.0}
+    assert e["gap_ego_m"]["model"]["mae"] == pytest.approx((0 + 10 + 6 + 0) / 4)
+    ahead = e["gap_ego_m_car_ahead"]
+    assert ahead["frames"] == 2 and ahead["model"]["mae"] == pytest.approx(3.0)
+    assert ahead["mean_predictor"]["mae"] == pytest.approx((25 + 5) / 2)
+    assert ahead["model"]["rmse"] == pytest.approx(np.sqrt(18.0))
+    with pytest.raises(ValueError, match="affordance_errors"):
+        affordance_errors(pred[:, :8], true[:, :8], mean[:8])
