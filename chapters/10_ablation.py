@@ -290,7 +290,10 @@ print(f"open {index} in a browser")
 #   answers hurts, as the paper argues), the same loss with one mode collides far more still (the
 #   likelihood loss, not the choice, is what L2 does better here), and section 3c finds most of
 #   the GMM's extra collisions are a parked car in its own lane hit with the car centred in the
-#   lane: the followed mode kept the lane.
+#   lane: the followed mode kept the lane. The likelihood's culprit is the learned sigma: it
+#   weighs every sample by its predicted spread, so the decisive frames are learned least
+#   (chapter 07, section 8 measures the weights), and the same GMM with sigma held at 1 for the
+#   whole training is section 3b's last control. Read its line against L2's.
 # * **The evaluator drove each road four times** until the course gave every mile a road of its
 #   own: a deterministic driver crashed at the same places on each lap, so collisions came in
 #   clusters and the intervals were too narrow. Tables measured before that say so.
@@ -298,7 +301,9 @@ print(f"open {index} in a browser")
 #   auxiliary loss spanned 179-274 per 100 miles. Every learned row now pools three seeds, and
 #   the steps are tested on pooled counts; the per-seed column shows what one run would have said.
 # * **CVaR**: a one-epoch fine-tune with a fresh optimiser broke the driver, but so did one more
-#   epoch of the mean loss; the fine-tune needs its control (the next issue of the course).
+#   epoch of the mean loss. The fine-tune now continues the base training's Adam state, and its
+#   control (the same fine-tune reducing by the mean) is section 3b's: the CVaR step is judged
+#   against it, not only against its parent.
 #
 # What our world lacks that the paper had: 10 times the data (48K samples vs 500K), a ResNet-34
 # instead of a PilotNet trunk, moving traffic, and many more epochs. What it adds: every number
