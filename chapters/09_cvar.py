@@ -361,16 +361,25 @@ artifacts.write_metrics(
 #
 # * `CVaR_α` is the mean of the worst `1 - α` of the losses; as a training loss it sends gradients
 #   only to the samples above the batch's quantile, so the batch must hold enough of them.
-# * The tail is not a random sample: section 3 shows which situations it over-represents.
+# * The tail is not a random sample: section 3 shows which situations it over-represents, and
+#   that ranking by the loss and ranking by the followed trajectory's error pick different
+#   samples.
+# * A fine-tune continues its base's optimiser, and it is judged against its control: the same
+#   fine-tune with the mean. Only the difference between the two is CVaR's.
 # * One epoch of CVaR-90 moves the per-percentile curve; the plot shows where it gains and what it
-#   costs on the easy cases, and the closed-loop verdict says whether that reaches the road.
+#   costs on the easy cases, and the closed-loop verdicts (over the training seeds) say whether
+#   that reaches the road.
 #
 # ## Exercises
 #
 # 1. Fine-tune with α = 0.5 and α = 0.99 (mind the batch size). Which part of the curve moves?
-# 2. Fine-tune one epoch with the *mean* loss at the same learning rate. Is the CVaR result just
-#    one more epoch of training?
+# 2. Rank the tail by the followed trajectory's error (`CVaRObjective(..., rank_by=
+#    "followed_error")`, or `recipes.CVAR_RANK_BY`). Does section 3's table change the way you
+#    expected, and does the closed loop follow?
 # 3. Two epochs of CVaR-90: does the mean loss keep rising? Does the closed-loop rate follow the
 #    CVaR-90 or the mean?
 # 4. The tail of section 3 is measured with the training loss. Do the same with the validation
 #    loss: are the worst held-out samples the same situations?
+# 5. Fine-tune with a fresh Adam instead (`carry_optimizer=False` in `recipes.gmm_affordance_cvar`'s
+#    `train_or_load` call). How far do the weights move in the first ten steps, against the
+#    carried optimiser?
