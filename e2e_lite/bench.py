@@ -12,12 +12,15 @@ Names:
             100 m), rendered 16 at a time (as the evaluator does) and one by one.
     data    samples collected per second (noisy expert, frames, label rollouts, affordances), and
             the expert's and the oracle's closed-loop simulated miles per wall-second.
-    train   training samples per second at batch 64 through the real training loop.
+    train   training samples per second at batch 64: the bare train step (one batch in memory)
+            and the real training loop, and their ratio (``loop_vs_bare``).
     network inference time per frame of the GMM fusion network by batch size, on one torch
             thread and on all of them.
     closed-loop [--agent pilotnet|actuators|gmm]
             simulated miles per wall-second with camera + CNN in the loop: B = 16 in one thread
-            (chapters 05-09), B = 64 in one thread, two threads and two processes (chapter 10).
+            (chapters 05-09), B = 64 in one thread, two threads (20 miles each) and two processes
+            (chapter 10; 100 miles, the workers' start counted), and that last one against the
+            network alone (``loop_vs_network``).
 """
 
 from __future__ import annotations
@@ -154,21 +157,58 @@ def bench_data(quick: bool) -> dict[str, float]:
     return out
 
 
+def bare_train_samples_per_s(
+    model: torch.nn.Module, objective: Objective, batch: dict[str, torch.Tensor], steps: int
+) -> float:
+    """The network's own training speed [samples/s]: forward, the objective's loss, backward and
+    an Adam step, ``steps`` times on one batch already in memory (after 3 warm-up steps). What the
+    training loop adds (batch assembly, shuffling, metrics, progress) is left out."""
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    model.train()
+    device = next(model.parameters()).device
+
+    def step() -> None:
+        out = model(batch["image"], batch["speed"])
+        loss = objective.batch_loss(out, batch, model)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    for _ in range(3):
+        step()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    return steps * len(batch["speed"]) / (time.perf_counter() - t0)
+
+
 def bench_train(quick: bool) -> dict[str, float]:
-    """Training samples per second (batch 64, the real loop on synthetic frames): the full fusion
-    model (trajectory head + affordance head) and PilotNet."""
+    """Training samples per second at batch 64 for the full fusion model (trajectory head +
+    affordance head) and PilotNet: the bare train step (:func:`bare_train_samples_per_s`, before
+    and after the loop, averaged) and the real loop (:func:`~e2e_lite.training.fit`, one epoch on
+    synthetic frames, validation left out), and their ratio ``loop_vs_bare``."""
     n = 512 if quick else 6_144
+    steps = 8 if quick else 48
     train, val = synthetic_data(n, 0), synthetic_data(64, 1)
-    out: dict[str, float] = {"threads": torch.get_num_threads(), "device": str(pick_device())}
+    device = pick_device()
+    out: dict[str, float] = {"threads": torch.get_num_threads(), "device": str(device)}
     for name, cfg in (
         ("fusion_trajectory_affordance", ModelConfig(head="trajectory", affordance=True)),
         ("pilotnet", ModelConfig(kind="pilotnet", head="steer")),
     ):
-        torch.manual_seed(0)
-        model = prepare(build_model(cfg), pick_device())
         objective = Objective("steer" if cfg.head == "steer" else "trajectory")
+        batch = DrivingDataset(train).batch(np.arange(64), device=device)
+        torch.manual_seed(0)
+        bare = [
+            bare_train_samples_per_s(prepare(build_model(cfg), device), objective, batch, steps)
+        ]
+        torch.manual_seed(0)
         hist = fit(
-            model,
+            prepare(build_model(cfg), device),
             objective,
             DrivingDataset(train),
             DrivingDataset(val),
@@ -176,7 +216,18 @@ def bench_train(quick: bool) -> dict[str, float]:
             name=f"bench_{name}",
             progress=False,
         )
-        out[f"{name}_train_samples_per_s"] = hist.samples_per_s
+        torch.manual_seed(0)
+        bare.append(
+            bare_train_samples_per_s(prepare(build_model(cfg), device), objective, batch, steps)
+        )
+        out[f"{name}_bare_samples_per_s"] = float(np.mean(bare))
+        out[f"{name}_loop_samples_per_s"] = hist.samples_per_s
+        out[f"{name}_loop_vs_bare"] = hist.samples_per_s / float(np.mean(bare))
+    # the headline figures: the course's main network (chapters 06-11 train the fusion model)
+    main = "fusion_trajectory_affordance"
+    out["bare_samples_per_s"] = out[f"{main}_bare_samples_per_s"]
+    out["loop_samples_per_s"] = out[f"{main}_loop_samples_per_s"]
+    out["loop_vs_bare"] = out[f"{main}_loop_vs_bare"]
     return out
 
 
@@ -206,13 +257,13 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     print(f"closed loop with {agent}: {source}")
     out: dict[str, float] = {}
     runs = (
-        ("b16_1thread", 16, 1, "threads"),
-        ("b64_1thread", 64, 1, "threads"),
-        ("b64_2threads", 64, 2, "threads"),
-        ("b64_2processes", 64, 2, "processes"),
+        ("b16_1thread", 16, 1, "threads", 20.0),
+        ("b64_1thread", 64, 1, "threads", 20.0),
+        ("b64_2threads", 64, 2, "threads", 20.0),
+        ("b64_2processes", 64, 2, "processes", 100.0),
     )
-    for label, n_worlds, workers, parallel in runs:
-        ev = EvalConfig(miles=0.5 if quick else 20.0, n_worlds=n_worlds, n_tracks=16)
+    for label, n_worlds, workers, parallel, miles in runs:
+        ev = EvalConfig(miles=0.5 if quick else miles, n_worlds=n_worlds, n_tracks=16)
         res = evaluate(policy, world_cfg, ev, progress=False, workers=workers, parallel=parallel)
         out[f"{label}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
         out[f"{label}_decisions_per_wall_s"] = (
@@ -226,46 +277,71 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
                 res.wall_time_s - startup
             )
         frames = max(1.0, res.timing_s["frames"])
+        out[f"{label}_frames"] = frames
         for part in ("render", "policy", "physics"):  # shard-seconds per frame, in ms
             out[f"{label}_{part}_ms_per_frame"] = 1e3 * res.timing_s[part] / frames
         loop = (res.wall_time_s - startup) * workers - sum(
             res.timing_s[p] for p in ("render", "policy", "physics")
         )
         out[f"{label}_rest_ms_per_frame"] = 1e3 * loop / frames
+    # the headline: chapter 10's setting (64 cars, two worker processes, one core each), the
+    # whole evaluation (workers' start included) against the network alone at the shards' batch
+    # on the shards' threads, both in simulated miles per wall-second (the loop's miles per frame)
+    workers = 2
+    network_fps = workers * network_frames_per_s(
+        model,
+        64 // workers,
+        reps=10 if quick else 200,
+        threads=max(1, torch.get_num_threads() // workers),
+    )
+    miles_per_frame = out["b64_2processes_sim_miles"] / out["b64_2processes_frames"]
+    out["network_frames_per_s"] = network_fps
+    out["network_miles_per_s"] = network_fps * miles_per_frame
+    out["loop_miles_per_s"] = out["b64_2processes_sim_miles_per_wall_s"]
+    out["loop_vs_network"] = out["loop_miles_per_s"] / out["network_miles_per_s"]
     return out
+
+
+def network_frames_per_s(
+    model: torch.nn.Module, batch: int, reps: int, threads: int | None = None
+) -> float:
+    """Frames per second of ``model``'s forward pass alone (inference mode, random 66 x 200
+    frames and speeds already in memory) at ``batch`` frames per call on ``threads`` torch
+    threads (None: as set), after 3 warm-up calls."""
+    device = next(model.parameters()).device
+    rng = np.random.default_rng(0)
+    image = images_to_tensor(rng.integers(0, 256, (batch, 66, 200, 3), dtype=np.uint8), device)
+    speed = torch.full((batch, 1), 20.0, device=device)
+    before = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        with torch.inference_mode():
+            for _ in range(3):  # warm-up (allocations, kernel choices)
+                model(image, speed)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            for _ in range(reps):
+                model(image, speed)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            return reps * batch / (time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(before)
 
 
 def bench_network(quick: bool) -> dict[str, float]:
     """Inference cost of the fusion network with a GMM head (chapters 07-11's drivers) per frame
     [ms], by batch size, on one torch thread and on all of them (what a closed-loop shard pays)."""
-    device = pick_device()
     torch.manual_seed(0)
-    model = prepare(build_model(ModelConfig(kind="fusion", head="gmm")), device).eval()
+    model = prepare(build_model(ModelConfig(kind="fusion", head="gmm")), pick_device()).eval()
     out: dict[str, float] = {}
-    threads = torch.get_num_threads()
-    rng = np.random.default_rng(0)
-    try:
-        for n_threads in sorted({1, threads}):
-            torch.set_num_threads(n_threads)
-            for batch in (8, 16, 32, 64):
-                frames = rng.integers(0, 256, (batch, 66, 200, 3), dtype=np.uint8)
-                image = images_to_tensor(frames, device)
-                speed = torch.full((batch, 1), 20.0, device=device)
-                reps = max(3, (200 if quick else 2_000) // batch)
-                with torch.inference_mode():
-                    for _ in range(3):  # warm-up (allocations, kernel choices)
-                        model(image, speed)
-                    if device.type == "cuda":
-                        torch.cuda.synchronize()
-                    t0 = time.perf_counter()
-                    for _ in range(reps):
-                        model(image, speed)
-                    if device.type == "cuda":
-                        torch.cuda.synchronize()
-                per_frame = (time.perf_counter() - t0) / (reps * batch)
-                out[f"threads{n_threads}_batch{batch}_ms_per_frame"] = 1e3 * per_frame
-    finally:
-        torch.set_num_threads(threads)
+    for n_threads in sorted({1, torch.get_num_threads()}):
+        for batch in (8, 16, 32, 64):
+            reps = max(3, (200 if quick else 2_000) // batch)
+            rate = network_frames_per_s(model, batch, reps, n_threads)
+            out[f"threads{n_threads}_batch{batch}_ms_per_frame"] = 1e3 / rate
     return out
 
 

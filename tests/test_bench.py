@@ -29,3 +29,19 @@ def test_benchmark_command_prints_json(argv, capsys):
         if "_per_" in k and (k.endswith("_s") or (k.endswith("_ms_per_frame") and "rest" not in k))
     ]
     assert numbers and all(v > 0 for v in numbers)
+    # the ratios to the bare network that the README quotes (issue 19)
+    ratio = {"train": "loop_vs_bare", "closed-loop": "loop_vs_network"}.get(argv[0])
+    if ratio == "loop_vs_bare":
+        assert figures[ratio] == pytest.approx(
+            figures["loop_samples_per_s"] / figures["bare_samples_per_s"]
+        )
+    elif ratio == "loop_vs_network":
+        assert figures[ratio] == pytest.approx(
+            figures["loop_miles_per_s"] / figures["network_miles_per_s"]
+        )
+        # the same miles per frame turn the network's frames into miles
+        assert figures["network_miles_per_s"] == pytest.approx(
+            figures["network_frames_per_s"]
+            * figures["b64_2processes_sim_miles"]
+            / figures["b64_2processes_frames"]
+        )
