@@ -241,12 +241,19 @@ class FusionNet(DrivingModel):
             image: (B, 3, 66, 200) uint8 (or float in [0, 255]).
             speed: (B, 1) speed [m/s] (normalised inside with the model's statistics).
         """
-        speed_n = (speed.float().reshape(-1, 1) - self.speed_mean) / self.speed_std
-        fused = self.fusion(torch.cat([self.trunk(image), speed_n], dim=1))
+        fused = self.features(image, speed)["fused"]
         out = {"main": self.head(fused)}
         if self.affordance_head is not None:
             out["affordance"] = self.affordance_head(fused)
         return out
+
+    def features(self, image: torch.Tensor, speed: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The representations the heads read: ``"trunk"`` (B, 1152), the image backbone's
+        features, and ``"fused"`` (B, fusion_width), the fusion MLP's output (after its last
+        dropout in training mode). Arguments as in :meth:`forward`."""
+        speed_n = (speed.float().reshape(-1, 1) - self.speed_mean) / self.speed_std
+        trunk = self.trunk(image)
+        return {"trunk": trunk, "fused": self.fusion(torch.cat([trunk, speed_n], dim=1))}
 
 
 def build_model(cfg: ModelConfig) -> DrivingModel:

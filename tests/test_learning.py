@@ -37,8 +37,10 @@ from e2e_lite.training import (
     TrainConfig,
     decisive_errors,
     fit,
+    layer_features,
     load_checkpoint,
     model_stats,
+    probe_affordances,
     save_checkpoint,
     train_or_load,
 )
@@ -499,3 +501,56 @@ def test_carrying_the_optimiser_needs_a_parent_that_kept_it(capsys):
     train_or_load("old", cfg, tcfg, obj, data, val, keep_optimizer=True)
     assert "no optimiser state kept" in capsys.readouterr().out
     train_or_load("kid", cfg, tcfg, obj, data, val, init_from="old", carry_optimizer=True)
+
+
+def test_features_are_what_the_heads_read():
+    torch.manual_seed(0)
+    cfg = ModelConfig(head="trajectory", affordance=True)
+    model = prepare(build_model(cfg), torch.device("cpu")).eval()
+    ds_val = DrivingDataset(synthetic_data(16, 1))
+    batch = ds_val.batch(np.arange(8))
+    with torch.inference_mode():
+        feats = model.features(batch["image"], batch["speed"])
+        out = model(batch["image"], batch["speed"])
+        main, affordance = model.head(feats["fused"]), model.affordance_head(feats["fused"])
+    assert feats["trunk"].shape == (8, 1152) and feats["fused"].shape == (8, cfg.fusion_width)
+    torch.testing.assert_close(main, out["main"])
+    torch.testing.assert_close(affordance, out["affordance"])
+    np.testing.assert_allclose(  # the same features, batched by the dataset
+        layer_features(model, ds_val, "fused")[:8], feats["fused"].numpy(), rtol=1e-5, atol=1e-6
+    )
+    with pytest.raises(ValueError, match="layer"):
+        layer_features(model, ds_val, "head")
+
+
+class _SeesBrightness(torch.nn.Module):
+    """A stand-in network whose "trunk" is each frame's mean brightness per channel and per image
+    quarter (12 numbers) and whose "fused" layer is noise: what a probe can and cannot read."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.unused = torch.nn.Parameter(torch.zeros(1))
+
+    def features(self, image: torch.Tensor, speed: torch.Tensor) -> dict[str, torch.Tensor]:
+        quarters = image.float().unflatten(3, (4, 50)).mean(dim=(2, 4))  # (B, 3, 4)
+        noise = torch.randn(len(image), 12, generator=torch.Generator().manual_seed(len(image)))
+        return {"trunk": quarters.flatten(1) / 255.0, "fused": noise}
+
+
+def test_a_probe_reads_what_a_layer_holds_and_not_what_it_lacks():
+    train, val = synthetic_data(256, 0), synthetic_data(64, 1)
+    for data, seed in ((train, 0), (val, 1)):
+        gain = np.random.default_rng(seed).uniform(0.1, 1.0, len(data))
+        images = data.arrays["images"] * gain[:, None, None, None]
+        data.arrays["images"][:] = images.astype(np.uint8)
+        data.arrays["affordances"][:] = np.outer(gain, np.linspace(-2.0, 2.0, 9) + 0.1)
+    net, ds_train, ds_val = _SeesBrightness(), DrivingDataset(train), DrivingDataset(val)
+    true = val.arrays["affordances"].astype(np.float64)
+    floor = np.sqrt(((train.arrays["affordances"].mean(0) - true) ** 2).mean(0))  # the mean's
+    seen = probe_affordances(net, ds_train, ds_val, "trunk", epochs=60)
+    unseen = probe_affordances(net, ds_train, ds_val, "fused", epochs=60)
+    assert np.all(np.sqrt(((seen - true) ** 2).mean(0)) < 0.25 * floor)
+    assert np.all(np.sqrt(((unseen - true) ** 2).mean(0)) > 0.8 * floor)
+    np.testing.assert_array_equal(
+        seen, probe_affordances(net, ds_train, ds_val, "trunk", epochs=60)
+    )
