@@ -34,10 +34,18 @@ from matplotlib.figure import Figure
 
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import Recorder, TrajectoryAgent
-from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, DrivingDataset, affordances, load_or_collect
+from e2e_lite.data import (
+    AFFORDANCE_NAMES,
+    GAP_CAP_M,
+    DataConfig,
+    DrivingDataset,
+    affordances,
+    load_or_collect,
+)
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
+from e2e_lite.expert import CHANGE
 from e2e_lite.losses import AFFORDANCE_GOALS, affordance_errors
-from e2e_lite.training import evaluate_loss
+from e2e_lite.training import PROBE_LAYERS, evaluate_loss, probe_affordances
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
 
@@ -104,8 +112,9 @@ if gmm07 is not None:
 # %% [markdown]
 # ## 4. What the network sees: predicted against true affordances
 #
-# On the validation frames. Points on the diagonal are right; the gaps saturate at 60 m (no car
-# in range), which shows as a column at the right edge.
+# On the validation frames, coloured by situation (a parked car within 60 m in the own lane, a
+# lane change, a curve, the rest). Points on the diagonal are right; the gaps saturate at 60 m
+# (no car in range), which shows as a column at the right edge.
 
 # %%
 agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
@@ -117,17 +126,27 @@ for c in np.array_split(rows, max(1, len(rows) // 256)):
 pred = np.concatenate(chunks)
 true = val.affordances[rows].astype(np.float64)
 mae = {n: float(np.mean(np.abs(pred[:, j] - true[:, j]))) for j, n in enumerate(AFFORDANCE_NAMES)}
-fig = Figure(figsize=(12, 10))
+gap_ahead = true[:, AFFORDANCE_NAMES.index("gap_ego_m")] < GAP_CAP_M
+changing = val.expert_state[rows] == CHANGE
+curved = np.abs(val.curvature[rows]) > 1e-4
+situation = {  # each frame in the first that applies
+    "parked car ahead": gap_ahead,
+    "lane change": changing & ~gap_ahead,
+    "curve": curved & ~changing & ~gap_ahead,
+    "other": ~(curved | changing | gap_ahead),
+}
+fig = Figure(figsize=(12, 10.5), layout="constrained")
 axes = fig.subplots(3, 3).ravel()
 for j, (ax, name) in enumerate(zip(axes, AFFORDANCE_NAMES)):
     lo, hi = np.percentile(true[:, j], [0.5, 99.5])
-    ax.scatter(true[:, j], pred[:, j], s=3, alpha=0.3)
+    for (what, mask), colour in zip(situation.items(), ("C3", "C1", "C2", "0.6")):
+        ax.scatter(true[mask, j], pred[mask, j], s=3, alpha=0.35, color=colour, label=what)
     ax.plot([lo, hi], [lo, hi], color="black", lw=1)
     ax.set_title(f"{name}: MAE {mae[name]:.3g}", fontsize=10)
     unit = "rad" if name.endswith("_rad") else "m"  # the names carry their units
     ax.set_xlabel(f"true [{unit}]")
     ax.set_ylabel(f"predicted [{unit}]")
-fig.tight_layout()
+fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=4, markerscale=4)
 scatter_png = save_figure(fig, artifacts.artifact_path("figures", "08_affordance_scatter.png"))
 # the floor to beat: always answering the training set's mean
 errors = affordance_errors(pred, true, a_mean)
@@ -147,6 +166,35 @@ for what, ratio in goals.items():
     print(f"{what}: {ratio:.2f} of the mean predictor's ({'met' if ratio <= 0.5 else 'not met'}: "
           "the goal is at most half)")  # fmt: skip
 print(f"saved {scatter_png}")
+
+# %% [markdown]
+# ### Is the information in the network? Probes
+#
+# A head no better than the mean can mean two things: the network's features do not hold the
+# affordance, or they hold it and the head does not get it out. A **probe** separates the two: a
+# small network (one hidden layer) trained on the *frozen* features of the trained model, asked
+# on the same held-out frames. We probe two layers: the trunk's 1,152 image features and the
+# fusion MLP's 256 outputs, which the head reads (the paper's Fig. 1 puts the affordance network
+# there). A probe that beats the head says the information is there; the layer where it is lost
+# says where the head should look.
+
+# %%
+probe_train = DrivingDataset(train, np.arange(0, len(train), 2))  # half the training frames
+probe_val = DrivingDataset(val, rows)  # the scatter's frames
+probe_goals = {"the model's head": goals}
+for layer in PROBE_LAYERS:
+    probed = affordance_errors(
+        probe_affordances(model, probe_train, probe_val, layer), true, a_mean
+    )
+    probe_goals[f"a probe on the {layer} features"] = {
+        f"{name} {kind}": probed[name]["model"][kind] / probed[name]["mean_predictor"][kind]
+        for name, kind in AFFORDANCE_GOALS
+        if name in probed
+    }
+print("error as a share of the mean predictor's (the goal: at most 0.5):")
+print(f"  {'':34s}" + "".join(f"{what:>30s}" for what in goals))
+for who, ratios in probe_goals.items():
+    print(f"  {who:34s}" + "".join(f"{ratios.get(what, np.nan):30.2f}" for what in goals))
 
 # %% [markdown]
 # ## 5. Along a drive
@@ -255,6 +303,7 @@ artifacts.write_metrics(
         "affordance_mae_constant": mae_const,
         "affordance_error": errors,
         "affordance_goals": goals,
+        "affordance_probes": probe_goals,
         "affordances_learned": learned,
         "drive_gap_mae_m": drive_mae,
         "verdict_vs_gmm": verdict,

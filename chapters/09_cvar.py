@@ -296,8 +296,9 @@ for what, test in verdicts.items():
 
 # %% [markdown]
 # A rate per mile says nothing about how the miles were driven. Section 3 showed that the tail
-# over-represents slow frames; a network fine-tuned on them may learn to slow down. So read the
-# speed and the **stalls** (a car stopped for too long is restarted by the evaluator, an
+# over-represents lane changes and frames with a parked car close ahead, where the expert brakes
+# or swerves; a network fine-tuned on them may learn to hold back. So read the speed and the
+# **stalls** (a car stopped for too long is restarted by the evaluator, an
 # intervention that is not a collision) beside each rate, seed by seed, and compare each
 # fine-tune with its control before crediting the tail: whatever the control also gains is the
 # extra epoch at a tenth of the rate, not CVaR.
@@ -392,7 +393,7 @@ artifacts.write_metrics(
 #   costs on the easy cases, and the closed-loop verdicts (over the training seeds) say whether
 #   that reaches the road.
 # * A rate per mile is read with the speed and the stalls: a driver that learns from a tail rich
-#   in slow frames can buy fewer collisions per hour by not driving.
+#   in braking and swerving can buy fewer collisions per hour by not driving.
 #
 # ## Exercises
 #
