@@ -5,8 +5,8 @@
 # module** before the controller follows it, and leaves the module unbuilt: "its implementation
 # was beyond the scope of this work". A trajectory, unlike a steering angle, says where the car
 # means to be in the next 1.5 s, so it can be checked. This chapter builds the check, runs the
-# best affordance-predicting GMM driver of chapter 10 with and without it on the same tracks and
-# seeds, and measures what it costs.
+# best affordance-predicting GMM driver of chapter 10 with and without it on the same tracks, over
+# the same training seeds, and measures what it costs.
 #
 # ## The rule
 #
@@ -38,18 +38,27 @@ from e2e_lite.course import start_chapter
 
 profile = start_chapter(11)  # flags, profile, outputs folder: checked before any work
 
+import itertools
 import textwrap
 
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from e2e_lite import ablation, artifacts, recipes
+from e2e_lite import ablation, artifacts
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.data import AFFORDANCE_NAMES, DataConfig, load_or_collect
-from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, result_dict, results_table
-from e2e_lite.safety import SafeAgent, SafetyConfig, check
+from e2e_lite.data import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
+from e2e_lite.evaluation import (
+    EvalConfig,
+    compare_rates,
+    disjoint_runs,
+    evaluate,
+    pool_results,
+    result_dict,
+    results_table,
+)
+from e2e_lite.safety import SafeAgent, SafetyConfig, SafetyStats, check
 from e2e_lite.viz import save_figure
 from e2e_lite.world import WorldConfig
 
@@ -77,23 +86,24 @@ if ten is not None:
 else:
     key = "gmm_affordance"
     print("chapter 10 has not run in this profile: using GMM + affordance")
-weight = recipes.affordance_weight(profile, train, val)
-recipe = recipes.gmm_affordance if key == "gmm_affordance" else recipes.gmm_affordance_cvar
-model = recipe(profile, train, val, weight)[0]
+seeded = ablation.build_seeded_drivers(profile, [key], train=train, val=val)[key]
+model = seeded[0].model  # section 1 probes training seed 0; section 2 drives every seed
 agent = TrajectoryAgent(model)
 
 rows = np.arange(0, len(val), max(1, len(val) // 4000))  # up to ~4,000 samples
-predicted = []
+predicted, proposed = [], []  # the network's affordances and the trajectory it would follow
 for i in range(0, len(rows), 256):
     batch = rows[i : i + 256]
-    agent.trajectories_from(a["images"][batch], a["speed"][batch])  # fills agent.last
-    predicted.append(agent.last["affordances"])
-predicted = np.concatenate(predicted)
+    proposed.append(agent.trajectories_from(a["images"][batch], a["speed"][batch]))
+    predicted.append(agent.last["affordances"])  # filled by the same call
+predicted, proposed = np.concatenate(predicted), np.concatenate(proposed)
 expert_ok = {"true": [], "predicted": []}
+network_ok = {"true": [], "predicted": []}
 for j, r in enumerate(rows):
-    args = (a["trajectory"][r], float(a["speed"][r]), float(a["curvature"][r]), cfg)
-    expert_ok["true"].append(check(args[0], a["affordances"][r], *args[1:]).ok)
-    expert_ok["predicted"].append(check(args[0], predicted[j], *args[1:]).ok)
+    road = (float(a["speed"][r]), float(a["curvature"][r]), cfg)
+    for verdicts_of, points in ((expert_ok, a["trajectory"][r]), (network_ok, proposed[j])):
+        verdicts_of["true"].append(check(points, a["affordances"][r], *road).ok)
+        verdicts_of["predicted"].append(check(points, predicted[j], *road).ok)
 accept = {k: 100.0 * float(np.mean(v)) for k, v in expert_ok.items()}
 print(
     f"the expert's trajectories on {len(rows)} validation samples: accepted {accept['true']:.1f} % "
@@ -108,11 +118,55 @@ print(
 )
 
 # %% [markdown]
+# Which errors make the perceived check go wrong? By the true distance to a parked car ahead in
+# the own lane: what the network predicts there, and on how many of the expert's (safe)
+# trajectories the two checks disagree. A **false alarm** is one of the expert's trajectories
+# rejected with the predicted affordances and accepted with the true ones (a car seen too close,
+# or where there is none). A **miss** is one of the network's own proposals (the mode it would
+# follow) accepted with the predicted affordances and rejected with the true ones (a car seen
+# too far, or not at all): the cases a perceived module lets through.
+
+# %%
+true_gap = a["affordances"][rows, gap_i]
+ok_true, ok_pred = np.array(expert_ok["true"]), np.array(expert_ok["predicted"])
+net_true, net_pred = np.array(network_ok["true"]), np.array(network_ok["predicted"])
+edges = (0.0, 15.0, 30.0, 45.0, GAP_CAP_M)
+bins = [
+    (f"{lo:.0f}-{hi:.0f} m", (true_gap >= lo) & (true_gap < hi))
+    for lo, hi in itertools.pairwise(edges)
+]
+bins.append((f"none within {GAP_CAP_M:.0f} m", true_gap >= GAP_CAP_M))
+by_distance = {}
+print(
+    "| car ahead (true) | frames | predicted gap, median [IQR] | MAE | false alarms | "
+    "network's proposals unsafe | misses |"
+)
+print("|---|---:|---|---:|---:|---:|---:|")
+for label, m in bins:
+    if not m.any():
+        continue
+    q25, q50, q75 = np.percentile(predicted[m, gap_i], [25, 50, 75])
+    by_distance[label] = {
+        "frames": int(m.sum()),
+        "predicted_median_m": float(q50),
+        "predicted_iqr_m": [float(q25), float(q75)],
+        "mae_m": float(err[m].mean()),
+        "false_alarm_pct": 100.0 * float(np.mean(ok_true[m] & ~ok_pred[m])),
+        "unsafe_proposals_pct": 100.0 * float(np.mean(~net_true[m])),
+        "miss_pct": 100.0 * float(np.mean(~net_true[m] & net_pred[m])),
+    }
+    d = by_distance[label]
+    print(f"| {label} | {d['frames']:,} | {q50:.1f} [{q25:.1f}-{q75:.1f}] | {d['mae_m']:.1f} | "
+          f"{d['false_alarm_pct']:.1f} % | {d['unsafe_proposals_pct']:.1f} % | "
+          f"{d['miss_pct']:.1f} % |")  # fmt: skip
+
+# %% [markdown]
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
-# sends the module's counters home). The row without the module is the same network (chapter
-# 10's training seed 0) over the same miles, stored and reused. The module audits one
+# sends the module's counters home). Every training seed of the driver drives its share of the
+# miles on its own roads, with and without the module, and the counts are pooled. The rows
+# without the module are chapter 10's evaluations, stored and reused. The module audits one
 # intervention in four: would a fresh expert, from the same state, have driven what the network
 # proposed (then the intervention was a **false alarm**)? And would the ground-truth rule have
 # accepted it (then **perception alone** caused it)?
@@ -121,22 +175,38 @@ print(
 # (the quick profile's barely trained network makes the module crawl: a fifth of a mile is enough)
 miles = 0.2 if profile.quick else profile.ablation_miles
 ev = EvalConfig(miles=miles, n_worlds=profile.ablation_worlds)
-stored = ablation.evaluate_drivers({key: agent}, world_cfg, ev, workers=profile.ablation_workers)
+stored = ablation.evaluate_drivers({key: seeded}, world_cfg, ev, workers=profile.ablation_workers)
 without = stored[key]
 guarded = {}
 stats = {}
 variants = (("perceived", False), ("ground truth", True))
+runs = disjoint_runs(ev, world_cfg, len(seeded))  # seed k's roads, as chapter 10's
 for name, gt in variants:
-    safe = SafeAgent(TrajectoryAgent(model), cfg, ground_truth=gt, audit_every=4)
-    res = evaluate(
-        safe, world_cfg, ev, desc=f"with the module ({name})", workers=profile.ablation_workers
-    )
-    guarded[name], stats[name] = (res, safe), safe.stats.to_dict()
-    print(f"with the module ({name}): {res.summary()}")
+    per_seed, counts, first = [], SafetyStats(), None
+    for k, (policy, run) in enumerate(zip(seeded, runs)):
+        safe = SafeAgent(TrajectoryAgent(policy.model), cfg, ground_truth=gt, audit_every=4)
+        res = evaluate(
+            safe,
+            world_cfg,
+            run,
+            desc=f"with the module ({name}, seed {k})",
+            workers=profile.ablation_workers,
+        )
+        print(f"with the module ({name}, seed {k}): {res.summary()}")
+        per_seed.append(res)
+        counts.add(safe.stats.counts())
+        first = first or safe  # the examples of section 3 come from seed 0
+    guarded[name], stats[name] = (pool_results(per_seed), first), counts.to_dict()
 
 label = ablation.BY_KEY[key].label
 table = results_table(
-    [(label, without)] + [(f"{label} + safety module ({n})", guarded[n][0]) for n, _ in variants]
+    [(label, without)] + [(f"{label} + safety module ({n})", guarded[n][0]) for n, _ in variants],
+    extra=[
+        (
+            "per seed, per 100 mi",
+            [ablation.per_seed(without)] + [ablation.per_seed(guarded[n][0]) for n, _ in variants],
+        )
+    ],
 )
 print(table + profile.caveat)
 print("| module | interventions | other mode / fallback | false alarms | perception only |")
@@ -202,12 +272,16 @@ else:
 #
 # Read the two tables together. The ground-truth row is what the rule can do when it knows where
 # the parked cars are; the perceived row is what it does with the network's own affordances.
-# Chapter 08 found that head no better than always answering the training mean: section 1
-# measured what that does to the check (the expert's own safe trajectories rejected), and the
-# closed loop shows the consequence. A safety module is only as good as the perception under it,
-# and a learned perception has to be measured before it is trusted with a veto.
+# Chapter 08 measured that head against always answering the training mean (its ratios are
+# printed below); section 1 measured what its errors do to the check (the expert's own safe
+# trajectories rejected, by distance to the car ahead), and the closed loop shows the
+# consequence. A safety module is only as good as the perception under it, and a learned
+# perception has to be measured before it is trusted with a veto.
 
 # %%
+m08 = artifacts.read_metrics("08_affordance", profile.name)
+for what, ratio in ((m08 or {}).get("affordance_goals") or {}).items():
+    print(f"chapter 08: the head's {what} is {ratio:.2f} of the mean predictor's")
 lines = [
     f"expert trajectories accepted: {accept['true']:.1f} % (true affordances), "
     f"{accept['predicted']:.1f} % (predicted)",
@@ -215,9 +289,9 @@ lines = [
     f"{result_dict(without)['mean_speed_mph']:.1f} mph",
 ]
 for name, _ in variants:
-    r = guarded[name][0]
+    r = result_dict(guarded[name][0])
     lines.append(
-        f"with ({name}): {r.collisions_per_100mi:.1f} per 100 mi at {r.mean_speed_mph:.1f} mph, "
+        f"with ({name}): {r['collisions_per_100mi']:.1f} per 100 mi at {r['mean_speed_mph']:.1f} mph, "
         f"interventions {stats[name]['intervention_pct']:.1f} %, "
         f"false alarms {stats[name]['false_alarm_pct']:.1f} %; {verdicts[name]}"
     )
@@ -234,7 +308,7 @@ artifacts.write_metrics(
         "headline": {
             "without collisions/100mi": result_dict(without)["collisions_per_100mi"],
             **{
-                f"with ({n}) collisions/100mi": guarded[n][0].collisions_per_100mi
+                f"with ({n}) collisions/100mi": result_dict(guarded[n][0])["collisions_per_100mi"]
                 for n, _ in variants
             },
         },
@@ -243,8 +317,10 @@ artifacts.write_metrics(
         "expert_accepted_pct": accept,
         "results": {
             "without": {**result_dict(without), "events": None},
-            **{n: guarded[n][0].to_dict(with_events=False) for n, _ in variants},
+            **{n: {**result_dict(guarded[n][0]), "events": None} for n, _ in variants},
         },
+        "seeds": len(seeded),
+        "gap_by_distance": by_distance,
         "module": stats,
         "verdicts": verdicts,
         "table_md": table,
