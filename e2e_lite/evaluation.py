@@ -24,6 +24,8 @@ Metrics (see :class:`EvalResult`):
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import pickle
 import queue
 import subprocess
@@ -592,8 +594,9 @@ def evaluate(
     ``miles / B``. With
     ``workers > 1`` the cars are split into that many shards, each driven with its own copy of
     the policy: a policy that can be split has a ``fork(k)`` method returning ``k`` independent
-    copies. The shards run in worker processes (fresh interpreters, ``python -m
-    e2e_lite.shard_worker``, the job pickled to them) when the policy declares
+    copies. The shards run in worker processes (interpreters of their own, ``python -m
+    e2e_lite.shard_worker``, the job pickled to them; started once and kept for the next
+    evaluations, see :func:`close_shard_workers`) when the policy declares
     ``forks_in_processes`` (the network agents on the CPU and the safety module), else in threads
     (the network's forward pass releases the GIL, so one shard renders and steps physics while
     the other runs convolutions, but their Python still takes turns). Either way the torch threads
@@ -712,70 +715,122 @@ def _receive(stream: Any) -> Any:
 
 
 def shard_worker(inbox: Any, outbox: Any) -> None:
-    """Body of a shard process (``python -m e2e_lite.shard_worker``): read ``(sys.path, torch
-    threads, job)``, drive the shard, send progress ``("miles", m)`` now and then and finally
-    ``("ok", (shard, report))`` or ``("error", traceback)``."""
-    try:
-        sys.path[:] = _receive(inbox)  # where the parent found the policy's classes
-        torch_threads, job = _receive(inbox)
-        if torch_threads > 0:  # the parent ran torch (0: it had not imported it)
-            import torch
-
-            torch.set_num_threads(torch_threads)
-        _send(outbox, ("ready", None))
-        last = [time.perf_counter(), 0.0]
-
-        def advance(m: float) -> None:
-            last[1] += m
-            if time.perf_counter() - last[0] > 0.25:
-                _send(outbox, ("miles", last[1]))
-                last[:] = [time.perf_counter(), 0.0]
-
-        shard = _drive_job(job, advance)
-        report = getattr(job[0], "shard_report", None)
-        _send(outbox, ("miles", last[1]))
-        _send(outbox, ("ok", (shard, None if report is None else report())))
-    except BaseException:  # everything goes back to the parent
-        _send(outbox, ("error", traceback.format_exc()))
-
-
-def _in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Shard]:
-    """Drive each job's shard in a fresh Python process: no shared GIL, so one shard's rendering
-    and physics never wait on the other's Python, and no ``fork`` of a process whose torch threads
-    are running (that can deadlock the child). Each worker gets the job pickled (policy, model
-    included), sends its :class:`_Shard` back and, for a policy with ``shard_report()``, that
-    report, which the parent's copy of the fork takes in with ``absorb_report(report)`` (how the
-    safety module's counters come home). Starting a worker costs an interpreter and the imports
-    (a few seconds), small beside an evaluation of miles."""
-    torch = sys.modules.get("torch")
-    per_shard = 0 if torch is None else max(1, torch.get_num_threads() // len(jobs))
-    messages: queue.Queue = queue.Queue()
-    procs = []
-
-    def listen(k: int, stream: Any) -> None:
+    """Body of a shard process (``python -m e2e_lite.shard_worker``): for each job until its
+    input ends, read ``(sys.path, torch threads, job)``, drive the shard, send ``("ready", None)``,
+    progress ``("miles", m)`` now and then and finally ``("ok", (shard, report))`` or ``("error",
+    traceback)``. A worker serves its parent's evaluations until :func:`close_shard_workers`."""
+    while True:
         try:
-            while True:
-                messages.put((k, _receive(stream)))
-        except (EOFError, OSError, ValueError):
-            messages.put((k, ("gone", None)))
+            sys.path[:] = _receive(inbox)  # where the parent found the policy's classes
+        except EOFError:  # the parent closed the pool, or is gone
+            return
+        try:
+            torch_threads, job = _receive(inbox)
+            if torch_threads > 0:  # the parent ran torch (0: it had not imported it)
+                import torch
 
-    results: dict[int, _Shard] = {}
-    started, ready, startup_s = time.perf_counter(), 0, 0.0
-    try:
-        for k, job in enumerate(jobs):
+                torch.set_num_threads(torch_threads)
+            _send(outbox, ("ready", None))
+            last = [time.perf_counter(), 0.0]
+
+            def advance(m: float, last: list[float] = last) -> None:
+                last[1] += m
+                if time.perf_counter() - last[0] > 0.25:
+                    _send(outbox, ("miles", last[1]))
+                    last[:] = [time.perf_counter(), 0.0]
+
+            shard = _drive_job(job, advance)
+            report = getattr(job[0], "shard_report", None)
+            _send(outbox, ("miles", last[1]))
+            _send(outbox, ("ok", (shard, None if report is None else report())))
+            del job, shard  # the next job's policy replaces this one's
+        except BaseException:  # everything goes back to the parent, which then ends the pool
+            _send(outbox, ("error", traceback.format_exc()))
+            return
+
+
+class _Workers:
+    """Shard processes kept alive between evaluations: an interpreter and the imports (about 4 s
+    here) are paid once per process instead of once per evaluation. Messages of every worker go
+    to one queue as ``(k, message)``; an evaluation that fails or is interrupted ends them all
+    (the next one starts fresh), so no message of an old job can reach a new one."""
+
+    def __init__(self, n: int) -> None:
+        self.messages: queue.Queue = queue.Queue()
+        self.procs = []
+        for k in range(n):
             proc = subprocess.Popen(
                 [sys.executable, "-m", "e2e_lite.shard_worker"],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.PIPE,
             )
-            procs.append(proc)
-            _send(proc.stdin, list(sys.path))
-            _send(proc.stdin, (per_shard, job))
-            proc.stdin.close()
-            threading.Thread(target=listen, args=(k, proc.stdout), daemon=True).start()
+            self.procs.append(proc)
+            threading.Thread(target=self._listen, args=(k, proc.stdout), daemon=True).start()
+
+    def _listen(self, k: int, stream: Any) -> None:
+        try:
+            while True:
+                self.messages.put((k, _receive(stream)))
+        except (EOFError, OSError, ValueError):
+            self.messages.put((k, ("gone", None)))
+
+    def alive(self) -> bool:
+        return all(proc.poll() is None for proc in self.procs)
+
+    def close(self) -> None:
+        """End every worker (closing its input ends it; a stuck one is killed) and wait."""
+        for proc in self.procs:
+            with contextlib.suppress(OSError, ValueError):
+                proc.stdin.close()
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            proc.stdout.close()
+
+
+_WORKERS: dict[int, _Workers] = {}
+_WORKERS_LOCK = threading.Lock()
+
+
+def close_shard_workers() -> None:
+    """End the shard processes kept for later evaluations (also done when Python exits)."""
+    with _WORKERS_LOCK:
+        while _WORKERS:
+            _WORKERS.popitem()[1].close()
+
+
+atexit.register(close_shard_workers)
+
+
+def _in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[_Shard]:
+    """Drive each job's shard in a worker process: no shared GIL, so one shard's rendering and
+    physics never wait on the other's Python, and no ``fork`` of a process whose torch threads are
+    running (that can deadlock the child). The workers are fresh interpreters (``python -m
+    e2e_lite.shard_worker``), started at the first evaluation that needs that many and kept for
+    the next ones (:func:`close_shard_workers` ends them). Each gets its job pickled (policy,
+    model included), sends its :class:`_Shard` back and, for a policy with ``shard_report()``,
+    that report, which the parent's copy of the fork takes in with ``absorb_report(report)`` (how
+    the safety module's counters come home)."""
+    torch = sys.modules.get("torch")
+    per_shard = 0 if torch is None else max(1, torch.get_num_threads() // len(jobs))
+    started, ready, startup_s = time.perf_counter(), 0, 0.0
+    with _WORKERS_LOCK:  # one evaluation at a time uses a pool
+        workers = _WORKERS.pop(len(jobs), None)
+    if workers is None or not workers.alive():
+        if workers is not None:
+            workers.close()
+        workers = _Workers(len(jobs))
+    results: dict[int, _Shard] = {}
+    try:
+        for k, job in enumerate(jobs):
+            _send(workers.procs[k].stdin, list(sys.path))
+            _send(workers.procs[k].stdin, (per_shard, job))
         while len(results) < len(jobs):
             try:
-                k, (status, payload) = messages.get(timeout=0.5)
+                k, (status, payload) = workers.messages.get(timeout=0.5)
             except queue.Empty:
                 continue
             if status == "miles":
@@ -791,13 +846,19 @@ def _in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[_
             elif status == "error":
                 raise RuntimeError(f"evaluation shard {k} failed:\n{payload}")
             elif k not in results:  # the worker's output ended before its result
-                raise RuntimeError(f"evaluation shard {k} died (exit code {procs[k].wait()})")
-    finally:
-        for proc in procs:
+                raise RuntimeError(
+                    f"evaluation shard {k} died (exit code {workers.procs[k].wait()})"
+                )
+    except BaseException:
+        for proc in workers.procs:  # a failed or interrupted evaluation ends its workers
             if proc.poll() is None:
                 proc.kill()
-            proc.wait()
-            proc.stdout.close()
+        workers.close()
+        raise
+    with _WORKERS_LOCK:
+        spare = _WORKERS.setdefault(len(jobs), workers)
+    if spare is not workers:  # another thread kept a pool of this size meanwhile
+        workers.close()
     for shard in results.values():  # the workers' start, counted once in the merged timing
         shard.timing["startup"] = startup_s / len(jobs)
     return [results[k] for k in range(len(jobs))]

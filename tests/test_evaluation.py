@@ -18,6 +18,7 @@ from e2e_lite.evaluation import (
     EvalConfig,
     Observation,
     Policy,
+    close_shard_workers,
     compare_rates,
     disjoint_runs,
     drive,
@@ -241,15 +242,21 @@ class DyingShards(ProcessKeeper):
         return [Dying() for _ in range(k)]
 
 
-def test_shards_in_processes_give_the_threads_results_and_leave_no_process():
+def test_shards_in_processes_give_the_threads_results_and_workers_are_kept_then_closed():
+    close_shard_workers()
+    before = set(shard_workers())  # (another test run's workers may be alive on this machine)
     cfg = EvalConfig(miles=3.0, n_worlds=4, n_tracks=3)
     threads = evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, parallel="threads")
     procs = evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, parallel="processes")
+    ours = set(shard_workers()) - before
+    assert len(ours) == 2  # kept for the next evaluation
     auto = evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, record_traces=True)
+    assert set(shard_workers()) - before == ours  # ... which reused them
     assert threads.collisions > 0 and procs.events == threads.events == auto.events
     assert procs.miles == threads.miles and procs.autonomy_pct == threads.autonomy_pct
     assert auto.traces and procs.timing_s["physics"] > 0  # what the workers measured came back
-    assert shard_workers() == []
+    close_shard_workers()
+    assert not set(shard_workers()) - before
     # a worker's error comes back with its traceback; a killed worker is reported, not waited for
     for bad, match in (
         (CrashingShards, "ZeroDivisionError: this driver cannot drive"),
@@ -257,7 +264,11 @@ def test_shards_in_processes_give_the_threads_results_and_leave_no_process():
     ):
         with pytest.raises(RuntimeError, match=match):
             evaluate(bad(), BUSY, cfg, progress=False, workers=2, parallel="processes")
-        assert shard_workers() == []
+        assert not set(shard_workers()) - before  # a failed evaluation ends its workers
+    # and the next evaluation starts fresh ones that work
+    again = evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, parallel="processes")
+    assert again.events == threads.events
+    close_shard_workers()
     with pytest.raises(ValueError, match="parallel"):
         evaluate(ProcessKeeper(), BUSY, cfg, progress=False, workers=2, parallel="gpu")
 
