@@ -13,14 +13,19 @@
 # * **interpretability**: when the car does something odd, the predicted affordances say whether
 #   it mis-saw (a gap of 60 m where there are 20) or mis-decided.
 #
-# A small head on the fused features predicts the 9 affordances, normalised per affordance with
-# the training set's statistics, and the loss becomes
+# A small head predicts the 9 affordances, normalised per affordance with the training set's
+# statistics, and the loss becomes
 #
 # $$\mathcal{L} = \mathcal{L}_{\text{GMM}}(x, y) + w\,\frac{1}{9}\sum_{j=1}^{9}
 #   \big(\hat a_j(x) - a_j\big)^2 \quad\text{(normalised } a_j\text{)}.$$
 #
 # The paper chose `w` by grid search; so do we, on held-out *trajectory* NLL (the combined loss
 # is not comparable across `w`).
+#
+# *Where* the head reads is a choice too. The paper's Fig. 1 puts it on the fusion network's
+# output, beside the trajectory head. The course's head reads the image backbone's (trunk's)
+# features instead: section 4 shows the measurement behind that choice, the paper's placement
+# beside ours (`recipes.AFFORDANCE_FROM`).
 #
 # Run it with `python chapters/08_affordance.py` (add `--quick` for a run of seconds).
 
@@ -168,33 +173,56 @@ for what, ratio in goals.items():
 print(f"saved {scatter_png}")
 
 # %% [markdown]
-# ### Is the information in the network? Probes
+# ### Where is the information? Probes, and where the head should read
 #
 # A head no better than the mean can mean two things: the network's features do not hold the
 # affordance, or they hold it and the head does not get it out. A **probe** separates the two: a
-# small network (one hidden layer) trained on the *frozen* features of the trained model, asked
-# on the same held-out frames. We probe two layers: the trunk's 1,152 image features and the
-# fusion MLP's 256 outputs, which the head reads (the paper's Fig. 1 puts the affordance network
-# there). A probe that beats the head says the information is there; the layer where it is lost
-# says where the head should look.
+# small network (one hidden layer) trained on the *frozen* features of a trained model, asked on
+# the same held-out frames. We probe two layers: the trunk's 1,152 image features and the fusion
+# MLP's 256 outputs. And we do it for two networks trained alike except for where their head
+# reads: on the fused features (the paper's Fig. 1; chapter 10's control `gmm_affordance_fused`)
+# and on the trunk (the course). A probe that beats its network's head says the information is
+# there and the head does not get it out; the layer where a probe does best says where to read.
 
 # %%
+paper_model, paper_objective, _ = recipes.gmm_affordance(
+    profile, train, val, w_best, name="08_gmm_affordance_fused", affordance_from="fused"
+)
+paper_objective.start_epoch(10**6)
+
+
+def head_affordances(net) -> np.ndarray:
+    """A network's own affordance predictions on the scatter's frames (``rows``)."""
+    probe_agent = TrajectoryAgent(net, sigma_floor=objective.floor(net))
+    out = []
+    for c in np.array_split(rows, max(1, len(rows) // 256)):
+        probe_agent.trajectories_from(val.images[c], val.speed[c])
+        out.append(probe_agent.last["affordances"])
+    return np.concatenate(out)
+
+
+def goal_ratios(predicted: np.ndarray) -> dict[str, float]:
+    """Each goal affordance's error as a share of the mean predictor's."""
+    e = affordance_errors(predicted, true, a_mean)
+    return {
+        f"{name} {kind}": e[name]["model"][kind] / e[name]["mean_predictor"][kind]
+        for name, kind in AFFORDANCE_GOALS
+        if name in e
+    }
+
+
 probe_train = DrivingDataset(train, np.arange(0, len(train), 2))  # half the training frames
 probe_val = DrivingDataset(val, rows)  # the scatter's frames
-probe_goals = {"the model's head": goals}
-for layer in PROBE_LAYERS:
-    probed = affordance_errors(
-        probe_affordances(model, probe_train, probe_val, layer), true, a_mean
-    )
-    probe_goals[f"a probe on the {layer} features"] = {
-        f"{name} {kind}": probed[name]["model"][kind] / probed[name]["mean_predictor"][kind]
-        for name, kind in AFFORDANCE_GOALS
-        if name in probed
-    }
+probe_goals = {}
+for placement, net in (("fused (paper)", paper_model), ("trunk (course)", model)):
+    probe_goals[f"head on {placement}: the head"] = goal_ratios(head_affordances(net))
+    for layer in PROBE_LAYERS:
+        predicted_by_probe = probe_affordances(net, probe_train, probe_val, layer)
+        probe_goals[f"head on {placement}: probe on {layer}"] = goal_ratios(predicted_by_probe)
 print("error as a share of the mean predictor's (the goal: at most 0.5):")
-print(f"  {'':34s}" + "".join(f"{what:>30s}" for what in goals))
+print(f"  {'':44s}" + "".join(f"{what:>26s}" for what in goals))
 for who, ratios in probe_goals.items():
-    print(f"  {who:34s}" + "".join(f"{ratios.get(what, np.nan):30.2f}" for what in goals))
+    print(f"  {who:44s}" + "".join(f"{ratios.get(what, np.nan):26.2f}" for what in goals))
 
 # %% [markdown]
 # ## 5. Along a drive
@@ -317,9 +345,10 @@ artifacts.write_metrics(
 # %% [markdown]
 # ## Summary
 #
-# * An affordance head on the shared features adds 9 dense labels per frame; the total loss is
-#   the GMM NLL plus `w` times their normalised squared error, with `w` chosen on held-out
-#   trajectory NLL.
+# * An affordance head adds 9 dense labels per frame; the total loss is the GMM NLL plus `w`
+#   times their normalised squared error, with `w` chosen on held-out trajectory NLL.
+# * Where the head reads matters, and a probe on frozen features measures it: the table of
+#   section 4 compares the paper's placement (the fused features) with the course's (the trunk).
 # * The predicted affordances make the network's perception readable: the scatter and the drive
 #   show what it sees of the lane and the car ahead, and where it is wrong. Judge them against
 #   the floor printed beside them (always answering the mean): a head can train without learning.
@@ -340,3 +369,6 @@ artifacts.write_metrics(
 #    Compare with the difference you would attribute to the affordance loss.
 # 5. The grid search trains on a quarter of the data for two epochs. Is its winner the winner at
 #    full length? Train two values of `w` at full length and compare.
+# 6. Probe the trunk of chapter 07's GMM (no affordance head, no auxiliary loss):
+#    `probe_affordances(gmm07, probe_train, probe_val, "trunk")`. How much of the affordances does
+#    a trajectory network learn to see without being asked?

@@ -142,6 +142,9 @@ for before, after, what, paper_way in STEPS:
 # * **w = 0**: the affordance network trained without its auxiliary loss (same architecture; its
 #   affordance head then learns nothing). Any difference to the GMM + affordance row is the
 #   auxiliary loss's, or chance's.
+# * **head on the fused features**: the affordance network with its head where the paper's Fig. 1
+#   puts it, on the fusion network's output, instead of the course's trunk (chapter 08, section 4
+#   measures where the affordances are).
 # * **the mixture's mean**: the GMM row's own checkpoints, following the weighted average of the
 #   modes instead of the heaviest one. If averaging the answers hurts (the paper's argument for
 #   the GMM), this row drives worse than the GMM row.
@@ -178,6 +181,7 @@ control_tests = {}
 for control, base, what in (
     ("gmm_affordance_w0", "gmm_affordance", "affordance network, w = 0 vs the chosen w"),
     ("gmm_affordance_w0", "gmm", "affordance network with w = 0 vs the GMM"),
+    ("gmm_affordance_fused", "gmm_affordance", "head on the fused features vs on the trunk"),
     ("gmm_mean", "gmm", "GMM following the mixture's mean vs its heaviest mode"),
     ("gmm_k1", "gmm", "one mode vs two (the same NLL)"),
     ("gmm_k1", "trajectory_l2", "one-mode NLL vs L2"),

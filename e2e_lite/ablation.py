@@ -82,9 +82,11 @@ DRIVERS = (
 #: gap to L2 the choice between modes, or the NLL? ``gmm_sigma_fixed``, the GMM with every sigma
 #: held at 1 for the whole training (the warm-up never ends): is it the learned sigmas?
 #: ``gmm_affordance_control``, the CVaR row's fine-tune with the batch mean instead of CVaR: is the
-#: CVaR step CVaR, or one more epoch?
+#: CVaR step CVaR, or one more epoch? ``gmm_affordance_fused``, the affordance network with its
+#: head on the fused features (the paper's Fig. 1) instead of the trunk's: where should it read?
 CONTROLS = (
     Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),
+    Driver("gmm_affordance_fused", "GMM + affordance, head on the fused features"),
     Driver("gmm_mean", "GMM, following the mixture's mean"),
     Driver("gmm_k1", "GMM loss with one mode (K = 1)"),
     Driver("gmm_sigma_fixed", "GMM with sigma held at 1"),
@@ -166,7 +168,12 @@ def build_drivers(
         else:
             if weight is None:
                 weight = recipes.affordance_weight(profile, train, val, **kw)
-            if key == "gmm_affordance":
+            if key == "gmm_affordance_fused":
+                name = recipes.seeded_name("08_gmm_affordance_fused", seed)
+                model = recipes.gmm_affordance(
+                    profile, train, val, weight, name=name, affordance_from="fused", **seeded
+                )[0]
+            elif key == "gmm_affordance":
                 name = recipes.seeded_name("08_gmm_affordance", seed)
                 model = recipes.gmm_affordance(profile, train, val, weight, name=name, **seeded)[0]
             else:

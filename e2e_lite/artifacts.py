@@ -83,13 +83,19 @@ def artifact_path(*parts: str) -> Path:
     return path
 
 
-def _jsonable(obj: Any) -> Any:
+def _jsonable(obj: Any, for_key: bool = False) -> Any:
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {"__type__": type(obj).__name__, **_jsonable(dataclasses.asdict(obj))}
+        fields = dataclasses.asdict(obj)  # (nested dataclasses become plain dicts)
+        if for_key:  # fields added after artifacts were keyed keep those keys at their default
+            defaults = {f.name: f.default for f in dataclasses.fields(obj)}
+            for name in getattr(type(obj), "KEY_DEFAULTS_OMITTED", ()):
+                if fields[name] == defaults[name]:
+                    del fields[name]
+        return {"__type__": type(obj).__name__, **_jsonable(fields, for_key)}
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}  # keys keep their order
+        return {str(k): _jsonable(v, for_key) for k, v in obj.items()}  # keys keep their order
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [_jsonable(v, for_key) for v in obj]
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, (np.integer, np.floating)):
@@ -105,9 +111,11 @@ def to_json(obj: Any) -> str:
 def settings_key(*settings: Any, length: int = 12) -> str:
     """A short hex hash of settings (dataclasses, dicts, numbers, strings).
 
-    Equal settings give equal keys in every process; any changed field changes the key.
+    Equal settings give equal keys in every process; any changed field changes the key. A
+    dataclass may name fields added after its artifacts existed in ``KEY_DEFAULTS_OMITTED``: at
+    their default they are left out, so the artifacts made before keep their keys.
     """
-    blob = json.dumps(_jsonable(list(settings)), sort_keys=True, separators=(",", ":"))
+    blob = json.dumps(_jsonable(list(settings), True), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:length]
 
 

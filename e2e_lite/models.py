@@ -20,6 +20,7 @@ of the speed input) as buffers, so a checkpoint holds its own normalisation and
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -31,6 +32,8 @@ IMAGE_SHAPE = (3, 66, 200)
 TRUNK_FEATURES = 64 * 1 * 18  # seed 003's figure says 1164; the layers give 64 x 1 x 18 = 1152
 HEAD_SIZES = {"steer": 1, "actuators": 2, "trajectory": 10}
 N_AFFORDANCES = 9
+#: what an affordance head may read (:attr:`ModelConfig.affordance_from`)
+AFFORDANCE_SOURCES = ("fused", "trunk")
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,10 @@ class ModelConfig:
         fusion_layers: number of fully connected layers in the fusion MLP (the paper: 3).
         dropout: dropout after each fusion layer (the paper: 0.5).
         batchnorm: batch norm in the fusion MLP's hidden layers (the paper's GMM practicality).
+        affordance_from: what the affordance head reads: ``"fused"``, the fusion MLP's output (the
+            paper's Fig. 1), or ``"trunk"``, the image backbone's features (chapter 08's probes:
+            the trunk holds the affordances, the fusion MLP trained for the trajectory keeps only
+            part of them).
     """
 
     kind: str = "fusion"
@@ -58,6 +65,11 @@ class ModelConfig:
     fusion_layers: int = 3
     dropout: float = 0.5
     batchnorm: bool = True
+    affordance_from: str = "fused"
+
+    #: fields added after checkpoints existed, left out of settings keys at their default (see
+    #: :func:`~e2e_lite.artifacts.settings_key`), so those checkpoints keep their keys
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("affordance_from",)
 
     def __post_init__(self) -> None:
         o = "ModelConfig"
@@ -71,6 +83,11 @@ class ModelConfig:
         check_range(o, "fusion_width", self.fusion_width, 8, 4096, integer=True)
         check_range(o, "fusion_layers", self.fusion_layers, 1, 8, integer=True)
         check_range(o, "dropout", self.dropout, 0.0, 1.0, hi_open=True)
+        if self.affordance_from not in AFFORDANCE_SOURCES:
+            raise ValueError(
+                f"{o}.affordance_from={self.affordance_from!r} is invalid: must be one of "
+                f"{AFFORDANCE_SOURCES}"
+            )
         if self.kind == "pilotnet" and self.affordance:
             raise ValueError(f"{o}.affordance=True is invalid: only a fusion model has that head")
 
@@ -226,10 +243,9 @@ class FusionNet(DrivingModel):
             if cfg.head == "gmm"
             else nn.Linear(cfg.fusion_width, cfg.out_size)
         )
+        width = TRUNK_FEATURES if cfg.affordance_from == "trunk" else cfg.fusion_width
         self.affordance_head = (
-            nn.Sequential(
-                nn.Linear(cfg.fusion_width, 64), nn.ReLU(inplace=True), nn.Linear(64, N_AFFORDANCES)
-            )
+            nn.Sequential(nn.Linear(width, 64), nn.ReLU(inplace=True), nn.Linear(64, N_AFFORDANCES))
             if cfg.affordance
             else None
         )
@@ -241,10 +257,10 @@ class FusionNet(DrivingModel):
             image: (B, 3, 66, 200) uint8 (or float in [0, 255]).
             speed: (B, 1) speed [m/s] (normalised inside with the model's statistics).
         """
-        fused = self.features(image, speed)["fused"]
-        out = {"main": self.head(fused)}
+        features = self.features(image, speed)
+        out = {"main": self.head(features["fused"])}
         if self.affordance_head is not None:
-            out["affordance"] = self.affordance_head(fused)
+            out["affordance"] = self.affordance_head(features[self.cfg.affordance_from])
         return out
 
     def features(self, image: torch.Tensor, speed: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -15,7 +15,7 @@ from e2e_lite.agents import (
     SteeringAgent,
     TrajectoryAgent,
 )
-from e2e_lite.artifacts import artifact_path
+from e2e_lite.artifacts import artifact_path, settings_key
 from e2e_lite.data import DrivingDataset, synthetic_data
 from e2e_lite.evaluation import EvalConfig, evaluate
 from e2e_lite.geometry import RoadConfig
@@ -554,3 +554,25 @@ def test_a_probe_reads_what_a_layer_holds_and_not_what_it_lacks():
     np.testing.assert_array_equal(
         seen, probe_affordances(net, ds_train, ds_val, "trunk", epochs=60)
     )
+
+
+def test_the_affordance_head_reads_where_it_is_told_and_old_keys_stand():
+    torch.manual_seed(0)
+    cfg = ModelConfig(head="gmm", affordance=True, affordance_from="trunk")
+    model = prepare(build_model(cfg), torch.device("cpu")).eval()
+    batch = DrivingDataset(synthetic_data(4, 1)).batch(np.arange(4))
+    with torch.inference_mode():
+        feats = model.features(batch["image"], batch["speed"])
+        out = model(batch["image"], batch["speed"])
+        from_trunk = model.affordance_head(feats["trunk"])
+    torch.testing.assert_close(out["affordance"], from_trunk)
+    # the field came after checkpoints existed: at its default it leaves their keys as they were
+    paper = ModelConfig(head="gmm", affordance=True)
+    without_field = {
+        "__type__": "ModelConfig",
+        **{k: v for k, v in dataclasses.asdict(paper).items() if k != "affordance_from"},
+    }
+    assert settings_key(paper) == settings_key(without_field)
+    assert settings_key(cfg) != settings_key(paper)
+    with pytest.raises(ValueError, match="affordance_from"):
+        ModelConfig(affordance=True, affordance_from="speed")
