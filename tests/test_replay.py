@@ -18,6 +18,7 @@ from PIL import Image
 from e2e_lite import replay
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.drivers import LaneKeeper
+from e2e_lite.evaluation import close_shard_workers
 from e2e_lite.geometry import RoadConfig
 from e2e_lite.models import ModelConfig, build_model, prepare
 from e2e_lite.world import TrafficConfig, WorldConfig, make_world
@@ -55,6 +56,7 @@ def gmm_episode():
 
 
 def test_replay_page_is_self_contained_and_holds_the_animation(gmm_episode, tmp_path):
+    close_shard_workers()  # (earlier tests' evaluations keep theirs; this test counts children)
     before = set(_processes())
     page_path = replay.export_html(gmm_episode, tmp_path / "gmm.html", "a caption")
     page = page_path.read_text()
