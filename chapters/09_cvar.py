@@ -42,7 +42,7 @@ from e2e_lite.data import (
     situation_shares,
 )
 from e2e_lite.evaluation import EvalConfig, compare_rates, miles_text, result_dict, results_table
-from e2e_lite.losses import cvar, cvar_curve, cvar_loss
+from e2e_lite.losses import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
@@ -80,6 +80,25 @@ cvar_loss(t, 0.9, min_tail=1).backward()
 print(
     f"CVaR-90 of 37 losses: {int((t.grad > 0).sum())} samples get a gradient "
     f"({(1 - 0.9) * 37:.1f} in the tail: 3 whole + the 4th at weight 0.7)"
+)
+
+# %% [markdown]
+# Rockafellar and Uryasev wrote the same number without a sort, as a minimum over a threshold
+# `ν`:
+#
+# $$\mathrm{CVaR}_\alpha(L) = \min_\nu \; \nu + \frac{\mathbb{E}\,[(L - \nu)_+]}{1 - \alpha},$$
+#
+# attained at the α-quantile. With `ν` a parameter learned across batches, a sample gets a
+# gradient whenever its loss is above `ν`, not only when it is in its own batch's tail
+# (`losses.cvar_ru`; exercise 6 below). Check it on the same 37 losses:
+
+# %%
+grid = torch.linspace(float(x.min()), float(x.max()), 2001, dtype=torch.float64)
+ru = torch.stack([cvar_ru(torch.tensor(x), nu, 0.9) for nu in grid])
+print(
+    f"min over nu of the RU form: {float(ru.min()):.6f} at nu = {float(grid[ru.argmin()]):.3f}; "
+    f"sorted-tail CVaR-90: {cvar(x, 0.9):.6f}; the 90 % quantile (boundary sample): "
+    f"{np.sort(x)[::-1][int((1 - 0.9) * len(x))]:.3f}"
 )
 
 # %% [markdown]
@@ -408,3 +427,7 @@ artifacts.write_metrics(
 # 5. Fine-tune with a fresh Adam instead (`carry_optimizer=False` in `recipes.gmm_affordance_cvar`'s
 #    `train_or_load` call). How far do the weights move in the first ten steps, against the
 #    carried optimiser?
+# 6. A learned threshold: write a fine-tune whose batch loss is `cvar_ru(losses, nu, 0.9)` with
+#    `nu` a parameter in the optimiser (start it at the base's 90 % quantile of the training
+#    loss). Does `nu` settle? Do more samples get a gradient per step than with `cvar_loss`, and
+#    does the closed loop differ from section 5's CVaR row?

@@ -548,6 +548,25 @@ def _tail_mean(
     return (weights * values[order]).sum() / weights.sum()
 
 
+def cvar_ru(losses: torch.Tensor, nu: torch.Tensor | float, alpha: float) -> torch.Tensor:
+    """Rockafellar and Uryasev's form of CVaR: ``nu + E[(L - nu)+] / (1 - alpha)``, a scalar.
+
+    For every threshold ``nu`` it is at least :func:`cvar` of the same losses, and it equals it
+    at the alpha-quantile (the boundary sample of :func:`cvar`'s sorted tail), so minimising it
+    over ``nu`` gives CVaR. Unlike the sorted tail it needs no sort: with ``nu`` a trained
+    parameter shared across batches, each sample's gradient is ``1 / ((1 - alpha) n)`` when its
+    loss is above ``nu``, whatever the batch's own quantile.
+
+    Args:
+        losses: (N,) per-sample losses (with gradients or not).
+        nu: the threshold (a tensor to learn it, or a number), in the losses' units.
+        alpha: the quantile level, ``0 <= alpha < 1``.
+    """
+    _check_alpha(alpha, losses.numel(), lo_closed=True)
+    nu = torch.as_tensor(nu, dtype=losses.dtype, device=losses.device)
+    return nu + torch.relu(losses.reshape(-1) - nu).mean() / (1.0 - alpha)
+
+
 def cvar_loss(losses: torch.Tensor, alpha: float, min_tail: int = 10) -> torch.Tensor:
     """The CVaR training loss of seed 000 (eq. 3): :func:`cvar` of a batch's per-sample losses,
     differentiable; gradients flow only into the samples of the tail (the boundary sample with its

@@ -15,6 +15,7 @@ from e2e_lite.losses import (
     cvar,
     cvar_curve,
     cvar_loss,
+    cvar_ru,
 )
 from e2e_lite.models import ModelConfig, build_model
 from e2e_lite.training import TrainConfig, fit
@@ -235,3 +236,26 @@ def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset()
     assert ahead["model"]["rmse"] == pytest.approx(np.sqrt(18.0))
     with pytest.raises(ValueError, match="affordance_errors"):
         affordance_errors(pred[:, :8], true[:, :8], mean[:8])
+
+
+def test_the_rockafellar_uryasev_form_is_at_least_cvar_and_equals_it_at_the_quantile():
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        n = int(rng.integers(1, 60))
+        losses = torch.tensor(rng.normal(0.0, 3.0, n) ** (1 + trial % 2))  # ties when squared
+        alpha = float(rng.choice([0.0, 0.3, 0.5, 0.9, 0.97]))
+        exact = cvar(losses, alpha)
+        k = (1.0 - alpha) * n
+        boundary = torch.sort(losses, descending=True).values[min(int(np.floor(k + 1e-9)), n - 1)]
+        assert float(cvar_ru(losses, boundary, alpha)) == pytest.approx(exact, rel=1e-9, abs=1e-9)
+        for nu in np.linspace(float(losses.min()) - 1, float(losses.max()) + 1, 25):
+            assert float(cvar_ru(losses, nu, alpha)) >= exact - 1e-9
+    # a learned threshold: gradient descent on nu finds the quantile and the CVaR
+    losses = torch.tensor(rng.exponential(size=1000))
+    nu = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([nu], lr=0.05)
+    for _ in range(600):
+        opt.zero_grad()
+        cvar_ru(losses, nu, 0.9).backward()
+        opt.step()
+    assert float(cvar_ru(losses, nu.detach(), 0.9)) == pytest.approx(cvar(losses, 0.9), rel=2e-3)
