@@ -7,17 +7,17 @@ def test_sigma_warmup_is_a_third_of_the_schedule():
     assert [sigma_warmup(e) for e in (1, 2, 3, 6, 15)] == [0, 1, 1, 2, 5]
 
 
-def test_affordance_weight_is_chosen_on_trajectory_nll():
+def test_affordance_weight_is_chosen_on_trajectory_nll_then_on_perception():
     scores = {
-        0.0: {"trajectory_nll": 3.0},
-        0.3: {"trajectory_nll": 2.0},
-        1.0: {"trajectory_nll": 2.5},
+        0.0: {"trajectory_nll": 3.0, "affordance_rel_mae": 0.9},
+        0.3: {"trajectory_nll": 2.0, "affordance_rel_mae": 0.8},
+        1.0: {"trajectory_nll": 2.5, "affordance_rel_mae": 0.4},
     }
     assert choose_affordance_weight(scores)[0] == 0.3
-    # w = 0 winning is reported, and the best w > 0 is trained instead
+    # w = 0 winning is reported, and the w > 0 whose head perceives best is trained instead
     scores[0.0]["trajectory_nll"] = 1.0
     w, why = choose_affordance_weight(scores)
-    assert w == 0.3 and "did not help" in why
+    assert w == 1.0 and "did not help" in why and "affordance error" in why
 
 
 def test_a_gmm_recipe_with_one_mode_and_a_mismatch_refused():
