@@ -391,7 +391,11 @@ def probe_affordances(
     x_train = layer_features(model, train, layer)
     x_val = layer_features(model, val, layer)
     x_mean, x_std = x_train.mean(0), x_train.std(0)
-    x_std[x_std < 1e-6] = 1.0  # a unit constant on the training set (a dead ReLU) is left as is
+    # a unit (nearly) constant on the training set, e.g. a ReLU that rarely fires, is not blown up
+    # by its tiny spread: the floor is a hundredth of the typical unit's
+    x_std = np.maximum(
+        x_std, 1e-2 * float(np.median(x_std[x_std > 0])) if (x_std > 0).any() else 1.0
+    )
     y = train.data.arrays["affordances"][train.indices].astype(np.float32)
     y_mean, y_std = y.mean(0), y.std(0) + 1e-6
     xt = torch.from_numpy((x_train - x_mean) / x_std)
