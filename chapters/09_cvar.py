@@ -41,7 +41,14 @@ from e2e_lite.data import (
     load_or_collect,
     situation_shares,
 )
-from e2e_lite.evaluation import EvalConfig, compare_rates, miles_text, result_dict, results_table
+from e2e_lite.evaluation import (
+    EvalConfig,
+    compare_rates,
+    miles_text,
+    pool_results,
+    result_dict,
+    results_table,
+)
 from e2e_lite.losses import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
@@ -332,6 +339,28 @@ for k in keys:
         f"{r['rail_collisions']} rail), {r['mean_speed_mph']:.1f} mph (seeds {per_seed_mph}), "
         f"stalls {r['stalls']} (seeds {per_seed_stalls}), autonomy {r['autonomy_pct']:.1f} %"
     )
+
+# %% [markdown]
+# The same comparison at matched speed: only the training seeds whose CVaR fine-tune drove within
+# 10 % of its control's speed, pooled. This conditions on an outcome of the fine-tune (its speed),
+# so it is a reading aid, not a test of the method: it asks whether, where CVaR did not slow
+# down, it still collided less.
+
+# %%
+cv, co = (result_dict(closed[k]) for k in ("gmm_affordance_cvar", "gmm_affordance_control"))
+pairs = list(zip(cv.get("seeds") or [cv], co.get("seeds") or [co]))
+matched = [k for k, (a, b) in enumerate(pairs) if a["mean_speed_mph"] >= 0.9 * b["mean_speed_mph"]]
+matched_test = None
+if matched:
+    matched_test = compare_rates(
+        pool_results([pairs[k][0] for k in matched]), pool_results([pairs[k][1] for k in matched])
+    )
+    matched_test["seeds"] = matched
+    print(f"seeds {matched}, CVaR at matched speed vs its control: {matched_test['verdict']}")
+else:
+    print("no seed's CVaR fine-tune drove within 10 % of its control's speed")
+
+# %%
 res = result_dict(closed["gmm_affordance_cvar"])
 chart_png = save_figure(
     collision_chart(
@@ -391,6 +420,7 @@ artifacts.write_metrics(
         "tests": {
             k: {"p_value": v["p_value"], "verdict": v["verdict"]} for k, v in verdicts.items()
         },
+        "matched_speed": matched_test,
         "table_md": table,
         "figures": [
             str(f.relative_to(artifacts.outputs_dir())) for f in (grid_png, curve_png, chart_png)

@@ -40,6 +40,7 @@ profile = start_chapter(11)  # flags, profile, outputs folder: checked before an
 
 import itertools
 import textwrap
+from collections import Counter
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -56,6 +57,7 @@ from e2e_lite.evaluation import (
     evaluate,
     pool_results,
     result_dict,
+    result_events,
     results_table,
 )
 from e2e_lite.safety import SafeAgent, SafetyConfig, SafetyStats, check
@@ -99,11 +101,15 @@ for i in range(0, len(rows), 256):
 predicted, proposed = np.concatenate(predicted), np.concatenate(proposed)
 expert_ok = {"true": [], "predicted": []}
 network_ok = {"true": [], "predicted": []}
+expert_rejections = []  # the perceived check's verdict on each expert trajectory
 for j, r in enumerate(rows):
     road = (float(a["speed"][r]), float(a["curvature"][r]), cfg)
     for verdicts_of, points in ((expert_ok, a["trajectory"][r]), (network_ok, proposed[j])):
         verdicts_of["true"].append(check(points, a["affordances"][r], *road).ok)
-        verdicts_of["predicted"].append(check(points, predicted[j], *road).ok)
+        seen = check(points, predicted[j], *road)
+        verdicts_of["predicted"].append(seen.ok)
+        if verdicts_of is expert_ok:
+            expert_rejections.append(seen)
 accept = {k: 100.0 * float(np.mean(v)) for k, v in expert_ok.items()}
 print(
     f"the expert's trajectories on {len(rows)} validation samples: accepted {accept['true']:.1f} % "
@@ -159,6 +165,31 @@ for label, m in bins:
     print(f"| {label} | {d['frames']:,} | {q50:.1f} [{q25:.1f}-{q75:.1f}] | {d['mae_m']:.1f} | "
           f"{d['false_alarm_pct']:.1f} % | {d['unsafe_proposals_pct']:.1f} % | "
           f"{d['miss_pct']:.1f} % |")  # fmt: skip
+
+# %% [markdown]
+# Which check raises the false alarms? For every false alarm, the rule that rejected the
+# expert's trajectory with the predicted affordances, and the lane it concerned. "Cannot stop"
+# fires whenever the lane the 1.5 s end in holds a gap under `gap_free_m` (59.5 m): at 25 m/s
+# the car needs `37.5 m + 0.2 v + v^2 / (2 beta) + 2 m` = about 97 m, more than the camera's
+# 60 m, so **any** car perceived in that lane is a reason to leave it or brake. On frames with
+# no car within 60 m the question is therefore how often the head's gap falls under 59.5 m.
+
+# %%
+false_alarm = ok_true & ~ok_pred
+why = Counter(
+    f"{v.kind} ({v.lane} lane)" if v.lane else v.kind
+    for v, fa in zip(expert_rejections, false_alarm)
+    if fa
+)
+for reason, n in why.most_common():
+    print(f"{reason:32s} {n:5d} false alarms ({100.0 * n / max(1, false_alarm.sum()):.1f} %)")
+free = true_gap >= GAP_CAP_M
+ghost_pct = 100.0 * float(np.mean(predicted[free, gap_i] < cfg.gap_free_m)) if free.any() else 0.0
+print(
+    f"frames with no car within {GAP_CAP_M:.0f} m: the head's ego gap is under "
+    f"{cfg.gap_free_m:g} m on {ghost_pct:.1f} % of them (a car seen where there is none)"
+)
+false_alarm_reasons = {"by_check": dict(why), "ghost_car_pct_of_free_frames": ghost_pct}
 
 # %% [markdown]
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
@@ -221,6 +252,31 @@ for name, _ in variants:
 verdicts = {name: compare_rates(guarded[name][0], without)["verdict"] for name, _ in variants}
 for name, v in verdicts.items():
     print(f"with the module ({name}) vs without: {v}")
+
+# %% [markdown]
+# Where do the collisions with the module come from? The speed at impact, per row, and why the
+# module rejected the followed mode. The network was trained on expert driving near the speed
+# limit (chapter 04's histogram); a module that brakes takes it to speeds it has seen little of.
+
+# %%
+speed_bins = ((0.0, 10.0), (10.0, 20.0), (20.0, np.inf))
+print("| driver | collisions | " + " | ".join(
+    f"at {lo:.0f}-{hi:.0f} m/s" if np.isfinite(hi) else f"at {lo:.0f}+ m/s" for lo, hi in speed_bins
+) + " | rail under 10 m/s |")  # fmt: skip
+print("|---|---:|" + "---:|" * (len(speed_bins) + 1))
+by_speed = {}
+for name, r in [("without", without)] + [(n, guarded[n][0]) for n, _ in variants]:
+    impact = [(e["speed_mps"], e["kind"]) for e in result_events(r)]
+    counts = [sum(lo <= v < hi for v, _ in impact) for lo, hi in speed_bins]
+    slow_rail = sum(v < 10.0 and k == "rail" for v, k in impact)
+    by_speed[name] = {"collisions": len(impact), "by_speed": counts, "rail_under_10": slow_rail}
+    print(f"| {name} | {len(impact)} | " + " | ".join(map(str, counts)) + f" | {slow_rail} |")
+for name, _ in variants:
+    kinds = stats[name]["kinds"]
+    total = max(1, sum(kinds.values()))
+    print(f"{name}: rejected as " + (", ".join(
+        f"{k} {100.0 * n / total:.0f} %" for k, n in sorted(kinds.items(), key=lambda kv: -kv[1])
+    ) or "nothing (no intervention)"))  # fmt: skip
 
 # %% [markdown]
 # ## 3. Interventions, frame by frame
@@ -321,6 +377,8 @@ artifacts.write_metrics(
         },
         "seeds": len(seeded),
         "gap_by_distance": by_distance,
+        "false_alarm_reasons": false_alarm_reasons,
+        "collisions_by_speed": by_speed,
         "module": stats,
         "verdicts": verdicts,
         "table_md": table,
@@ -347,3 +405,7 @@ artifacts.write_metrics(
 # 3. Replace the fallback by "the heaviest mode, braking": when is it better than keep-lane?
 # 4. Check the L2 driver of chapter 06 (`ground_truth=True`; it has a single mode): does it gain
 #    more or less than the GMM from the module?
+# 5. `SafetyConfig(check_fallback=True)` checks the braking fallback too and, when it would itself
+#    hit something within the 1.5 s, drives whichever candidate meets trouble latest. With the
+#    true affordances (seed 0, 40 mi) it turned 21 car / 13 rail collisions into 12 / 23. Why
+#    would fewer car collisions come with more rail ones? (Look at the speed at impact.)

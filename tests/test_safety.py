@@ -79,9 +79,39 @@ def test_fallback_order_heaviest_passing_mode_then_keep_lane_braking():
     c = choose(np.stack([unsafe, safe]), np.array([0.7, 0.3]), a, 25.0, 0.0)
     assert c.source == "other mode" and np.array_equal(c.points, safe)
     assert [v.ok for v in c.verdicts] == [False, True]
+    # no mode passes: the brake, unchecked
     c = choose(np.stack([unsafe, unsafe]), np.array([0.5, 0.5]), a, 25.0, 0.0)
     assert c.source == "fallback" and len(c.verdicts) == 2
     assert np.allclose(c.points, keep_lane_brake(a, 25.0, 0.0))
+    # checked, it meets the car 30 m ahead later than either mode, and is still driven
+    checked = SafetyConfig(check_fallback=True)
+    c = choose(np.stack([unsafe, unsafe]), np.array([0.5, 0.5]), a, 25.0, 0.0, checked)
+    assert c.source == "fallback" and len(c.verdicts) == 3
+    assert c.verdicts[-1].kind == "collision course"
+    assert c.verdicts[-1].t_s > max(v.t_s for v in c.verdicts[:2])
+    # a brake that only "cannot stop" is driven: it already brakes as hard as the rule assumes
+    c = choose(np.stack([unsafe]), np.array([1.0]), aff(gap_ego=50.0), 25.0, 0.0, checked)
+    assert c.source == "fallback" and c.verdicts[-1].kind == "cannot stop"
+
+
+def swerve_left(speed=25.0, t_across=0.6) -> np.ndarray:
+    """Points at constant speed, one lane (3.5 m) to the left within ``t_across`` seconds."""
+    return np.stack([speed * T, 3.5 * np.minimum(1.0, T / t_across)], axis=1)
+
+
+def test_when_braking_cannot_avoid_the_car_the_latest_violation_is_driven():
+    # a car 20 m ahead at 25 m/s: braking meets it at about 0.8 s; the sharp swerve leaves the
+    # lane in time and meets the car 30 m ahead in the left lane only at about 1.1 s
+    a = aff(gap_ego=20.0, gap_left=30.0)
+    straight_on, swerve = straight(25.0), swerve_left()
+    checked = SafetyConfig(check_fallback=True)
+    c = choose(np.stack([straight_on, swerve]), np.array([0.7, 0.3]), a, 25.0, 0.0, checked)
+    t_straight, t_swerve, t_brake = (v.t_s for v in c.verdicts)
+    assert t_straight < t_brake < t_swerve and c.verdicts[1].lane == "left"
+    assert c.source == "other mode" and np.array_equal(c.points, swerve)
+    # by default the brake is driven unchecked
+    old = choose(np.stack([straight_on, swerve]), np.array([0.7, 0.3]), a, 25.0, 0.0)
+    assert old.source == "fallback" and len(old.verdicts) == 2
 
 
 @settings(max_examples=60, deadline=None)
