@@ -177,6 +177,57 @@ for what, ratio in goals.items():
 print(f"saved {scatter_png}")
 
 # %% [markdown]
+# ### Where the offset's error sits
+#
+# The lane-centre offset is measured from the *nearest* lane's centre, so it jumps by a lane
+# width when the rear axle crosses a marking: at the crossing, +1.85 m and -1.85 m are the same
+# place (the scatter's two off-diagonal clouds). Near the jump the least-squares answer is the
+# middle, 0, and every lane change passes through it. We split the squared error by situation
+# and also read it *wrapped* to a lane width (an error of 3.5 m counts as 0.2 m), which forgives
+# exactly that ambiguity and nothing else.
+
+# %%
+j_off = AFFORDANCE_NAMES.index("center_offset_m")
+lane_w = world_cfg.road.lane_width_m
+
+
+def wrapped(err: np.ndarray) -> np.ndarray:
+    """An offset error [m] read modulo one lane width, into [-w/2, w/2)."""
+    return (err + lane_w / 2) % lane_w - lane_w / 2
+
+
+off_err = pred[:, j_off] - true[:, j_off]
+off_mean_err = a_mean[j_off] - true[:, j_off]
+near_marking = np.abs(true[:, j_off]) >= lane_w / 3
+offset_split = {}
+for what, mask in (
+    ("all frames", np.ones(len(true), bool)),
+    ("lane change", changing),
+    ("keeping the lane", ~changing),
+    ("within a third of a lane width of a marking", near_marking),
+):
+    if not mask.any():  # the quick profile's few frames may hold no lane change
+        continue
+    offset_split[what] = {
+        "frames": int(mask.sum()),
+        "share_of_squared_error": float(np.sum(off_err[mask] ** 2) / np.sum(off_err**2)),
+        "rmse_ratio": float(
+            np.sqrt(np.mean(off_err[mask] ** 2) / np.mean(off_mean_err[mask] ** 2))
+        ),
+    }
+offset_split["wrapped to a lane width"] = {
+    "frames": len(true),
+    "rmse_ratio": float(
+        np.sqrt(np.mean(wrapped(off_err) ** 2) / np.mean(wrapped(off_mean_err) ** 2))
+    ),
+}
+print("lane-centre offset, RMSE as a share of the mean predictor's (the goal: at most 0.5):")
+for what, e in offset_split.items():
+    share = e.get("share_of_squared_error")
+    share_txt = f", {share:.0%} of the squared error" if share is not None else ""
+    print(f"  {what:46s} {e['rmse_ratio']:.2f}  ({e['frames']} frames{share_txt})")
+
+# %% [markdown]
 # ### Where is the information? Probes, and where the head should read
 #
 # A head no better than the mean can mean two things: the network's features do not hold the
@@ -335,6 +386,7 @@ artifacts.write_metrics(
         "affordance_mae_constant": mae_const,
         "affordance_error": errors,
         "affordance_goals": goals,
+        "offset_error_split": offset_split,
         "affordance_probes": probe_goals,
         "affordances_learned": learned,
         "drive_gap_mae_m": drive_mae,
@@ -356,6 +408,9 @@ artifacts.write_metrics(
 # * The predicted affordances make the network's perception readable: the scatter and the drive
 #   show what it sees of the lane and the car ahead, and where it is wrong. Judge them against
 #   the floor printed beside them (always answering the mean): a head can train without learning.
+# * An error can also sit in the label: the lane-centre offset jumps by a lane width at every
+#   marking the car crosses, so a lane change's frames weigh in its RMSE far beyond their number
+#   (the split after the scatter).
 # * Whether the auxiliary task lowers collisions here is the verdict line above, measured on the
 #   same tracks and seeds as chapter 07; the paper reports 12.7 -> 0.83 per 100 miles. The verdict
 #   compares two *training runs*, one per setting: it is only evidence for the auxiliary loss if
