@@ -28,10 +28,18 @@ import torch
 from .camera import CameraConfig
 from .evaluation import Actuation, Observation
 from .expert import ExpertConfig, SpeedLimits
+from .labels import N_POINTS, POINT_DIMS
 from .losses import log_sigma, split_gmm
 from .models import DrivingModel, images_to_tensor
-from .tracker import SPEED_READINGS, LQRTracker, check_reading, follow_trajectory
+from .tracker import (
+    SPEED_READINGS,
+    LQRTracker,
+    check_reading,
+    default_tracker,
+    follow_trajectory,
+)
 from .vehicle import VehicleParams
+from .world import SimConfig
 
 
 def _frames(obs: Observation) -> np.ndarray:
@@ -47,6 +55,8 @@ class NetworkAgent:
         model: a trained model (eval mode).
         camera: the camera the training frames came from.
         vehicle: the car (wheelbase, steering limit).
+        sim: the world's time steps (its policy period discretises the default trackers; the
+            evaluator checks it against the world's).
     """
 
     def __init__(
@@ -54,10 +64,12 @@ class NetworkAgent:
         model: DrivingModel,
         camera: CameraConfig | None = None,
         vehicle: VehicleParams | None = None,
+        sim: SimConfig | None = None,
     ) -> None:
         self.model = model.eval()
         self.camera = camera or CameraConfig()
         self.vehicle = vehicle or VehicleParams()
+        self.sim = sim or SimConfig()
         self.device = next(model.parameters()).device
 
     @property
@@ -100,9 +112,15 @@ class CruiseControl:
     """Speed for agents that only steer: the expert's curve-speed profile of the road, tracked
     by the LQR tracker's speed loop. It knows the road's curvature ahead, not the parked cars."""
 
-    def __init__(self, cfg: ExpertConfig | None = None, tracker: LQRTracker | None = None) -> None:
+    def __init__(
+        self,
+        cfg: ExpertConfig | None = None,
+        tracker: LQRTracker | None = None,
+        vehicle: VehicleParams | None = None,
+        sim: SimConfig | None = None,
+    ) -> None:
         self.limits = SpeedLimits(cfg or ExpertConfig())
-        self.tracker = tracker or LQRTracker()
+        self.tracker = tracker or default_tracker(vehicle, sim)
 
     def accel(self, obs: Observation) -> np.ndarray:
         """Acceleration [m/s^2] towards each car's speed limit at its position."""
@@ -115,7 +133,7 @@ class SteeringAgent(NetworkAgent):
 
     def __init__(self, model: DrivingModel, cruise: CruiseControl | None = None, **kwargs) -> None:
         super().__init__(model, **kwargs)
-        self.cruise = cruise or CruiseControl()
+        self.cruise = cruise or CruiseControl(vehicle=self.vehicle, sim=self.sim)
 
     def act(self, obs: Observation) -> Actuation:
         """Steer from the frames; accelerate towards the road's speed limit."""
@@ -159,7 +177,7 @@ class TrajectoryAgent(NetworkAgent):
 
     Args:
         model: a trajectory or GMM model.
-        tracker: the LQR tracker (default settings if None).
+        tracker: the LQR tracker (None: :func:`default_tracker` for this car and policy period).
         sigma_floor: the GMM's sigma floor used to report sigmas, in normalised units: a number,
             or one per coordinate (``objective.floor(model)``).
         speed: where the speed command comes from, one of :data:`SPEED_SOURCES`.
@@ -197,7 +215,7 @@ class TrajectoryAgent(NetworkAgent):
             raise ValueError(
                 f"TrajectoryAgent needs a trajectory or gmm head, not {model.cfg.head!r}"
             )
-        self.tracker = tracker or LQRTracker(vehicle=self.vehicle)
+        self.tracker = tracker or default_tracker(self.vehicle, self.sim)
         self.cruise = CruiseControl(tracker=self.tracker) if speed == "cruise" else None
         self.sigma_floor = sigma_floor
         self.last: dict[str, np.ndarray] = {}
@@ -215,7 +233,7 @@ class TrajectoryAgent(NetworkAgent):
             aff = outputs["affordance"] * model.affordance_std + model.affordance_mean
             extra["affordances"] = aff.double().cpu().numpy()
         if model.cfg.head == "trajectory":
-            pts = model.denormalise(out).reshape(-1, 5, 2).double().cpu().numpy()
+            pts = model.denormalise(out).reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy()
             self.last = {"points": pts, **extra}
             return pts
         logits, means, raw = split_gmm(out, model.cfg.gmm_modes)
@@ -228,10 +246,10 @@ class TrajectoryAgent(NetworkAgent):
             top = weights.argmax(dim=-1)
             pts = modes[torch.arange(len(top), device=top.device), top]
         self.last = {
-            "points": pts.reshape(-1, 5, 2).double().cpu().numpy(),
-            "modes": modes.reshape(*modes.shape[:2], 5, 2).double().cpu().numpy(),
+            "points": pts.reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy(),
+            "modes": modes.reshape(*modes.shape[:2], N_POINTS, POINT_DIMS).double().cpu().numpy(),
             "weights": weights.double().cpu().numpy(),
-            "sigmas": sig.reshape(*sig.shape[:2], 5, 2).double().cpu().numpy(),
+            "sigmas": sig.reshape(*sig.shape[:2], N_POINTS, POINT_DIMS).double().cpu().numpy(),
             **extra,
         }
         return self.last["points"]

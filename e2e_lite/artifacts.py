@@ -22,11 +22,14 @@ import os
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 from .config import in_notebook, quick_requested
+
+if TYPE_CHECKING:  # matplotlib is imported by whoever makes the figure
+    from matplotlib.figure import Figure
 
 OUTPUTS_ENV = "E2E_LITE_OUTPUTS"
 _REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -249,3 +252,12 @@ def cached(
             os.unlink(tmp)
         raise
     return value
+
+
+def save_figure(fig: Figure, path: Path | str, dpi: int = 110) -> Path:
+    """Save ``fig`` as PNG, atomically; shown inline in a notebook. Returns the path."""
+    path = Path(path)
+    with atomic_write(path) as f:
+        fig.savefig(f, format="png", dpi=dpi, bbox_inches="tight")
+    show_in_notebook(path)
+    return path

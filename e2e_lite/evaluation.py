@@ -576,6 +576,20 @@ class _Shard:
         self.timing = {"render": 0.0, "policy": 0.0, "physics": 0.0, "frames": 0.0, "startup": 0.0}
 
 
+def check_policy_rate(policy: Policy, world_cfg: WorldConfig) -> None:
+    """Raise when ``policy`` (or the driver it wraps, ``policy.agent`` or ``policy.expert``) was
+    built for other time steps than the world's: its trackers would be discretised at the wrong
+    period."""
+    while policy is not None:
+        sim = getattr(policy, "sim", None)
+        if sim is not None and sim != world_cfg.sim:
+            raise ValueError(
+                f"{type(policy).__name__} was built for {sim!r} but the world runs "
+                f"{world_cfg.sim!r}: build it with sim=world_cfg.sim"
+            )
+        policy = getattr(policy, "agent", None) or getattr(policy, "expert", None)
+
+
 def evaluate(
     policy: Policy,
     world_cfg: WorldConfig,
@@ -624,6 +638,7 @@ def evaluate(
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
+    check_policy_rate(policy, world_cfg)
     workers = 1 if workers is None else workers
     check_range("evaluate", "workers", workers, 1, integer=True)
     if parallel not in ("auto", "threads", "processes"):

@@ -42,21 +42,18 @@ import numpy as np
 from .config import check_pair, check_range
 from .evaluation import Actuation, Observation
 from .geometry import Track
+from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S
 from .tracker import (
-    N_POINTS,
-    POINT_DT_S,
     LaneChangePath,
     LQRTracker,
-    TrackerConfig,
     check_reading,
+    default_tracker,
     follow_trajectory,
     lane_reference,
 )
 from .vehicle import H, V, VehicleParams, bicycle_step
 from .world import SimConfig, World, lane_frame
 
-KEEP, CHANGE, PASS, FOLLOW = 0, 1, 2, 3
-STATE_NAMES = ("keep", "change", "pass", "follow")
 QUINTIC_PEAK = 10.0 / math.sqrt(3.0)  # max |b''| of the quintic blend: 5.77
 
 
@@ -225,7 +222,7 @@ class Expert:
 
     Args:
         cfg: the state machine's settings.
-        tracker: the LQR tracker it drives with (default settings if None).
+        tracker: the LQR tracker it drives with (None: default weights at ``sim``'s policy period).
         vehicle, sim: the car and time steps of the rollouts (must match the world's).
         seed: seeds every car's manoeuvre draws (car ``i`` uses ``default_rng([seed, i])``).
 
@@ -246,8 +243,9 @@ class Expert:
     ) -> None:
         self.cfg = cfg or ExpertConfig()
         self.vehicle = vehicle or VehicleParams()
-        self.tracker = tracker or LQRTracker(TrackerConfig(), self.vehicle)
         self.sim = sim or SimConfig()
+        # discretised at the world's policy period: a tracker built for another rate mis-steers
+        self.tracker = tracker or default_tracker(self.vehicle, self.sim)
         self.seed = seed
         self.plans: list[Plan] = []
         self.manoeuvres = {"left": 0, "right": 0, "return": 0, "follow": 0}

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from .config import check_range
-from .data import AFFORDANCE_NAMES, GAP_CAP_M
+from .labels import AFFORDANCE_NAMES, GAP_CAP_M, N_POINTS, POINT_DIMS, TRAJECTORY_DIMS
 from .models import DrivingModel
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -142,7 +142,7 @@ class Objective:
             }
         if self.head == "actuators":
             return {"steer MAE [deg]": err[:, 0] * (180 / math.pi), "accel MAE [m/s2]": err[:, 1]}
-        pts = (pred - tgt).reshape(-1, 5, 2).norm(dim=-1)
+        pts = (pred - tgt).reshape(-1, N_POINTS, POINT_DIMS).norm(dim=-1)
         return {"ADE [m]": pts.mean(dim=1), "FDE [m]": pts[:, -1]}
 
 
@@ -157,9 +157,9 @@ def split_gmm(out: torch.Tensor, n_modes: int) -> tuple[torch.Tensor, torch.Tens
         raise ValueError(
             f"a GMM output with {n_modes} modes must have {n_modes * 21} columns; got {out.shape[-1]}"
         )
-    k10 = n_modes * 10
-    means = out[..., :k10].reshape(*out.shape[:-1], n_modes, 10)
-    raw = out[..., k10 : 2 * k10].reshape(*out.shape[:-1], n_modes, 10)
+    k10 = n_modes * TRAJECTORY_DIMS
+    means = out[..., :k10].reshape(*out.shape[:-1], n_modes, TRAJECTORY_DIMS)
+    raw = out[..., k10 : 2 * k10].reshape(*out.shape[:-1], n_modes, TRAJECTORY_DIMS)
     return out[..., 2 * k10 :], means, raw
 
 
@@ -286,8 +286,8 @@ class GMMObjective(Objective):
     ) -> dict[str, torch.Tensor]:
         """ADE/FDE of the most likely mode's mean [m], the best mode's ADE, the top weight."""
         weights, means, _ = self.modes(out, model)
-        tgt = target("gmm", batch, self.wheelbase_m).reshape(-1, 1, 5, 2)
-        pts = model.denormalise(means).reshape(*means.shape[:2], 5, 2)
+        tgt = target("gmm", batch, self.wheelbase_m).reshape(-1, 1, N_POINTS, POINT_DIMS)
+        pts = model.denormalise(means).reshape(*means.shape[:2], N_POINTS, POINT_DIMS)
         dist = (pts - tgt).norm(dim=-1)  # (B, K, 5)
         top = weights.argmax(dim=-1)
         rows = torch.arange(len(top), device=top.device)
@@ -373,7 +373,7 @@ def affordance_errors(
     Returns:
         ``{name: {"model": {"mae", "rmse"}, "mean_predictor": {"mae", "rmse"}, "frames": n}}``
         for each affordance, plus ``"gap_ego_m_car_ahead"``: the gap on the frames with a parked
-        car ahead in the own lane (true gap below :data:`~e2e_lite.data.GAP_CAP_M`), where
+        car ahead in the own lane (true gap below :data:`~e2e_lite.labels.GAP_CAP_M`), where
         knowing the gap matters (elsewhere the answer is the cap).
     """
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)

@@ -28,7 +28,8 @@ from typing import Any
 import numpy as np
 
 from .config import Profile
-from .data import AFFORDANCE_NAMES, DrivingData, DrivingDataset
+from .dataset import DrivingData, DrivingDataset
+from .labels import AFFORDANCE_NAMES
 from .losses import CVaRObjective, GMMObjective, Objective, WithAffordance
 from .models import DrivingModel, ModelConfig
 from .training import History, TrainConfig, evaluate_loss, train_or_load

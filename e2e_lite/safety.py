@@ -42,12 +42,13 @@ from typing import Any
 import numpy as np
 
 from .config import check_range
-from .data import AFFORDANCE_NAMES, GAP_CAP_M, affordances
+from .data import affordances
 from .evaluation import Actuation, Observation
 from .expert import Expert
-from .tracker import N_POINTS, POINT_DT_S
+from .labels import AFFORDANCE_INDEX, GAP_CAP_M, N_POINTS, POINT_DT_S
+from .world import SimConfig
 
-_A = {name: i for i, name in enumerate(AFFORDANCE_NAMES)}
+_A = AFFORDANCE_INDEX
 _SUBSTEPS = 4  # interpolated positions per 0.3 s between points
 
 
@@ -479,7 +480,7 @@ class SafeAgent:
                 audited.append(i)
             self._seen += 1
         if audited:
-            expert_pts = _expert_labels(obs, audited)
+            expert_pts = _expert_labels(obs, audited, getattr(self.agent, "sim", None))
             for j, i in enumerate(audited):
                 dx, dy = np.abs(expert_pts[j, -1] - proposal[i, -1])
                 false_alarms += int(dy <= 1.0 and dx <= 5.0)
@@ -530,8 +531,9 @@ class SafeAgent:
         return sorted(kept, key=lambda e: (e["shard"], e["time_s"]))
 
 
-def _expert_labels(obs: Observation, idx: list[int]) -> np.ndarray:
-    """What a fresh expert would drive from cars ``idx``'s states: ``(len(idx), 5, 2)``."""
+def _expert_labels(obs: Observation, idx: list[int], sim: SimConfig | None = None) -> np.ndarray:
+    """What a fresh expert would drive from cars ``idx``'s states: ``(len(idx), 5, 2)`` [m]
+    (``sim``: the driven agent's time steps, default :class:`~e2e_lite.world.SimConfig`)."""
     sub = Observation(
         state=obs.state[idx],
         s=obs.s[idx],
@@ -543,6 +545,7 @@ def _expert_labels(obs: Observation, idx: list[int]) -> np.ndarray:
         time_s=obs.time_s,
         worlds=[obs.worlds[i] for i in idx],
     )
-    expert = Expert()
+    # the expert of the car and time steps being driven, not a default one
+    expert = Expert(vehicle=obs.worlds[idx[0]].vehicle, sim=sim)
     expert.reset(len(idx))
     return expert.trajectory_label(sub)

@@ -35,11 +35,10 @@ import control
 import numpy as np
 
 from .config import check_range
+from .labels import N_POINTS, POINT_DT_S
 from .vehicle import VehicleParams
+from .world import SimConfig
 
-# The paper's trajectory: 5 points, 0.3 s apart, 1.5 s ahead.
-N_POINTS = 5
-POINT_DT_S = 0.3
 #: How the speed command is read off a trajectory (:func:`follow_trajectory`): ``"trajectory"``
 #: (the paper: ``a = a_ref + k (v_ref - v)``) or ``"trajectory_no_ff"`` (``a = k (v_ref - v)``,
 #: no acceleration feed-forward).
@@ -304,3 +303,12 @@ def follow_trajectory(
     e, psi, kappa, v_ref, a_ref = trajectory_reference(points, preview_s)
     feed_forward = a_ref if speed == "trajectory" else 0.0
     return tracker.steer(e, psi, kappa, speed_mps), tracker.accel(speed_mps, v_ref, feed_forward)
+
+
+def default_tracker(
+    vehicle: VehicleParams | None = None, sim: SimConfig | None = None
+) -> LQRTracker:
+    """The LQR tracker with default weights for this car, discretised at the world's policy
+    period ``sim.policy_period_s`` [s] (defaults: :class:`VehicleParams`, :class:`SimConfig`)."""
+    period_s = (sim or SimConfig()).policy_period_s
+    return LQRTracker(TrackerConfig(period_s=period_s), vehicle or VehicleParams())

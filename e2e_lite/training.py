@@ -24,12 +24,11 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from .artifacts import artifact_path, atomic_write, save_json, settings_key
+from .artifacts import artifact_path, atomic_write, save_figure, save_json, settings_key
 from .config import check_range, tqdm
-from .data import DrivingData, DrivingDataset, situations
+from .dataset import DrivingData, DrivingDataset, situations
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
-from .viz import save_figure
 
 
 class CheckpointMismatch(ValueError):
@@ -171,6 +170,13 @@ def _batches(n: int, batch_size: int, rng: np.random.Generator | None) -> list[n
     return [order[i : i + batch_size] for i in range(0, n, batch_size)]
 
 
+def epoch_batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]:
+    """The rows (positions in the training set, ``0 .. n-1``) of each batch of one training
+    epoch, in the order :func:`fit` takes them: a permutation seeded by ``(seed, epoch)``, cut
+    into batches of ``batch_size`` (the last one may be shorter)."""
+    return _batches(n, batch_size, np.random.default_rng([seed, epoch]))
+
+
 def _to(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
@@ -242,8 +248,7 @@ def fit(
             param.requires_grad_(not any(pname.startswith(p) for p in frozen))
         objective.start_epoch(epoch)
         model.train()
-        rng = np.random.default_rng([cfg.seed, epoch])
-        batches = _batches(len(train), cfg.batch_size, rng)
+        batches = epoch_batches(len(train), cfg.batch_size, cfg.seed, epoch)
         # batch norm needs two samples, a CVaR batch enough for its tail
         if len(batches) > 1 and len(batches[-1]) < getattr(objective, "min_batch", 2):
             batches = batches[:-1]

@@ -7,7 +7,6 @@ the library stays headless and a notebook still shows a returned figure inline.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -15,7 +14,7 @@ from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
-from .artifacts import atomic_write, show_in_notebook
+from .artifacts import save_figure  # noqa: F401 (re-exported: the chapters save figures through viz)
 from .evaluation import EvalResult, result_dict
 from .geometry import Track
 from .world import ParkedCars
@@ -24,15 +23,6 @@ ROAD_GREY = "#5a5a5a"
 GRASS = "#cfe3c3"
 RAIL = "#8a8a8a"
 CAR = "#d62728"
-
-
-def save_figure(fig: Figure, path: Path | str, dpi: int = 110) -> Path:
-    """Save ``fig`` as PNG, atomically; shown inline in a notebook. Returns the path."""
-    path = Path(path)
-    with atomic_write(path) as f:
-        fig.savefig(f, format="png", dpi=dpi, bbox_inches="tight")
-    show_in_notebook(path)
-    return path
 
 
 def draw_road(
@@ -212,8 +202,12 @@ def collision_chart(
             )  # fmt: skip
             seeds_shown = True
             hi = np.maximum(hi, np.where(y == yi, sh, 0.0))
-    for yi, r, h in zip(y, rate, hi):
-        x_text = h * 1.12 + 0.05 if log else h + 0.01 * max(hi.max(), 1.0)
+    # each row's value is written right of everything drawn on it: interval, seeds, paper mark
+    ends = hi.copy()
+    if len(marks) == len(rows):
+        ends = np.maximum(ends, [0.0 if v is None else v for v in marks])
+    for yi, r, h in zip(y, rate, ends):
+        x_text = h * 1.3 + 0.05 if log else h + 0.01 * max(ends.max(), 1.0)
         ax.text(x_text, yi, f"{r:.1f}", va="center", fontsize=9)
     if len(marks):
         if len(marks) != len(rows):

@@ -24,8 +24,8 @@ from e2e_lite.data import (
     throttle_brake,
 )
 from e2e_lite.evaluation import EvalConfig
-from e2e_lite.expert import CHANGE
 from e2e_lite.geometry import generate_track
+from e2e_lite.labels import CHANGE
 from e2e_lite.vehicle import VehicleParams
 
 

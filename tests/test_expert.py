@@ -8,8 +8,6 @@ from conftest import straight_world
 
 from e2e_lite.evaluation import EvalConfig, evaluate, observe
 from e2e_lite.expert import (
-    CHANGE,
-    KEEP,
     Expert,
     ExpertConfig,
     Oracle,
@@ -18,6 +16,7 @@ from e2e_lite.expert import (
     speed_profile,
 )
 from e2e_lite.geometry import RoadConfig, Track
+from e2e_lite.labels import CHANGE, KEEP
 from e2e_lite.world import Fleet, TrafficConfig, World, WorldConfig
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from e2e_lite.geometry import Track
+from e2e_lite.labels import POINT_DT_S
 from e2e_lite.tracker import (
-    POINT_DT_S,
     LaneChangePath,
     LQRTracker,
     TrackerConfig,

@@ -1,0 +1,118 @@
+"""Behaviour pinned across refactors: the quick dataset, closed-loop collision counts of scripted
+and trained drivers, and trained networks' held-out losses must equal the reference recorded
+before the library was reorganised (issue "One architecture a newcomer can read").
+
+The reference (``tests/data/reference_metrics.json``) was recorded with the code of commit
+d6001bb, before the labels and the dataset left ``data.py``. To record it with another commit's
+code (``-c`` puts the working directory first on the path, ahead of the editable install):
+
+    git worktree add /tmp/ref d6001bb && cd /tmp/ref
+    E2E_LITE_OUTPUTS=/tmp/ref-out python -c "import runpy, sys; sys.argv = ['', '--record',
+      'REPO/tests/data/reference_metrics.json']; runpy.run_path('REPO/tests/test_reference.py',
+      run_name='__main__')"
+
+Only names that exist on both sides of the move are used here. Re-record only for a change that
+is *meant* to change behaviour, and say so in its commit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from pathlib import Path
+from typing import Any
+from unittest import mock
+
+import numpy as np
+
+REFERENCE = Path(__file__).parent / "data" / "reference_metrics.json"
+
+
+def _counts(result: Any) -> dict[str, Any]:
+    return {
+        "collisions": int(result.collisions),
+        "car": int(result.car_collisions),
+        "rail": int(result.rail_collisions),
+        "miles": round(float(result.miles), 6),
+    }
+
+
+def measure() -> dict[str, Any]:
+    """Everything the reference pins, measured with the code on ``sys.path`` (quick profile), on
+    the CPU with 2 torch threads, as recorded (a float sum split over another number of threads
+    rounds differently, and the trained weights follow)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with mock.patch("torch.cuda.is_available", return_value=False):
+            return _measure()
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _measure() -> dict[str, Any]:
+    from e2e_lite import recipes
+    from e2e_lite.agents import TrajectoryAgent
+    from e2e_lite.config import active_profile
+    from e2e_lite.data import DataConfig, collect
+    from e2e_lite.drivers import LaneKeeper
+    from e2e_lite.evaluation import EvalConfig, evaluate
+    from e2e_lite.expert import Expert
+    from e2e_lite.world import WorldConfig
+
+    profile = active_profile([], {"E2E_LITE_QUICK": "1"})
+    train = collect(DataConfig.for_profile(profile, "train"), progress=False)
+    val = collect(DataConfig.for_profile(profile, "val"), progress=False)
+    digest = hashlib.sha256()
+    for name in sorted(train.arrays):
+        arr = np.ascontiguousarray(train.arrays[name])
+        digest.update(f"{name}:{arr.dtype}:{arr.shape}".encode())
+        digest.update(arr.tobytes())
+    out: dict[str, Any] = {"dataset_sha256": digest.hexdigest(), "samples": len(train)}
+    world_cfg = WorldConfig.for_profile(profile)
+    ev = EvalConfig(miles=0.5, n_worlds=4)
+    for name, policy in (("expert", Expert()), ("lane_keeper", LaneKeeper())):
+        out[name] = _counts(evaluate(policy, world_cfg, ev, progress=False))
+    for name, recipe in (("l2", recipes.trajectory_l2), ("gmm", recipes.gmm)):
+        model, objective, hist = recipe(profile, train, val, name=f"ref_{name}", progress=False)
+        objective.start_epoch(10**6)
+        out[name] = {
+            "val_loss": float(hist.epochs[-1]["val_loss"]),
+            **_counts(
+                evaluate(
+                    TrajectoryAgent(
+                        model, sigma_floor=getattr(objective, "floor", lambda m: 0.01)(model)
+                    ),
+                    world_cfg,
+                    ev,
+                    progress=False,
+                )
+            ),
+        }
+    return out
+
+
+def test_behaviour_equals_the_reference_recorded_before_the_reorganisation() -> None:
+    reference = json.loads(REFERENCE.read_text())
+    now = measure()
+    assert now["dataset_sha256"] == reference["dataset_sha256"], "the quick dataset changed"
+    assert now["samples"] == reference["samples"]
+    for name in ("expert", "lane_keeper", "l2", "gmm"):
+        ref, got = dict(reference[name]), dict(now[name])
+        if "val_loss" in ref:
+            assert np.isclose(got.pop("val_loss"), ref.pop("val_loss"), rtol=1e-5, atol=1e-6), name
+        assert got == ref, f"{name}: {got} != reference {ref}"
+
+
+if __name__ == "__main__":
+    if len(sys.argv) not in (2, 3) or sys.argv[1] != "--record":
+        sys.exit("usage: python tests/test_reference.py --record [PATH]  (see the docstring)")
+    import e2e_lite
+
+    path = Path(sys.argv[2]) if len(sys.argv) == 3 else REFERENCE
+    path.parent.mkdir(exist_ok=True)
+    path.write_text(json.dumps(measure(), indent=1) + "\n")
+    print(f"recorded {path} with the code in {Path(e2e_lite.__file__).parent}")
