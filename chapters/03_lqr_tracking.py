@@ -29,8 +29,8 @@ from matplotlib.figure import Figure
 from e2e_lite import artifacts
 from e2e_lite.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.geometry import Track
+from e2e_lite.labels import POINT_DT_S
 from e2e_lite.tracker import (
-    POINT_DT_S,
     LaneChangePath,
     LQRTracker,
     TrackerConfig,
@@ -42,12 +42,16 @@ from e2e_lite.tracker import (
 )
 from e2e_lite.vehicle import VehicleParams, bicycle_step, make_state
 from e2e_lite.viz import save_figure
-from e2e_lite.world import TrafficConfig, WorldConfig
+from e2e_lite.world import SimConfig, TrafficConfig, WorldConfig
 
 veh = VehicleParams()
-cfg = TrackerConfig()
+SIM = SimConfig()  # physics every SIM.dt_s, a decision every SIM.steps_per_policy physics steps
+cfg = TrackerConfig(period_s=SIM.policy_period_s)  # discretised at the policy period
 tracker = LQRTracker(cfg, veh)
-print(f"wheelbase {veh.wheelbase_m} m, policy period {cfg.period_s} s")
+print(
+    f"wheelbase {veh.wheelbase_m} m, policy period {cfg.period_s} s "
+    f"({SIM.steps_per_policy} physics steps of {SIM.dt_s} s)"
+)
 
 # %% [markdown]
 # ## 1. The lateral error model
@@ -90,9 +94,37 @@ k20, _, poles20 = control.dlqr(sysd.A, sysd.B, q, r)
 print(f"K(20 m/s) = {np.round(k20, 4)}  (steer per metre, per radian)")
 print(f"closed-loop eigenvalues {np.round(poles20, 4)}, |z| = {np.abs(poles20).round(4)}")
 
+# %% [markdown]
+# ### The Riccati recursion, by hand
+#
+# What `dlqr` solves. `P` is the cost-to-go matrix: from state `x`, driving optimally costs
+# `x'Px`. Going back one step from the end of a long horizon,
+#
+# * the gain that is optimal against that cost-to-go: `K = (R + B'PB)⁻¹ B'PA`;
+# * the cost-to-go one step earlier: `P ← Q + A'P(A - BK)` (this step's cost, then the rest);
+#
+# starting from `P = Q` (the last step costs only its state). Iterated until `P` stops changing,
+# `K` is the infinite-horizon gain.
+
+# %%
+a_d, b_d = sysd.A, sysd.B
+cost_to_go, previous, sweeps = q.copy(), np.zeros_like(q), 0  # P = Q
+while np.max(np.abs(cost_to_go - previous)) > 1e-12 * np.max(np.abs(cost_to_go)):
+    # K = (R + B'PB)^-1 B'PA
+    k_hand = np.linalg.solve(r + b_d.T @ cost_to_go @ b_d, b_d.T @ cost_to_go @ a_d)
+    # P <- Q + A'P(A - BK)
+    previous, cost_to_go = cost_to_go, q + a_d.T @ cost_to_go @ (a_d - b_d @ k_hand)
+    sweeps += 1
+print(f"by hand, after {sweeps} sweeps: K = {np.round(k_hand, 4)}")
+assert np.allclose(k_hand, k20, rtol=1e-6), (k_hand, k20)
+print("equal to control.dlqr's gain (to 1e-6)")
+
+# %% [markdown]
 # The model depends on v, so the gain does too. Solving dlqr costs ~0.5 ms: fine once per speed
 # of a grid, too slow for every car at every decision. The tracker precomputes a table and
 # interpolates it.
+
+# %%
 speeds, gains, poles = gain_table(cfg, veh.wheelbase_m)
 print(f"gain table: {len(speeds)} speeds from {speeds[0]} to {speeds[-1]} m/s")
 for vv in (5.0, 10.0, 20.0, 30.0, 40.0):
@@ -133,8 +165,8 @@ def drive_offset(speed: float, offset: float = 1.0, seconds: float = 8.0) -> np.
     ys = [offset]
     for _ in range(int(seconds / cfg.period_s)):
         steer = tracker.steer(st[:, 1], st[:, 2], np.zeros(1), st[:, 3])
-        for _ in range(5):
-            bicycle_step(st, steer, np.zeros(1), veh, 0.02)
+        for _ in range(SIM.steps_per_policy):
+            bicycle_step(st, steer, np.zeros(1), veh, SIM.dt_s)
         ys.append(float(st[0, 1]))
     return np.array(ys)
 
@@ -184,8 +216,8 @@ for _ in range(150):
     e, psi, kap = path.reference(s_now, d_now, he, 1 / 300)
     steer = tracker.steer(np.array([e]), np.array([psi]), np.array([kap]), st[:, 3])
     rows.append((s_now, d_now, path.offset(s_now)[0], float(steer[0])))
-    for _ in range(5):
-        bicycle_step(st, steer, np.zeros(1), veh, 0.02)
+    for _ in range(SIM.steps_per_policy):
+        bicycle_step(st, steer, np.zeros(1), veh, SIM.dt_s)
 rows = np.array(rows)
 lc_err = float(np.abs(rows[:, 1] - rows[:, 2]).max())
 print(f"lane change on a 300 m curve at 20 m/s: worst tracking error {lc_err:.3f} m")
@@ -236,8 +268,8 @@ driven = [st[0, :2].copy()]
 for _ in range(int(6.0 / cfg.period_s)):
     # a network re-predicts every 0.1 s; here it always predicts the same curve in its own frame
     steer, accel = follow_trajectory(tracker, pts[None], st[:, 3])
-    for _ in range(5):
-        bicycle_step(st, steer, accel, veh, 0.02)
+    for _ in range(SIM.steps_per_policy):
+        bicycle_step(st, steer, accel, veh, SIM.dt_s)
     driven.append(st[0, :2].copy())
 driven = np.array(driven)
 radial_err = float(np.abs(np.hypot(driven[:, 0], driven[:, 1] - radius) - radius).max())
@@ -342,8 +374,10 @@ print(
 #
 # * Around a path the kinematic bicycle is a double integrator in the lateral error; curvature is
 #   handled by feed-forward `atan(Lκ)`, so LQR only corrects errors.
-# * `control.c2d` + `control.dlqr` give a gain per speed; a precomputed table interpolated at run
-#   time costs microseconds, where `dlqr` costs half a millisecond.
+# * `control.c2d` + `control.dlqr` give a gain per speed (`dlqr` iterates the Riccati recursion
+#   `K = (R + B'PB)⁻¹B'PA`, `P ← Q + A'P(A - BK)` to its fixed point; section 2 does it by hand);
+#   a precomputed table interpolated at run time costs microseconds, where `dlqr` costs half a
+#   millisecond.
 # * The same tracker follows lane centres, lane-change paths and the networks' 5-point
 #   trajectories (a fixed least-squares cubic turns points into error, heading, curvature, speed).
 # * On obstacle-free validation tracks it drives without touching a rail; what remains is to say

@@ -43,10 +43,12 @@ from e2e_lite.data import (
 )
 from e2e_lite.drivers import LaneKeeper
 from e2e_lite.evaluation import SPEED_BINS, EvalConfig, drive, evaluate, observe, speed_histogram
-from e2e_lite.expert import CHANGE, STATE_NAMES, Expert, Oracle
+from e2e_lite.expert import Expert, Oracle
 from e2e_lite.geometry import Track
+from e2e_lite.labels import CHANGE, KEEP, STATE_NAMES
+from e2e_lite.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
 from e2e_lite.viz import draw_road, save_figure
-from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
+from e2e_lite.world import ParkedCars, World, WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
@@ -131,26 +133,27 @@ print(f"saved {strip_png} (lateral scale stretched 6x)")
 # density head is built for exactly this.
 
 # %%
-single = World(
-    straight, ParkedCars.on_track(straight, np.array([300.0]), np.array([0.0])), world_cfg.vehicle
-)
+single, _ = two_answers_scene(world_cfg)  # one parked car in the middle lane at 300 m
 sides, starts = [], []
 n_seeds = 16 if profile.quick else 48
 for seed in range(n_seeds):
     path, states, contacts = expert_drive(seed, single, seconds=12.0)
     assert not contacts
     k = int(np.argmax(states == CHANGE))
-    sides.append(int(np.sign(path[np.argmin(np.abs(path[:, 0] - 300.0)), 1])))  # beside the car
+    beside = np.argmin(np.abs(path[:, 0] - TWO_ANSWERS_CAR_S_M))  # the sample beside the car
+    sides.append(int(np.sign(path[beside, 1])))
     starts.append(float(path[k, 0]))
 print(f"{n_seeds} seeds: {sides.count(1)} overtakes on the left, {sides.count(-1)} on the right")
-print(f"lane change started at x = {min(starts):.0f} to {max(starts):.0f} m (car at 300 m)")
+print(
+    f"lane change started at x = {min(starts):.0f} to {max(starts):.0f} m "
+    f"(car at {TWO_ANSWERS_CAR_S_M:.0f} m)"
+)
 
 # The same frame, eight experts: the car 44 m behind the parked car (nearer than any trigger), and
 # each seed's label from this one state. The image is identical; the answers are not.
-fleet = Fleet([single], world_cfg)
-fleet.place(0, 300.0 - 2.25 - 3.6 - 44.0, 0.0, 25.0)
+single, fleet = two_answers_scene(world_cfg, gap_m=44.0, speed_mps=25.0)
 obs = observe(fleet, respawned=True)
-img = human.render(straight, single.cars, tuple(obs.state[0, :3]), obs.s[0])
+img = human.render(single.track, single.cars, tuple(obs.state[0, :3]), obs.s[0])
 label_sides = []
 for seed in range(8):
     expert = Expert(seed=seed)
@@ -220,12 +223,14 @@ for name, mean, std in zip(
 # %%
 rng = np.random.default_rng(0)
 groups = {
-    "straight, keep": (np.abs(train.curvature) < 1e-4) & (train.expert_state == 0) & ~train.noise,
-    "curve": (np.abs(train.curvature) > 2e-3) & (train.expert_state == 0),
+    "straight, keep": (np.abs(train.curvature) < 1e-4)
+    & (train.expert_state == KEEP)
+    & ~train.noise,
+    "curve": (np.abs(train.curvature) > 2e-3) & (train.expert_state == KEEP),
     "overtake left": (train.expert_state == CHANGE) & train.overtaking & (train.change_side > 0),
     "overtake right": (train.expert_state == CHANGE) & train.overtaking & (train.change_side < 0),
     "return": (train.expert_state == CHANGE) & ~train.overtaking,
-    "noise burst": train.noise & (train.expert_state == 0),
+    "noise burst": train.noise & (train.expert_state == KEEP),
 }
 dcfg = DataConfig.for_profile(profile, "train")
 worlds: dict[int, World] = {}

@@ -28,21 +28,17 @@ from e2e_lite.course import start_chapter
 profile = start_chapter(5)  # flags, profile, outputs folder: checked before any work
 
 import numpy as np
+import torch
 
 from e2e_lite import artifacts, recipes
 from e2e_lite.agents import ActuatorAgent, SteeringAgent
 from e2e_lite.camera import Camera, CameraConfig, save_image
-from e2e_lite.data import (
-    DataConfig,
-    DrivingDataset,
-    RecoveryConfig,
-    concat,
-    load_or_collect,
-    load_or_make_recovery,
-)
+from e2e_lite.data import DataConfig, DrivingDataset, concat, load_or_collect
 from e2e_lite.evaluation import EvalConfig, evaluate, results_table
-from e2e_lite.models import build_model, count_parameters, pick_device
-from e2e_lite.training import evaluate_loss
+from e2e_lite.losses import Objective
+from e2e_lite.models import build_model, count_parameters, pick_device, prepare
+from e2e_lite.recovery import RecoveryConfig, load_or_make_recovery
+from e2e_lite.training import TrainConfig, epoch_batches, evaluate_loss, fit, model_stats
 from e2e_lite.world import WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -119,6 +115,63 @@ print(
 
 # %% [markdown]
 # ## 3. Training
+#
+# ### One training step, written out
+#
+# Every network of the course learns with the same six lines. For a batch of frames and labels:
+#
+# 1. forget the previous step's gradients (`zero_grad`);
+# 2. forward: the network's outputs for the batch;
+# 3. the loss: one number, the batch's mean error in normalised units;
+# 4. backward: the gradient of that number with respect to every weight;
+# 5. clip: when the gradient's norm is above `c`, scale it down to `c` (one bad batch cannot
+#    throw the weights far);
+# 6. step: Adam moves every weight against its gradient, scaled by running estimates of the
+#    gradient's mean and spread.
+#
+# We write them once here and check them against the library's loop (`e2e_lite.training.fit`):
+# the same start, the same batches, the same weights at the end. The library adds only
+# bookkeeping around them: the validation losses, the kept epoch, the progress bar, the curve.
+
+# %%
+steer_loss = Objective("steer")
+check_cfg = TrainConfig(epochs=1, batch_size=32, grad_clip=1.0, device="cpu")
+few = DrivingDataset(train, np.arange(min(len(train), 3 * check_cfg.batch_size)))
+few_val = DrivingDataset(val, np.arange(min(len(val), check_cfg.batch_size)))
+
+
+def fresh_pilotnet() -> torch.nn.Module:
+    """PilotNet with torch's seeded initial weights and the training set's normalisation."""
+    torch.manual_seed(check_cfg.seed)
+    net = build_model(pilot_cfg)
+    net.set_normalisation(model_stats(pilot_cfg, train, steer_loss))
+    return prepare(net, torch.device("cpu"))
+
+
+by_library = fresh_pilotnet()
+fit(by_library, steer_loss, few, few_val, check_cfg, name="05_step_check", progress=False)
+
+by_hand = fresh_pilotnet()
+adam = torch.optim.Adam(by_hand.parameters(), lr=check_cfg.lr)
+by_hand.train()  # dropout on, batch norm learning its statistics
+for rows in epoch_batches(len(few), check_cfg.batch_size, check_cfg.seed, epoch=0):
+    batch = few.batch(few.indices[rows])
+    adam.zero_grad(set_to_none=True)  # 1. forget the last step's gradients
+    out = by_hand(batch["image"], batch["speed"])  # 2. forward
+    loss = steer_loss.batch_loss(out, batch, by_hand)  # 3. the batch's mean loss
+    loss.backward()  # 4. d loss / d weights
+    torch.nn.utils.clip_grad_norm_(by_hand.parameters(), check_cfg.grad_clip)  # 5. clip
+    adam.step()  # 6. Adam's update
+gap = max(
+    float((a - b).detach().abs().max())
+    for a, b in zip(by_hand.parameters(), by_library.parameters())
+)
+print(f"{len(few)} samples, {len(few) // check_cfg.batch_size} steps: the largest weight "
+      f"difference between the written-out loop and the library's is {gap:.1e}")  # fmt: skip
+assert gap < 1e-6, gap
+
+# %% [markdown]
+# ### The course's trainings
 #
 # One loop for every chapter (`e2e_lite.training.fit`): Adam at 1e-3 without weight decay (the
 # paper), batches of 64, the best validation epoch kept (seed 002), per-epoch metrics JSON and a
@@ -274,6 +327,8 @@ artifacts.write_metrics(
 # %% [markdown]
 # ## Summary
 #
+# * Learning is six lines per batch (section 3: zero the gradients, forward, loss, backward,
+#   clip, step); the library's loop runs exactly those, with bookkeeping around them.
 # * PilotNet and the all-actuators network learn the expert's commands to a small held-out error,
 #   and still collide in closed loop: a low loss on recorded frames does not say what happens once
 #   the network's own errors choose the next frame. The table above is the course's baseline.

@@ -31,9 +31,10 @@ from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
 from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect
 from e2e_lite.evaluation import EvalConfig, evaluate, observe, results_table
 from e2e_lite.expert import Expert
-from e2e_lite.geometry import Track
+from e2e_lite.labels import CHANGE, KEEP
+from e2e_lite.scenarios import two_answers_scene
 from e2e_lite.training import evaluate_loss
-from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
+from e2e_lite.world import World, WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
@@ -97,10 +98,10 @@ def predict_rows(rows: np.ndarray) -> np.ndarray:
 
 rng = np.random.default_rng(0)
 picks = {
-    "straight": np.flatnonzero((np.abs(val.curvature) < 1e-4) & (val.expert_state == 0)),
+    "straight": np.flatnonzero((np.abs(val.curvature) < 1e-4) & (val.expert_state == KEEP)),
     "curve": np.flatnonzero(np.abs(val.curvature) > 2e-3),
-    "lane change": np.flatnonzero(val.expert_state == 1),
-    "noise recovery": np.flatnonzero(val.noise & (val.expert_state == 0)),
+    "lane change": np.flatnonzero(val.expert_state == CHANGE),
+    "noise recovery": np.flatnonzero(val.noise & (val.expert_state == KEEP)),
 }
 tiles = []
 for title, rows in picks.items():
@@ -144,12 +145,8 @@ print(table + profile.caveat)
 # the validation set: overtakes started from the middle lane, left vs right.
 
 # %%
-straight = Track([0.0], [0.0], [0.0], [0.0], [900.0])
-scene = World(
-    straight, ParkedCars.on_track(straight, np.array([300.0]), np.array([0.0])), world_cfg.vehicle
-)
-fleet = Fleet([scene], world_cfg)
-fleet.place(0, 300.0 - 2.25 - 3.6 - 44.0, 0.0, 25.0)
+scene, fleet = two_answers_scene(world_cfg, gap_m=44.0, speed_mps=25.0)
+straight = scene.track
 frame_net = Camera(CameraConfig()).render(straight, scene.cars, tuple(fleet.state[0, :3]))
 obs = observe(fleet, True, images=frame_net[None])
 agent = TrajectoryAgent(model)
@@ -170,7 +167,7 @@ print(
 print(f"saved {scene_png}")
 
 starts = np.flatnonzero(
-    (val.expert_state == 1) & val.overtaking & (val.lane == 1) & (np.abs(val.d) < 0.5)
+    (val.expert_state == CHANGE) & val.overtaking & (val.lane == 1) & (np.abs(val.d) < 0.5)
 )
 left, right = starts[val.change_side[starts] > 0], starts[val.change_side[starts] < 0]
 split = {}

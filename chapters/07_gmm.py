@@ -64,13 +64,19 @@ from e2e_lite.evaluation import (
     speed_histogram,
 )
 from e2e_lite.expert import Expert, Oracle
-from e2e_lite.geometry import Track
+from e2e_lite.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
 from e2e_lite.losses import gmm_nll, mode_split, side_shares
-from e2e_lite.scenarios import START_S_M, ScenarioConfig, overtake_scenes, run_scenarios
+from e2e_lite.scenarios import (
+    START_S_M,
+    ScenarioConfig,
+    overtake_scenes,
+    run_scenarios,
+    two_answers_scene,
+)
 from e2e_lite.tracker import SPEED_READINGS, trajectory_reference
 from e2e_lite.training import DECISIVE, evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
-from e2e_lite.world import Fleet, ParkedCars, World, WorldConfig, make_world
+from e2e_lite.world import Fleet, WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
@@ -124,6 +130,42 @@ try:
     )
 except ValueError as err:  # log(0)
     print(f"far target: by hand fails ({err}): the density underflowed to 0")
+
+# %% [markdown]
+# ### The stable version, line by line
+#
+# The fix is to never leave log space. For a batch of targets `y` (B, D), mode means `μ` and
+# log-sigmas `log σ` (B, K, D) and mixture logits (B, K), each line below is the equation in its
+# comment:
+
+
+# %%
+def nll_stable(
+    y: torch.Tensor, logits: torch.Tensor, mu: torch.Tensor, log_sigma: torch.Tensor
+) -> torch.Tensor:
+    """The mixture's NLL per sample (B,), computed in log space throughout."""
+    # z_kd = (y_d - mu_kd) / sigma_kd
+    z = (y[:, None, :] - mu) * torch.exp(-log_sigma)
+    # log N(y_d | mu_kd, sigma_kd) = -z_kd^2 / 2 - log sigma_kd - log(2 pi) / 2
+    log_gauss = -0.5 * z**2 - log_sigma - 0.5 * math.log(2 * math.pi)
+    # log prod_d N(...) = sum_d log N(...): the product of densities is a sum of logs
+    log_mode = log_gauss.sum(dim=-1)
+    # log pi_k = logit_k - log sum_j exp(logit_j)
+    log_pi = torch.log_softmax(logits, dim=-1)
+    # -log sum_k pi_k prod_d N = -log sum_k exp(log pi_k + log_mode_k), with the largest term
+    # factored out first (torch.logsumexp), so nothing underflows
+    return -torch.logsumexp(log_pi + log_mode, dim=-1)
+
+
+gen = torch.Generator().manual_seed(0)
+y_b, mu_b, ls_b, lg_b = (
+    scale * torch.randn(*shape, dtype=torch.float64, generator=gen)
+    for shape, scale in (((4, 10), 1.0), ((4, 2, 10), 1.0), ((4, 2, 10), 0.3), ((4, 2), 1.0))
+)
+assert torch.allclose(nll_stable(y_b, lg_b, mu_b, ls_b), gmm_nll(y_b, lg_b, mu_b, ls_b))
+far_stable = float(nll_stable(torch.tensor(far)[None], zeros_k, zeros_kd, zeros_kd)[0])
+print(f"line by line: equal to the library on a random batch; far target {far_stable:.1f}")
+assert abs(far_stable - far_nll) < 1e-9
 
 # %% [markdown]
 # ## 2. Training with the sigma warm-up, and which epoch to keep
@@ -216,7 +258,9 @@ def modes_panels(ax_img, ax_xy, img, last, title, expert=None) -> None:
 
 # unimodal: a straight validation sample in lane keeping, no car within 60 m
 straight_rows = np.flatnonzero(
-    (np.abs(val.curvature) < 1e-4) & (val.expert_state == 0) & (val.affordances[:, 6] >= 59.9)
+    (np.abs(val.curvature) < 1e-4)
+    & (val.expert_state == KEEP)
+    & (val.affordances[:, AFFORDANCE_INDEX["gap_ego_m"]] >= GAP_CAP_M)
 )
 i = int(straight_rows[len(straight_rows) // 2]) if straight_rows.size else 0
 w_val = make_world(dcfg.world, dcfg.split, int(val.track[i]))
@@ -232,12 +276,8 @@ left_img = draw_modes(human.render(w_val.track, w_val.cars, pose), uni)
 draw_trajectory(left_img, val.trajectory[i], human, colour=EXPERT_RGB)
 
 # bimodal: chapter 06's scene
-straight = Track([0.0], [0.0], [0.0], [0.0], [900.0])
-scene = World(
-    straight, ParkedCars.on_track(straight, np.array([300.0]), np.array([0.0])), world_cfg.vehicle
-)
-fleet = Fleet([scene], world_cfg)
-fleet.place(0, 300.0 - 2.25 - 3.6 - 44.0, 0.0, 25.0)
+scene, fleet = two_answers_scene(world_cfg, gap_m=44.0, speed_mps=25.0)
+straight = scene.track
 obs = observe(
     fleet, True, images=net_cam.render(straight, scene.cars, tuple(fleet.state[0, :3]))[None]
 )
@@ -899,8 +939,8 @@ artifacts.write_metrics(
 # ## Summary
 #
 # * A mixture head predicts several trajectories and their probabilities; its NLL is computed with
-#   log-softmax, a floored log-sigma and a log-sum-exp, and agrees with the textbook formula where
-#   that does not underflow.
+#   log-softmax, a floored log-sigma and a log-sum-exp (section 1 writes it line by line), and
+#   agrees with the textbook formula where that does not underflow.
 # * Holding sigma for the first epoch lets the means settle before the spreads move.
 # * Where the expert's behaviour splits (overtake left or right), the modes split too, and the
 #   followed mode takes one side instead of the average.

@@ -48,13 +48,14 @@ from e2e_lite.data import (
     load_or_collect,
 )
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
-from e2e_lite.expert import CHANGE
+from e2e_lite.labels import AFFORDANCE_INDEX, CHANGE
 from e2e_lite.losses import AFFORDANCE_GOALS, affordance_errors
 from e2e_lite.training import PROBE_LAYERS, evaluate_loss, probe_affordances
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
 
 world_cfg = WorldConfig.for_profile(profile)
+GAP, OFFSET = AFFORDANCE_INDEX["gap_ego_m"], AFFORDANCE_INDEX["center_offset_m"]
 
 # %% [markdown]
 # ## 1. The affordance labels
@@ -70,7 +71,7 @@ a_mean, a_std = train.stats["affordances_mean"], train.stats["affordances_std"]
 for name, m, s in zip(AFFORDANCE_NAMES, a_mean, a_std):
     print(f"  {name:16s} mean {m:8.3f}   std {s:7.3f}")
 print(
-    f"samples with a car within 60 m in the ego lane: {np.mean(train.affordances[:, 6] < 59.9):.1%}"
+    f"samples with a car within 60 m in the ego lane: {np.mean(train.affordances[:, GAP] < GAP_CAP_M):.1%}"
 )
 
 # %% [markdown]
@@ -187,7 +188,7 @@ print(f"saved {scatter_png}")
 # exactly that ambiguity and nothing else.
 
 # %%
-j_off = AFFORDANCE_NAMES.index("center_offset_m")
+j_off = OFFSET
 lane_w = world_cfg.road.lane_width_m
 
 
@@ -307,25 +308,25 @@ t_aff = np.array([r[2] for r in recorder.rows])
 # show the 60 s window with the most happening ahead (smallest mean true gap)
 win = int(60.0 / 0.1)
 if len(t) > win:
-    gaps = np.convolve(t_aff[:, 6], np.ones(win) / win, mode="valid")
+    gaps = np.convolve(t_aff[:, GAP], np.ones(win) / win, mode="valid")
     start = int(np.argmin(gaps))
 else:
     start = 0
 sl = slice(start, start + win)
 fig = Figure(figsize=(11, 6))
 ax1, ax2 = fig.subplots(2, 1, sharex=True)
-ax1.plot(t[sl], t_aff[sl, 6], color="black", label="true gap ahead (ego lane)")
-ax1.plot(t[sl], p_aff[sl, 6], color="tab:red", label="predicted")
+ax1.plot(t[sl], t_aff[sl, GAP], color="black", label="true gap ahead (ego lane)")
+ax1.plot(t[sl], p_aff[sl, GAP], color="tab:red", label="predicted")
 ax1.set_ylabel("gap [m]")
 ax1.legend(loc="lower left", fontsize=8)
-ax2.plot(t[sl], t_aff[sl, 1], color="black", label="true offset from lane centre")
-ax2.plot(t[sl], p_aff[sl, 1], color="tab:red", label="predicted")
+ax2.plot(t[sl], t_aff[sl, OFFSET], color="black", label="true offset from lane centre")
+ax2.plot(t[sl], p_aff[sl, OFFSET], color="tab:red", label="predicted")
 ax2.set_ylabel("[m]")
 ax2.set_xlabel("simulated time [s]")
 ax2.legend(loc="lower left", fontsize=8)
 fig.tight_layout()
 drive_png = save_figure(fig, artifacts.artifact_path("figures", "08_affordance_drive.png"))
-drive_mae = float(np.mean(np.abs(p_aff[:, 6] - t_aff[:, 6])))
+drive_mae = float(np.mean(np.abs(p_aff[:, GAP] - t_aff[:, GAP])))
 print(
     f"closed loop, car 0: gap-ahead MAE {drive_mae:.2f} m over {len(t)} decisions; saved {drive_png}"
 )

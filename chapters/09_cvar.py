@@ -49,6 +49,7 @@ from e2e_lite.evaluation import (
     result_dict,
     results_table,
 )
+from e2e_lite.labels import KEEP
 from e2e_lite.losses import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
@@ -270,7 +271,7 @@ print(
 # keeps its lane, compare the followed trajectory's lateral error at 1.5 s: base, control and CVaR.
 
 # %%
-easy = np.flatnonzero((val.expert_state == 0) & (np.abs(val.curvature) < 1e-4))
+easy = np.flatnonzero((val.expert_state == KEEP) & (np.abs(val.curvature) < 1e-4))
 easy = easy[:: max(1, len(easy) // 2000)]
 easy_report = {}
 for name, m in (("base", base), ("control", control), ("cvar", model)):

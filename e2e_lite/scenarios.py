@@ -107,6 +107,29 @@ def scene_world(scene: Scene, world_cfg: WorldConfig) -> World:
     return World(track, cars, world_cfg.vehicle)
 
 
+#: Chapters 04, 06 and 07's frame with two right answers: on a straight 900 m road, one parked
+#: car in the middle lane at 300 m, the ego centred in that lane behind it.
+TWO_ANSWERS_ROAD_M = 900.0
+TWO_ANSWERS_CAR_S_M = 300.0
+
+
+def two_answers_scene(
+    world_cfg: WorldConfig, gap_m: float = 44.0, speed_mps: float = 25.0
+) -> tuple[World, Fleet]:
+    """The frame with two right answers (pass left or right), as a world and a placed fleet of
+    one car: the ego's front bumper ``gap_m`` behind the parked car's rear [m] (44 m: nearer than
+    any of the expert's overtake triggers), at ``speed_mps`` [m/s]."""
+    straight = Track([0.0], [0.0], [0.0], [0.0], [TWO_ANSWERS_ROAD_M])
+    cars = ParkedCars.on_track(straight, np.array([TWO_ANSWERS_CAR_S_M]), np.array([0.0]))
+    world = World(straight, cars, world_cfg.vehicle)
+    fleet = Fleet([world], world_cfg)
+    veh = world_cfg.vehicle
+    # rear axle = the car's centre - half its length - our front bumper's reach - the gap
+    rear_axle_s = TWO_ANSWERS_CAR_S_M - cars.length_m / 2 - (veh.length_m - veh.rear_overhang_m)
+    fleet.place(0, rear_axle_s - gap_m, 0.0, speed_mps)
+    return world, fleet
+
+
 @dataclass
 class ScenarioResult:
     """Outcomes of a scene set: one of ``"passed"``, ``"collided"``, ``"stuck"`` per scene,
