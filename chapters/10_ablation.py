@@ -333,6 +333,15 @@ lines = [
         ", ".join(s["step"] for s in steps if s["outcome"] == "no difference beyond chance")
         or "none"
     ),
+    "comparisons the paper does not make: "
+    + (
+        ", ".join(
+            f"{s['step']}: {s['outcome']}"
+            for s in steps
+            if s["outcome"] not in ("reproduces", "the opposite", "no difference beyond chance")
+        )
+        or "none"
+    ),
     "mean speeds [mph]: "
     + ", ".join(f"{k} {res_d[k]['mean_speed_mph']:.1f}" for k in results)
     + f" (the paper: {ablation.PAPER_MPH:g})",
