@@ -26,11 +26,11 @@ import numpy as np
 import torch
 
 from .camera import CameraConfig
-from .evaluation import Actuation, Observation
 from .expert import ExpertConfig, SpeedLimits
 from .labels import N_POINTS, POINT_DIMS
-from .losses import log_sigma, split_gmm
+from .losses import Mixture
 from .models import DrivingModel, images_to_tensor
+from .policy import Actuation, Observation
 from .tracker import (
     SPEED_READINGS,
     LQRTracker,
@@ -236,15 +236,10 @@ class TrajectoryAgent(NetworkAgent):
             pts = model.denormalise(out).reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy()
             self.last = {"points": pts, **extra}
             return pts
-        logits, means, raw = split_gmm(out, model.cfg.gmm_modes)
-        weights = torch.softmax(logits, dim=-1)
-        modes = model.denormalise(means)
-        sig = torch.exp(log_sigma(raw, self.sigma_floor)) * model.target_std
-        if self.decode == "mean":
-            pts = (weights[..., None] * modes).sum(dim=1)
-        else:
-            top = weights.argmax(dim=-1)
-            pts = modes[torch.arange(len(top), device=top.device), top]
+        mix = Mixture.from_output(out, model.cfg.gmm_modes, self.sigma_floor)
+        weights, modes = mix.weights, model.denormalise(mix.means)
+        sig = torch.exp(mix.log_sigma) * model.target_std
+        pts = mix.followed(self.decode, modes)
         self.last = {
             "points": pts.reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy(),
             "modes": modes.reshape(*modes.shape[:2], N_POINTS, POINT_DIMS).double().cpu().numpy(),

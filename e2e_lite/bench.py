@@ -42,11 +42,12 @@ from .camera import Camera, CameraConfig
 from .config import active_profile
 from .data import DataConfig, DrivingDataset, collect, synthetic_data
 from .drivers import LaneChanger, LaneKeeper
-from .evaluation import EvalConfig, evaluate
+from .evaluation import evaluate
 from .expert import Expert, Oracle
 from .geometry import RoadConfig
 from .losses import Objective
 from .models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
+from .rollout import EvalConfig
 from .training import TrainConfig, fit, load_checkpoint
 from .world import Fleet, TrafficConfig, WorldConfig, make_world
 

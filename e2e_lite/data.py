@@ -5,7 +5,7 @@ the training (or validation) tracks, with random steering and acceleration *burs
 commands it executes, so the recording also holds off-centre and off-heading states and the
 expert's recovery from them. Some bursts brake hard, and now and then a car is taken over and
 re-placed exactly as the evaluator re-places a car after a collision
-(:func:`~e2e_lite.evaluation.restart_state`: 20 m/s, below the cruise speed), so the data shows
+(:func:`~e2e_lite.rollout.restart_state`: 20 m/s, below the cruise speed), so the data shows
 the expert getting back to speed from the states a learned driver restarts in (covariate shift;
 chapter 04 compares the two speed distributions). One sample per policy step (10 Hz).
 
@@ -43,7 +43,7 @@ from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's 
     situations,
     synthetic_data,
 )
-from .evaluation import Actuation, EvalConfig, EvalResult, Observation, evaluate
+from .evaluation import evaluate
 from .expert import Expert, ExpertConfig
 from .labels import (  # noqa: F401 (re-exported, as above)
     AFFORDANCE_NAMES,
@@ -52,6 +52,9 @@ from .labels import (  # noqa: F401 (re-exported, as above)
     N_POINTS,
     throttle_brake,
 )
+from .metrics import EvalResult
+from .policy import Actuation, Observation
+from .rollout import EvalConfig
 from .world import World, WorldConfig
 
 
@@ -146,7 +149,7 @@ class DataConfig:
         noise: the noise bursts.
         camera: the camera (66 x 200 by default).
         restart_rate_per_s: take-overs per second of driving [1/s]: the car is re-placed as the
-            evaluator re-places it after a collision (:func:`~e2e_lite.evaluation.restart_state`).
+            evaluator re-places it after a collision (:func:`~e2e_lite.rollout.restart_state`).
             The default, one per 20 s, is about twice as often as chapter 10's GMM collided (once
             per 39 s of driving) and doubles the share of samples between 20 and 24 m/s (7.6 % ->
             17.8 % on 16,000 training samples); chapter 04 measures it.

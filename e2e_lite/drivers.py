@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from .config import check_range
-from .evaluation import Actuation, Observation
+from .policy import Actuation, Observation
 
 
 class LaneKeeper:

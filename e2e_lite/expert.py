@@ -40,9 +40,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import check_pair, check_range
-from .evaluation import Actuation, Observation
 from .geometry import Track
 from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S
+from .policy import Actuation, Observation
 from .tracker import (
     LaneChangePath,
     LQRTracker,

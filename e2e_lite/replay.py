@@ -39,8 +39,9 @@ with warnings.catch_warnings():  # meshcat 0.3 imports a deprecated pyzmq module
 
 from .camera import CAR_COLOURS, DASH_M, DASH_PERIOD_M, RAIL_HEIGHT_M, Camera, CameraConfig
 from .camera import draw_trajectory as draw_on_frame
-from .evaluation import Actuation, Observation, Policy, drive
 from .geometry import Track
+from .policy import Actuation, Observation, Policy
+from .rollout import drive
 from .vehicle import VehicleParams
 from .world import ParkedCars, World, WorldConfig
 

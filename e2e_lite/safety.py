@@ -43,9 +43,9 @@ import numpy as np
 
 from .config import check_range
 from .data import affordances
-from .evaluation import Actuation, Observation
 from .expert import Expert
 from .labels import AFFORDANCE_INDEX, GAP_CAP_M, N_POINTS, POINT_DT_S
+from .policy import Actuation, Observation
 from .world import SimConfig
 
 _A = AFFORDANCE_INDEX

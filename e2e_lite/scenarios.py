@@ -21,8 +21,8 @@ import numpy as np
 
 from .camera import Camera
 from .config import check_pair, check_range, tqdm
-from .evaluation import Policy, observe
 from .geometry import Track
+from .policy import Policy, observe
 from .world import Fleet, ParkedCars, World, WorldConfig
 
 START_S_M = 50.0  # the ego's rear axle at the start [m]

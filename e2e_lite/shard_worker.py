@@ -1,4 +1,4 @@
-"""A shard process of :func:`e2e_lite.evaluation.evaluate` (started by it; not for people).
+"""A shard process of :func:`e2e_lite.evaluation.evaluate` (:mod:`e2e_lite.parallel`) (started by it; not for people).
 
 Reads its job from standard input and writes its messages to standard output as length-prefixed
 pickles; anything the driven code prints goes to standard error instead.
@@ -15,7 +15,7 @@ def main() -> None:
     outbox = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # C-level and Python prints of the driven code now go to stderr
     sys.stdout = sys.stderr
-    from e2e_lite.evaluation import shard_worker
+    from e2e_lite.parallel import shard_worker
 
     shard_worker(sys.stdin.buffer, outbox)
     outbox.close()

@@ -15,8 +15,8 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
 from .artifacts import save_figure  # noqa: F401 (re-exported: the chapters save figures through viz)
-from .evaluation import EvalResult, result_dict
 from .geometry import Track
+from .metrics import EvalResult, result_dict
 from .world import ParkedCars
 
 ROAD_GREY = "#5a5a5a"

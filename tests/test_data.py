@@ -153,18 +153,18 @@ def test_bad_data_settings_raise():
 def test_collector_starts_and_restarts_cars_with_the_evaluators_rule(monkeypatch):
     """Every (re)start of the collector is placed by the evaluator's own functions, and the
     recorded samples hold those states (position, lane centre, 20 m/s)."""
-    from e2e_lite import evaluation
+    from e2e_lite import rollout
 
     placed: dict[str, list[tuple[float, float, float]]] = {"start": [], "restart": []}
     for kind, name in (("start", "start_state"), ("restart", "restart_state")):
-        original = getattr(evaluation, name)
+        original = getattr(rollout, name)
 
         def spy(*args, _original=original, _kind=kind):
             state = _original(*args)
             placed[_kind].append(state)
             return state
 
-        monkeypatch.setattr(evaluation, name, spy)
+        monkeypatch.setattr(rollout, name, spy)
     data = collect(small_cfg(restart_rate_per_s=0.5, n_samples=400), progress=False)
     assert len(placed["start"]) == 4  # one per car
     assert len(placed["restart"]) >= 5  # 0.5 per second over 10 s of driving per car
