@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -201,6 +202,60 @@ def gmm_nll(
     return -torch.logsumexp(torch.log_softmax(logits, dim=-1) + log_n, dim=-1)
 
 
+@dataclass(frozen=True)
+class Mixture:
+    """What a GMM head predicts for a batch, in the model's normalised target units: a diagonal
+    Gaussian mixture per sample.
+
+    Attributes:
+        logits: (B, K) mixing logits (weights ``softmax(logits)``).
+        means: (B, K, D) mode means.
+        log_sigma: (B, K, D) log standard deviations (already floored).
+    """
+
+    logits: torch.Tensor
+    means: torch.Tensor
+    log_sigma: torch.Tensor
+
+    @classmethod
+    def from_output(
+        cls,
+        out: torch.Tensor,
+        n_modes: int,
+        floor: float | torch.Tensor,
+        sigma_fixed: bool = False,
+    ) -> Mixture:
+        """The mixture in a GMM head's flat output (B, K x 21) (layout: :func:`split_gmm`), its
+        sigmas floored at ``floor`` (normalised units; a number or one per dimension), or every
+        sigma held at 1 when ``sigma_fixed`` (the warm-up)."""
+        logits, means, raw = split_gmm(out, n_modes)
+        log_sig = torch.zeros_like(raw) if sigma_fixed else log_sigma(raw, floor)
+        return cls(logits, means, log_sig)
+
+    @property
+    def weights(self) -> torch.Tensor:
+        """(B, K) mixing weights, summing to 1."""
+        return torch.softmax(self.logits, dim=-1)
+
+    def nll(self, target: torch.Tensor) -> torch.Tensor:
+        """(B,) negative log-likelihood of ``target`` (B, D) (:func:`gmm_nll`)."""
+        return gmm_nll(target, self.logits, self.means, self.log_sigma)
+
+    def top(self) -> torch.Tensor:
+        """(B,) index of each sample's most likely mode (the paper follows it)."""
+        return self.weights.argmax(dim=-1)
+
+    def followed(self, decode: str = "top", modes: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, D) the trajectory a driver follows: the most likely mode (``"top"``) or the
+        mixture's mean (``"mean"``, the modes averaged with their weights). ``modes``: the same
+        modes in other units, e.g. metres (default: :attr:`means`)."""
+        modes = self.means if modes is None else modes
+        if decode == "mean":
+            return (self.weights[..., None] * modes).sum(dim=1)
+        top = self.top()
+        return modes[torch.arange(len(top), device=top.device), top]
+
+
 class GMMObjective(Objective):
     """The mixture-density loss of seed 000 (section 3.3) on the normalised trajectory.
 
@@ -269,17 +324,15 @@ class GMMObjective(Objective):
         self, out: dict[str, torch.Tensor], model: DrivingModel
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(weights (B, K), means (B, K, 10) normalised, log_sigma (B, K, 10))``."""
-        logits, means, raw = split_gmm(out["main"], self.n_modes)
-        return torch.softmax(logits, dim=-1), means, log_sigma(raw, self.floor(model))
+        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model))
+        return mix.weights, mix.means, mix.log_sigma
 
     def per_sample(
         self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
     ) -> torch.Tensor:
         """The NLL of each sample's normalised trajectory."""
-        logits, means, raw = split_gmm(out["main"], self.n_modes)
-        log_sig = torch.zeros_like(raw) if self.sigma_fixed else log_sigma(raw, self.floor(model))
-        tgt = model.normalise_target(target("gmm", batch, self.wheelbase_m))
-        return gmm_nll(tgt, logits, means, log_sig)
+        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model), self.sigma_fixed)
+        return mix.nll(model.normalise_target(target("gmm", batch, self.wheelbase_m)))
 
     def metrics(
         self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
@@ -297,12 +350,6 @@ class GMMObjective(Objective):
             "min-ADE over modes [m]": dist.mean(dim=-1).min(dim=-1).values,
             "top weight": weights.max(dim=-1).values,
         }
-
-
-def most_likely(weights: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
-    """The mean of the mode with the largest weight (the paper's inference): (B, D)."""
-    top = weights.argmax(dim=-1)
-    return means[torch.arange(len(top), device=top.device), top]
 
 
 def mode_split(modes_m: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,11 +14,11 @@ from scipy.stats import multivariate_normal
 from e2e_lite.data import DrivingDataset, synthetic_data
 from e2e_lite.losses import (
     GMMObjective,
+    Mixture,
     Objective,
     gmm_nll,
     log_sigma,
     mode_split,
-    most_likely,
     side_shares,
     split_gmm,
 )
@@ -91,7 +91,8 @@ def test_sigma_floor_is_smooth_and_respected():
 def test_most_likely_mode_and_shapes():
     weights = torch.tensor([[0.2, 0.8], [0.9, 0.1]])
     means = torch.arange(40.0).reshape(2, 2, 10)
-    torch.testing.assert_close(most_likely(weights, means), torch.stack([means[0, 1], means[1, 0]]))
+    mix = Mixture(torch.log(weights), means, torch.zeros_like(means))
+    torch.testing.assert_close(mix.followed("top"), torch.stack([means[0, 1], means[1, 0]]))
     for k in (1, 2, 5):
         logits, mu, raw = split_gmm(torch.zeros(4, k * 21), k)
         assert logits.shape == (4, k) and mu.shape == raw.shape == (4, k, 10)
@@ -234,3 +235,24 @@ def test_axis_scale_and_a_floor_in_metres():
     torch.testing.assert_close(torch.exp(log_sig[0, 0]) * model.target_std, torch.full((10,), 0.1))
     with pytest.raises(ValueError, match="target_scale"):
         GMMObjective(target_scale="pixel")
+
+
+def test_the_mixture_object_reads_the_heads_output_like_the_functions_it_wraps():
+    gen = torch.Generator().manual_seed(3)
+    out = torch.randn(5, 2 * 21, generator=gen, dtype=torch.float64)
+    mix = Mixture.from_output(out, 2, 0.05)
+    logits, means, raw = split_gmm(out, 2)
+    assert torch.equal(mix.logits, logits) and torch.equal(mix.means, means)
+    assert torch.equal(mix.log_sigma, log_sigma(raw, 0.05))
+    assert torch.allclose(mix.weights.sum(dim=-1), torch.ones(5, dtype=torch.float64))
+    y = torch.randn(5, 10, generator=gen, dtype=torch.float64)
+    assert torch.equal(mix.nll(y), gmm_nll(y, logits, means, log_sigma(raw, 0.05)))
+    held = Mixture.from_output(out, 2, 0.05, sigma_fixed=True)
+    assert torch.equal(held.log_sigma, torch.zeros_like(raw))  # the warm-up: every sigma 1
+    top = mix.followed("top")
+    for b in range(5):  # the heaviest mode's mean, sample by sample
+        assert torch.equal(top[b], means[b, int(torch.argmax(logits[b]))])
+    w = torch.softmax(logits, dim=-1)
+    assert torch.allclose(mix.followed("mean"), (w[..., None] * means).sum(dim=1))
+    metres = means * 2.0 + 1.0  # the same modes in other units
+    assert torch.allclose(mix.followed("top", metres), top * 2.0 + 1.0)
