@@ -21,8 +21,8 @@ running the chapter again reuses it when nothing changed.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,46 +33,136 @@ from .agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
 from .artifacts import artifact_path, cached, load_json, save_json, settings_key
 from .config import FULL, Profile
 from .data import DataConfig, DrivingData, load_or_collect
-from .evaluation import (
-    EvalConfig,
-    EvalResult,
-    Policy,
-    disjoint_runs,
-    evaluate,
-    pool_results,
-    result_dict,
-    results_table,
-)
+from .evaluation import evaluate
 from .expert import Expert, Oracle
+from .metrics import EvalResult, pool_results, result_dict, results_table
+from .policy import Policy
+from .rollout import EvalConfig, disjoint_runs
 from .world import WorldConfig
+
+
+@dataclass
+class Build:
+    """What a driver's build function gets: the sizes, the chapter-04 data and the training seed.
+
+    Attributes:
+        profile: sizes (and the data the recipes train on).
+        train, val: the chapter-04 datasets (None for the drivers that train nothing).
+        seed: the training seed (0: the chapters' own checkpoints).
+        kw: passed to the recipes (e.g. ``progress=False``).
+    """
+
+    profile: Profile
+    train: DrivingData | None
+    val: DrivingData | None
+    seed: int = 0
+    kw: dict[str, Any] = field(default_factory=dict)
+    _weight: float | None = field(default=None, init=False, repr=False)
+
+    @property
+    def data(self) -> tuple[Profile, DrivingData, DrivingData]:
+        """``(profile, train, val)``: a recipe's first three arguments."""
+        if self.train is None or self.val is None:
+            raise ValueError("this driver trains: give build_drivers the chapter-04 datasets")
+        return self.profile, self.train, self.val
+
+    @property
+    def seeded(self) -> dict[str, Any]:
+        """The recipes' keyword arguments: the seed and ``kw``."""
+        return {"seed": self.seed, **self.kw}
+
+    def name(self, chapter_name: str) -> str:
+        """The checkpoint name of this seed (:func:`~e2e_lite.recipes.seeded_name`)."""
+        return recipes.seeded_name(chapter_name, self.seed)
+
+    def weight(self) -> float:
+        """Chapter 08's affordance weight (chosen once per build, its grid's checkpoints reused)."""
+        if self._weight is None:
+            self._weight = recipes.affordance_weight(*self.data, **self.kw)
+        return self._weight
+
+
+def _gmm(b: Build, decode: str = "top", **recipe: Any) -> Policy:
+    """A GMM recipe's network (``recipe``: ``modes``, ``sigma_fixed``) as a trajectory driver."""
+    chapter_name = {(): "07_gmm", ("modes",): "07_gmm_k1", ("sigma_fixed",): "07_gmm_sigma_fixed"}
+    name = b.name(chapter_name[tuple(recipe)])
+    return TrajectoryAgent(recipes.gmm(*b.data, name=name, **recipe, **b.seeded)[0], decode=decode)
+
+
+def _affordance(b: Build, **recipe: Any) -> Policy:
+    """Chapter 08's network at the chosen weight (``recipe``: e.g. ``affordance_from``)."""
+    base = "08_gmm_affordance_fused" if recipe else "08_gmm_affordance"
+    model = recipes.gmm_affordance(*b.data, b.weight(), name=b.name(base), **recipe, **b.seeded)[0]
+    return TrajectoryAgent(model)
+
+
+def _finetune(b: Build, reduction: str) -> Policy:
+    """Chapter 09's fine-tune of this seed's affordance network, reduced by ``reduction``."""
+    model = recipes.gmm_affordance_cvar(*b.data, b.weight(), reduction=reduction, **b.seeded)[0]
+    return TrajectoryAgent(model)
+
+
+def _w0(b: Build) -> Policy:
+    """The affordance network trained with ``w = 0`` (the head present, its loss off)."""
+    name = f"10_gmm_affordance_w0_seed{b.seed}"
+    return TrajectoryAgent(recipes.gmm_affordance(*b.data, 0.0, name=name, **b.seeded)[0])
 
 
 @dataclass(frozen=True)
 class Driver:
-    """One row of the ablation.
+    """One row of the ablation. Adding a driver is one row: its recipe lives in
+    :mod:`e2e_lite.recipes`, and ``build`` turns it into a policy.
 
     Attributes:
         key: short name (file names, JSON keys).
         label: the row's name in tables and figures.
         paper_per_100mi: seed 000's Table 1 for the same method, if it has one.
         paper_ttc_s: seed 002's mean time to collision for the same method, if it has one [s].
+        build: the driver from a :class:`Build` (trained or reused via the recipes).
     """
 
     key: str
     label: str
     paper_per_100mi: float | None = None
     paper_ttc_s: float | None = None
+    build: Callable[[Build], Policy] | None = field(default=None, compare=False, repr=False)
 
 
 DRIVERS = (
-    Driver("expert", "expert (privileged, the ceiling)"),
-    Driver("oracle", "oracle: LQR on the expert's trajectories"),
-    Driver("pilotnet", "PilotNet, steering only", paper_ttc_s=10.2),
-    Driver("actuators", "Baseline E2E: image + speed -> actuators", 183.3, 1.1),
-    Driver("trajectory_l2", "trajectory L2 + LQR"),
-    Driver("gmm", "trajectory GMM + LQR", 12.7),
-    Driver("gmm_affordance", "GMM + affordance", 0.83),
-    Driver("gmm_affordance_cvar", "GMM + affordance + CVaR", 0.0),
+    Driver("expert", "expert (privileged, the ceiling)", build=lambda b: Expert()),
+    Driver("oracle", "oracle: LQR on the expert's trajectories", build=lambda b: Oracle()),
+    Driver(
+        "pilotnet",
+        "PilotNet, steering only",
+        paper_ttc_s=10.2,
+        build=lambda b: SteeringAgent(
+            recipes.pilotnet(*b.data, b.name("05_pilotnet"), **b.seeded)[0]
+        ),
+    ),
+    Driver(
+        "actuators",
+        "Baseline E2E: image + speed -> actuators",
+        183.3,
+        1.1,
+        build=lambda b: ActuatorAgent(
+            recipes.actuators(*b.data, b.name("05_actuators"), **b.seeded)[0]
+        ),
+    ),
+    Driver(
+        "trajectory_l2",
+        "trajectory L2 + LQR",
+        build=lambda b: TrajectoryAgent(
+            recipes.trajectory_l2(*b.data, b.name("06_trajectory_l2"), **b.seeded)[0]
+        ),
+    ),
+    Driver("gmm", "trajectory GMM + LQR", 12.7, build=_gmm),
+    Driver("gmm_affordance", "GMM + affordance", 0.83, build=_affordance),
+    Driver(
+        "gmm_affordance_cvar",
+        "GMM + affordance + CVaR",
+        0.0,
+        build=lambda b: _finetune(b, "cvar"),
+    ),
 )
 #: Controls (not in the paper), same seeds and roads as the rows:
 #: ``gmm_affordance_w0``, the affordance network trained with ``w = 0`` (its head then learns
@@ -85,12 +175,22 @@ DRIVERS = (
 #: CVaR step CVaR, or one more epoch? ``gmm_affordance_fused``, the affordance network with its
 #: head on the fused features (the paper's Fig. 1) instead of the trunk's: where should it read?
 CONTROLS = (
-    Driver("gmm_affordance_w0", "GMM + affordance head, w = 0"),
-    Driver("gmm_affordance_fused", "GMM + affordance, head on the fused features"),
-    Driver("gmm_mean", "GMM, following the mixture's mean"),
-    Driver("gmm_k1", "GMM loss with one mode (K = 1)"),
-    Driver("gmm_sigma_fixed", "GMM with sigma held at 1"),
-    Driver("gmm_affordance_control", "GMM + affordance, the fine-tune with the mean"),
+    Driver("gmm_affordance_w0", "GMM + affordance head, w = 0", build=_w0),
+    Driver(
+        "gmm_affordance_fused",
+        "GMM + affordance, head on the fused features",
+        build=lambda b: _affordance(b, affordance_from="fused"),
+    ),
+    Driver("gmm_mean", "GMM, following the mixture's mean", build=lambda b: _gmm(b, decode="mean")),
+    Driver("gmm_k1", "GMM loss with one mode (K = 1)", build=lambda b: _gmm(b, modes=1)),
+    Driver(
+        "gmm_sigma_fixed", "GMM with sigma held at 1", build=lambda b: _gmm(b, sigma_fixed=True)
+    ),
+    Driver(
+        "gmm_affordance_control",
+        "GMM + affordance, the fine-tune with the mean",
+        build=lambda b: _finetune(b, "mean"),
+    ),
 )
 #: The drivers with no training (one run each: they have no training seed).
 UNTRAINED = ("expert", "oracle")
@@ -125,63 +225,16 @@ def build_drivers(
     unknown = [k for k in keys if k not in BY_KEY]
     if unknown:
         raise ValueError(f"unknown drivers {unknown}; known: {list(BY_KEY)}")
-    if any(k not in ("expert", "oracle") for k in keys):
+    if any(k not in UNTRAINED for k in keys):
         train = train or load_or_collect(DataConfig.for_profile(profile, "train"))
         val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
-    weight = None
+    build = Build(profile, train, val, seed, dict(kw))  # one affordance weight for every row
     out: dict[str, Policy] = {}
-    seeded = {"seed": seed, **kw}
     for key in keys:
-        if key == "expert":
-            out[key] = Expert()
-        elif key == "oracle":
-            out[key] = Oracle()
-        elif key == "pilotnet":
-            name = recipes.seeded_name("05_pilotnet", seed)
-            out[key] = SteeringAgent(recipes.pilotnet(profile, train, val, name, **seeded)[0])
-        elif key == "actuators":
-            name = recipes.seeded_name("05_actuators", seed)
-            out[key] = ActuatorAgent(recipes.actuators(profile, train, val, name, **seeded)[0])
-        elif key == "trajectory_l2":
-            name = recipes.seeded_name("06_trajectory_l2", seed)
-            out[key] = TrajectoryAgent(
-                recipes.trajectory_l2(profile, train, val, name, **seeded)[0]
-            )
-        elif key in ("gmm", "gmm_mean"):
-            name = recipes.seeded_name("07_gmm", seed)
-            model = recipes.gmm(profile, train, val, name=name, **seeded)[0]
-            out[key] = TrajectoryAgent(model, decode="mean" if key == "gmm_mean" else "top")
-        elif key == "gmm_k1":
-            name = recipes.seeded_name("07_gmm_k1", seed)
-            out[key] = TrajectoryAgent(
-                recipes.gmm(profile, train, val, name=name, modes=1, **seeded)[0]
-            )
-        elif key == "gmm_sigma_fixed":
-            name = recipes.seeded_name("07_gmm_sigma_fixed", seed)
-            out[key] = TrajectoryAgent(
-                recipes.gmm(profile, train, val, name=name, sigma_fixed=True, **seeded)[0]
-            )
-        elif key == "gmm_affordance_w0":
-            name = f"10_gmm_affordance_w0_seed{seed}"
-            model = recipes.gmm_affordance(profile, train, val, 0.0, name=name, **seeded)[0]
-            out[key] = TrajectoryAgent(model)
-        else:
-            if weight is None:
-                weight = recipes.affordance_weight(profile, train, val, **kw)
-            if key == "gmm_affordance_fused":
-                name = recipes.seeded_name("08_gmm_affordance_fused", seed)
-                model = recipes.gmm_affordance(
-                    profile, train, val, weight, name=name, affordance_from="fused", **seeded
-                )[0]
-            elif key == "gmm_affordance":
-                name = recipes.seeded_name("08_gmm_affordance", seed)
-                model = recipes.gmm_affordance(profile, train, val, weight, name=name, **seeded)[0]
-            else:
-                reduction = "mean" if key == "gmm_affordance_control" else "cvar"
-                model = recipes.gmm_affordance_cvar(
-                    profile, train, val, weight, reduction=reduction, **seeded
-                )[0]
-            out[key] = TrajectoryAgent(model)
+        driver = BY_KEY[key]
+        if driver.build is None:
+            raise ValueError(f"driver {key!r} has no build function")
+        out[key] = driver.build(build)
     return out
 
 
