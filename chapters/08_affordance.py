@@ -48,9 +48,10 @@ from e2e_lite.data import (
     load_or_collect,
 )
 from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
+from e2e_lite.heldout import AFFORDANCE_GOALS, affordance_errors
 from e2e_lite.labels import AFFORDANCE_INDEX, CHANGE
-from e2e_lite.losses import AFFORDANCE_GOALS, affordance_errors
-from e2e_lite.training import PROBE_LAYERS, evaluate_loss, probe_affordances
+from e2e_lite.probes import PROBE_LAYERS, probe_affordances
+from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
 

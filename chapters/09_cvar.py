@@ -33,6 +33,7 @@ from matplotlib.figure import Figure
 from e2e_lite import ablation, artifacts, recipes
 from e2e_lite.agents import TrajectoryAgent
 from e2e_lite.camera import save_image
+from e2e_lite.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.data import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
@@ -50,7 +51,6 @@ from e2e_lite.evaluation import (
     results_table,
 )
 from e2e_lite.labels import KEEP
-from e2e_lite.losses import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.training import evaluate_loss
 from e2e_lite.viz import collision_chart, save_figure
 from e2e_lite.world import WorldConfig
@@ -98,7 +98,7 @@ print(
 #
 # attained at the α-quantile. With `ν` a parameter learned across batches, a sample gets a
 # gradient whenever its loss is above `ν`, not only when it is in its own batch's tail
-# (`losses.cvar_ru`; exercise 6 below). Check it on the same 37 losses:
+# (`e2e_lite.cvar.cvar_ru`; exercise 6 below). Check it on the same 37 losses:
 
 # %%
 grid = torch.linspace(float(x.min()), float(x.max()), 2001, dtype=torch.float64)

@@ -39,6 +39,7 @@ import torch
 from .agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
 from .artifacts import artifact_path
 from .camera import Camera, CameraConfig
+from .checkpoints import load_checkpoint
 from .config import active_profile
 from .data import DataConfig, DrivingDataset, collect, synthetic_data
 from .drivers import LaneChanger, LaneKeeper
@@ -48,7 +49,7 @@ from .geometry import RoadConfig
 from .losses import Objective
 from .models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
 from .rollout import EvalConfig
-from .training import TrainConfig, fit, load_checkpoint
+from .training import TrainConfig, fit
 from .world import Fleet, TrafficConfig, WorldConfig, make_world
 
 

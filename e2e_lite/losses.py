@@ -15,10 +15,12 @@ Targets per head (see :class:`~e2e_lite.models.ModelConfig`):
 Two wrappers change an objective without touching it (seed 000, sections 3.4 and 3.5):
 
 * :class:`WithAffordance` adds ``w x`` the squared error of the affordance head (chapter 08);
-* :class:`CVaRObjective` reduces a batch by :func:`cvar_loss` instead of the mean, so only the
-  worst ``1 - alpha`` of each batch is trained on (chapter 09), worst by the loss itself or by
-  the followed trajectory's error. :func:`cvar` is the statistic. It wraps the others (it is the
-  outermost wrapper).
+* :class:`~e2e_lite.cvar.CVaRObjective` reduces a batch by CVaR instead of the mean, so only the
+  worst ``1 - alpha`` of each batch is trained on (chapter 09; :mod:`e2e_lite.cvar`). It wraps
+  the others (it is the outermost wrapper).
+
+The held-out measures of what the networks predict (how the modes split, which side they take,
+the affordance errors) are :mod:`e2e_lite.heldout`.
 
 The training loop calls :meth:`Objective.batch_loss` and nothing else: :meth:`Objective.reduce`
 (the mean unless a wrapper says otherwise) of the per-sample losses.
@@ -27,15 +29,12 @@ The training loop calls :meth:`Objective.batch_loss` and nothing else: :meth:`Ob
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
-from typing import Any
 
-import numpy as np
 import torch
 
 from .config import check_range
-from .labels import AFFORDANCE_NAMES, GAP_CAP_M, N_POINTS, POINT_DIMS, TRAJECTORY_DIMS
+from .labels import AFFORDANCE_NAMES, N_POINTS, POINT_DIMS, TRAJECTORY_DIMS
 from .models import DrivingModel
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -352,107 +351,6 @@ class GMMObjective(Objective):
         }
 
 
-def mode_split(modes_m: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """How the two most likely modes of each sample differ at the last point (1.5 s):
-    ``(lateral |dy| [m], longitudinal |dx| [m])``, each (B,).
-
-    Args:
-        modes_m: (B, K, 5, 2) mode means in metres (car frame), K >= 2.
-        weights: (B, K) mixing weights.
-    """
-    modes_m, weights = np.asarray(modes_m), np.asarray(weights)
-    if modes_m.ndim != 4 or modes_m.shape[1] < 2 or weights.shape != modes_m.shape[:2]:
-        raise ValueError(
-            f"mode_split needs modes (B, K>=2, 5, 2) and weights (B, K); got {modes_m.shape}, "
-            f"{weights.shape}"
-        )
-    order = np.argsort(-weights, axis=1, kind="stable")[:, :2]
-    rows = np.arange(len(modes_m))[:, None]
-    first, second = modes_m[rows, order][:, 0, -1], modes_m[rows, order][:, 1, -1]  # (B, 2)
-    gap = np.abs(first - second)
-    return gap[:, 1], gap[:, 0]
-
-
-def side_shares(
-    followed_end_y_m: np.ndarray, expert_side: np.ndarray, committed_m: float = 0.9
-) -> dict[str, float]:
-    """Which way a followed trajectory goes where the expert changes lanes: the shares of samples
-    whose lateral offset at 1.5 s is past ``committed_m`` towards the expert's side
-    (``"expert_side"``), past it towards the other side (``"other_side"``), or neither
-    (``"keep"``).
-
-    Args:
-        followed_end_y_m: (N,) lateral offset of the followed trajectory at 1.5 s [m], left > 0.
-        expert_side: (N,) +1 when the expert goes left, -1 right.
-        committed_m: offset that counts as going to a side [m] (default a quarter lane).
-    """
-    y, side = np.asarray(followed_end_y_m, float), np.asarray(expert_side, float)
-    if y.shape != side.shape or not len(y):
-        raise ValueError(
-            f"side_shares needs two equal, non-empty arrays; got {y.shape}, {side.shape}"
-        )
-    towards = y * np.sign(side)
-    expert = float(np.mean(towards > committed_m))
-    other = float(np.mean(towards < -committed_m))
-    return {"expert_side": expert, "other_side": other, "keep": 1.0 - expert - other}
-
-
-#: Chapter 08's goals for the affordance head on held-out frames: the error that must be at most
-#: half the mean predictor's (issue 16): MAE of the gap on frames with a car ahead, RMSE of the
-#: lane-centre offset and the heading.
-AFFORDANCE_GOALS = (
-    ("gap_ego_m_car_ahead", "mae"),
-    ("center_offset_m", "rmse"),
-    ("heading_rad", "rmse"),
-)
-
-
-def affordance_errors(
-    pred: np.ndarray, true: np.ndarray, train_mean: np.ndarray
-) -> dict[str, dict[str, Any]]:
-    """Held-out errors of predicted affordances against the floor to beat: always answering the
-    training set's mean.
-
-    Args:
-        pred, true: (N, 9) predicted and true affordances (units of :data:`AFFORDANCE_NAMES`).
-        train_mean: (9,) the training set's mean of each.
-
-    Returns:
-        ``{name: {"model": {"mae", "rmse"}, "mean_predictor": {"mae", "rmse"}, "frames": n}}``
-        for each affordance, plus ``"gap_ego_m_car_ahead"``: the gap on the frames with a parked
-        car ahead in the own lane (true gap below :data:`~e2e_lite.labels.GAP_CAP_M`), where
-        knowing the gap matters (elsewhere the answer is the cap).
-    """
-    pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
-    train_mean = np.asarray(train_mean, np.float64).reshape(-1)
-    n_aff = len(AFFORDANCE_NAMES)
-    if pred.shape != true.shape or pred.ndim != 2 or pred.shape[1] != n_aff or not len(pred):
-        raise ValueError(
-            f"affordance_errors needs (N, {n_aff}) predictions and truths, N >= 1; got "
-            f"{pred.shape}, {true.shape}"
-        )
-
-    def errors(p: np.ndarray, t: np.ndarray, mean: float) -> dict[str, Any]:
-        return {
-            "model": {
-                "mae": float(np.abs(p - t).mean()),
-                "rmse": float(np.sqrt(((p - t) ** 2).mean())),
-            },
-            "mean_predictor": {
-                "mae": float(np.abs(mean - t).mean()),
-                "rmse": float(np.sqrt(((mean - t) ** 2).mean())),
-            },
-            "frames": len(t),
-        }
-
-    out = {n: errors(pred[:, j], true[:, j], train_mean[j]) for j, n in enumerate(AFFORDANCE_NAMES)}
-    gap = AFFORDANCE_NAMES.index("gap_ego_m")
-    ahead = true[:, gap] < GAP_CAP_M
-    if ahead.any():
-        out["gap_ego_m_car_ahead"] = errors(pred[ahead, gap], true[ahead, gap], train_mean[gap])
-    return out
-
-
 # ------------------------------------------------------------------------------ wrappers
 class WrappedObjective(Objective):
     """An objective built on another one: everything is delegated to ``base`` (its settings such
@@ -539,169 +437,3 @@ class WithAffordance(WrappedObjective):
             for i, name in enumerate(AFFORDANCE_NAMES):
                 m[f"|err| {name}"] = err[:, i]
         return m
-
-
-def cvar(losses: np.ndarray | torch.Tensor, alpha: float) -> float:
-    """Conditional value at risk: the mean of the worst ``1 - alpha`` share of ``losses``.
-
-    ``CVaR_alpha(L) = E[L | L >= nu_alpha]`` with ``nu_alpha`` the alpha-quantile. On a finite
-    sample of n losses the tail holds ``k = (1 - alpha) n`` samples; when k is not an integer (a
-    tiny batch) or several losses tie at the quantile, the boundary sample enters with the
-    fractional weight ``k - floor(k)``. This is Rockafellar and Uryasev's
-    ``min_nu nu + E[(L - nu)+] / (1 - alpha)``, so: ``alpha = 0`` gives the mean, the value never
-    decreases with alpha, and as alpha -> 1 it tends to the maximum.
-
-    Args:
-        losses: (N,) per-sample losses, N >= 1.
-        alpha: the quantile level, ``0 <= alpha < 1``.
-    """
-    values = torch.as_tensor(losses).detach().double().reshape(-1)
-    return float(_tail_mean(values, alpha))
-
-
-def _check_alpha(alpha: float, n: int, lo_closed: bool) -> None:
-    ok = (0.0 <= alpha < 1.0) if lo_closed else (0.0 < alpha < 1.0)
-    if not ok:
-        raise ValueError(
-            f"alpha={alpha!r} is invalid: must be in {'[0, 1)' if lo_closed else '(0, 1)'}"
-        )
-    if n < 1:
-        raise ValueError("CVaR of an empty set of losses is undefined: give at least one sample")
-
-
-def _tail_weights(n: int, alpha: float, like: torch.Tensor) -> torch.Tensor:
-    """Weights of the n samples sorted worst first: 1 for the whole tail, the fraction left for
-    the boundary sample, 0 below it."""
-    k = (1.0 - alpha) * n
-    # k within rounding of an integer counts as that integer; dividing by the weights actually
-    # given (not by k) keeps the result a convex combination of the tail, so never above the max.
-    whole = math.floor(k + 1e-9)
-    frac = k - whole
-    weights = torch.zeros(n, dtype=like.dtype, device=like.device)
-    weights[:whole] = 1.0
-    if whole < n and frac > 1e-9:
-        weights[whole] = frac
-    return weights
-
-
-def _tail_mean(
-    values: torch.Tensor, alpha: float, rank: torch.Tensor | None = None
-) -> torch.Tensor:
-    """The mean of ``values`` over the worst ``1 - alpha`` share, worst by ``rank`` (default: by
-    the values themselves)."""
-    _check_alpha(alpha, values.numel(), lo_closed=True)
-    order = torch.argsort(values.detach() if rank is None else rank, descending=True)
-    weights = _tail_weights(values.numel(), alpha, values)
-    return (weights * values[order]).sum() / weights.sum()
-
-
-def cvar_ru(losses: torch.Tensor, nu: torch.Tensor | float, alpha: float) -> torch.Tensor:
-    """Rockafellar and Uryasev's form of CVaR: ``nu + E[(L - nu)+] / (1 - alpha)``, a scalar.
-
-    For every threshold ``nu`` it is at least :func:`cvar` of the same losses, and it equals it
-    at the alpha-quantile (the boundary sample of :func:`cvar`'s sorted tail), so minimising it
-    over ``nu`` gives CVaR. Unlike the sorted tail it needs no sort: with ``nu`` a trained
-    parameter shared across batches, each sample's gradient is ``1 / ((1 - alpha) n)`` when its
-    loss is above ``nu``, whatever the batch's own quantile.
-
-    Args:
-        losses: (N,) per-sample losses (with gradients or not).
-        nu: the threshold (a tensor to learn it, or a number), in the losses' units.
-        alpha: the quantile level, ``0 <= alpha < 1``.
-    """
-    _check_alpha(alpha, losses.numel(), lo_closed=True)
-    nu = torch.as_tensor(nu, dtype=losses.dtype, device=losses.device)
-    return nu + torch.relu(losses.reshape(-1) - nu).mean() / (1.0 - alpha)
-
-
-def cvar_loss(losses: torch.Tensor, alpha: float, min_tail: int = 10) -> torch.Tensor:
-    """The CVaR training loss of seed 000 (eq. 3): :func:`cvar` of a batch's per-sample losses,
-    differentiable; gradients flow only into the samples of the tail (the boundary sample with its
-    fractional weight), so the samples below the batch's alpha-quantile get exactly zero.
-
-    Args:
-        losses: (B,) per-sample losses with gradients.
-        alpha: in (0, 1); 0.9 trains on the worst 10 %.
-        min_tail: warn when the batch leaves fewer tail samples than this (the batch size must
-            grow with alpha: B >= min_tail / (1 - alpha)).
-    """
-    if losses.dim() != 1:
-        raise ValueError(
-            f"cvar_loss takes per-sample losses of shape (B,), got {tuple(losses.shape)}"
-        )
-    _check_alpha(alpha, losses.numel(), lo_closed=False)
-    k = (1.0 - alpha) * losses.numel()
-    if k < min_tail:
-        warnings.warn(
-            f"CVaR-{alpha:g} on a batch of {losses.numel()} keeps only {k:.1f} samples in the tail "
-            f"(< {min_tail}); use batches of at least {math.ceil(min_tail / (1 - alpha) - 1e-9)}",
-            stacklevel=2,
-        )
-    return _tail_mean(losses, alpha)
-
-
-def cvar_curve(
-    losses: np.ndarray, alphas: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(alphas, CVaR_alpha(losses))`` over a percentile grid (default 0, 1, ..., 99 %): seed
-    000's Fig. 5."""
-    alphas = np.arange(100) / 100.0 if alphas is None else np.asarray(alphas, dtype=float)
-    values = torch.as_tensor(np.asarray(losses, dtype=np.float64)).reshape(-1)
-    return alphas, np.array([float(_tail_mean(values, float(a))) for a in alphas])
-
-
-#: What a CVaR fine-tune ranks a batch's samples by to find its tail: ``"loss"`` (the paper's:
-#: the loss trained on, for a GMM mostly its sigma terms) or ``"followed_error"`` (the followed
-#: mode's trajectory error, ADE [m]: the samples the driver gets most wrong).
-RANK_BY = ("loss", "followed_error")
-
-
-class CVaRObjective(WrappedObjective):
-    """Train on the worst ``1 - alpha`` of every batch (seed 000, section 3.5).
-
-    The per-sample losses and metrics are the base's; only the batch's reduction changes, to the
-    mean over its tail (:func:`cvar_loss` when the tail is ranked by the loss itself). Validation
-    losses stay per-sample means, comparable with the base's.
-
-    Args:
-        base: the objective whose tail is trained on (e.g. ``WithAffordance(GMMObjective(), w)``).
-        alpha: in (0, 1) (the paper: 0.9).
-        min_tail: see :func:`cvar_loss`.
-        rank_by: one of :data:`RANK_BY`; ``"followed_error"`` needs a trajectory or GMM base.
-    """
-
-    def __init__(
-        self, base: Objective, alpha: float = 0.9, min_tail: int = 10, rank_by: str = "loss"
-    ) -> None:
-        _check_alpha(alpha, 1, lo_closed=False)
-        if rank_by not in RANK_BY:
-            raise ValueError(f"CVaRObjective.rank_by={rank_by!r} is invalid: must be in {RANK_BY}")
-        super().__init__(base)
-        self.alpha, self.min_tail, self.rank_by = float(alpha), min_tail, rank_by
-        self.min_batch = max(2, math.ceil(min_tail / (1.0 - self.alpha) - 1e-9))
-        ranked = "" if rank_by == "loss" else "-by-followed-error"
-        self.name = f"cvar{self.alpha:g}{ranked}({base.name})"
-
-    def reduce(self, losses: torch.Tensor) -> torch.Tensor:
-        """:func:`cvar_loss` of the batch (the tail ranked by the losses)."""
-        return cvar_loss(losses, self.alpha, self.min_tail)
-
-    def batch_loss(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> torch.Tensor:
-        """The mean loss over the batch's tail, ranked as :attr:`rank_by` says."""
-        losses = self.per_sample(out, batch, model)
-        if self.rank_by == "loss":
-            return self.reduce(losses)
-        cvar_loss(losses.detach(), self.alpha, self.min_tail)  # the same checks and warning
-        return _tail_mean(losses, self.alpha, rank=self.tail_rank(out, batch, model))
-
-    def tail_rank(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> torch.Tensor:
-        """Each sample's rank score, (B,), larger is worse: the loss, or the followed
-        trajectory's ADE [m]."""
-        if self.rank_by == "loss":
-            return self.per_sample(out, batch, model).detach()
-        with torch.no_grad():
-            return self.base.metrics(out, batch, model)["ADE [m]"]

@@ -1,7 +1,7 @@
 """The course's trained drivers, one recipe each, shared by the chapters that train them and the
 chapters that reuse them (chapter 10 drives them all).
 
-Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.training.train_or_load`
+Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.checkpoints.train_or_load`
 (so a valid checkpoint is reused, and a missing or stale one is retrained, seeded) and returns
 ``(model, objective, history)``. The settings per profile:
 
@@ -27,12 +27,14 @@ from typing import Any
 
 import numpy as np
 
+from .checkpoints import train_or_load
 from .config import Profile
+from .cvar import CVaRObjective
 from .dataset import DrivingData, DrivingDataset
 from .labels import AFFORDANCE_NAMES
-from .losses import CVaRObjective, GMMObjective, Objective, WithAffordance
+from .losses import GMMObjective, Objective, WithAffordance
 from .models import DrivingModel, ModelConfig
-from .training import History, TrainConfig, evaluate_loss, train_or_load
+from .training import History, TrainConfig, evaluate_loss
 
 Trained = tuple[DrivingModel, Objective, History]
 
@@ -289,7 +291,7 @@ def gmm_affordance(
 REDUCTIONS = ("cvar", "mean")
 #: The fine-tune's learning rate: a tenth of the base training's, continuing its Adam state.
 CVAR_LR = 1e-4
-#: What the CVaR fine-tune ranks its tail by (:data:`~e2e_lite.losses.RANK_BY`).
+#: What the CVaR fine-tune ranks its tail by (:data:`~e2e_lite.cvar.RANK_BY`).
 CVAR_RANK_BY = "loss"
 
 

@@ -8,15 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from e2e_lite.losses import (
-    CVaRObjective,
-    GMMObjective,
-    WithAffordance,
-    cvar,
-    cvar_curve,
-    cvar_loss,
-    cvar_ru,
-)
+from e2e_lite.cvar import CVaRObjective, cvar, cvar_curve, cvar_loss, cvar_ru
+from e2e_lite.losses import GMMObjective, WithAffordance
 from e2e_lite.models import ModelConfig, build_model
 from e2e_lite.training import TrainConfig, fit
 
@@ -214,7 +207,7 @@ def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples(
 
 def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset():
     from e2e_lite.data import AFFORDANCE_NAMES, GAP_CAP_M
-    from e2e_lite.losses import affordance_errors
+    from e2e_lite.heldout import affordance_errors
 
     true = np.zeros((4, 9))
     gap = AFFORDANCE_NAMES.index("gap_ego_m")

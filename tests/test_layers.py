@@ -27,7 +27,8 @@ def test_the_learning_modules_import_without_the_simulator() -> None:
     code = (
         "import sys\n"
         "import e2e_lite.labels, e2e_lite.dataset, e2e_lite.models, e2e_lite.losses\n"
-        "import e2e_lite.training, e2e_lite.recipes\n"
+        "import e2e_lite.training, e2e_lite.recipes, e2e_lite.cvar, e2e_lite.heldout\n"
+        "import e2e_lite.checkpoints, e2e_lite.probes\n"
         f"print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

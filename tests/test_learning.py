@@ -16,6 +16,7 @@ from e2e_lite.agents import (
     TrajectoryAgent,
 )
 from e2e_lite.artifacts import artifact_path, settings_key
+from e2e_lite.checkpoints import CheckpointMismatch, load_checkpoint, save_checkpoint, train_or_load
 from e2e_lite.data import DrivingDataset, synthetic_data
 from e2e_lite.evaluation import EvalConfig, evaluate
 from e2e_lite.geometry import RoadConfig
@@ -31,19 +32,8 @@ from e2e_lite.models import (
     count_parameters,
     prepare,
 )
-from e2e_lite.training import (
-    DECISIVE,
-    CheckpointMismatch,
-    TrainConfig,
-    decisive_errors,
-    fit,
-    layer_features,
-    load_checkpoint,
-    model_stats,
-    probe_affordances,
-    save_checkpoint,
-    train_or_load,
-)
+from e2e_lite.probes import layer_features, probe_affordances
+from e2e_lite.training import DECISIVE, TrainConfig, decisive_errors, fit, model_stats
 from e2e_lite.vehicle import VehicleParams
 from e2e_lite.world import TrafficConfig, WorldConfig
 

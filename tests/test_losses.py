@@ -12,16 +12,8 @@ from hypothesis import strategies as st
 from scipy.stats import multivariate_normal
 
 from e2e_lite.data import DrivingDataset, synthetic_data
-from e2e_lite.losses import (
-    GMMObjective,
-    Mixture,
-    Objective,
-    gmm_nll,
-    log_sigma,
-    mode_split,
-    side_shares,
-    split_gmm,
-)
+from e2e_lite.heldout import mode_split, side_shares
+from e2e_lite.losses import GMMObjective, Mixture, Objective, gmm_nll, log_sigma, split_gmm
 from e2e_lite.models import ModelConfig, build_model, prepare
 from e2e_lite.training import TrainConfig, fit, model_stats
 
