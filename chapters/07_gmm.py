@@ -64,8 +64,9 @@ from e2e_lite.evaluation import (
     speed_histogram,
 )
 from e2e_lite.expert import Expert, Oracle
+from e2e_lite.heldout import mode_split, side_shares
 from e2e_lite.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
-from e2e_lite.losses import gmm_nll, mode_split, side_shares
+from e2e_lite.losses import gmm_nll
 from e2e_lite.scenarios import (
     START_S_M,
     ScenarioConfig,
@@ -246,8 +247,9 @@ def modes_panels(ax_img, ax_xy, img, last, title, expert=None) -> None:
         ax_xy.plot(pts[:, 1], pts[:, 0], "o-", color=np.array(MODE_RGB[k % 4]) / 255,
                    label=f"mode {k + 1}, weight {last['weights'][0, k]:.2f}")  # fmt: skip
     if expert is not None:
+        # open squares under the modes: a mode on the expert's path stays visible
         ax_xy.plot(expert[:, 1], expert[:, 0], "s--", color=np.array(EXPERT_RGB) / 255,
-                   label="expert's trajectory")  # fmt: skip
+                   mfc="none", ms=9, zorder=1, label="expert's trajectory")  # fmt: skip
     ax_xy.plot([0], [0], "k^", label="the car (rear axle)")
     ax_xy.set_xlim(4.5, -4.5)  # left of the car is drawn on the left
     ax_xy.set_xlabel("lateral position y, left positive [m]")
