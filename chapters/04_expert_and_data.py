@@ -43,9 +43,10 @@ from e2e_lite.data import (
 )
 from e2e_lite.drivers import LaneKeeper
 from e2e_lite.evaluation import SPEED_BINS, EvalConfig, drive, evaluate, observe, speed_histogram
-from e2e_lite.expert import Expert, Oracle
+from e2e_lite.expert import Expert
 from e2e_lite.geometry import Track
 from e2e_lite.labels import CHANGE, KEEP, STATE_NAMES
+from e2e_lite.oracle import Oracle
 from e2e_lite.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
 from e2e_lite.viz import draw_road, save_figure
 from e2e_lite.world import ParkedCars, World, WorldConfig, make_world

@@ -63,10 +63,11 @@ from e2e_lite.evaluation import (
     results_table,
     speed_histogram,
 )
-from e2e_lite.expert import Expert, Oracle
+from e2e_lite.expert import Expert
 from e2e_lite.heldout import mode_split, side_shares
 from e2e_lite.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
 from e2e_lite.losses import gmm_nll
+from e2e_lite.oracle import Oracle
 from e2e_lite.scenarios import (
     START_S_M,
     ScenarioConfig,

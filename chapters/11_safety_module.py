@@ -61,7 +61,8 @@ from e2e_lite.evaluation import (
     result_events,
     results_table,
 )
-from e2e_lite.safety import SafeAgent, SafetyConfig, SafetyStats, check
+from e2e_lite.safe_agent import SafeAgent, SafetyStats
+from e2e_lite.safety import SafetyConfig, check
 from e2e_lite.viz import save_figure
 from e2e_lite.world import WorldConfig
 

@@ -34,8 +34,9 @@ from .artifacts import artifact_path, cached, load_json, save_json, settings_key
 from .config import FULL, Profile
 from .data import DataConfig, DrivingData, load_or_collect
 from .evaluation import evaluate
-from .expert import Expert, Oracle
+from .expert import Expert
 from .metrics import EvalResult, pool_results, result_dict, results_table
+from .oracle import Oracle
 from .policy import Policy
 from .rollout import EvalConfig, disjoint_runs
 from .world import WorldConfig

@@ -44,10 +44,11 @@ from .config import active_profile
 from .data import DataConfig, DrivingDataset, collect, synthetic_data
 from .drivers import LaneChanger, LaneKeeper
 from .evaluation import evaluate
-from .expert import Expert, Oracle
+from .expert import Expert
 from .geometry import RoadConfig
 from .losses import Objective
 from .models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
+from .oracle import Oracle
 from .rollout import EvalConfig
 from .training import TrainConfig, fit
 from .world import Fleet, TrafficConfig, WorldConfig, make_world

@@ -12,9 +12,10 @@ from e2e_lite.agents import SteeringAgent, TrajectoryAgent
 from e2e_lite.config import QUICK
 from e2e_lite.drivers import LaneKeeper
 from e2e_lite.evaluation import EvalConfig, EvalResult
-from e2e_lite.expert import Expert, Oracle
+from e2e_lite.expert import Expert
 from e2e_lite.geometry import RoadConfig
 from e2e_lite.models import ModelConfig, build_model, prepare
+from e2e_lite.oracle import Oracle
 from e2e_lite.world import TrafficConfig, WorldConfig
 
 WORLD = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_cars=(8, 8)))

@@ -7,16 +7,10 @@ import pytest
 from conftest import straight_world
 
 from e2e_lite.evaluation import EvalConfig, evaluate, observe
-from e2e_lite.expert import (
-    Expert,
-    ExpertConfig,
-    Oracle,
-    car_ahead,
-    lane_clear,
-    speed_profile,
-)
+from e2e_lite.expert import Expert, ExpertConfig, car_ahead, lane_clear, speed_profile
 from e2e_lite.geometry import RoadConfig, Track
 from e2e_lite.labels import CHANGE, KEEP
+from e2e_lite.oracle import Oracle
 from e2e_lite.world import Fleet, TrafficConfig, World, WorldConfig
 
 

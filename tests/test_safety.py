@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from e2e_lite.data import AFFORDANCE_NAMES
 from e2e_lite.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.geometry import RoadConfig
-from e2e_lite.safety import SafeAgent, SafetyConfig, check, choose, keep_lane_brake
+from e2e_lite.safe_agent import SafeAgent
+from e2e_lite.safety import SafetyConfig, check, choose, keep_lane_brake
 from e2e_lite.tracker import LQRTracker, trajectory_reference
 from e2e_lite.world import TrafficConfig, WorldConfig
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from e2e_lite.drivers import LaneKeeper
-from e2e_lite.expert import Expert, Oracle
+from e2e_lite.expert import Expert
+from e2e_lite.oracle import Oracle
 from e2e_lite.scenarios import ScenarioConfig, overtake_scenes, run_scenarios
 
 
