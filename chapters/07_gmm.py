@@ -190,7 +190,6 @@ train = load_or_collect(DataConfig.for_profile(profile, "train"))
 val = load_or_collect(DataConfig.for_profile(profile, "val"))
 model, objective, hist = recipes.gmm(profile, train, val)
 warmup = objective.sigma_warmup_epochs
-objective.start_epoch(10**6)  # evaluate with sigma open
 for rec in hist.epochs:
     print(f"epoch {rec['epoch'] + 1}: val NLL {rec['val_loss']:.3f}, frozen {rec['frozen'] or '-'}")
 val_losses, val_metrics = evaluate_loss(model, objective, DrivingDataset(val))

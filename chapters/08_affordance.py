@@ -106,7 +106,6 @@ print(f"chosen {why} ({first['train_samples']} samples, {first['epochs']} epoch(
 
 # %%
 model, objective, hist = recipes.gmm_affordance(profile, train, val, w_best)
-objective.start_epoch(10**6)
 val_losses, val_metrics = evaluate_loss(model, objective, DrivingDataset(val))
 held = {k: float(v.mean()) for k, v in val_metrics.items()}
 print(
@@ -245,7 +244,6 @@ for what, e in offset_split.items():
 paper_model, paper_objective, _ = recipes.gmm_affordance(
     profile, train, val, w_best, name="08_gmm_affordance_fused", affordance_from="fused"
 )
-paper_objective.start_epoch(10**6)
 
 
 def head_affordances(net) -> np.ndarray:

@@ -127,7 +127,6 @@ else:
     w, why = recipes.choose_affordance_weight(recipes.affordance_grid(profile, train, val))
     print(f"chapter 08 has not run: grid search here, chosen {why}")
 base, base_objective, _ = recipes.gmm_affordance(profile, train, val, w)
-base_objective.start_epoch(10**6)
 base_losses, _ = evaluate_loss(base, base_objective, DrivingDataset(val))
 alphas, base_curve = cvar_curve(base_losses)
 print(
@@ -217,8 +216,6 @@ model, objective, hist = recipes.gmm_affordance_cvar(profile, train, val, w)
 control, control_objective, _ = recipes.gmm_affordance_cvar(
     profile, train, val, w, reduction="mean"
 )
-objective.start_epoch(10**6)
-control_objective.start_epoch(10**6)
 cvar_losses, cvar_metrics = evaluate_loss(model, objective, DrivingDataset(val))
 control_losses, _ = evaluate_loss(control, control_objective, DrivingDataset(val))
 _, tuned_curve = cvar_curve(cvar_losses)

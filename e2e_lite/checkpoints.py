@@ -133,6 +133,10 @@ def train_or_load(
     """The model ``name`` from ``<outputs>/checkpoints/<name>.pt`` if it was trained with these
     settings on this data; otherwise train it (seeded), save it and return it.
 
+    Either way ``objective`` comes back in its state after the last epoch
+    (``objective.start_epoch(train_cfg.epochs)``: a GMM's sigma warm-up is over), so a reused and
+    a freshly trained model are scored alike.
+
     Args:
         name: checkpoint and figure name.
         model_cfg, train_cfg, objective: what to train and how.
@@ -183,6 +187,7 @@ def train_or_load(
             if meta["key"] == key and meta["history"] is not None and kept:
                 if progress:
                     print(f"[checkpoints] {name}: reusing {path.name}")
+                objective.start_epoch(train_cfg.epochs)  # as after training: warm-up over
                 return model, History(**meta["history"])
             if progress:
                 why = "other settings" if kept else "no optimiser state kept"
@@ -212,4 +217,5 @@ def train_or_load(
     )
     model.eval()
     save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)
+    objective.start_epoch(train_cfg.epochs)  # fit left it at the last epoch's; this is after it
     return model, history

@@ -214,7 +214,6 @@ def affordance_grid(
         model, _ = train_or_load(
             f"08_grid_w{w:g}", AFFORDANCE_CFG, cfg, objective, train, val, train_rows=rows, **kw
         )
-        objective.start_epoch(10**6)  # score with sigma open
         _, metrics = evaluate_loss(model, objective, DrivingDataset(val))
         scores[w] = {
             "trajectory_nll": float(metrics["main loss"].mean()),

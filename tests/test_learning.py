@@ -33,7 +33,14 @@ from e2e_lite.models import (
     prepare,
 )
 from e2e_lite.probes import layer_features, probe_affordances
-from e2e_lite.training import DECISIVE, TrainConfig, decisive_errors, fit, model_stats
+from e2e_lite.training import (
+    DECISIVE,
+    TrainConfig,
+    decisive_errors,
+    evaluate_loss,
+    fit,
+    model_stats,
+)
 from e2e_lite.vehicle import VehicleParams
 from e2e_lite.world import TrafficConfig, WorldConfig
 
@@ -134,6 +141,26 @@ def test_train_or_load_reuses_a_valid_checkpoint(capsys):
     # other training settings: retrained, with a message
     train_or_load("reuse", cfg, small_train_cfg(epochs=1, lr=5e-4), obj, data, val)
     assert "other settings" in capsys.readouterr().out
+
+
+def test_a_reused_and_a_trained_model_come_back_with_the_objective_in_the_same_state():
+    """After train_or_load the GMM's warm-up is over whether it trained or reused: the held-out
+    NLL of the two is the same number (it once depended on which path ran)."""
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
+    cfg = ModelConfig(head="gmm", fusion_width=16)
+    trained_obj = GMMObjective(sigma_warmup_epochs=1)
+    assert trained_obj.sigma_fixed  # a fresh objective starts in its warm-up
+    model, _ = train_or_load(
+        "state", cfg, small_train_cfg(epochs=2), trained_obj, data, val, progress=False
+    )
+    reused_obj = GMMObjective(sigma_warmup_epochs=1)
+    again, _ = train_or_load(
+        "state", cfg, small_train_cfg(epochs=2), reused_obj, data, val, progress=False
+    )
+    assert not trained_obj.sigma_fixed and not reused_obj.sigma_fixed
+    a, _ = evaluate_loss(model, trained_obj, DrivingDataset(val))
+    b, _ = evaluate_loss(again, reused_obj, DrivingDataset(val))
+    np.testing.assert_allclose(a, b)
 
 
 def test_fine_tune_starts_from_its_parent_and_follows_it(capsys):
