@@ -26,11 +26,11 @@ import numpy as np
 
 import e2e_lite
 from e2e_lite import artifacts
-from e2e_lite.drivers import LaneChanger, LaneKeeper
-from e2e_lite.evaluation import EvalConfig, evaluate, miles_text, poisson_ci
-from e2e_lite.geometry import generate_track
+from e2e_lite.control.drivers import LaneChanger, LaneKeeper
+from e2e_lite.driving.evaluation import EvalConfig, evaluate, miles_text, poisson_ci
+from e2e_lite.simulation.geometry import generate_track
+from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.viz import highway_figure, save_figure
-from e2e_lite.world import WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 print(
@@ -112,7 +112,7 @@ print(
 # `L / tan δ`. Let us check that on the library's model.
 
 # %%
-from e2e_lite.vehicle import VehicleParams, bicycle_step, make_state
+from e2e_lite.simulation.vehicle import VehicleParams, bicycle_step, make_state
 
 car = VehicleParams()
 state = make_state(0.0, 0.0, 0.0, speed=15.0, steer=0.1)
@@ -128,7 +128,7 @@ print(f"L/tan(δ) = {radius:.4f} m; driven radius {r_measured.min():.4f}-{r_meas
 # ## 4. Two scripted drivers
 #
 # Both steer with the same proportional law on the lane frame (speed-scheduled gains plus a
-# curvature feed-forward; `e2e_lite/drivers.py`) and cruise at 25 m/s (56 mph).
+# curvature feed-forward; `e2e_lite/control/drivers.py`) and cruise at 25 m/s (56 mph).
 #
 # * the **lane keeper** follows the centre of its lane and sees nothing else;
 # * the **lane changer** also asks the world (a pymunk range query) for the gap to the next parked

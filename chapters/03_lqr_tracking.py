@@ -27,10 +27,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.evaluation import Actuation, EvalConfig, Observation, evaluate
-from e2e_lite.geometry import Track
-from e2e_lite.labels import POINT_DT_S
-from e2e_lite.tracker import (
+from e2e_lite.control.labels import POINT_DT_S
+from e2e_lite.control.tracker import (
     LaneChangePath,
     LQRTracker,
     TrackerConfig,
@@ -40,9 +38,11 @@ from e2e_lite.tracker import (
     lateral_model,
     trajectory_reference,
 )
-from e2e_lite.vehicle import VehicleParams, bicycle_step, make_state
+from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
+from e2e_lite.simulation.geometry import Track
+from e2e_lite.simulation.vehicle import VehicleParams, bicycle_step, make_state
+from e2e_lite.simulation.world import SimConfig, TrafficConfig, WorldConfig
 from e2e_lite.viz import save_figure
-from e2e_lite.world import SimConfig, TrafficConfig, WorldConfig
 
 veh = VehicleParams()
 SIM = SimConfig()  # physics every SIM.dt_s, a decision every SIM.steps_per_policy physics steps

@@ -32,8 +32,19 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
-from e2e_lite.data import (
+from e2e_lite.control.drivers import LaneKeeper
+from e2e_lite.control.expert import Expert
+from e2e_lite.control.labels import CHANGE, KEEP, STATE_NAMES
+from e2e_lite.control.oracle import Oracle
+from e2e_lite.driving.evaluation import (
+    SPEED_BINS,
+    EvalConfig,
+    drive,
+    evaluate,
+    observe,
+    speed_histogram,
+)
+from e2e_lite.learning.data import (
     AFFORDANCE_NAMES,
     SLOW_MPS,
     DataConfig,
@@ -41,15 +52,12 @@ from e2e_lite.data import (
     describe,
     load_or_collect,
 )
-from e2e_lite.drivers import LaneKeeper
-from e2e_lite.evaluation import SPEED_BINS, EvalConfig, drive, evaluate, observe, speed_histogram
-from e2e_lite.expert import Expert
-from e2e_lite.geometry import Track
-from e2e_lite.labels import CHANGE, KEEP, STATE_NAMES
-from e2e_lite.oracle import Oracle
-from e2e_lite.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
+from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.geometry import Track
+from e2e_lite.simulation.raster import save_image
+from e2e_lite.simulation.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
+from e2e_lite.simulation.world import ParkedCars, World, WorldConfig, make_world
 from e2e_lite.viz import draw_road, save_figure
-from e2e_lite.world import ParkedCars, World, WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())

@@ -30,16 +30,18 @@ profile = start_chapter(5)  # flags, profile, outputs folder: checked before any
 import numpy as np
 import torch
 
-from e2e_lite import artifacts, recipes
-from e2e_lite.agents import ActuatorAgent, SteeringAgent
-from e2e_lite.camera import Camera, CameraConfig, save_image
-from e2e_lite.data import DataConfig, DrivingDataset, concat, load_or_collect
-from e2e_lite.evaluation import EvalConfig, evaluate, results_table
-from e2e_lite.losses import Objective
-from e2e_lite.models import build_model, count_parameters, pick_device, prepare
-from e2e_lite.recovery import RecoveryConfig, load_or_make_recovery
-from e2e_lite.training import TrainConfig, epoch_batches, evaluate_loss, fit, model_stats
-from e2e_lite.world import WorldConfig, make_world
+from e2e_lite import artifacts
+from e2e_lite.driving.evaluation import EvalConfig, evaluate, results_table
+from e2e_lite.learning import recipes
+from e2e_lite.learning.agents import ActuatorAgent, SteeringAgent
+from e2e_lite.learning.data import DataConfig, DrivingDataset, concat, load_or_collect
+from e2e_lite.learning.losses import Objective
+from e2e_lite.learning.models import build_model, count_parameters, pick_device, prepare
+from e2e_lite.learning.recovery import RecoveryConfig, load_or_make_recovery
+from e2e_lite.learning.training import TrainConfig, epoch_batches, evaluate_loss, fit, model_stats
+from e2e_lite.simulation.camera import Camera, CameraConfig
+from e2e_lite.simulation.raster import save_image
+from e2e_lite.simulation.world import WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 device = pick_device()
@@ -129,7 +131,7 @@ print(
 # 6. step: Adam moves every weight against its gradient, scaled by running estimates of the
 #    gradient's mean and spread.
 #
-# We write them once here and check them against the library's loop (`e2e_lite.training.fit`):
+# We write them once here and check them against the library's loop (`e2e_lite.learning.training.fit`):
 # the same start, the same batches, the same weights at the end. The library adds only
 # bookkeeping around them: the validation losses, the kept epoch, the progress bar, the curve.
 
@@ -173,11 +175,11 @@ assert gap < 1e-6, gap
 # %% [markdown]
 # ### The course's trainings
 #
-# One loop for every chapter (`e2e_lite.training.fit`): Adam at 1e-3 without weight decay (the
+# One loop for every chapter (`e2e_lite.learning.training.fit`): Adam at 1e-3 without weight decay (the
 # paper), batches of 64, the best validation epoch kept (seed 002), per-epoch metrics JSON and a
 # training curve in `outputs/figures/train_<name>.png`. A checkpoint carries the model's settings,
 # its normalisation statistics and the dataset's key; running the chapter again reuses it. The
-# settings of each trained driver live in `e2e_lite/recipes.py`, so chapter 10 retrains or reuses
+# settings of each trained driver live in `e2e_lite/learning/recipes.py`, so chapter 10 retrains or reuses
 # exactly these models.
 
 # %%
@@ -345,6 +347,6 @@ artifacts.write_metrics(
 #    loss go up or down? And the collisions? Explain the difference.
 # 2. Replace the cruise control of `SteeringAgent` by a constant 25 m/s. Which collisions appear?
 # 3. Seed 002 predicted throttle and brake instead of acceleration. Use
-#    `e2e_lite.data.throttle_brake` to make those targets and train a 3-output head. What changes?
+#    `e2e_lite.learning.data.throttle_brake` to make those targets and train a 3-output head. What changes?
 # 4. Look at `outputs/figures/train_05_actuators.png`. Is the best epoch the last? What would more
 #    epochs buy, and what would they cost on this CPU?

@@ -25,16 +25,18 @@ profile = start_chapter(6)  # flags, profile, outputs folder: checked before any
 import numpy as np
 import torch
 
-from e2e_lite import artifacts, recipes
-from e2e_lite.agents import TrajectoryAgent
-from e2e_lite.camera import Camera, CameraConfig, draw_trajectory, save_image
-from e2e_lite.data import DataConfig, DrivingDataset, load_or_collect
-from e2e_lite.evaluation import EvalConfig, evaluate, observe, results_table
-from e2e_lite.expert import Expert
-from e2e_lite.labels import CHANGE, KEEP
-from e2e_lite.scenarios import two_answers_scene
-from e2e_lite.training import evaluate_loss
-from e2e_lite.world import World, WorldConfig, make_world
+from e2e_lite import artifacts
+from e2e_lite.control.expert import Expert
+from e2e_lite.control.labels import CHANGE, KEEP
+from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe, results_table
+from e2e_lite.learning import recipes
+from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.learning.data import DataConfig, DrivingDataset, load_or_collect
+from e2e_lite.learning.training import evaluate_loss
+from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.raster import save_image
+from e2e_lite.simulation.scenarios import two_answers_scene
+from e2e_lite.simulation.world import World, WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
@@ -61,7 +63,9 @@ print(
 # of 10 outputs.
 
 # %%
-model, objective, hist = recipes.trajectory_l2(profile, train, val)  # settings: e2e_lite/recipes.py
+model, objective, hist = recipes.trajectory_l2(
+    profile, train, val
+)  # settings: e2e_lite/learning/recipes.py
 val_losses, val_metrics = evaluate_loss(model, objective, DrivingDataset(val))
 ade, fde = float(val_metrics["ADE [m]"].mean()), float(val_metrics["FDE [m]"].mean())
 print(f"held out: ADE {ade:.3f} m, FDE {fde:.3f} m (mean distance over the 5 points / at 1.5 s)")

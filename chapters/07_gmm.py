@@ -33,26 +33,12 @@ import torch
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from e2e_lite import artifacts, recipes
-from e2e_lite.agents import (
-    DEFAULT_PREVIEW_S,
-    DEFAULT_SPEED,
-    SPEED_SOURCES,
-    Recorder,
-    TrajectoryAgent,
-)
-from e2e_lite.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.data import (
-    AFFORDANCE_NAMES,
-    SLOW_MPS,
-    DataConfig,
-    DrivingDataset,
-    NoiseConfig,
-    load_or_collect,
-    road_lateral,
-    situations,
-)
-from e2e_lite.evaluation import (
+from e2e_lite import artifacts
+from e2e_lite.control.expert import Expert
+from e2e_lite.control.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
+from e2e_lite.control.oracle import Oracle
+from e2e_lite.control.tracker import SPEED_READINGS, trajectory_reference
+from e2e_lite.driving.evaluation import (
     COLLISION_KINDS,
     EvalConfig,
     collision_kinds,
@@ -63,22 +49,37 @@ from e2e_lite.evaluation import (
     results_table,
     speed_histogram,
 )
-from e2e_lite.expert import Expert
-from e2e_lite.heldout import mode_split, side_shares
-from e2e_lite.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
-from e2e_lite.losses import gmm_nll
-from e2e_lite.oracle import Oracle
-from e2e_lite.scenarios import (
+from e2e_lite.learning import recipes
+from e2e_lite.learning.agents import (
+    DEFAULT_PREVIEW_S,
+    DEFAULT_SPEED,
+    SPEED_SOURCES,
+    Recorder,
+    TrajectoryAgent,
+)
+from e2e_lite.learning.data import (
+    AFFORDANCE_NAMES,
+    SLOW_MPS,
+    DataConfig,
+    DrivingDataset,
+    NoiseConfig,
+    load_or_collect,
+    road_lateral,
+    situations,
+)
+from e2e_lite.learning.heads import gmm_nll
+from e2e_lite.learning.heldout import mode_split, side_shares
+from e2e_lite.learning.training import DECISIVE, evaluate_loss
+from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.scenarios import (
     START_S_M,
     ScenarioConfig,
     overtake_scenes,
     run_scenarios,
     two_answers_scene,
 )
-from e2e_lite.tracker import SPEED_READINGS, trajectory_reference
-from e2e_lite.training import DECISIVE, evaluate_loss
+from e2e_lite.simulation.world import Fleet, WorldConfig, make_world
 from e2e_lite.viz import collision_chart, save_figure
-from e2e_lite.world import Fleet, WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())
@@ -703,7 +704,7 @@ print(f"saved {coverage_png}")
 # ## 7. The paper's Fig. 3 in closed loop: a car dead ahead
 #
 # Collision counts mix many causes. This scene set isolates the one the GMM is for
-# (`e2e_lite.scenarios`): the ego at cruise speed on the centre of the middle lane of a straight
+# (`e2e_lite.simulation.scenarios`): the ego at cruise speed on the centre of the middle lane of a straight
 # road, a parked car 70-100 m ahead in the same lane, both side lanes free, with a seeded jitter
 # of the distance, the lateral offset (+-0.2 m) and the speed (24-26 m/s). Passing on either side
 # is right; the average of the two is the parked car. A scene is passed when the car gets 10 m

@@ -37,9 +37,18 @@ profile = start_chapter(8)  # flags, profile, outputs folder: checked before any
 import numpy as np
 from matplotlib.figure import Figure
 
-from e2e_lite import artifacts, recipes
-from e2e_lite.agents import Recorder, TrajectoryAgent
-from e2e_lite.data import (
+from e2e_lite import artifacts
+from e2e_lite.control.labels import AFFORDANCE_INDEX, CHANGE
+from e2e_lite.driving.evaluation import (
+    EvalConfig,
+    compare_rates,
+    evaluate,
+    miles_text,
+    results_table,
+)
+from e2e_lite.learning import recipes
+from e2e_lite.learning.agents import Recorder, TrajectoryAgent
+from e2e_lite.learning.data import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,
@@ -47,13 +56,11 @@ from e2e_lite.data import (
     affordances,
     load_or_collect,
 )
-from e2e_lite.evaluation import EvalConfig, compare_rates, evaluate, miles_text, results_table
-from e2e_lite.heldout import AFFORDANCE_GOALS, affordance_errors
-from e2e_lite.labels import AFFORDANCE_INDEX, CHANGE
-from e2e_lite.probes import PROBE_LAYERS, probe_affordances
-from e2e_lite.training import evaluate_loss
+from e2e_lite.learning.heldout import AFFORDANCE_GOALS, affordance_errors
+from e2e_lite.learning.probes import PROBE_LAYERS, probe_affordances
+from e2e_lite.learning.training import evaluate_loss
+from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.viz import collision_chart, save_figure
-from e2e_lite.world import WorldConfig
 
 world_cfg = WorldConfig.for_profile(profile)
 GAP, OFFSET = AFFORDANCE_INDEX["gap_ego_m"], AFFORDANCE_INDEX["center_offset_m"]

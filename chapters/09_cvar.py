@@ -30,19 +30,9 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from e2e_lite import ablation, artifacts, recipes
-from e2e_lite.agents import TrajectoryAgent
-from e2e_lite.camera import save_image
-from e2e_lite.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
-from e2e_lite.data import (
-    AFFORDANCE_NAMES,
-    GAP_CAP_M,
-    DataConfig,
-    DrivingDataset,
-    load_or_collect,
-    situation_shares,
-)
-from e2e_lite.evaluation import (
+from e2e_lite import artifacts
+from e2e_lite.control.labels import KEEP
+from e2e_lite.driving.evaluation import (
     EvalConfig,
     compare_rates,
     miles_text,
@@ -50,10 +40,22 @@ from e2e_lite.evaluation import (
     result_dict,
     results_table,
 )
-from e2e_lite.labels import KEEP
-from e2e_lite.training import evaluate_loss
+from e2e_lite.experiments import ablation
+from e2e_lite.learning import recipes
+from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.learning.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
+from e2e_lite.learning.data import (
+    AFFORDANCE_NAMES,
+    GAP_CAP_M,
+    DataConfig,
+    DrivingDataset,
+    load_or_collect,
+    situation_shares,
+)
+from e2e_lite.learning.training import evaluate_loss
+from e2e_lite.simulation.raster import save_image
+from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.viz import collision_chart, save_figure
-from e2e_lite.world import WorldConfig
 
 world_cfg = WorldConfig.for_profile(profile)
 
@@ -98,7 +100,7 @@ print(
 #
 # attained at the α-quantile. With `ν` a parameter learned across batches, a sample gets a
 # gradient whenever its loss is above `ν`, not only when it is in its own batch's tail
-# (`e2e_lite.cvar.cvar_ru`; exercise 6 below). Check it on the same 37 losses:
+# (`e2e_lite.learning.cvar.cvar_ru`; exercise 6 below). Check it on the same 37 losses:
 
 # %%
 grid = torch.linspace(float(x.min()), float(x.max()), 2001, dtype=torch.float64)

@@ -20,7 +20,7 @@
 # the simulator; the ceiling) and the **oracle** (the LQR tracker following the expert's own
 # 5-point trajectories: the ceiling of any network that predicts such a trajectory).
 #
-# Every trained driver comes from `e2e_lite/recipes.py`, and **every learned row is trained with
+# Every trained driver comes from `e2e_lite/learning/recipes.py`, and **every learned row is trained with
 # three seeds** (two in the quick profile): one training run cannot separate the methods here
 # (three trainings of one GMM once spanned 179-274 collisions per 100 miles). Seed 0 is the
 # checkpoint of chapters 05-09, reused when valid; seeds 1 and 2 are trained here. A row's miles
@@ -35,9 +35,8 @@ from e2e_lite.course import start_chapter
 
 profile = start_chapter(10)  # flags, profile, outputs folder: checked before any work
 
-from e2e_lite import ablation, artifacts, replay
-from e2e_lite.data import DataConfig, load_or_collect
-from e2e_lite.evaluation import (
+from e2e_lite import artifacts
+from e2e_lite.driving.evaluation import (
     COLLISION_KINDS,
     EvalConfig,
     collision_kinds,
@@ -46,8 +45,10 @@ from e2e_lite.evaluation import (
     result_dict,
     results_table,
 )
+from e2e_lite.experiments import ablation, replay
+from e2e_lite.learning.data import DataConfig, load_or_collect
+from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.viz import collision_chart, save_figure
-from e2e_lite.world import WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
 print(
@@ -240,7 +241,7 @@ print(f"saved {chart_png}")
 #
 # Numbers say how often; a replay shows how. Each driver (its training seed 0) drives the same
 # stretch (validation track 0, middle lane, from 30 m) alone, for up to the replay length or until
-# its first collision. `e2e_lite.replay` writes each drive as a **standalone 3D page** (meshcat's viewer
+# its first collision. `e2e_lite.experiments.replay` writes each drive as a **standalone 3D page** (meshcat's viewer
 # and the scene in one HTML file, no server: open it from disk) with the car's declared intent
 # at every decision: the 5 proposed points, one colour per GMM mode, bigger for heavier modes.
 # The same drive as a GIF of the camera view with the proposal drawn on it is next to it.

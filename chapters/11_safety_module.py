@@ -47,11 +47,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from e2e_lite import ablation, artifacts
-from e2e_lite.agents import TrajectoryAgent
-from e2e_lite.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.data import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
-from e2e_lite.evaluation import (
+from e2e_lite import artifacts
+from e2e_lite.driving.evaluation import (
     EvalConfig,
     compare_rates,
     disjoint_runs,
@@ -61,10 +58,14 @@ from e2e_lite.evaluation import (
     result_events,
     results_table,
 )
-from e2e_lite.safe_agent import SafeAgent, SafetyStats
-from e2e_lite.safety import SafetyConfig, check
+from e2e_lite.experiments import ablation
+from e2e_lite.experiments.safe_agent import SafeAgent, SafetyStats
+from e2e_lite.experiments.safety import SafetyConfig, check
+from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
+from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.viz import save_figure
-from e2e_lite.world import WorldConfig
 
 world_cfg = WorldConfig.for_profile(profile)
 cfg = SafetyConfig()
@@ -215,7 +216,7 @@ stats = {}
 variants = (("perceived", False), ("ground truth", True))
 runs = disjoint_runs(ev, world_cfg, len(seeded))  # seed k's roads, as chapter 10's
 for name, gt in variants:
-    per_seed, counts, first = [], SafetyStats(), None
+    per_seed, counts, first = [], SafetyStats(), []
     for k, (policy, run) in enumerate(zip(seeded, runs)):
         safe = SafeAgent(TrajectoryAgent(policy.model), cfg, ground_truth=gt, audit_every=4)
         res = evaluate(
@@ -227,8 +228,8 @@ for name, gt in variants:
         )
         print(f"with the module ({name}, seed {k}): {res.summary()}")
         per_seed.append(res)
-        counts.add(safe.stats.counts())
-        first = first or safe  # the examples of section 3 come from seed 0
+        counts.add(res.info)  # what the module reported with its decisions, added up
+        first = first or res.info["examples"]  # the examples of section 3 come from seed 0
     guarded[name], stats[name] = (pool_results(per_seed), first), counts.to_dict()
 
 label = ablation.BY_KEY[key].label
@@ -315,7 +316,7 @@ print(f"starts at {starts[1]:g} m/s against {starts[0]:g} m/s: {slow_start['verd
 view = Camera(CameraConfig.human())
 MODE_RGB = ((40, 110, 230), (240, 140, 30))
 DRIVEN_RGB = (40, 200, 60)
-examples = {name: guarded[name][1].examples()[:3] for name, _ in variants}
+examples = {name: guarded[name][1][:3] for name, _ in variants}
 n_rows = max(len(v) for v in examples.values())
 if n_rows:
     fig = Figure(figsize=(13, 3.3 * n_rows + 0.6), layout="constrained")

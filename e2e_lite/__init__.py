@@ -1,8 +1,9 @@
 """e2e-lite: a CPU-sized teaching reproduction of "Closing the gap towards end-to-end autonomous
 vehicle system" (Glassner et al., 2019) with its PilotNet baseline.
 
-Layers, each importing only those above it in this list:
-geometry -> vehicle -> world -> evaluation -> drivers -> viz; config and artifacts are used by all.
+The folders are the layers, bottom to top; a module imports from its own folder and those below:
+simulation -> control -> driving -> learning -> experiments. ``config`` and ``artifacts`` are used
+by all; ``viz``, ``course`` and ``bench`` sit beside the layers and may import any of them.
 """
 
 __version__ = "0.1.0"

@@ -36,22 +36,22 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
 from .artifacts import artifact_path
-from .camera import Camera, CameraConfig
-from .checkpoints import load_checkpoint
 from .config import active_profile
-from .data import DataConfig, DrivingDataset, collect, synthetic_data
-from .drivers import LaneChanger, LaneKeeper
-from .evaluation import evaluate
-from .expert import Expert
-from .geometry import RoadConfig
-from .losses import Objective
-from .models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
-from .oracle import Oracle
-from .rollout import EvalConfig
-from .training import TrainConfig, fit
-from .world import Fleet, TrafficConfig, WorldConfig, make_world
+from .control.drivers import LaneChanger, LaneKeeper
+from .control.expert import Expert
+from .control.oracle import Oracle
+from .driving.evaluation import evaluate
+from .driving.rollout import EvalConfig
+from .learning.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
+from .learning.checkpoints import load_checkpoint
+from .learning.data import DataConfig, DrivingDataset, collect, synthetic_data
+from .learning.losses import Objective
+from .learning.models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
+from .learning.training import TrainConfig, fit
+from .simulation.camera import Camera, CameraConfig
+from .simulation.geometry import RoadConfig
+from .simulation.world import Fleet, TrafficConfig, WorldConfig, make_world
 
 
 def _machine() -> dict[str, object]:
@@ -99,7 +99,7 @@ def bench_world(quick: bool) -> dict[str, float]:
 def camera_scene(n_frames: int = 16) -> tuple[list, list, np.ndarray, np.ndarray]:
     """A realistic busy scene per frame: on a curve, 10+ parked cars within 100 m.
 
-    Returns ``(tracks, cars, poses, s)`` for :meth:`~e2e_lite.camera.Camera.render_batch`.
+    Returns ``(tracks, cars, poses, s)`` for :meth:`~e2e_lite.simulation.camera.Camera.render_batch`.
     """
     cfg = WorldConfig(
         road=RoadConfig(length_m=3_000.0),
@@ -192,7 +192,7 @@ def bare_train_samples_per_s(
 def bench_train(quick: bool) -> dict[str, float]:
     """Training samples per second at batch 64 for the full fusion model (trajectory head +
     affordance head) and PilotNet: the bare train step (:func:`bare_train_samples_per_s`, before
-    and after the loop, averaged) and the real loop (:func:`~e2e_lite.training.fit`, one epoch on
+    and after the loop, averaged) and the real loop (:func:`~e2e_lite.learning.training.fit`, one epoch on
     synthetic frames, validation left out), and their ratio ``loop_vs_bare``."""
     n = 512 if quick else 6_144
     steps = 8 if quick else 48

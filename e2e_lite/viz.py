@@ -15,9 +15,9 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
 from .artifacts import save_figure  # noqa: F401 (re-exported: the chapters save figures through viz)
-from .geometry import Track
-from .metrics import EvalResult, result_dict
-from .world import ParkedCars
+from .driving.metrics import EvalResult, result_dict
+from .simulation.geometry import Track
+from .simulation.world import ParkedCars
 
 ROAD_GREY = "#5a5a5a"
 GRASS = "#cfe3c3"
@@ -173,7 +173,7 @@ def collision_chart(
         marks_label: the legend entry of the marks.
         log: a symmetric-log x axis (linear below 1 per 100 mi), for rates spanning decades.
 
-    A pooled result (:func:`~e2e_lite.evaluation.pool_results`, with ``seeds``) also gets one
+    A pooled result (:func:`~e2e_lite.driving.evaluation.pool_results`, with ``seeds``) also gets one
     grey dot per training seed with that seed's 95 % interval, spread around its bar.
     """
     if not rows:

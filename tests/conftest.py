@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from e2e_lite.geometry import Track
-from e2e_lite.vehicle import VehicleParams
-from e2e_lite.world import ParkedCars, World
+from e2e_lite.simulation.geometry import Track
+from e2e_lite.simulation.vehicle import VehicleParams
+from e2e_lite.simulation.world import ParkedCars, World
 
 # CI and the README's test command draw the same hypothesis examples every run, so a red build
 # means a change broke something; `HYPOTHESIS_PROFILE=explore pytest` searches with fresh random

@@ -8,20 +8,11 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.camera import (
-    MARKING,
-    ROAD,
-    SHOULDER,
-    SKY,
-    Camera,
-    CameraConfig,
-    TopDownConfig,
-    clip_near,
-    draw_trajectory,
-    render_topdown,
-)
-from e2e_lite.geometry import RoadConfig, generate_track
-from e2e_lite.world import WorldConfig, make_world
+from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.geometry import RoadConfig, generate_track
+from e2e_lite.simulation.raster import MARKING, ROAD, SHOULDER, SKY, clip_near
+from e2e_lite.simulation.topdown import TopDownConfig, render_topdown
+from e2e_lite.simulation.world import WorldConfig, make_world
 
 CAM = Camera()
 CENTRE_POSE = (100.0, 0.0, 0.0)  # rear axle at s = 100 m, middle lane, aligned

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from e2e_lite.ablation import DRIVERS, UNTRAINED
 from e2e_lite.course import find_chapters, select, summary_table
+from e2e_lite.experiments.ablation import DRIVERS, UNTRAINED
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAPTERS = find_chapters(ROOT / "chapters")

@@ -10,9 +10,9 @@ import pytest
 
 from e2e_lite import artifacts
 from e2e_lite.config import FULL, QUICK, Profile, active_profile
-from e2e_lite.geometry import RoadConfig, track_rng
-from e2e_lite.vehicle import VehicleParams
-from e2e_lite.world import SimConfig, TrafficConfig
+from e2e_lite.simulation.geometry import RoadConfig, track_rng
+from e2e_lite.simulation.vehicle import VehicleParams
+from e2e_lite.simulation.world import SimConfig, TrafficConfig
 
 
 @pytest.mark.parametrize(

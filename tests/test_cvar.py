@@ -8,10 +8,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from e2e_lite.cvar import CVaRObjective, cvar, cvar_curve, cvar_loss, cvar_ru
-from e2e_lite.losses import GMMObjective, WithAffordance
-from e2e_lite.models import ModelConfig, build_model
-from e2e_lite.training import TrainConfig, fit
+from e2e_lite.learning.cvar import CVaRObjective, cvar, cvar_curve, cvar_loss, cvar_ru
+from e2e_lite.learning.losses import GMMObjective, WithAffordance
+from e2e_lite.learning.models import ModelConfig, build_model
+from e2e_lite.learning.training import TrainConfig, fit
 
 
 def test_cvar_is_the_brute_force_tail_mean():
@@ -131,8 +131,8 @@ def test_affordance_weight_zero_is_the_plain_gmm_loss():
 
 def test_training_loop_reduces_with_the_objectives_reduce():
     """fit() minimises objective.reduce(per-sample losses): CVaR changes what is trained on."""
-    from e2e_lite.data import DrivingDataset, synthetic_data
-    from e2e_lite.losses import Objective
+    from e2e_lite.learning.data import DrivingDataset, synthetic_data
+    from e2e_lite.learning.losses import Objective
 
     calls = []
 
@@ -160,7 +160,7 @@ def test_training_loop_reduces_with_the_objectives_reduce():
 
 def test_the_control_fine_tune_differs_from_cvar_only_in_the_reduction():
     from e2e_lite.config import FULL
-    from e2e_lite.recipes import finetune_settings
+    from e2e_lite.learning.recipes import finetune_settings
 
     cvar_obj, cvar_cfg = finetune_settings(FULL, 3.0, seed=1, reduction="cvar")
     mean_obj, mean_cfg = finetune_settings(FULL, 3.0, seed=1, reduction="mean")
@@ -178,7 +178,7 @@ def test_the_control_fine_tune_differs_from_cvar_only_in_the_reduction():
 def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples():
     """rank_by="followed_error": the tail is the samples with the largest ADE, whatever their
     loss; gradients reach those samples only."""
-    from e2e_lite.losses import Objective
+    from e2e_lite.learning.losses import Objective
 
     class Fixed(Objective):
         def __init__(self, losses, ade):
@@ -206,8 +206,8 @@ def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples(
 
 
 def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset():
-    from e2e_lite.data import AFFORDANCE_NAMES, GAP_CAP_M
-    from e2e_lite.heldout import affordance_errors
+    from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M
+    from e2e_lite.learning.heldout import affordance_errors
 
     true = np.zeros((4, 9))
     gap = AFFORDANCE_NAMES.index("gap_ego_m")

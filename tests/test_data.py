@@ -9,7 +9,9 @@ import pytest
 from conftest import straight_world
 
 from e2e_lite.config import QUICK
-from e2e_lite.data import (
+from e2e_lite.control.labels import CHANGE
+from e2e_lite.driving.evaluation import EvalConfig
+from e2e_lite.learning.data import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,
@@ -23,10 +25,8 @@ from e2e_lite.data import (
     situations,
     throttle_brake,
 )
-from e2e_lite.evaluation import EvalConfig
-from e2e_lite.geometry import generate_track
-from e2e_lite.labels import CHANGE
-from e2e_lite.vehicle import VehicleParams
+from e2e_lite.simulation.geometry import generate_track
+from e2e_lite.simulation.vehicle import VehicleParams
 
 
 def small_cfg(**kw) -> DataConfig:
@@ -153,7 +153,7 @@ def test_bad_data_settings_raise():
 def test_collector_starts_and_restarts_cars_with_the_evaluators_rule(monkeypatch):
     """Every (re)start of the collector is placed by the evaluator's own functions, and the
     recorded samples hold those states (position, lane centre, 20 m/s)."""
-    from e2e_lite import rollout
+    from e2e_lite.driving import rollout
 
     placed: dict[str, list[tuple[float, float, float]]] = {"start": [], "restart": []}
     for kind, name in (("start", "start_state"), ("restart", "restart_state")):

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.drivers import LaneChanger, LaneKeeper
-from e2e_lite.evaluation import (
+from e2e_lite.control.drivers import LaneChanger, LaneKeeper
+from e2e_lite.driving.evaluation import (
     M_PER_MILE,
     MPS_TO_MPH,
     Actuation,
@@ -28,8 +28,8 @@ from e2e_lite.evaluation import (
     results_table,
     track_index,
 )
-from e2e_lite.geometry import RoadConfig
-from e2e_lite.world import TrafficConfig, WorldConfig
+from e2e_lite.simulation.geometry import RoadConfig
+from e2e_lite.simulation.world import TrafficConfig, WorldConfig
 
 EMPTY = WorldConfig(road=RoadConfig(length_m=3_000.0), traffic=TrafficConfig(n_cars=(0, 0)))
 BUSY = WorldConfig(road=RoadConfig(length_m=3_000.0))
@@ -132,7 +132,7 @@ def test_lane_keeper_hits_exactly_the_cars_in_its_lane():
     re-spawned past it onto the nearest free lane: the first event is predictable."""
     cfg = EvalConfig(miles=0.5, n_worlds=1, n_tracks=1)
     res = evaluate(LaneKeeper(), BUSY, cfg, progress=False)
-    from e2e_lite.world import make_world
+    from e2e_lite.simulation.world import make_world
 
     w = make_world(BUSY, "val", 0)
     first = res.events[0]
@@ -200,9 +200,7 @@ def test_parallel_shards_are_seeded_and_shard_zero_drives_as_one_thread():
 
 
 class ProcessKeeper(ForkingKeeper):
-    """A splittable lane keeper whose shards may run in forked processes."""
-
-    forks_in_processes = True
+    """A splittable lane keeper (its shards run in worker processes unless told otherwise)."""
 
 
 class Crashing(LaneKeeper):
@@ -225,7 +223,7 @@ def shard_workers() -> list[str]:
     for pid in os.listdir("/proc") if os.path.isdir("/proc") else []:
         try:
             with open(f"/proc/{pid}/cmdline", "rb") as f:
-                if b"e2e_lite.shard_worker" in f.read():
+                if b"e2e_lite.driving.shard_worker" in f.read():
                     found.append(pid)
         except OSError:
             continue
@@ -346,13 +344,13 @@ class Looking(LaneKeeper):
 
     def __init__(self) -> None:
         super().__init__()
-        from e2e_lite.camera import CameraConfig
+        from e2e_lite.simulation.camera import CameraConfig
 
         self.camera = CameraConfig()
         self.frames_checked = 0
 
     def act(self, obs: Observation) -> Actuation:
-        from e2e_lite.camera import Camera
+        from e2e_lite.simulation.camera import Camera
 
         assert obs.images is not None and obs.images.shape == (len(obs.s), 66, 200, 3)
         assert obs.images.dtype == np.uint8
@@ -414,8 +412,8 @@ def test_pooled_results_are_one_drive_of_the_summed_counts():
 
 
 def test_collision_kinds_sort_hand_made_events():
-    from e2e_lite.evaluation import COLLISION_KINDS, collision_kinds
-    from e2e_lite.world import make_world
+    from e2e_lite.driving.evaluation import COLLISION_KINDS, collision_kinds
+    from e2e_lite.simulation.world import make_world
 
     world = make_world(BUSY, "val", 1)
     track, cars = world.track, world.cars

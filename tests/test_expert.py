@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.evaluation import EvalConfig, evaluate, observe
-from e2e_lite.expert import Expert, ExpertConfig, car_ahead, lane_clear, speed_profile
-from e2e_lite.geometry import RoadConfig, Track
-from e2e_lite.labels import CHANGE, KEEP
-from e2e_lite.oracle import Oracle
-from e2e_lite.world import Fleet, TrafficConfig, World, WorldConfig
+from e2e_lite.control.expert import Expert, ExpertConfig, car_ahead, lane_clear, speed_profile
+from e2e_lite.control.labels import CHANGE, KEEP
+from e2e_lite.control.oracle import Oracle
+from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe
+from e2e_lite.simulation.geometry import RoadConfig, Track
+from e2e_lite.simulation.world import Fleet, TrafficConfig, World, WorldConfig
 
 
 def small_world_cfg() -> WorldConfig:

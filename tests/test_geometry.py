@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from e2e_lite.geometry import RoadConfig, Track, generate_track
+from e2e_lite.simulation.geometry import RoadConfig, Track, generate_track
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +105,7 @@ def test_polyline_is_exact_on_straights_and_close_on_arcs(track):
 
 
 def test_positions_on_many_tracks_matches_each_track():
-    from e2e_lite.geometry import positions_on
+    from e2e_lite.simulation.geometry import positions_on
 
     tracks = [generate_track(RoadConfig(length_m=4_000.0), "val", i) for i in range(4)]
     rng = np.random.default_rng(1)

@@ -10,31 +10,33 @@ import numpy as np
 import pytest
 import torch
 
-import e2e_lite.data
-import e2e_lite.dataset
-from e2e_lite.agents import CruiseControl, SteeringAgent, TrajectoryAgent
-from e2e_lite.dataset import FIELDS, SCHEMA, allocate, synthetic_data
-from e2e_lite.evaluation import EvalConfig, evaluate
-from e2e_lite.expert import Expert
-from e2e_lite.models import ModelConfig, build_model
-from e2e_lite.tracker import default_tracker
-from e2e_lite.world import SimConfig, WorldConfig
+import e2e_lite
+import e2e_lite.learning.data
+import e2e_lite.learning.dataset
+from e2e_lite.control.expert import Expert
+from e2e_lite.control.tracker import default_tracker
+from e2e_lite.driving.evaluation import EvalConfig, evaluate
+from e2e_lite.learning.agents import CruiseControl, SteeringAgent, TrajectoryAgent
+from e2e_lite.learning.dataset import FIELDS, SCHEMA, allocate, synthetic_data
+from e2e_lite.learning.models import ModelConfig, build_model
+from e2e_lite.simulation.world import SimConfig, WorldConfig
 
 SIMULATOR = ("pymunk", "cv2", "control")
 
 
 def test_the_learning_modules_import_without_the_simulator() -> None:
+    learning = ("dataset", "models", "losses", "training", "recipes", "cvar", "heldout")
+    learning += ("checkpoints", "probes")
     code = (
         "import sys\n"
-        "import e2e_lite.labels, e2e_lite.dataset, e2e_lite.models, e2e_lite.losses\n"
-        "import e2e_lite.training, e2e_lite.recipes, e2e_lite.cvar, e2e_lite.heldout\n"
-        "import e2e_lite.checkpoints, e2e_lite.probes\n"
-        f"print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))\n"
+        "import e2e_lite.control.labels\n"
+        + "".join(f"import e2e_lite.learning.{m}\n" for m in learning)
+        + f"print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
     # and the check itself can fail: the collector does pull the simulator in
-    code = f"import sys, e2e_lite.data; print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))"
+    code = f"import sys, e2e_lite.learning.data; print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == str(sorted(SIMULATOR))
 
@@ -49,11 +51,12 @@ def test_the_schema_makes_the_field_list_the_arrays_the_synthetic_data_and_the_d
     for name, (_, dtype, meaning) in SCHEMA.items():
         assert arrays[name].dtype == dtype and syn.arrays[name].dtype == dtype, name
         assert (
-            f"``{name}``" in e2e_lite.dataset.__doc__ and meaning[:20] in e2e_lite.dataset.__doc__
+            f"``{name}``" in e2e_lite.learning.dataset.__doc__
+            and meaning[:20] in e2e_lite.learning.dataset.__doc__
         )
     assert syn.images.shape == (8, 66, 200, 3)
     # the collector's module re-exports the dataset's names (the chapters read them there)
-    assert e2e_lite.data.DrivingData is e2e_lite.dataset.DrivingData
+    assert e2e_lite.learning.data.DrivingData is e2e_lite.learning.dataset.DrivingData
 
 
 def _gains(tracker) -> np.ndarray:
@@ -88,13 +91,13 @@ def test_a_driver_built_for_another_policy_period_is_refused() -> None:
 
 def test_models_still_run_on_synthetic_batches_after_the_move() -> None:
     data = synthetic_data(4)
-    batch = e2e_lite.dataset.DrivingDataset(data).batch(np.arange(4))
+    batch = e2e_lite.learning.dataset.DrivingDataset(data).batch(np.arange(4))
     out = build_model(ModelConfig(head="gmm", fusion_width=16))(batch["image"], batch["speed"])
     assert torch.isfinite(out["main"]).all()
 
 
 def test_recovery_views_re_express_the_labels_in_the_shifted_cars_frame() -> None:
-    from e2e_lite.recovery import to_car_frame
+    from e2e_lite.learning.recovery import to_car_frame
 
     pts = np.array([[[7.5, 0.0], [15.0, 0.5]]])
     pose = np.array([[10.0, 2.0, 0.3]])
@@ -107,3 +110,76 @@ def test_recovery_views_re_express_the_labels_in_the_shifted_cars_frame() -> Non
     # and back again
     there = to_car_frame(pts, pose, shifted)
     assert np.allclose(to_car_frame(there, shifted, pose), pts)
+
+
+# The layers, bottom to top: a module may import from its own folder and the folders below it.
+LAYERS = ("simulation", "control", "driving", "learning", "experiments")
+BASE = ("config", "artifacts")  # used by every layer
+TOP = ("viz", "course", "bench")  # beside the layers, free to import any of them
+
+
+def _library_imports() -> dict[str, set[str]]:
+    """Each library module's dotted name -> the library modules it imports (absolute or relative)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(e2e_lite.__file__).parent
+    found = {}
+    for path in root.rglob("*.py"):
+        parts = path.relative_to(root.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        package = ".".join(parts[:-1])
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets |= {a.name for a in node.names if a.name.startswith("e2e_lite")}
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                    mod = f"{base}.{node.module}" if node.module else base
+                else:
+                    mod = node.module or ""
+                if mod.startswith("e2e_lite"):
+                    # "from e2e_lite.learning import recipes" imports a module of that folder
+                    targets |= {f"{mod}.{a.name}" for a in node.names} | {mod}
+        found[name] = targets
+    return found
+
+
+def _rank(module: str) -> int:
+    parts = module.split(".")
+    if len(parts) == 1 or parts[1] in BASE:
+        return 0
+    if parts[1] in TOP:
+        return len(LAYERS) + 1
+    assert parts[1] in LAYERS, f"{module} is in no layer: add its folder to LAYERS"
+    return 1 + LAYERS.index(parts[1])
+
+
+def test_every_library_import_points_down_a_layer() -> None:
+    imports = _library_imports()
+    assert "e2e_lite.learning.losses" in imports and "e2e_lite.simulation.world" in imports
+    upward = [
+        f"{m} imports {t}"
+        for m, targets in imports.items()
+        for t in targets
+        if _rank(t) > _rank(m) and not (t.count(".") == 1 and t.split(".")[1] in LAYERS)
+    ]
+    assert not upward, "\n".join(sorted(upward))
+    # no cycles between modules either (a topological order exists)
+    graph = {m: {t for t in ts if t in imports and t != m} for m, ts in imports.items()}
+    done: set[str] = set()
+    while len(done) < len(graph):
+        ready = {m for m in graph if m not in done and graph[m] <= done}
+        assert ready, f"an import cycle among {sorted(set(graph) - done)}"
+        done |= ready
+    # and the check can fail: an upward import is caught
+    assert _rank("e2e_lite.experiments.safety") > _rank("e2e_lite.learning.losses")
+
+
+def test_no_library_file_is_longer_than_500_lines() -> None:
+    from pathlib import Path
+
+    root = Path(e2e_lite.__file__).parent
+    long = {p.name: n for p in root.rglob("*.py") if (n := len(p.read_text().splitlines())) > 500}
+    assert not long, long

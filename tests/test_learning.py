@@ -8,20 +8,25 @@ import numpy as np
 import pytest
 import torch
 
-from e2e_lite.agents import (
+from e2e_lite.artifacts import artifact_path, settings_key
+from e2e_lite.driving.evaluation import EvalConfig, evaluate
+from e2e_lite.driving.parallel import processes_ok
+from e2e_lite.learning.agents import (
     SPEED_SOURCES,
     ActuatorAgent,
     CruiseControl,
     SteeringAgent,
     TrajectoryAgent,
 )
-from e2e_lite.artifacts import artifact_path, settings_key
-from e2e_lite.checkpoints import CheckpointMismatch, load_checkpoint, save_checkpoint, train_or_load
-from e2e_lite.data import DrivingDataset, synthetic_data
-from e2e_lite.evaluation import EvalConfig, evaluate
-from e2e_lite.geometry import RoadConfig
-from e2e_lite.losses import GMMObjective, Objective, target
-from e2e_lite.models import (
+from e2e_lite.learning.checkpoints import (
+    CheckpointMismatch,
+    load_checkpoint,
+    save_checkpoint,
+    train_or_load,
+)
+from e2e_lite.learning.data import DrivingDataset, synthetic_data
+from e2e_lite.learning.losses import GMMObjective, Objective, target
+from e2e_lite.learning.models import (
     TRUNK_FEATURES,
     FusionNet,
     ModelConfig,
@@ -32,8 +37,8 @@ from e2e_lite.models import (
     count_parameters,
     prepare,
 )
-from e2e_lite.probes import layer_features, probe_affordances
-from e2e_lite.training import (
+from e2e_lite.learning.probes import layer_features, probe_affordances
+from e2e_lite.learning.training import (
     DECISIVE,
     TrainConfig,
     decisive_errors,
@@ -41,8 +46,9 @@ from e2e_lite.training import (
     fit,
     model_stats,
 )
-from e2e_lite.vehicle import VehicleParams
-from e2e_lite.world import TrafficConfig, WorldConfig
+from e2e_lite.simulation.geometry import RoadConfig
+from e2e_lite.simulation.vehicle import VehicleParams
+from e2e_lite.simulation.world import TrafficConfig, WorldConfig
 
 
 def test_trunk_and_heads_shapes_and_parameter_counts():
@@ -306,8 +312,8 @@ def test_network_agents_fork_into_parallel_shards_reproducibly():
     assert torch.get_num_threads() == threads
     assert a.events == b.events and a.miles == b.miles and a.miles >= 0.2
     assert a.timing_s["frames"] >= a.sim_time_s / 0.1 - 1e-6 and a.timing_s["render"] > 0
-    # on the CPU the shards may be forked processes (the default on Linux): same drive
-    assert agent.forks_in_processes
+    # on the CPU the shards may run in worker processes (the default): the same drive
+    assert processes_ok(agent)
     t = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="threads")
     p = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="processes")
     assert t.events == p.events == a.events and t.miles == p.miles
@@ -317,8 +323,8 @@ def test_network_agents_fork_into_parallel_shards_reproducibly():
 def test_cruise_control_targets_the_road_speed_limit():
     from conftest import straight_world
 
-    from e2e_lite.evaluation import observe
-    from e2e_lite.world import Fleet
+    from e2e_lite.driving.evaluation import observe
+    from e2e_lite.simulation.world import Fleet
 
     fleet = Fleet([straight_world([], [])], WorldConfig())
     fleet.place(0, 100.0, 0.0, 10.0)
@@ -329,8 +335,8 @@ def test_cruise_control_targets_the_road_speed_limit():
 def test_trajectory_agent_keeps_every_mode():
     from conftest import straight_world
 
-    from e2e_lite.evaluation import observe
-    from e2e_lite.world import Fleet
+    from e2e_lite.driving.evaluation import observe
+    from e2e_lite.simulation.world import Fleet
 
     torch.manual_seed(0)
     model = prepare(
@@ -359,7 +365,7 @@ def test_trajectory_agent_keeps_every_mode():
     np.testing.assert_allclose(mean_agent.last["modes"], last["modes"])
     with pytest.raises(ValueError, match="decode"):
         TrajectoryAgent(model, decode="median")
-    from e2e_lite.ablation import fingerprint
+    from e2e_lite.experiments.ablation import fingerprint
 
     assert fingerprint(mean_agent) != fingerprint(agent)
     with_aff = prepare(
@@ -378,9 +384,9 @@ def test_trajectory_agent_speed_sources():
     """Same steering from every speed source; the speed command follows the chosen source."""
     from conftest import straight_world
 
-    from e2e_lite.evaluation import observe
-    from e2e_lite.tracker import trajectory_reference
-    from e2e_lite.world import Fleet
+    from e2e_lite.control.tracker import trajectory_reference
+    from e2e_lite.driving.evaluation import observe
+    from e2e_lite.simulation.world import Fleet
 
     torch.manual_seed(0)
     model = prepare(
@@ -409,8 +415,8 @@ def test_trajectory_agent_speed_sources():
 
 
 def test_recorder_keeps_one_row_per_decision_and_passes_the_camera():
-    from e2e_lite.agents import Recorder
-    from e2e_lite.drivers import LaneKeeper
+    from e2e_lite.control.drivers import LaneKeeper
+    from e2e_lite.learning.agents import Recorder
 
     rec = Recorder(LaneKeeper(), lambda obs, agent: obs.time_s)
     assert rec.camera is None

@@ -11,11 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import multivariate_normal
 
-from e2e_lite.data import DrivingDataset, synthetic_data
-from e2e_lite.heldout import mode_split, side_shares
-from e2e_lite.losses import GMMObjective, Mixture, Objective, gmm_nll, log_sigma, split_gmm
-from e2e_lite.models import ModelConfig, build_model, prepare
-from e2e_lite.training import TrainConfig, fit, model_stats
+from e2e_lite.learning.data import DrivingDataset, synthetic_data
+from e2e_lite.learning.heads import Mixture, gmm_nll, log_sigma, split_gmm
+from e2e_lite.learning.heldout import mode_split, side_shares
+from e2e_lite.learning.losses import GMMObjective, Objective
+from e2e_lite.learning.models import ModelConfig, build_model, prepare
+from e2e_lite.learning.training import TrainConfig, fit, model_stats
 
 
 def direct_nll(y, weights, means, sigmas):
@@ -208,7 +209,7 @@ def test_axis_scale_and_a_floor_in_metres():
     floor / scale per coordinate, and the NLL respects it."""
     data = synthetic_data(32)
     data.arrays["trajectory"][:, :, 1] *= np.arange(1, 6) / 5.0  # lateral spread grows with time
-    from e2e_lite.data import dataset_stats
+    from e2e_lite.learning.data import dataset_stats
 
     data.stats.update(dataset_stats(data.arrays))
     obj = GMMObjective(target_scale="axis", sigma_floor_m=0.1)

@@ -1,6 +1,6 @@
 """The course's recipes: the settings rules that chapters share."""
 
-from e2e_lite.recipes import choose_affordance_weight, sigma_warmup
+from e2e_lite.learning.recipes import choose_affordance_weight, sigma_warmup
 
 
 def test_sigma_warmup_is_a_third_of_the_schedule():
@@ -25,7 +25,7 @@ def test_a_gmm_recipe_with_one_mode_and_a_mismatch_refused():
     import pytest
 
     from e2e_lite.config import QUICK
-    from e2e_lite.recipes import gmm, gmm_objective
+    from e2e_lite.learning.recipes import gmm, gmm_objective
 
     with pytest.raises(ValueError, match="modes"):
         gmm(QUICK, None, None, objective=gmm_objective(QUICK), modes=1)
@@ -42,8 +42,8 @@ def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
     import torch
 
     from e2e_lite.config import FULL
-    from e2e_lite.losses import LOG_2PI
-    from e2e_lite.recipes import gmm, gmm_objective
+    from e2e_lite.learning.heads import LOG_2PI
+    from e2e_lite.learning.recipes import gmm, gmm_objective
 
     fixed = gmm_objective(FULL, warmup=FULL.train_epochs)
     learned = gmm_objective(FULL)

@@ -54,14 +54,14 @@ def measure() -> dict[str, Any]:
 
 
 def _measure() -> dict[str, Any]:
-    from e2e_lite import recipes
-    from e2e_lite.agents import TrajectoryAgent
     from e2e_lite.config import active_profile
-    from e2e_lite.data import DataConfig, collect
-    from e2e_lite.drivers import LaneKeeper
-    from e2e_lite.evaluation import EvalConfig, evaluate
-    from e2e_lite.expert import Expert
-    from e2e_lite.world import WorldConfig
+    from e2e_lite.control.drivers import LaneKeeper
+    from e2e_lite.control.expert import Expert
+    from e2e_lite.driving.evaluation import EvalConfig, evaluate
+    from e2e_lite.learning import recipes
+    from e2e_lite.learning.agents import TrajectoryAgent
+    from e2e_lite.learning.data import DataConfig, collect
+    from e2e_lite.simulation.world import WorldConfig
 
     profile = active_profile([], {"E2E_LITE_QUICK": "1"})
     train = collect(DataConfig.for_profile(profile, "train"), progress=False)

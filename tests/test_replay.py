@@ -15,13 +15,13 @@ import torch
 import umsgpack
 from PIL import Image
 
-from e2e_lite import replay
-from e2e_lite.agents import TrajectoryAgent
-from e2e_lite.drivers import LaneKeeper
-from e2e_lite.evaluation import close_shard_workers
-from e2e_lite.geometry import RoadConfig
-from e2e_lite.models import ModelConfig, build_model, prepare
-from e2e_lite.world import TrafficConfig, WorldConfig, make_world
+from e2e_lite.control.drivers import LaneKeeper
+from e2e_lite.driving.evaluation import close_shard_workers
+from e2e_lite.experiments import replay
+from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.learning.models import ModelConfig, build_model, prepare
+from e2e_lite.simulation.geometry import RoadConfig
+from e2e_lite.simulation.world import TrafficConfig, WorldConfig, make_world
 
 WORLD = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(6, 6)))
 EMPTY_WORLD = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(0, 0)))

@@ -3,19 +3,21 @@
 from __future__ import annotations
 
 import copy
+from collections import Counter
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from e2e_lite.data import AFFORDANCE_NAMES
-from e2e_lite.evaluation import Actuation, EvalConfig, Observation, evaluate
-from e2e_lite.geometry import RoadConfig
-from e2e_lite.safe_agent import SafeAgent
-from e2e_lite.safety import SafetyConfig, check, choose, keep_lane_brake
-from e2e_lite.tracker import LQRTracker, trajectory_reference
-from e2e_lite.world import TrafficConfig, WorldConfig
+from e2e_lite.control.tracker import LQRTracker, trajectory_reference
+from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
+from e2e_lite.driving.metrics import add_info
+from e2e_lite.experiments.safe_agent import SafeAgent, SafetyStats
+from e2e_lite.experiments.safety import SafetyConfig, check, choose, keep_lane_brake
+from e2e_lite.learning.data import AFFORDANCE_NAMES
+from e2e_lite.simulation.geometry import RoadConfig
+from e2e_lite.simulation.world import TrafficConfig, WorldConfig
 
 T = 0.3 * np.arange(1, 6)
 
@@ -187,7 +189,7 @@ def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
     safe = evaluate(guarded, world, cfg, progress=False, workers=2)
     assert alone.car_collisions >= 3  # the scripted driver is unsafe (4-5 on the machines tried)
     assert safe.collisions < alone.collisions / 2
-    stats = guarded.stats.to_dict()
+    stats = SafetyStats.from_info(safe.info).to_dict()
     assert stats["interventions"] > 0 and stats["sources"]["fallback"] > 0
     assert stats["decisions"] == round(safe.sim_time_s / 0.1)
 
@@ -198,22 +200,24 @@ def test_the_perceived_check_needs_predicted_affordances():
         evaluate(SafeAgent(StraightOn()), world, EvalConfig(miles=0.01, n_worlds=1, n_tracks=1))
 
 
-class ForkableStraightOn(StraightOn):
-    forks_in_processes = True
-
-
 def test_the_module_counts_the_same_in_threads_and_in_processes():
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
     cfg = EvalConfig(miles=0.5, n_worlds=2, n_tracks=2)
     runs = {}
     for parallel in ("threads", "processes"):
-        guarded = SafeAgent(ForkableStraightOn(), ground_truth=True)
-        assert guarded.forks_in_processes
+        guarded = SafeAgent(StraightOn(), ground_truth=True)
         res = evaluate(guarded, world, cfg, progress=False, workers=2, parallel=parallel)
-        runs[parallel] = (res, guarded.stats.to_dict())
+        runs[parallel] = (res, SafetyStats.from_info(res.info).to_dict())
     (r_t, s_t), (r_p, s_p) = runs["threads"], runs["processes"]
     assert r_t.events == r_p.events and s_t == s_p and s_p["interventions"] > 0
-    # the counters keep counting over a second evaluation of the same agent (children report
-    # what they added, not the total they inherited)
-    evaluate(guarded, world, cfg, progress=False, workers=2, parallel="processes")
-    assert guarded.stats.to_dict()["decisions"] == 2 * s_p["decisions"]
+    # a second evaluation of the same agent counts its own decisions, and the examples come
+    # home from the worker processes with their camera frames (none here: no camera)
+    again = evaluate(guarded, world, cfg, progress=False, workers=2, parallel="processes")
+    assert SafetyStats.from_info(again.info).to_dict() == s_p
+    assert again.info["examples"] == [] and "info" not in again.to_dict()
+    # the decisions' info adds up: numbers and Counters summed, lists concatenated
+    total = add_info({}, {"n": 1, "sources": Counter(a=1), "examples": [1]})
+    add_info(total, {"n": 2, "sources": Counter(a=1, b=1), "examples": [2]})
+    assert total == {"n": 3, "sources": Counter(a=2, b=1), "examples": [1, 2]}
+    with pytest.raises(TypeError, match="cannot add up"):
+        add_info(total, {"n": "x"})

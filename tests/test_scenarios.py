@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from e2e_lite.drivers import LaneKeeper
-from e2e_lite.expert import Expert
-from e2e_lite.oracle import Oracle
-from e2e_lite.scenarios import ScenarioConfig, overtake_scenes, run_scenarios
+from e2e_lite.control.drivers import LaneKeeper
+from e2e_lite.control.expert import Expert
+from e2e_lite.control.oracle import Oracle
+from e2e_lite.simulation.scenarios import ScenarioConfig, overtake_scenes, run_scenarios
 
 
 def test_scenes_are_seeded_and_jittered_within_their_ranges():

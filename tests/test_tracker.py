@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from e2e_lite.geometry import Track
-from e2e_lite.labels import POINT_DT_S
-from e2e_lite.tracker import (
+from e2e_lite.control.labels import POINT_DT_S
+from e2e_lite.control.tracker import (
     LaneChangePath,
     LQRTracker,
     TrackerConfig,
@@ -17,7 +16,8 @@ from e2e_lite.tracker import (
     lateral_model,
     trajectory_reference,
 )
-from e2e_lite.vehicle import VehicleParams, bicycle_step, make_state
+from e2e_lite.simulation.geometry import Track
+from e2e_lite.simulation.vehicle import VehicleParams, bicycle_step, make_state
 
 T = np.arange(1, 6) * POINT_DT_S
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from e2e_lite.vehicle import STEER, V, VehicleParams, X, Y, bicycle_step, make_state
+from e2e_lite.simulation.vehicle import STEER, V, VehicleParams, X, Y, bicycle_step, make_state
 
 CAR = VehicleParams()
 

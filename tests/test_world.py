@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.geometry import RoadConfig
-from e2e_lite.world import Fleet, TrafficConfig, WorldConfig, make_world
+from e2e_lite.simulation.geometry import RoadConfig
+from e2e_lite.simulation.world import Fleet, TrafficConfig, WorldConfig, make_world
 
 CFG = WorldConfig()
 

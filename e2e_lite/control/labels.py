@@ -1,0 +1,67 @@
+"""The labels: what the networks learn from a frame, in one place (no simulator imports).
+
+* The trajectory format (the paper's): :data:`N_POINTS` points :data:`POINT_DT_S` apart, in the
+  car frame at the rear axle [m].
+* The expert's manoeuvre states (:data:`KEEP`, :data:`CHANGE`, :data:`PASS`, :data:`FOLLOW`), which
+  the dataset records with every sample.
+* The 9 affordances (:data:`AFFORDANCE_NAMES`, after DeepDriving) and the cap of their gaps.
+* Seed 002's throttle and brake, recovered from the acceleration label (:func:`throttle_brake`).
+
+The collector (:mod:`e2e_lite.learning.data`) computes them from the world; the dataset
+(:mod:`e2e_lite.learning.dataset`), the losses and the safety module read them from here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..simulation.vehicle import VehicleParams
+
+#: The paper's trajectory: 5 points, 0.3 s apart, 1.5 s ahead.
+N_POINTS = 5
+#: Time between two trajectory points [s].
+POINT_DT_S = 0.3
+#: Coordinates per trajectory point (x forward, y left) [m].
+POINT_DIMS = 2
+#: A trajectory flattened as x1, y1, ..., x5, y5: the networks' trajectory output per mode.
+TRAJECTORY_DIMS = N_POINTS * POINT_DIMS
+
+#: The expert's manoeuvre states (:class:`~e2e_lite.control.expert.Expert`), as recorded in the dataset.
+KEEP, CHANGE, PASS, FOLLOW = 0, 1, 2, 3
+STATE_NAMES = ("keep", "change", "pass", "follow")
+
+GAP_CAP_M = 60.0
+AFFORDANCE_NAMES = (
+    "heading_rad",
+    "center_offset_m",
+    "left_marking_m",
+    "right_marking_m",
+    "left_edge_m",
+    "right_edge_m",
+    "gap_ego_m",
+    "gap_left_m",
+    "gap_right_m",
+)
+"""The affordances (after DeepDriving), all at the rear axle:
+
+* ``heading_rad``: heading minus the road tangent's [rad], left positive;
+* ``center_offset_m``: signed distance from the centre of the ego lane (the nearest lane) [m],
+  left positive;
+* ``left_marking_m`` / ``right_marking_m``: distance to the ego lane's left / right marking [m]
+  (positive inside the lane);
+* ``left_edge_m`` / ``right_edge_m``: distance to the road's left / right edge [m];
+* ``gap_ego_m`` / ``gap_left_m`` / ``gap_right_m``: free distance ahead of the front bumper to the
+  nearest parked car in the ego lane / the lane to its left / to its right, along the lane
+  (a pymunk segment query, :meth:`~e2e_lite.simulation.world.World.gap_ahead`) [m]. A car alongside
+  (overlapping the ego's length) gives 0. Capped at ``GAP_CAP_M`` (60 m), which also
+  encodes "no car"; a lane that does not exist (left of the leftmost) gives 0 (blocked).
+"""
+
+#: Each affordance's column in an ``(N, 9)`` array, by name.
+AFFORDANCE_INDEX = {name: i for i, name in enumerate(AFFORDANCE_NAMES)}
+
+
+def throttle_brake(accel_mps2: np.ndarray, vehicle: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+    """Seed 002's throttle and brake in [0, 1] from accelerations [m/s^2]."""
+    a = np.asarray(accel_mps2)
+    return np.maximum(a, 0.0) / vehicle.max_accel_mps2, np.maximum(-a, 0.0) / vehicle.max_brake_mps2

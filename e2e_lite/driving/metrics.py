@@ -1,0 +1,367 @@
+"""What a closed-loop evaluation measured (:class:`EvalResult`) and how to read it; the per-shard
+sums it is merged from (:class:`ShardResult`, :func:`merge_shards`, :func:`add_info`).
+
+* collisions per 100 miles, with an exact (Garwood) 95 % Poisson confidence interval
+  (:func:`poisson_ci`);
+* time before a collision (seed 002): an *episode* starts at a (re)spawn and ends at the next
+  collision; the mean length of the episodes that ended in a collision. Episodes cut off by the
+  budget are censored and only counted in ``episodes_censored``;
+* autonomy % (seed 003): ``(1 - interventions * 6 s / elapsed s) * 100``, floored at 0. An
+  intervention is a collision (the re-spawn is the human taking over) or an *off-centre episode*:
+  the car more than 1 m from every lane centre for longer than ``offcentre_grace_s`` (3 s, longer
+  than a normal lane change takes). We only count off-centre interventions; we do not move the car,
+  so the intervention rule cannot change the collision count;
+* a *stall* (speed under 0.5 m/s for 20 s) is re-spawned and reported, so a policy that stops cannot
+  hang the evaluation.
+
+Beside them: pooling runs (training seeds) into one result (:func:`pool_results`), the exact
+test of two Poisson rates (:func:`compare_rates`), collisions sorted by kind
+(:func:`collision_kinds`) and the Markdown table the chapters print (:func:`results_table`).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.stats import binomtest, chi2
+
+from ..config import check_range
+from ..simulation.world import World, WorldConfig, make_world
+
+M_PER_MILE = 1609.344
+
+
+MPS_TO_MPH = 3600.0 / M_PER_MILE
+
+
+@dataclass
+class EvalResult:
+    """What a closed-loop evaluation measured. Distances in miles, times in seconds.
+
+    ``timing_s`` splits the wall time of the loop, summed over shards: ``render`` (camera
+    frames), ``policy`` (the driver's ``act``: the network and the tracker), ``physics``
+    (bicycle and pymunk steps); ``frames`` counts the frames rendered; ``startup`` is the
+    wall-clock time shard processes took to start (an interpreter and the imports each).
+    ``speed_hist[k]`` counts the decisions taken at a speed in ``[k, k + 1)`` m/s (the last bin
+    holds everything faster): the states the driver visited (chapter 04 compares them with the
+    data's). ``info`` adds up what the policy reported with its actuations (``Actuation.info``,
+    e.g. the safety module's counts; not stored with the result).
+    """
+
+    miles: float
+    collisions: int
+    car_collisions: int
+    rail_collisions: int
+    collisions_per_100mi: float
+    ci95_per_100mi: tuple[float, float]
+    mean_speed_mph: float
+    time_to_collision_s: float | None
+    episodes_censored: int
+    miles_per_collision: float | None
+    autonomy_pct: float
+    interventions: int
+    stalls: int
+    sim_time_s: float
+    wall_time_s: float
+    sim_miles_per_wall_s: float
+    tracks_driven: int
+    events: list[dict[str, Any]] = field(default_factory=list)
+    timing_s: dict[str, float] = field(default_factory=dict)
+    traces: dict[str, list[list[float]]] = field(default_factory=dict)
+    speed_hist: list[int] = field(default_factory=list)
+    info: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def to_dict(self, with_events: bool = True) -> dict[str, Any]:
+        """JSON-ready dict (traces and info left out; events optional)."""
+        out = asdict(dataclasses.replace(self, info={}, traces={}))
+        out.pop("traces")
+        out.pop("info")
+        if not with_events:
+            out.pop("events")
+        return out
+
+    def summary(self) -> str:
+        """One readable line."""
+        lo, hi = self.ci95_per_100mi
+        ttc = "n/a" if self.time_to_collision_s is None else f"{self.time_to_collision_s:.1f} s"
+        return (
+            f"{self.miles:.1f} mi, {self.collisions} collisions ({self.car_collisions} car, "
+            f"{self.rail_collisions} rail) = {self.collisions_per_100mi:.1f} per 100 mi "
+            f"[95% CI {lo:.1f}-{hi:.1f}], {self.mean_speed_mph:.1f} mph, time to collision {ttc}, "
+            f"autonomy {self.autonomy_pct:.1f}%"
+        )
+
+
+def miles_text(miles: float) -> str:
+    """``"1 mile"``, ``"0.5 miles"``, ``"500 miles"``: a distance for prose."""
+    return f"{miles:g} {'mile' if miles == 1 else 'miles'}"
+
+
+def poisson_ci(count: int, exposure: float, level: float = 0.95) -> tuple[float, float]:
+    """Exact (Garwood) confidence interval of a Poisson rate: ``count`` events over ``exposure``.
+
+    lower = chi2.ppf(a/2, 2k) / 2 / exposure,  upper = chi2.ppf(1 - a/2, 2k + 2) / 2 / exposure,
+    with a = 1 - level. For k = 0 the lower bound is 0 and the upper is -ln(a/2) / exposure
+    (3.69 per 100 miles over 100 miles at 95 %).
+    """
+    check_range("poisson_ci", "count", count, 0, integer=True)
+    check_range("poisson_ci", "exposure", exposure, 0.0, lo_open=True)
+    check_range("poisson_ci", "level", level, 0.0, 1.0, lo_open=True, hi_open=True)
+    a = 1.0 - level
+    lo = 0.0 if count == 0 else chi2.ppf(a / 2, 2 * count) / 2.0
+    hi = chi2.ppf(1 - a / 2, 2 * count + 2) / 2.0
+    return float(lo / exposure), float(hi / exposure)
+
+
+def result_dict(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
+    """An ``EvalResult`` as its ``to_dict()`` (without events); a dict as it is."""
+    return r.to_dict(with_events=False) if isinstance(r, EvalResult) else r
+
+
+def result_events(r: EvalResult | dict[str, Any]) -> list[dict[str, Any]]:
+    """A result's collision events (an ``EvalResult``'s, or a stored or pooled dict's)."""
+    return r.events if isinstance(r, EvalResult) else r.get("events", [])
+
+
+def results_table(
+    rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
+    extra: Sequence[tuple[str, Sequence[str]]] = (),
+) -> str:
+    """A markdown table of closed-loop results (``EvalResult`` or its ``to_dict()``), one row per
+    ``(driver, result)``: miles, collisions (car / rail), per 100 mi with the 95 % interval, mph,
+    time to collision, autonomy; then ``extra`` columns, each ``(header, one cell per row)``."""
+    for header, cells in extra:
+        if len(cells) != len(rows):
+            raise ValueError(f"column {header!r} has {len(cells)} cells for {len(rows)} rows")
+    lines = [
+        "| driver | miles | collisions (car / rail) | per 100 mi [95% CI] | mph | time to collision "
+        "| autonomy |" + "".join(f" {h} |" for h, _ in extra),
+        "|---|---:|---:|---|---:|---:|---:|" + "---:|" * len(extra),
+    ]
+    for k, (name, result) in enumerate(rows):
+        r = result_dict(result)
+        lo, hi = r["ci95_per_100mi"]
+        ttc = "-" if r["time_to_collision_s"] is None else f"{r['time_to_collision_s']:.1f} s"
+        lines.append(
+            f"| {name} | {r['miles']:.3g} | {r['collisions']} ({r['car_collisions']} / "
+            f"{r['rail_collisions']}) | {r['collisions_per_100mi']:.1f} [{lo:.1f}-{hi:.1f}] | "
+            f"{r['mean_speed_mph']:.1f} | {ttc} | {r['autonomy_pct']:.1f}% |"
+            + "".join(f" {cells[k]} |" for _, cells in extra)
+        )
+    return "\n".join(lines)
+
+
+#: How :func:`collision_kinds` sorts a collision.
+COLLISION_KINDS = ("rail", "parked car in its lane, car centred", "parked car, off centre")
+
+
+def collision_kinds(
+    result: EvalResult | dict[str, Any], world_cfg: WorldConfig, split: str = "val"
+) -> dict[str, int]:
+    """Count a result's collisions by kind (:data:`COLLISION_KINDS`).
+
+    A car collision is *in its lane, car centred* when the parked car's centre is within a third
+    of a lane width of the ego's lateral position and the ego is within 0.8 m of a lane centre:
+    the driver stayed in a lane with a parked car ahead and neither left it nor stopped. Every
+    other car collision happened off centre (changing lanes, or clipping a car beside). The
+    parked car's position comes from the track the event names (rebuilt from its seed).
+    """
+    counts = dict.fromkeys(COLLISION_KINDS, 0)
+    worlds: dict[int, World] = {}
+    for e in result_events(result):
+        if e["kind"] == "rail":
+            counts["rail"] += 1
+            continue
+        index = int(e["track"][1])
+        if index not in worlds:
+            worlds[index] = make_world(world_cfg, split, index)
+        track, d_ego = worlds[index].track, float(e["d_m"])
+        d_car = float(worlds[index].cars.d[e["car"]])
+        centres = track.lane_center(np.arange(track.n_lanes))  # (every track: one cross-section)
+        centred = float(np.min(np.abs(d_ego - centres))) <= 0.8
+        in_lane = abs(d_ego - d_car) < track.lane_width / 3
+        counts[COLLISION_KINDS[1] if centred and in_lane else COLLISION_KINDS[2]] += 1
+    return counts
+
+
+def pool_results(
+    results: Sequence[EvalResult | dict[str, Any]], intervention_cost_s: float = 6.0
+) -> dict[str, Any]:
+    """One result from several evaluations of the same kind of driver (e.g. one per training
+    seed), as if they were one drive: counts, miles and times summed, rates, the interval, mean
+    speed, autonomy (``intervention_cost_s`` per intervention, as :class:`EvalConfig`) and the
+    time to collision recomputed from the sums; ``events``: every input's, in input order (a
+    car's ``world`` number is its index in its own evaluation); ``seeds`` keeps each input (as
+    :func:`result_dict`, without events)."""
+    events = [e for r in results for e in result_events(r)]
+    rs = [{k: v for k, v in result_dict(r).items() if k != "events"} for r in results]
+    if not rs:
+        raise ValueError("pool_results needs at least one result")
+    total = {
+        k: sum(r[k] for r in rs)
+        for k in (
+            "miles",
+            "collisions",
+            "car_collisions",
+            "rail_collisions",
+            "episodes_censored",
+            "interventions",
+            "stalls",
+            "sim_time_s",
+            "wall_time_s",
+            "tracks_driven",
+        )
+    }
+    n, miles, sim_s = total["collisions"], total["miles"], total["sim_time_s"]
+    # the mean episode length: each seed's mean weighted by its count of ended episodes
+    ttc = [(r["time_to_collision_s"], r["collisions"]) for r in rs if r["collisions"]]
+    hist = [r.get("speed_hist") or [] for r in rs]
+    return {
+        **total,
+        "collisions_per_100mi": 100.0 * n / miles,
+        "ci95_per_100mi": poisson_ci(n, miles / 100.0),
+        "mean_speed_mph": sum(r["mean_speed_mph"] * r["sim_time_s"] for r in rs) / sim_s,
+        "time_to_collision_s": sum(t * k for t, k in ttc) / n if n else None,
+        "miles_per_collision": miles / n if n else None,
+        "autonomy_pct": max(0.0, 1.0 - total["interventions"] * intervention_cost_s / sim_s) * 100,
+        "sim_miles_per_wall_s": miles / max(total["wall_time_s"], 1e-9),
+        "timing_s": {
+            k: sum(r.get("timing_s", {}).get(k, 0.0) for r in rs) for k in rs[0].get("timing_s", {})
+        },
+        "speed_hist": [int(sum(c)) for c in zip(*hist)] if all(hist) else [],
+        "events": events,
+        "seeds": rs,
+    }
+
+
+def compare_rates(
+    a: EvalResult | dict[str, Any], b: EvalResult | dict[str, Any], level: float = 0.95
+) -> dict[str, Any]:
+    """Is driver a's collision rate different from b's beyond chance?
+
+    The exact conditional test of two Poisson rates: given ``n = k_a + k_b`` collisions in
+    ``m_a`` and ``m_b`` miles, ``k_a ~ Binomial(n, m_a / (m_a + m_b))`` when the rates are equal;
+    the two-sided p-value of that binomial test.
+
+    Returns:
+        ``{"ratio": rate_a / rate_b (None when b has none), "p_value", "different": p < 1 - level,
+        "verdict": one readable line}``.
+    """
+    ra, rb = result_dict(a), result_dict(b)
+    ka, kb, ma, mb = ra["collisions"], rb["collisions"], ra["miles"], rb["miles"]
+    n = ka + kb
+    p = 1.0 if n == 0 else float(binomtest(ka, n, ma / (ma + mb)).pvalue)
+    rate_a, rate_b = 100.0 * ka / ma, 100.0 * kb / mb
+    different = p < 1.0 - level
+    if not different:
+        verdict = (
+            f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: no difference beyond chance (p = {p:.2f})"
+        )
+    else:
+        word = "fewer" if rate_a < rate_b else "more"
+        verdict = f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: {word} collisions beyond chance (p = {p:.2g})"
+    return {
+        "ratio": None if kb == 0 else rate_a / rate_b,
+        "p_value": p,
+        "different": different,
+        "verdict": verdict,
+    }
+
+
+SPEED_BINS = 41  # 1 m/s bins of EvalResult.speed_hist: 0-1, ..., 39-40, >= 40 m/s
+
+
+def speed_histogram(speeds_mps: np.ndarray) -> np.ndarray:
+    """Counts of ``speeds_mps`` in :data:`SPEED_BINS` bins of 1 m/s (the last one open), int64."""
+    bins = np.clip(np.asarray(speeds_mps, dtype=np.float64), 0.0, SPEED_BINS - 1).astype(np.int64)
+    return np.bincount(bins, minlength=SPEED_BINS)
+
+
+# ------------------------------------------------------------------------------ shards
+class ShardResult:
+    """What one thread of :func:`evaluate` measured on its cars (summed by :func:`_merge`)."""
+
+    def __init__(self) -> None:
+        self.miles_m = 0.0
+        self.sim_s = 0.0
+        self.ttc: list[float] = []
+        self.censored = 0
+        self.interventions = 0
+        self.stalls = 0
+        self.tracks = 0
+        self.speed_hist = np.zeros(SPEED_BINS, dtype=np.int64)
+        self.events: list[dict[str, Any]] = []
+        self.traces: dict[str, list[list[float]]] = {}
+        # seconds per part (summed over shards); "startup": the wall-clock time the shard
+        # workers took to start (process shards only)
+        self.timing = {"render": 0.0, "policy": 0.0, "physics": 0.0, "frames": 0.0, "startup": 0.0}
+        self.info: dict[str, Any] = {}  # what the policy reported (Actuation.info), added up
+
+
+def add_info(total: dict[str, Any], info: dict[str, Any]) -> dict[str, Any]:
+    r"""Add a decision's (or a shard's) ``info`` into ``total``, in place; returns ``total``.
+
+    Numbers and ``Counter``\ s are summed, lists concatenated (so examples stay in decision
+    order, shard after shard); a name must keep its type.
+    """
+    for name, value in info.items():
+        if name not in total:
+            total[name] = list(value) if isinstance(value, list) else copy.copy(value)
+        elif isinstance(value, list):
+            total[name].extend(value)
+        elif isinstance(value, (Counter, int, float, np.integer, np.floating)):
+            total[name] += value
+        else:
+            raise TypeError(f"cannot add up info {name!r} of type {type(value).__name__}")
+    return total
+
+
+def merge_shards(shards: list[ShardResult], intervention_cost_s: float, wall: float) -> EvalResult:
+    """One :class:`EvalResult` from the shards' sums (events in car order, then time);
+    ``intervention_cost_s`` [s] of autonomy per intervention, ``wall`` [s] the wall time."""
+    total_m = sum(sh.miles_m for sh in shards)
+    total_t = sum(sh.sim_s for sh in shards)
+    miles = total_m / M_PER_MILE
+    events = sorted((e for sh in shards for e in sh.events), key=lambda e: e["world"])
+    ttc = [t for sh in shards for t in sh.ttc]
+    traces: dict[str, list[list[float]]] = {}
+    for sh in shards:
+        for key, pts in sh.traces.items():
+            traces.setdefault(key, []).extend(pts)
+    interventions = sum(sh.interventions for sh in shards)
+    info: dict[str, Any] = {}
+    for sh in shards:  # in shard order: shard 0's examples first
+        add_info(info, sh.info)
+    n_col = len(events)
+    n_car = sum(e["kind"] == "car" for e in events)
+    lo, hi = poisson_ci(n_col, miles / 100.0)
+    return EvalResult(
+        miles=miles,
+        collisions=n_col,
+        car_collisions=n_car,
+        rail_collisions=n_col - n_car,
+        collisions_per_100mi=100.0 * n_col / miles,
+        ci95_per_100mi=(lo, hi),
+        mean_speed_mph=total_m / total_t * MPS_TO_MPH,
+        time_to_collision_s=float(np.mean(ttc)) if ttc else None,
+        episodes_censored=sum(sh.censored for sh in shards),
+        miles_per_collision=miles / n_col if n_col else None,
+        autonomy_pct=max(0.0, 1.0 - interventions * intervention_cost_s / total_t) * 100.0,
+        interventions=interventions,
+        stalls=sum(sh.stalls for sh in shards),
+        sim_time_s=total_t,
+        wall_time_s=wall,
+        sim_miles_per_wall_s=miles / wall,
+        tracks_driven=sum(sh.tracks for sh in shards),
+        timing_s={k: sum(sh.timing[k] for sh in shards) for k in shards[0].timing},
+        events=events,
+        traces=traces,
+        speed_hist=[int(c) for c in sum(sh.speed_hist for sh in shards)],
+        info=info,
+    )

@@ -1,0 +1,225 @@
+"""Shards of one evaluation, driven side by side: in threads, or in worker processes
+(``python -m e2e_lite.driving.shard_worker``) that are started once and kept for the next evaluations of
+the same interpreter (:func:`close_shard_workers` ends them; also done at exit). A job is pickled
+to its worker, which drives it with :func:`~e2e_lite.driving.rollout.drive_shard` and sends back its
+progress and its :class:`~e2e_lite.driving.rollout.ShardResult`.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import pickle
+import queue
+import subprocess
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from ..simulation.policy import Policy
+from .metrics import ShardResult
+from .rollout import drive_shard
+
+
+def processes_ok(policy: Policy) -> bool:
+    """Shards may run in worker processes when a fresh interpreter can unpickle the policy (its
+    class is not defined in a script run as ``__main__``) and torch has not started CUDA here (a
+    network on a GPU stays in this process, its shards in threads sharing the device). What a
+    policy's shards count comes home in their results (``Actuation.info``), so a policy never
+    needs to know where it runs."""
+    torch = sys.modules.get("torch")
+    cuda = torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized()
+    return type(policy).__module__ != "__main__" and not cuda
+
+
+def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[ShardResult]:
+    """Drive each job's shard in its own thread (torch on ``1 / workers`` of the cores each)."""
+    torch = sys.modules.get("torch")  # loaded when the policy is a network
+    threads = None if torch is None else torch.get_num_threads()
+    interval = sys.getswitchinterval()
+    try:
+        if torch is not None:  # one core per shard instead of every shard on every core
+            torch.set_num_threads(max(1, threads // len(jobs)))
+        sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
+        with ThreadPoolExecutor(len(jobs)) as pool:
+            futures = [pool.submit(_drive_job, job, advance) for job in jobs]
+            return [f.result() for f in futures]
+    finally:
+        sys.setswitchinterval(interval)
+        if torch is not None:
+            torch.set_num_threads(threads)
+
+
+def _drive_job(job: tuple, advance: Callable[[float], None]) -> ShardResult:
+    """Drive one shard's job ``(policy, world_cfg, cfg, cars, shard, record_traces)``."""
+    policy, world_cfg, cfg, cars, shard, record_traces = job
+    return drive_shard(policy, world_cfg, cfg, cars, shard, advance, record_traces, None)
+
+
+def _send(stream: Any, message: Any) -> None:
+    """One length-prefixed pickle on a binary stream (the shard workers' protocol)."""
+    blob = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(len(blob).to_bytes(8, "little") + blob)
+    stream.flush()
+
+
+def _receive(stream: Any) -> Any:
+    """The next message of :func:`_send` (EOFError when the writer is gone)."""
+    head = stream.read(8)
+    size = int.from_bytes(head, "little") if len(head) == 8 else -1
+    blob = stream.read(size) if size >= 0 else b""
+    if size < 0 or len(blob) < size:
+        raise EOFError
+    return pickle.loads(blob)
+
+
+def shard_worker(inbox: Any, outbox: Any) -> None:
+    """Body of a shard process (``python -m e2e_lite.driving.shard_worker``): for each job until its
+    input ends, read ``(sys.path, torch threads, job)``, drive the shard, send ``("ready", None)``,
+    progress ``("miles", m)`` now and then and finally ``("ok", shard)`` or ``("error",
+    traceback)``. A worker serves its parent's evaluations until :func:`close_shard_workers`."""
+    while True:
+        try:
+            sys.path[:] = _receive(inbox)  # where the parent found the policy's classes
+        except EOFError:  # the parent closed the pool, or is gone
+            return
+        try:
+            torch_threads, job = _receive(inbox)
+            if torch_threads > 0:  # the parent ran torch (0: it had not imported it)
+                import torch
+
+                torch.set_num_threads(torch_threads)
+            _send(outbox, ("ready", None))
+            last = [time.perf_counter(), 0.0]
+
+            def advance(m: float, last: list[float] = last) -> None:
+                last[1] += m
+                if time.perf_counter() - last[0] > 0.25:
+                    _send(outbox, ("miles", last[1]))
+                    last[:] = [time.perf_counter(), 0.0]
+
+            shard = _drive_job(job, advance)
+            _send(outbox, ("miles", last[1]))
+            _send(outbox, ("ok", shard))
+            del job, shard  # the next job's policy replaces this one's
+        except BaseException:  # everything goes back to the parent, which then ends the pool
+            _send(outbox, ("error", traceback.format_exc()))
+            return
+
+
+class _Workers:
+    """Shard processes kept alive between evaluations: an interpreter and the imports (about 4 s
+    here) are paid once per process instead of once per evaluation. Messages of every worker go
+    to one queue as ``(k, message)``; an evaluation that fails or is interrupted ends them all
+    (the next one starts fresh), so no message of an old job can reach a new one."""
+
+    def __init__(self, n: int) -> None:
+        self.messages: queue.Queue = queue.Queue()
+        self.procs = []
+        for k in range(n):
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "e2e_lite.driving.shard_worker"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+            )
+            self.procs.append(proc)
+            threading.Thread(target=self._listen, args=(k, proc.stdout), daemon=True).start()
+
+    def _listen(self, k: int, stream: Any) -> None:
+        try:
+            while True:
+                self.messages.put((k, _receive(stream)))
+        except (EOFError, OSError, ValueError):
+            self.messages.put((k, ("gone", None)))
+
+    def alive(self) -> bool:
+        return all(proc.poll() is None for proc in self.procs)
+
+    def close(self) -> None:
+        """End every worker (closing its input ends it; a stuck one is killed) and wait."""
+        for proc in self.procs:
+            with contextlib.suppress(OSError, ValueError):
+                proc.stdin.close()
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            proc.stdout.close()
+
+
+_WORKERS: dict[int, _Workers] = {}
+
+
+_WORKERS_LOCK = threading.Lock()
+
+
+def close_shard_workers() -> None:
+    """End the shard processes kept for later evaluations (also done when Python exits)."""
+    with _WORKERS_LOCK:
+        while _WORKERS:
+            _WORKERS.popitem()[1].close()
+
+
+atexit.register(close_shard_workers)
+
+
+def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[ShardResult]:
+    """Drive each job's shard in a worker process: no shared GIL, so one shard's rendering and
+    physics never wait on the other's Python, and no ``fork`` of a process whose torch threads are
+    running (that can deadlock the child). The workers are fresh interpreters (``python -m
+    e2e_lite.driving.shard_worker``), started at the first evaluation that needs that many and kept for
+    the next ones (:func:`close_shard_workers` ends them). Each gets its job pickled (policy,
+    model included) and sends its :class:`ShardResult` back, with what the policy reported
+    (``info``)."""
+    torch = sys.modules.get("torch")
+    per_shard = 0 if torch is None else max(1, torch.get_num_threads() // len(jobs))
+    started, ready, startup_s = time.perf_counter(), 0, 0.0
+    with _WORKERS_LOCK:  # one evaluation at a time uses a pool
+        workers = _WORKERS.pop(len(jobs), None)
+    if workers is None or not workers.alive():
+        if workers is not None:
+            workers.close()
+        workers = _Workers(len(jobs))
+    results: dict[int, ShardResult] = {}
+    try:
+        for k, job in enumerate(jobs):
+            _send(workers.procs[k].stdin, list(sys.path))
+            _send(workers.procs[k].stdin, (per_shard, job))
+        while len(results) < len(jobs):
+            try:
+                k, (status, payload) = workers.messages.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            if status == "miles":
+                advance(payload)
+            elif status == "ready":
+                ready += 1
+                if ready == len(jobs):
+                    startup_s = time.perf_counter() - started
+            elif status == "ok":
+                results[k] = payload
+            elif status == "error":
+                raise RuntimeError(f"evaluation shard {k} failed:\n{payload}")
+            elif k not in results:  # the worker's output ended before its result
+                raise RuntimeError(
+                    f"evaluation shard {k} died (exit code {workers.procs[k].wait()})"
+                )
+    except BaseException:
+        for proc in workers.procs:  # a failed or interrupted evaluation ends its workers
+            if proc.poll() is None:
+                proc.kill()
+        workers.close()
+        raise
+    with _WORKERS_LOCK:
+        spare = _WORKERS.setdefault(len(jobs), workers)
+    if spare is not workers:  # another thread kept a pool of this size meanwhile
+        workers.close()
+    for shard in results.values():  # the workers' start, counted once in the merged timing
+        shard.timing["startup"] = startup_s / len(jobs)
+    return [results[k] for k in range(len(jobs))]

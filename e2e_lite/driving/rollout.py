@@ -1,0 +1,434 @@
+"""The lockstep rollout: B cars in B independent worlds (:class:`~e2e_lite.simulation.world.Fleet`), one
+policy decision per policy period, until each car has driven its share of the miles.
+
+World ``i`` drives the validation tracks ``f + i, f + i + B, f + i + 2B, ...`` (``f =
+first_track``; :func:`track_index`), each from its start (:func:`start_state`), and restarts
+after a collision or a stall where :func:`restart_state` says; so every policy with the same
+settings drives the same roads with the same parked cars, and no road twice. (Tracks are
+procedural: there are as many as asked for. ``n_tracks`` cycles through a fixed few instead, for
+tests and demos.) :func:`drive_shard` runs one shard's cars and returns what it measured
+(:class:`ShardResult`); :func:`merge_shards` sums shards into an
+:class:`~e2e_lite.driving.metrics.EvalResult`. :func:`drive` drives one car in a hand-made world.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..config import check_range
+from ..simulation.camera import Camera
+from ..simulation.geometry import SPLITS
+from ..simulation.policy import Actuation, Observation, Policy, observe
+from ..simulation.vehicle import H, V
+from ..simulation.world import Fleet, World, WorldConfig, make_world
+from .metrics import (
+    M_PER_MILE,
+    EvalResult,
+    ShardResult,
+    add_info,
+    merge_shards,
+    speed_histogram,
+)
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Settings of a closed-loop evaluation.
+
+    Attributes:
+        miles: distance budget over all cars [mi].
+        n_worlds: cars driven in lockstep (B).
+        split: which tracks: ``"val"`` (unseen by training) or ``"test"``.
+        n_tracks: ``None`` (default): every car drives tracks no other car and no earlier lap
+            drove, so every mile is new road. An integer cycles through that many tracks
+            (indices modulo ``n_tracks``), which repeats roads.
+        first_track: index of the first track (car ``i``'s tracks are ``first_track + i + k B``);
+            :func:`disjoint_runs` uses it to give repeated runs roads of their own.
+        start_speed_mps: speed at every (re)spawn [m/s].
+        start_s_m: arc length of the spawn point on a new track [m].
+        end_margin_m: a car moves to its next track this far before the end [m].
+        offcentre_m: off-centre distance that starts an off-centre episode [m].
+        offcentre_grace_s: an off-centre episode longer than this is an intervention [s].
+        intervention_cost_s: time charged per intervention in the autonomy metric [s].
+        stall_speed_mps, stall_time_s: below this speed for this long is a stall [m/s, s].
+        seed: seeds the start lanes.
+
+    Where cars (re)start is one rule, :func:`start_state` and :func:`restart_state`, shared with
+    the data collector. A restart is at ``start_speed_mps`` (20 m/s), below the roads' 25 m/s
+    cruise speed, as a car rejoining a highway after a stop would be; the expert's data must show
+    these states (chapter 04), the evaluation is not changed to avoid them.
+
+    Why fresh roads by default: the collision counts' confidence intervals treat collisions as
+    independent events. Cycling 64 cars through 16 tracks drove each road 4 times from the same
+    start, and a deterministic driver crashed at the same places each time: in chapter 10 (code
+    8f946b2) the GMM's 177 collisions over 500 mi were 65 distinct places, the L2 row's 86 were 32.
+    Collisions came in clusters of 2.7, so the intervals were about sqrt(2.7) = 1.6 times too
+    narrow and the tests' p-values far too small.
+    """
+
+    miles: float = 100.0
+    n_worlds: int = 16
+    split: str = "val"
+    n_tracks: int | None = None
+    first_track: int = 0
+    start_speed_mps: float = 20.0
+    start_s_m: float = 30.0
+    end_margin_m: float = 120.0
+    offcentre_m: float = 1.0
+    offcentre_grace_s: float = 3.0
+    intervention_cost_s: float = 6.0
+    stall_speed_mps: float = 0.5
+    stall_time_s: float = 20.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        o = "EvalConfig"
+        check_range(o, "miles", self.miles, 0.0, 1e6, lo_open=True)
+        check_range(o, "n_worlds", self.n_worlds, 1, 4096, integer=True)
+        if self.split not in SPLITS:
+            raise ValueError(
+                f"EvalConfig.split={self.split!r} is invalid: must be one of {sorted(SPLITS)}"
+            )
+        if self.n_tracks is not None:
+            check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
+        check_range(o, "first_track", self.first_track, 0, integer=True)
+        check_range(o, "start_speed_mps", self.start_speed_mps, 0.0, 100.0)
+        check_range(o, "start_s_m", self.start_s_m, 0.0)
+        check_range(o, "end_margin_m", self.end_margin_m, 0.0)
+        check_range(o, "offcentre_m", self.offcentre_m, 0.0, lo_open=True)
+        check_range(o, "offcentre_grace_s", self.offcentre_grace_s, 0.0)
+        check_range(o, "intervention_cost_s", self.intervention_cost_s, 0.0)
+        check_range(o, "stall_speed_mps", self.stall_speed_mps, 0.0)
+        check_range(o, "stall_time_s", self.stall_time_s, 0.0, lo_open=True)
+        check_range(o, "seed", self.seed, 0, integer=True)
+
+
+def drive(
+    policy: Policy,
+    world: World,
+    world_cfg: WorldConfig,
+    s_m: float,
+    d_m: float,
+    speed_mps: float,
+    seconds: float,
+    on_decision: Callable[[Observation, Actuation], None] | None = None,
+) -> tuple[np.ndarray, list[tuple[str, int]]]:
+    """Drive one car in a hand-made ``world`` from ``(s_m, d_m)`` at ``speed_mps`` (for figures
+    and tests; :func:`evaluate` is the measurement).
+
+    Returns:
+        ``(states, contacts)``: the state ``(T + 1, 5)`` at every decision and the first contacts
+        (the drive stops at a collision). ``on_decision(obs, act)`` is called every decision.
+    """
+    fleet = Fleet([world], world_cfg)
+    fleet.place(0, s_m, d_m, speed_mps)
+    policy.reset(1)
+    cam_cfg = getattr(policy, "camera", None)
+    camera = None if cam_cfg is None else Camera(cam_cfg)
+    states = [fleet.state[0].copy()]
+    contacts: list[tuple[str, int]] = []
+    period = world_cfg.sim.policy_period_s
+    for k in range(round(seconds / period)):
+        frame = fleet.lane_frame()
+        images = None
+        if camera is not None:
+            images = camera.render(world.track, world.cars, tuple(fleet.state[0, :3]), frame[0][0])[
+                None
+            ]
+        obs = observe(fleet, k == 0, k * period, images, frame)
+        act = policy.act(obs)
+        if on_decision is not None:
+            on_decision(obs, act)
+        contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2))[0]
+        states.append(fleet.state[0].copy())
+        if contacts:
+            break
+    return np.array(states), contacts
+
+
+def start_state(world: World, lane: int, cfg: EvalConfig) -> tuple[float, float, float]:
+    """Where a car starts on a new track: ``(s [m], d [m], speed [m/s])``.
+
+    At ``cfg.start_s_m`` on the centre of ``lane`` (drawn by the caller), or of the next lane to
+    the left (cyclically) when a parked car is within 10 m behind to 30 m ahead, at
+    ``cfg.start_speed_mps``. The evaluator and the data collector both start cars here.
+    """
+    s0 = cfg.start_s_m
+    for _ in range(world.track.n_lanes):
+        if world.lane_free(s0, lane, 10.0, 30.0):
+            break
+        lane = (lane + 1) % world.track.n_lanes
+    return s0, float(world.track.lane_center(lane)), cfg.start_speed_mps
+
+
+def restart_state(
+    world: World, s_obstacle: float, d_now: float, cfg: EvalConfig
+) -> tuple[float, float, float]:
+    """Where a car restarts after a collision, a stall or a take-over: ``(s, d, speed)``.
+
+    :meth:`~e2e_lite.simulation.world.World.respawn_pose` (15 m past the obstacle, the nearest free lane),
+    never past the line where the car moves on to its next track, at ``cfg.start_speed_mps``.
+    """
+    s_new, lane = world.respawn_pose(s_obstacle, d_now)
+    # past the move-on line: the next decision moves the car to its next track before any physics
+    s_new = min(s_new, world.track.length - cfg.end_margin_m + 1.0)
+    return s_new, float(world.track.lane_center(lane)), cfg.start_speed_mps
+
+
+class _WorldPool:
+    """Worlds of the evaluation split: a road and its cars are made once per track, and every car
+    gets its own pymunk world of it (two cars on one track must not share an ego body)."""
+
+    def __init__(self, world_cfg: WorldConfig, split: str) -> None:
+        self.world_cfg, self.split = world_cfg, split
+        self._roads: dict[int, World] = {}
+        self._worlds: dict[tuple[int, int], World] = {}
+
+    def release(self, car: int, index: int) -> None:
+        """Forget car ``car``'s world of track ``index`` (it moved on and never comes back)."""
+        self._worlds.pop((car, index), None)
+        if not any(k[1] == index for k in self._worlds):
+            self._roads.pop(index, None)
+
+    def get(self, car: int, index: int) -> World:
+        if (car, index) not in self._worlds:
+            if index not in self._roads:
+                self._roads[index] = make_world(self.world_cfg, self.split, index)
+            road = self._roads[index]
+            self._worlds[(car, index)] = (
+                road
+                if not any(k[1] == index for k in self._worlds)
+                else World(road.track, road.cars, self.world_cfg.vehicle)
+            )
+        return self._worlds[(car, index)]
+
+
+def check_policy_rate(policy: Policy, world_cfg: WorldConfig) -> None:
+    """Raise when ``policy`` (or the driver it wraps, ``policy.agent`` or ``policy.expert``) was
+    built for other time steps than the world's: its trackers would be discretised at the wrong
+    period."""
+    while policy is not None:
+        sim = getattr(policy, "sim", None)
+        if sim is not None and sim != world_cfg.sim:
+            raise ValueError(
+                f"{type(policy).__name__} was built for {sim!r} but the world runs "
+                f"{world_cfg.sim!r}: build it with sim=world_cfg.sim"
+            )
+        policy = getattr(policy, "agent", None) or getattr(policy, "expert", None)
+
+
+def track_index(cfg: EvalConfig, car: int, visit: int) -> int:
+    """Index (in ``cfg.split``) of the ``visit``-th track car ``car`` drives (see :class:`EvalConfig`)."""
+    index = cfg.first_track + car + visit * cfg.n_worlds
+    return index if cfg.n_tracks is None else index % cfg.n_tracks
+
+
+def disjoint_runs(cfg: EvalConfig, world_cfg: WorldConfig, n: int) -> list[EvalConfig]:
+    """``n`` evaluations that share ``cfg.miles`` equally and drive disjoint sets of tracks.
+
+    Used to pool ``n`` drivers (training seeds of one recipe) over ``cfg.miles`` of road that is
+    all distinct. Run ``k`` starts at track ``cfg.first_track + k * B * laps``, where ``laps``
+    bounds how many tracks one car needs for its share (every restart puts a car 15 m further on,
+    so a car never needs more road than its share). With ``cfg.n_tracks`` set, roads repeat
+    anyway and the runs are only shifted.
+    """
+    check_range("disjoint_runs", "n", n, 1, integer=True)
+    share = replace(cfg, miles=cfg.miles / n)
+    usable_m = world_cfg.road.length_m - cfg.start_s_m - cfg.end_margin_m
+    laps = int(np.ceil(share.miles * M_PER_MILE / cfg.n_worlds / usable_m)) + 1
+    return [replace(share, first_track=cfg.first_track + k * cfg.n_worlds * laps) for k in range(n)]
+
+
+def drive_shard(
+    policy: Policy,
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    cars: np.ndarray,
+    shard: int,
+    advance: Callable[[float], None],
+    record_traces: bool,
+    stop_when: Callable[[], bool] | None,
+) -> ShardResult:
+    """Drive the cars ``cars`` (their indices among ``cfg.n_worlds``) to their shares; start
+    lanes come from shard ``shard``'s generator."""
+    out = ShardResult()
+    n = len(cars)
+    pool = _WorldPool(world_cfg, cfg.split)
+    rng = np.random.default_rng([cfg.seed, 7] if shard == 0 else [cfg.seed, 7, shard])
+    visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
+    fleet = Fleet([pool.get(j, track_index(cfg, int(c), 0)) for j, c in enumerate(cars)], world_cfg)
+    dt_pol = world_cfg.sim.policy_period_s
+    share_m = cfg.miles * M_PER_MILE / cfg.n_worlds
+    odometer = np.zeros(n)
+    sim_time = np.zeros(n)
+    active = np.ones(n, dtype=bool)
+    respawned = np.ones(n, dtype=bool)
+
+    def spawn_new_track(i: int) -> None:
+        w = fleet.worlds[i]
+        fleet.place(i, *start_state(w, int(rng.integers(0, w.track.n_lanes)), cfg))
+
+    def respawn(i: int, s_obstacle: float, d_now: float) -> None:
+        fleet.place(i, *restart_state(fleet.worlds[i], s_obstacle, d_now, cfg))
+        respawned[i] = True
+
+    def position(i: int) -> tuple[float, float]:
+        s_i, d_i, _ = fleet.worlds[i].track.to_frenet_hint(
+            fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
+        )
+        return s_i, d_i
+
+    for i in range(n):
+        spawn_new_track(i)
+    policy.reset(n)
+
+    episode_t = np.zeros(n)
+    offcentre_t = np.zeros(n)
+    offcentre_counted = np.zeros(n, dtype=bool)
+    slow_t = np.zeros(n)
+    t_sim = 0.0
+    reported = 0.0
+    track0 = fleet.worlds[0].track  # every track shares the cross-section
+    cam_cfg = getattr(policy, "camera", None)
+    camera = None if cam_cfg is None else Camera(cam_cfg)
+    images = None if camera is None else np.empty((n, *camera.shape), dtype=np.uint8)
+    # used only if the camera augments
+    cam_rng = np.random.default_rng([cfg.seed, 11] if shard == 0 else [cfg.seed, 11, shard])
+    lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
+    lengths = np.array([w.track.length for w in fleet.worlds])  # of each car's current track [m]
+    while active.any():
+        s, d, road_h, kappa = fleet.lane_frame()
+        # a car near its track's end moves on to its next track
+        moving_on = np.flatnonzero(active & (s > lengths - cfg.end_margin_m)).tolist()
+        for i in moving_on:
+            if cfg.n_tracks is None:  # never driven again
+                pool.release(i, track_index(cfg, int(cars[i]), int(visit[i])))
+            visit[i] += 1
+            fleet.worlds[i] = pool.get(i, track_index(cfg, int(cars[i]), int(visit[i])))
+            lengths[i] = fleet.worlds[i].track.length
+            spawn_new_track(i)
+            respawned[i] = True
+        if moving_on:
+            s, d, road_h, kappa = fleet.lane_frame()
+        tick = time.perf_counter()
+        if camera is not None:
+            camera.render_batch(
+                [w.track for w in fleet.worlds],
+                [w.cars for w in fleet.worlds],
+                fleet.state[:, :3],
+                s,
+                rng=cam_rng,
+                out=images,
+            )
+            out.timing["frames"] += n
+        tock = time.perf_counter()
+        out.timing["render"] += tock - tick
+        obs = observe(fleet, respawned, t_sim, images, (s, d, road_h, kappa))
+        respawned[:] = False
+        out.speed_hist += speed_histogram(fleet.state[active, V])
+        act = policy.act(obs)
+        if act.info:
+            add_info(out.info, act.info)
+        tick = time.perf_counter()
+        out.timing["policy"] += tick - tock
+        if record_traces:
+            for i in np.flatnonzero(active).tolist():
+                key = "-".join(map(str, fleet.worlds[i].track.track_id))
+                out.traces.setdefault(key, []).append(
+                    [float(fleet.state[i, 0]), float(fleet.state[i, 1])]
+                )
+        xy_before = fleet.state[:, :2].copy()
+        contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2), active)
+        out.timing["physics"] += time.perf_counter() - tick
+        odometer += np.where(active, np.hypot(*(fleet.state[:, :2] - xy_before).T), 0.0)
+        dt_active = np.where(active, dt_pol, 0.0)
+        sim_time += dt_active
+        episode_t += dt_active
+        t_sim += dt_pol
+        # off-centre episodes (autonomy metric only; the car is not moved)
+        off = np.min(np.abs(d[:, None] - lane_centers[None, :]), axis=1) > cfg.offcentre_m
+        offcentre_t = np.where(active & off, offcentre_t + dt_pol, 0.0)
+        new_int = (offcentre_t > cfg.offcentre_grace_s) & ~offcentre_counted
+        out.interventions += int(new_int.sum())
+        offcentre_counted = (offcentre_counted | new_int) & (offcentre_t > 0)
+        # collisions: one event per car per period, then a re-spawn
+        for i, c in enumerate(contacts):
+            if not c:
+                continue
+            w = fleet.worlds[i]
+            s_i, d_i = position(i)
+            car_idx = next((j for kind, j in c if kind == "car"), None)
+            s_obst = (
+                s_i if car_idx is None else max(s_i, float(w.cars.s[car_idx]) + w.cars.length_m / 2)
+            )
+            out.events.append(
+                {
+                    "world": int(cars[i]),
+                    "track": list(w.track.track_id),
+                    "kind": "rail" if car_idx is None else "car",
+                    "car": car_idx,
+                    "s_m": round(s_i, 2),
+                    "d_m": round(d_i, 3),
+                    "x_m": round(float(fleet.state[i, 0]), 2),
+                    "y_m": round(float(fleet.state[i, 1]), 2),
+                    "heading_rad": round(float(fleet.state[i, H]), 4),
+                    "speed_mps": round(float(fleet.state[i, V]), 2),
+                    "time_s": round(float(sim_time[i]), 2),
+                    "miles": round(float(odometer[i] / M_PER_MILE), 4),
+                }
+            )
+            out.ttc.append(float(episode_t[i]))
+            episode_t[i] = 0.0
+            out.interventions += 1
+            respawn(i, s_obst, d_i)
+        # stalls
+        slow_t = np.where(active & (fleet.state[:, V] < cfg.stall_speed_mps), slow_t + dt_pol, 0.0)
+        for i in np.flatnonzero(slow_t > cfg.stall_time_s).tolist():
+            out.stalls += 1
+            out.interventions += 1
+            slow_t[i] = 0.0
+            respawn(i, *position(i))
+        # take-overs the policy asked for (the data collector's restarts; not collisions)
+        if act.restart is not None:
+            for i in np.flatnonzero(act.restart & active).tolist():
+                if not contacts[i] and not respawned[i]:
+                    episode_t[i] = 0.0
+                    respawn(i, *position(i))
+        active &= odometer < share_m
+        if stop_when is not None and stop_when():
+            active[:] = False
+        done = float(np.minimum(odometer, share_m).sum() / M_PER_MILE)
+        advance(max(0.0, done - reported))
+        reported = max(reported, done)
+    out.miles_m = float(odometer.sum())
+    out.sim_s = float(sim_time.sum())
+    out.censored = int(np.count_nonzero(episode_t > 0))
+    out.tracks = int((visit + 1).sum())
+    return out
+
+
+def roll_out(
+    policy: Policy,
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    *,
+    stop_when: Callable[[], bool] | None = None,
+    record_traces: bool = False,
+) -> EvalResult:
+    """The lockstep rollout of all ``cfg.n_worlds`` cars in this thread, as one result: what
+    :func:`~e2e_lite.driving.evaluation.evaluate` runs in shards behind a progress bar. The data
+    collector drives its expert with it, ``stop_when`` its sample count (called after every
+    decision; the metrics cover what was driven)."""
+    t_wall = time.perf_counter()
+    check_policy_rate(policy, world_cfg)
+    cars = np.arange(cfg.n_worlds)
+    shard = drive_shard(policy, world_cfg, cfg, cars, 0, _ignore, record_traces, stop_when)
+    return merge_shards([shard], cfg.intervention_cost_s, time.perf_counter() - t_wall)
+
+
+def _ignore(miles: float) -> None:
+    """A progress callback that shows nothing."""

@@ -1,0 +1,26 @@
+"""A shard process of :func:`~e2e_lite.driving.evaluation.evaluate` (see
+:mod:`e2e_lite.driving.parallel`; started by it, not for people).
+
+Reads its job from standard input and writes its messages to standard output as length-prefixed
+pickles; anything the driven code prints goes to standard error instead.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+
+def main() -> None:
+    """Keep the binary standard output for messages, send stray prints to standard error, run."""
+    outbox = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)  # C-level and Python prints of the driven code now go to stderr
+    sys.stdout = sys.stderr
+    from e2e_lite.driving.parallel import shard_worker
+
+    shard_worker(sys.stdin.buffer, outbox)
+    outbox.close()
+
+
+if __name__ == "__main__":
+    main()

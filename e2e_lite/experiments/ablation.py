@@ -1,0 +1,392 @@
+"""Chapter 10's ablation: every driver of the course on the same validation tracks with the same
+seeds, beside the paper's Table 1 (seed 000) and seed 002's times to collision.
+
+The drivers, in the order of the table (:data:`DRIVERS`): the expert (the ceiling), the oracle
+(the LQR tracker following the expert's own trajectories: the ceiling of any trajectory network),
+PilotNet steering only, the all-actuators baseline (the paper's Baseline E2E), trajectory L2,
+trajectory GMM, GMM + affordance, GMM + affordance + CVaR. The trained ones come from
+:mod:`e2e_lite.learning.recipes`, so they are the chapters' checkpoints when those are valid and are
+trained (seeded) when not.
+
+Each learned row is trained with several seeds (:func:`build_seeded_drivers`; seed 0 is the
+chapters' own checkpoint, seeds 1, 2, ... are ``10_<name>_seed<k>``); the row's miles are shared
+among the seeds and their counts pooled (:func:`~e2e_lite.driving.evaluation.pool_results`), each seed's
+result kept under ``seeds``.
+
+A closed-loop result is kept in ``<outputs>/evaluations/<driver>.json`` (``<driver>_seed<k>.json``
+per seed) under a key made of the driver's weights, its settings and the evaluation's settings;
+running the chapter again reuses it when nothing changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..artifacts import artifact_path, cached, load_json, save_json, settings_key
+from ..config import FULL, Profile
+from ..control.expert import Expert
+from ..control.oracle import Oracle
+from ..driving.evaluation import evaluate
+from ..driving.metrics import EvalResult, pool_results, result_dict, results_table
+from ..driving.rollout import EvalConfig, disjoint_runs
+from ..learning import recipes
+from ..learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
+from ..learning.data import DataConfig, DrivingData, load_or_collect
+from ..simulation.policy import Policy
+from ..simulation.world import WorldConfig
+
+
+@dataclass
+class Build:
+    """What a driver's build function gets: the sizes, the chapter-04 data and the training seed.
+
+    Attributes:
+        profile: sizes (and the data the recipes train on).
+        train, val: the chapter-04 datasets (None for the drivers that train nothing).
+        seed: the training seed (0: the chapters' own checkpoints).
+        kw: passed to the recipes (e.g. ``progress=False``).
+    """
+
+    profile: Profile
+    train: DrivingData | None
+    val: DrivingData | None
+    seed: int = 0
+    kw: dict[str, Any] = field(default_factory=dict)
+    _weight: float | None = field(default=None, init=False, repr=False)
+
+    @property
+    def data(self) -> tuple[Profile, DrivingData, DrivingData]:
+        """``(profile, train, val)``: a recipe's first three arguments."""
+        if self.train is None or self.val is None:
+            raise ValueError("this driver trains: give build_drivers the chapter-04 datasets")
+        return self.profile, self.train, self.val
+
+    @property
+    def seeded(self) -> dict[str, Any]:
+        """The recipes' keyword arguments: the seed and ``kw``."""
+        return {"seed": self.seed, **self.kw}
+
+    def name(self, chapter_name: str) -> str:
+        """The checkpoint name of this seed (:func:`~e2e_lite.learning.recipes.seeded_name`)."""
+        return recipes.seeded_name(chapter_name, self.seed)
+
+    def weight(self) -> float:
+        """Chapter 08's affordance weight (chosen once per build, its grid's checkpoints reused)."""
+        if self._weight is None:
+            self._weight = recipes.affordance_weight(*self.data, **self.kw)
+        return self._weight
+
+
+def _gmm(b: Build, decode: str = "top", **recipe: Any) -> Policy:
+    """A GMM recipe's network (``recipe``: ``modes``, ``sigma_fixed``) as a trajectory driver."""
+    chapter_name = {(): "07_gmm", ("modes",): "07_gmm_k1", ("sigma_fixed",): "07_gmm_sigma_fixed"}
+    name = b.name(chapter_name[tuple(recipe)])
+    return TrajectoryAgent(recipes.gmm(*b.data, name=name, **recipe, **b.seeded)[0], decode=decode)
+
+
+def _affordance(b: Build, **recipe: Any) -> Policy:
+    """Chapter 08's network at the chosen weight (``recipe``: e.g. ``affordance_from``)."""
+    base = "08_gmm_affordance_fused" if recipe else "08_gmm_affordance"
+    model = recipes.gmm_affordance(*b.data, b.weight(), name=b.name(base), **recipe, **b.seeded)[0]
+    return TrajectoryAgent(model)
+
+
+def _finetune(b: Build, reduction: str) -> Policy:
+    """Chapter 09's fine-tune of this seed's affordance network, reduced by ``reduction``."""
+    model = recipes.gmm_affordance_cvar(*b.data, b.weight(), reduction=reduction, **b.seeded)[0]
+    return TrajectoryAgent(model)
+
+
+def _w0(b: Build) -> Policy:
+    """The affordance network trained with ``w = 0`` (the head present, its loss off)."""
+    name = f"10_gmm_affordance_w0_seed{b.seed}"
+    return TrajectoryAgent(recipes.gmm_affordance(*b.data, 0.0, name=name, **b.seeded)[0])
+
+
+@dataclass(frozen=True)
+class Driver:
+    """One row of the ablation. Adding a driver is one row: its recipe lives in
+    :mod:`e2e_lite.learning.recipes`, and ``build`` turns it into a policy.
+
+    Attributes:
+        key: short name (file names, JSON keys).
+        label: the row's name in tables and figures.
+        paper_per_100mi: seed 000's Table 1 for the same method, if it has one.
+        paper_ttc_s: seed 002's mean time to collision for the same method, if it has one [s].
+        build: the driver from a :class:`Build` (trained or reused via the recipes).
+    """
+
+    key: str
+    label: str
+    paper_per_100mi: float | None = None
+    paper_ttc_s: float | None = None
+    build: Callable[[Build], Policy] | None = field(default=None, compare=False, repr=False)
+
+
+DRIVERS = (
+    Driver("expert", "expert (privileged, the ceiling)", build=lambda b: Expert()),
+    Driver("oracle", "oracle: LQR on the expert's trajectories", build=lambda b: Oracle()),
+    Driver(
+        "pilotnet",
+        "PilotNet, steering only",
+        paper_ttc_s=10.2,
+        build=lambda b: SteeringAgent(
+            recipes.pilotnet(*b.data, b.name("05_pilotnet"), **b.seeded)[0]
+        ),
+    ),
+    Driver(
+        "actuators",
+        "Baseline E2E: image + speed -> actuators",
+        183.3,
+        1.1,
+        build=lambda b: ActuatorAgent(
+            recipes.actuators(*b.data, b.name("05_actuators"), **b.seeded)[0]
+        ),
+    ),
+    Driver(
+        "trajectory_l2",
+        "trajectory L2 + LQR",
+        build=lambda b: TrajectoryAgent(
+            recipes.trajectory_l2(*b.data, b.name("06_trajectory_l2"), **b.seeded)[0]
+        ),
+    ),
+    Driver("gmm", "trajectory GMM + LQR", 12.7, build=_gmm),
+    Driver("gmm_affordance", "GMM + affordance", 0.83, build=_affordance),
+    Driver(
+        "gmm_affordance_cvar",
+        "GMM + affordance + CVaR",
+        0.0,
+        build=lambda b: _finetune(b, "cvar"),
+    ),
+)
+#: Controls (not in the paper), same seeds and roads as the rows:
+#: ``gmm_affordance_w0``, the affordance network trained with ``w = 0`` (its head then learns
+#: nothing): is the affordance step the auxiliary loss? ``gmm_mean``, the GMM row's checkpoints
+#: following the mixture's mean (the modes' weighted average) instead of the heaviest mode: does
+#: choosing a mode matter? ``gmm_k1``, the GMM's loss and schedule with one mode: is the GMM row's
+#: gap to L2 the choice between modes, or the NLL? ``gmm_sigma_fixed``, the GMM with every sigma
+#: held at 1 for the whole training (the warm-up never ends): is it the learned sigmas?
+#: ``gmm_affordance_control``, the CVaR row's fine-tune with the batch mean instead of CVaR: is the
+#: CVaR step CVaR, or one more epoch? ``gmm_affordance_fused``, the affordance network with its
+#: head on the fused features (the paper's Fig. 1) instead of the trunk's: where should it read?
+CONTROLS = (
+    Driver("gmm_affordance_w0", "GMM + affordance head, w = 0", build=_w0),
+    Driver(
+        "gmm_affordance_fused",
+        "GMM + affordance, head on the fused features",
+        build=lambda b: _affordance(b, affordance_from="fused"),
+    ),
+    Driver("gmm_mean", "GMM, following the mixture's mean", build=lambda b: _gmm(b, decode="mean")),
+    Driver("gmm_k1", "GMM loss with one mode (K = 1)", build=lambda b: _gmm(b, modes=1)),
+    Driver(
+        "gmm_sigma_fixed", "GMM with sigma held at 1", build=lambda b: _gmm(b, sigma_fixed=True)
+    ),
+    Driver(
+        "gmm_affordance_control",
+        "GMM + affordance, the fine-tune with the mean",
+        build=lambda b: _finetune(b, "mean"),
+    ),
+)
+#: The drivers with no training (one run each: they have no training seed).
+UNTRAINED = ("expert", "oracle")
+#: seed 000: "Our agent drives smoothly in an average speed of 48 mile per hour".
+PAPER_MPH = 48.0
+#: seed 000: the paper's closed-loop distance, "more than 480 miles".
+PAPER_MILES = 480.0
+BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS)}
+#: shards of a full-profile ablation evaluation (part of its settings: see ``evaluate``'s
+#: ``workers``; the chapters pass their profile's ``ablation_workers``).
+WORKERS = FULL.ablation_workers
+
+
+def build_drivers(
+    profile: Profile,
+    keys: Sequence[str] | None = None,
+    train: DrivingData | None = None,
+    val: DrivingData | None = None,
+    seed: int = 0,
+    **kw: Any,
+) -> dict[str, Policy]:
+    """The policies of ``keys`` (default: every row of :data:`DRIVERS`; :data:`CONTROLS` on
+    request), trained or reused via the recipes.
+
+    Args:
+        profile: sizes (and the data the recipes train on).
+        train, val: the chapter-04 datasets; loaded (or collected) when not given.
+        seed: the training seed of the learned drivers (0: the chapters' checkpoints).
+        **kw: passed to the recipes (e.g. ``progress=False``).
+    """
+    keys = [d.key for d in DRIVERS] if keys is None else list(keys)
+    unknown = [k for k in keys if k not in BY_KEY]
+    if unknown:
+        raise ValueError(f"unknown drivers {unknown}; known: {list(BY_KEY)}")
+    if any(k not in UNTRAINED for k in keys):
+        train = train or load_or_collect(DataConfig.for_profile(profile, "train"))
+        val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
+    build = Build(profile, train, val, seed, dict(kw))  # one affordance weight for every row
+    out: dict[str, Policy] = {}
+    for key in keys:
+        driver = BY_KEY[key]
+        if driver.build is None:
+            raise ValueError(f"driver {key!r} has no build function")
+        out[key] = driver.build(build)
+    return out
+
+
+def build_seeded_drivers(
+    profile: Profile,
+    keys: Sequence[str] | None = None,
+    seeds: int | None = None,
+    train: DrivingData | None = None,
+    val: DrivingData | None = None,
+    **kw: Any,
+) -> dict[str, Policy | list[Policy]]:
+    """Like :func:`build_drivers`, but every learned driver as a list of ``seeds`` policies
+    (training seeds ``0 .. seeds - 1``; default ``profile.ablation_seeds``); the expert and the
+    oracle stay single (nothing of theirs is trained)."""
+    seeds = profile.ablation_seeds if seeds is None else seeds
+    keys = [d.key for d in DRIVERS] if keys is None else list(keys)
+    if any(k not in UNTRAINED for k in keys):
+        train = train or load_or_collect(DataConfig.for_profile(profile, "train"))
+        val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
+    per_seed = [build_drivers(profile, keys, train, val, seed=k, **kw) for k in range(seeds)]
+    return {
+        key: per_seed[0][key] if key in UNTRAINED else [p[key] for p in per_seed] for key in keys
+    }
+
+
+def first(policy: Policy | Sequence[Policy]) -> Policy:
+    """The seed-0 policy of a row of :func:`build_seeded_drivers` (the policy itself if single)."""
+    return policy[0] if isinstance(policy, (list, tuple)) else policy
+
+
+def fingerprint(policy: Policy) -> str:
+    """What identifies a driver's behaviour: its class, its settings and, for a network, a digest
+    of its weights and normalisation buffers."""
+    parts: list[Any] = [type(policy).__name__]
+    if isinstance(policy, NetworkAgent):
+        digest = hashlib.sha256()
+        for name, tensor in policy.model.state_dict().items():
+            digest.update(name.encode())
+            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+        parts += [digest.hexdigest(), repr(policy.model.cfg), getattr(policy, "speed", None)]
+        parts += [getattr(policy, "preview_s", 0.0)]
+        if getattr(policy, "decode", "top") != "top":  # (so the stored keys of "top" stay)
+            parts.append(policy.decode)
+        parts += [repr(policy.camera), str(policy.device)]
+    for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
+        if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
+            parts.append(repr(getattr(policy, attr)))
+    if isinstance(policy, Oracle):  # its noise draws depend on its seed
+        parts += [repr(policy.expert.cfg), policy.seed]
+    inner = getattr(policy, "agent", None)  # a wrapper (e.g. the safety module) around a driver
+    if inner is not None:
+        parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
+    return settings_key(*parts)
+
+
+def evaluate_drivers(
+    drivers: dict[str, Policy | Sequence[Policy]],
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    *,
+    reuse: bool = True,
+    progress: bool = True,
+    workers: int = WORKERS,
+) -> dict[str, EvalResult | dict[str, Any]]:
+    """Every driver on the same tracks with the same seeds (``cfg``).
+
+    Every driver runs in ``workers`` shards. A driver given as a list (one policy per training
+    seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed, each seed on
+    tracks of its own (:func:`~e2e_lite.driving.evaluation.disjoint_runs`; seed ``k`` of every driver on
+    the same tracks), and its result is :func:`~e2e_lite.driving.evaluation.pool_results`
+    of theirs (a dict with ``seeds``). With ``reuse``, a result stored for the same driver
+    (:func:`fingerprint`), world, evaluation settings and shard count is read back instead of
+    driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other driver is
+    evaluated and stored.
+    """
+    out: dict[str, EvalResult | dict[str, Any]] = {}
+    for key, policy in drivers.items():
+        label = BY_KEY[key].label if key in BY_KEY else key
+        if isinstance(policy, (list, tuple)):
+            runs = disjoint_runs(cfg, world_cfg, len(policy))
+            parts = [
+                _evaluate_one(f"{key}_seed{k}", f"{label} (seed {k})", p, world_cfg, run,
+                              reuse, progress, workers)
+                for k, (p, run) in enumerate(zip(policy, runs))
+            ]  # fmt: skip
+            out[key] = pool_results(parts, cfg.intervention_cost_s)
+        else:
+            out[key] = _evaluate_one(key, label, policy, world_cfg, cfg, reuse, progress, workers)
+    return out
+
+
+def _evaluate_one(
+    file: str,
+    label: str,
+    policy: Policy,
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    reuse: bool,
+    progress: bool,
+    workers: int,
+) -> EvalResult | dict[str, Any]:
+    """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` (see
+    :func:`evaluate_drivers`)."""
+
+    def run() -> EvalResult:
+        res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
+        if progress:
+            print(f"{label}: {res.summary()}", flush=True)
+        return res
+
+    if not reuse:
+        return run()
+    run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
+    # the settings' key is part of the name: two evaluations of one driver with other settings
+    # (chapter 11 drives chapter 10's network over other miles) keep a file each
+    path = artifact_path("evaluations", f"{file}-{run_key}.json")
+    result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
+    if progress and not isinstance(result, EvalResult):
+        print(f"{label}: reusing {path.name} ({result['miles']:.3g} mi)", flush=True)
+    return result
+
+
+def _save_result(path: Path, result: EvalResult, key: str) -> None:
+    save_json(path, {"key": key, "result": result.to_dict()})
+
+
+def _load_result(path: Path) -> tuple[dict[str, Any], str]:
+    stored = load_json(path)
+    return stored["result"], stored["key"]
+
+
+def _fmt(value: float | None, unit: str = "") -> str:
+    return "-" if value is None else f"{value:g}{unit}"
+
+
+def per_seed(result: EvalResult | dict[str, Any]) -> str:
+    """A pooled result's per-seed rates, ``"a / b / c"`` per 100 mi (``"-"`` for one run)."""
+    seeds = result_dict(result).get("seeds") or []
+    return " / ".join(f"{s['collisions_per_100mi']:.1f}" for s in seeds) or "-"
+
+
+def ablation_table(results: dict[str, EvalResult | dict[str, Any]]) -> str:
+    """The markdown table: ours (miles, collisions car / rail, per 100 mi with the 95 % interval,
+    mph, time to collision, autonomy, the rate of each training seed) beside the papers' figures
+    for the same method."""
+    drivers = [BY_KEY.get(key, Driver(key, key)) for key in results]
+    return results_table(
+        [(d.label, r) for d, r in zip(drivers, results.values())],
+        extra=[
+            ("per seed, per 100 mi", [per_seed(r) for r in results.values()]),
+            ("paper: per 100 mi (seed 000)", [_fmt(d.paper_per_100mi) for d in drivers]),
+            ("paper: time to collision (seed 002)", [_fmt(d.paper_ttc_s, " s") for d in drivers]),
+        ],
+    )

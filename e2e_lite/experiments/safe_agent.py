@@ -1,0 +1,251 @@
+"""The safety module as a driver (chapter 11): :class:`SafeAgent` wraps a trajectory network,
+checks each proposed trajectory with :func:`~e2e_lite.experiments.safety.check` on perceived (or true)
+affordances, falls back as :func:`~e2e_lite.experiments.safety.choose` says, and reports what it did with
+each decision (``Actuation.info``, added up by the evaluator into ``result.info``; read it with
+:meth:`SafetyStats.from_info`): interventions by source and kind, false alarms audited against a
+fresh expert's trajectory from the same state, and a few examples with their camera frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..config import check_range
+from ..control.expert import Expert
+from ..learning.data import affordances
+from ..simulation.policy import Actuation, Observation
+from ..simulation.world import SimConfig
+from .safety import SafetyConfig, check, choose
+
+#: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
+COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
+TABLES = ("sources", "kinds")
+
+
+@dataclass
+class SafetyStats:
+    """What a :class:`SafeAgent` did over one or more evaluations: made from their results'
+    ``info`` (:meth:`from_info`), pooled with :meth:`add`.
+
+    Attributes:
+        decisions: car-decisions checked.
+        sources: how many times each source was driven (``network``, ``other mode``,
+            ``fallback``).
+        kinds: why the followed mode was rejected (``road edge``, ``collision course``,
+            ``cannot stop``).
+        audited: interventions audited (all, or one in ``audit_every``).
+        false_alarms: audited interventions where a fresh expert, from the same state, would have driven
+            what the network proposed (its trajectory within 1 m sideways and 5 m along at 1.5 s).
+        perception_only: audited interventions where the same rule with the world's true affordances
+            accepts the proposal (the perceived affordances caused the rejection).
+    """
+
+    decisions: int = 0
+    audited: int = 0
+    sources: Counter = field(default_factory=Counter)
+    kinds: Counter = field(default_factory=Counter)
+    false_alarms: int = 0
+    perception_only: int = 0
+
+    @classmethod
+    def from_info(cls, info: dict[str, Any]) -> SafetyStats:
+        """The counts in an evaluation's ``result.info`` (zero where the module never ran)."""
+        stats = cls()
+        stats.add(info)
+        return stats
+
+    @property
+    def interventions(self) -> int:
+        """Decisions where the followed mode was not driven."""
+        return self.decisions - self.sources["network"]
+
+    def counts(self) -> dict[str, Any]:
+        """The counters as plain data (copies)."""
+        return {
+            **{name: getattr(self, name) for name in COUNTS},
+            **{name: Counter(getattr(self, name)) for name in TABLES},
+        }
+
+    def add(self, counts: dict[str, Any]) -> None:
+        """Add counters given as :meth:`counts` or as a result's ``info`` (other names ignored)."""
+        for name in COUNTS:
+            setattr(self, name, getattr(self, name) + int(counts.get(name, 0)))
+        for name in TABLES:
+            getattr(self, name).update(counts.get(name, {}))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Counts and rates, JSON-ready."""
+        n, k = max(1, self.decisions), max(1, self.audited)
+        return {
+            "decisions": self.decisions,
+            "interventions": self.interventions,
+            "intervention_pct": 100.0 * self.interventions / n,
+            "sources": dict(self.sources),
+            "kinds": dict(self.kinds),
+            "audited": self.audited,
+            "false_alarms": self.false_alarms,
+            "false_alarm_pct": 100.0 * self.false_alarms / k,
+            "perception_only": self.perception_only,
+            "perception_only_pct": 100.0 * self.perception_only / k,
+        }
+
+
+class SafeAgent:
+    """A trajectory agent behind the safety module: the network proposes, the module checks
+    (:func:`choose`), the tracker follows what was chosen.
+
+    Args:
+        agent: a :class:`~e2e_lite.learning.agents.TrajectoryAgent` (or any policy with its
+            ``trajectories(obs)``, ``last``, ``follow(points, obs)``, ``camera`` and ``fork``).
+        cfg: the check's settings.
+        ground_truth: check with the world's true affordances instead of the network's
+            predictions (the upper bound; needs no affordance head).
+        audit: at every intervention, also ask a fresh expert and the ground-truth check whether
+            it was needed (the false-alarm counts; costs time).
+        audit_every: audit one intervention in this many (1: all; the rates are then
+            estimated from that sample).
+        keep_examples: interventions kept per shard for figures (with the camera frame).
+    """
+
+    def __init__(
+        self,
+        agent: Any,
+        cfg: SafetyConfig | None = None,
+        ground_truth: bool = False,
+        audit: bool = True,
+        audit_every: int = 1,
+        keep_examples: int = 6,
+    ) -> None:
+        check_range("SafeAgent", "audit_every", audit_every, 1, integer=True)
+        model = getattr(agent, "model", None)
+        if not ground_truth and model is not None and not model.cfg.affordance:
+            raise ValueError(
+                "the perceived check needs predicted affordances: give an agent whose model has "
+                "an affordance head, or use ground_truth=True"
+            )
+        self.agent, self.cfg = agent, cfg or SafetyConfig()
+        self.ground_truth, self.audit, self.keep_examples = ground_truth, audit, keep_examples
+        self.audit_every = audit_every
+        self._seen = 0  # interventions met by this copy (for audit_every)
+        self._kept = 0  # examples reported since the last reset
+        self.camera = agent.camera
+        self.last: dict[str, Any] = {}
+
+    def reset(self, n_worlds: int) -> None:
+        """Reset the network agent and the count of reported examples."""
+        self.agent.reset(n_worlds)
+        self._kept = 0
+
+    def fork(self, k: int) -> list[SafeAgent]:
+        """``k`` agents for parallel shards, sharing the model."""
+        out = []
+        for inner in self.agent.fork(k):
+            twin = SafeAgent.__new__(SafeAgent)
+            twin.__dict__.update(self.__dict__)
+            twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
+            out.append(twin)
+        return out
+
+    def act(self, obs: Observation) -> Actuation:
+        """Propose, check, follow."""
+        proposal = self.agent.trajectories(obs)
+        last = self.agent.last
+        modes = last.get("modes", proposal[:, None])
+        weights = last.get("weights", np.ones((len(proposal), 1)))
+        truth = None
+        if self.ground_truth:
+            truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        if not self.ground_truth and "affordances" not in last:
+            raise ValueError("the agent predicted no affordances; use ground_truth=True")
+        seen = truth if self.ground_truth else last["affordances"]
+        chosen = np.empty_like(proposal)
+        sources, kinds, audits = [], [], []
+        for i in range(len(proposal)):
+            c = choose(
+                modes[i], weights[i], seen[i], float(obs.speed[i]), obs.curvature[i], self.cfg
+            )
+            chosen[i] = c.points
+            sources.append(c.source)
+            if c.source != "network":
+                kinds.append(c.verdicts[0].kind)
+                audits.append((i, c))
+        false_alarms = perception_only = 0
+        audited = []
+        for i, _ in audits:
+            if self.audit and self._seen % self.audit_every == 0:
+                audited.append(i)
+            self._seen += 1
+        if audited:
+            expert_pts = _expert_labels(obs, audited, getattr(self.agent, "sim", None))
+            for j, i in enumerate(audited):
+                dx, dy = np.abs(expert_pts[j, -1] - proposal[i, -1])
+                false_alarms += int(dy <= 1.0 and dx <= 5.0)
+            if not self.ground_truth:  # (the ground-truth check already saw the truth)
+                true_aff = affordances(
+                    [obs.worlds[i] for i in audited],
+                    obs.s[audited],
+                    obs.d[audited],
+                    obs.heading_error[audited],
+                )
+                for j, i in enumerate(audited):
+                    gt = check(
+                        proposal[i], true_aff[j], float(obs.speed[i]), obs.curvature[i], self.cfg
+                    )
+                    perception_only += int(gt.ok)
+        examples = []
+        for i, c in audits[: max(0, self.keep_examples - self._kept)]:
+            if obs.images is None:
+                break
+            examples.append(
+                {
+                    "time_s": obs.time_s,
+                    "track": obs.worlds[i].track,
+                    "cars": obs.worlds[i].cars,
+                    "pose": obs.state[i, :3].copy(),
+                    "s": float(obs.s[i]),
+                    "speed": float(obs.speed[i]),
+                    "frame": obs.images[i].copy(),
+                    "modes": np.asarray(modes[i]).copy(),
+                    "weights": np.asarray(weights[i]).copy(),
+                    "chosen": c.points.copy(),
+                    "source": c.source,
+                    "reason": c.verdicts[0].reason,
+                }
+            )
+        self._kept += len(examples)
+        info = {
+            "decisions": len(proposal),
+            "audited": len(audited),
+            "false_alarms": false_alarms,
+            "perception_only": perception_only,
+            "sources": Counter(sources),
+            "kinds": Counter(kinds),
+            "examples": examples,
+        }
+        self.last = {"chosen": chosen, "sources": sources}
+        return dataclasses.replace(self.agent.follow(chosen, obs), info=info)
+
+
+def _expert_labels(obs: Observation, idx: list[int], sim: SimConfig | None = None) -> np.ndarray:
+    """What a fresh expert would drive from cars ``idx``'s states: ``(len(idx), 5, 2)`` [m]
+    (``sim``: the driven agent's time steps, default :class:`~e2e_lite.simulation.world.SimConfig`)."""
+    sub = Observation(
+        state=obs.state[idx],
+        s=obs.s[idx],
+        d=obs.d[idx],
+        heading_error=obs.heading_error[idx],
+        curvature=obs.curvature[idx],
+        lane=obs.lane[idx],
+        respawned=np.ones(len(idx), dtype=bool),
+        time_s=obs.time_s,
+        worlds=[obs.worlds[i] for i in idx],
+    )
+    # the expert of the car and time steps being driven, not a default one
+    expert = Expert(vehicle=obs.worlds[idx[0]].vehicle, sim=sim)
+    expert.reset(len(idx))
+    return expert.trajectory_label(sub)

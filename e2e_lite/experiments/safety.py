@@ -1,0 +1,287 @@
+"""The safety module (chapter 11): check a proposed trajectory before the tracker follows it.
+
+Seed 000's architecture (its Fig. 1) validates the network's trajectory with a safety module and
+leaves it unbuilt. A trajectory, unlike a steering angle, says where the car means to be, so it
+can be checked against what the car knows about the road ahead. The rule here is in the spirit of
+responsibility-sensitive safety (RSS), for a road of parked cars:
+
+Inputs (what the driver perceives): the 5 proposed points ``(x_i, y_i)`` in the car frame at
+``t_i = 0.3 i`` s, the car's speed ``v``, the road's curvature ``kappa`` here (from the map, as
+the cruise control knows it), and the 9 affordances (``e2e_lite.learning.data.AFFORDANCE_NAMES``): the
+heading to the road ``h``, the offset from the lane centre, the distances to the markings and the
+road edges, and the free gap ahead of the front bumper in the ego, left and right lanes (capped at
+60 m: "nothing seen"). The network's own affordance head provides them; the *ground-truth variant*
+feeds the world's true values into the same rule, an upper bound on what better perception buys.
+
+1. Where the body goes. In the lane frame the rear axle moves sideways by
+   ``Delta_i = y_i + h x_i - kappa x_i^2 / 2`` (the road bends by ``kappa x^2 / 2``); the body
+   spans ``Delta_i +- w / 2`` (``w`` the car's width). Between points the path is interpolated.
+2. Lateral: the body must stay on the road:
+   ``Delta_i + w / 2 <= left_edge`` and ``-Delta_i + w / 2 <= right_edge``.
+3. Lanes entered: the body occupies a lane (ego, left or right) when it is more than
+   ``lane_overlap_m`` across the lane's marking. The lane's perceived gap ``g`` places a parked
+   car ``g`` metres ahead of the front bumper.
+4. Longitudinal, in every lane the body occupies: (a) along the 1.5 s the body never reaches the
+   parked car (the front stays ``margin_m`` short of it while the body is in that lane), and
+   (b) if the horizon ends in that lane (the car's centre line inside it), the car can still
+   stop before the parked car: ``g - x_5 >= v_5 rho + v_5^2 / (2 beta) + margin`` (reaction time ``rho``,
+   braking ``beta``; ``v_5`` the speed at the last point). A gap at the cap counts as free.
+
+On a failed check the module falls back, in this order: the network's other GMM modes (heaviest
+first) if one passes; otherwise :func:`keep_lane_brake`, a trajectory back to the centre of the
+current lane braking at ``beta`` (always returned, never checked: it is the last resort).
+
+The driver that applies the rule to a trajectory network is :class:`~e2e_lite.experiments.safe_agent.SafeAgent`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import check_range
+from ..control.labels import AFFORDANCE_INDEX, GAP_CAP_M, N_POINTS, POINT_DT_S
+
+_A = AFFORDANCE_INDEX
+_SUBSTEPS = 4  # interpolated positions per 0.3 s between points
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Settings of the check.
+
+    Attributes:
+        reaction_s: reaction time rho before braking [s] (one policy period and a margin).
+        brake_mps2: braking beta assumed for stopping, and used by the fallback [m/s^2] (the
+            tracker's braking limit).
+        margin_m: distance always kept to a parked car [m].
+        lane_overlap_m: how far across a marking the body must be to occupy that lane [m].
+        edge_margin_m: how far past the road's edge line the body may go (onto the shoulder; the
+            guard rail is further out) [m].
+        car_width_m, car_length_m: the ego's body [m].
+        parked_length_m: a parked car's length [m].
+        gap_free_m: a perceived gap at least this long means nothing was seen [m].
+        check_fallback: check the keep-lane braking fallback too, and when it would itself run
+            into something within the horizon, drive the candidate whose violation comes latest
+            (see :func:`choose`). Off by default: with the true affordances it traded car
+            collisions for rail collisions (seed 0, 40 mi: 12 car / 23 rail against 21 / 13
+            unchecked); chapter 11's exercise 5.
+    """
+
+    reaction_s: float = 0.2
+    brake_mps2: float = 6.0
+    margin_m: float = 2.0
+    lane_overlap_m: float = 0.3
+    edge_margin_m: float = 0.3
+    car_width_m: float = 1.8
+    car_length_m: float = 4.5
+    parked_length_m: float = 4.5
+    gap_free_m: float = GAP_CAP_M - 0.5
+    check_fallback: bool = False
+
+    def __post_init__(self) -> None:
+        o = "SafetyConfig"
+        check_range(o, "reaction_s", self.reaction_s, 0.0, 5.0)
+        check_range(o, "brake_mps2", self.brake_mps2, 0.0, 15.0, lo_open=True)
+        check_range(o, "margin_m", self.margin_m, 0.0, 50.0)
+        check_range(o, "lane_overlap_m", self.lane_overlap_m, 0.0, 2.0)
+        check_range(o, "edge_margin_m", self.edge_margin_m, -2.0, 2.0)
+        check_range(o, "car_width_m", self.car_width_m, 0.5, 4.0)
+        check_range(o, "car_length_m", self.car_length_m, 1.0, 20.0)
+        check_range(o, "parked_length_m", self.parked_length_m, 1.0, 20.0)
+        check_range(o, "gap_free_m", self.gap_free_m, 1.0, 1000.0)
+
+    def stopping_m(self, speed_mps: float) -> float:
+        """RSS's safe distance to a standing obstacle: ``v rho + v^2 / (2 beta) + margin`` [m]."""
+        v = max(0.0, speed_mps)
+        return v * self.reaction_s + v * v / (2.0 * self.brake_mps2) + self.margin_m
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The check's answer: ``ok``, and when not, why (readable) and where (lane, point)."""
+
+    ok: bool
+    reason: str = ""
+    lane: str = ""
+    kind: str = ""  # "road edge", "collision course" or "cannot stop"
+    t_s: float = float("inf")  # when the violation begins [s] (the horizon's end for "cannot stop")
+
+
+def _path(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions interpolated between the origin and the 5 points: ``(x, y, t)``."""
+    pts = np.concatenate([np.zeros((1, 2)), np.asarray(points, dtype=np.float64)])
+    u = np.linspace(0.0, N_POINTS, N_POINTS * _SUBSTEPS + 1)
+    x = np.interp(u, np.arange(N_POINTS + 1), pts[:, 0])
+    y = np.interp(u, np.arange(N_POINTS + 1), pts[:, 1])
+    return x, y, u * POINT_DT_S
+
+
+def check(
+    points: np.ndarray,
+    aff: np.ndarray,
+    speed_mps: float,
+    curvature: float,
+    cfg: SafetyConfig | None = None,
+) -> Verdict:
+    """Is following ``points`` safe, by the rule of the module docstring?
+
+    Args:
+        points: ``(5, 2)`` proposed rear-axle positions, car frame [m], 0.3 s apart.
+        aff: the 9 affordances, in :data:`~e2e_lite.learning.data.AFFORDANCE_NAMES` order (perceived or
+            true).
+        speed_mps: the car's speed now [m/s].
+        curvature: the road's curvature here [1/m] (left positive).
+        cfg: the settings.
+    """
+    cfg = cfg or SafetyConfig()
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape != (N_POINTS, 2) or not np.all(np.isfinite(pts)):
+        return Verdict(False, "the proposal is not 5 finite points", kind="invalid", t_s=0.0)
+    a = np.asarray(aff, dtype=np.float64)
+    x, y, _ = _path(pts)
+    delta = y + a[_A["heading_rad"]] * x - curvature * x * x / 2.0
+    half = cfg.car_width_m / 2.0
+    # 2. road edges
+    left = delta + half - (a[_A["left_edge_m"]] + cfg.edge_margin_m)
+    right = -delta + half - (a[_A["right_edge_m"]] + cfg.edge_margin_m)
+    for side, excess in (("left", left), ("right", right)):
+        if excess.max() > 0.0:
+            k = int(np.argmax(excess > 0.0))
+            return Verdict(
+                False,
+                f"leaves the road on the {side} ({excess.max():.2f} m past the edge, "
+                f"{k * POINT_DT_S / _SUBSTEPS:.1f} s ahead)",
+                side,
+                "road edge",
+                k * POINT_DT_S / _SUBSTEPS,
+            )
+    # 3. which lanes the body occupies, relative to the ego lane's centre
+    width = max(2.0, a[_A["left_marking_m"]] + a[_A["right_marking_m"]])
+    lateral = a[_A["center_offset_m"]] + delta
+    lo, hi = lateral - half, lateral + half
+    v_end = float(np.hypot(*(pts[-1] - pts[-2]))) / POINT_DT_S
+    for lane, offset, gap_name in (
+        ("ego", 0.0, "gap_ego_m"),
+        ("left", width, "gap_left_m"),
+        ("right", -width, "gap_right_m"),
+    ):
+        inside = np.minimum(hi, offset + width / 2) - np.maximum(lo, offset - width / 2)
+        occupied = inside > (cfg.lane_overlap_m if lane != "ego" else 0.0)
+        if not occupied.any():
+            continue
+        gap = float(a[_A[gap_name]])
+        if gap >= cfg.gap_free_m:
+            continue
+        # 4a. the front bumper reaches the parked car while the body is in its lane
+        front = x  # progress of the front bumper [m] (the rear axle's, the body is rigid)
+        rear = x - cfg.car_length_m
+        hit = occupied & (front > gap - cfg.margin_m) & (rear < gap + cfg.parked_length_m)
+        if hit.any():
+            k = int(np.argmax(hit))
+            return Verdict(
+                False,
+                f"runs into the car {gap:.0f} m ahead in the {lane} lane "
+                f"({k * POINT_DT_S / _SUBSTEPS:.1f} s ahead)",
+                lane,
+                "collision course",
+                k * POINT_DT_S / _SUBSTEPS,
+            )
+        # 4b. ending the 1.5 s in that lane (its centre line inside it): can it stop in time?
+        ends_here = abs(lateral[-1] - offset) <= width / 2
+        if ends_here and front[-1] < gap:
+            need = cfg.stopping_m(v_end)
+            left_m = gap - front[-1]
+            if left_m < need:
+                return Verdict(
+                    False,
+                    f"cannot stop for the car {gap:.0f} m ahead in the {lane} lane: "
+                    f"{left_m:.0f} m left after 1.5 s at {v_end:.1f} m/s, {need:.0f} m needed",
+                    lane,
+                    "cannot stop",
+                    N_POINTS * POINT_DT_S,
+                )
+    return Verdict(True)
+
+
+def keep_lane_brake(
+    aff: np.ndarray, speed_mps: float, curvature: float, cfg: SafetyConfig | None = None
+) -> np.ndarray:
+    """The last-resort trajectory: back to the current lane's centre (smoothly, over the 1.5 s),
+    braking at ``cfg.brake_mps2`` from ``speed_mps`` to a stop. ``(5, 2)`` car-frame points [m];
+    progress never decreases and the speed never increases."""
+    cfg = cfg or SafetyConfig()
+    a = np.asarray(aff, dtype=np.float64)
+    v = max(0.0, float(speed_mps))
+    t = POINT_DT_S * np.arange(1, N_POINTS + 1)
+    t_stop = v / cfg.brake_mps2
+    tc = np.minimum(t, t_stop)
+    x = v * tc - 0.5 * cfg.brake_mps2 * tc**2
+    u = t / t[-1]
+    blend = u**3 * (10.0 - 15.0 * u + 6.0 * u**2)  # quintic: no lateral jerk at the ends
+    offset = float(np.clip(a[_A["center_offset_m"]], -5.0, 5.0))
+    delta = -offset * blend
+    heading = float(np.clip(a[_A["heading_rad"]], -1.0, 1.0))
+    y = delta - heading * x + curvature * x * x / 2.0
+    return np.stack([x, y], axis=1)
+
+
+@dataclass
+class Choice:
+    """What the module did for one car at one decision."""
+
+    points: np.ndarray
+    source: str  # "network" (the followed mode), "other mode" or "fallback"
+    verdicts: list[Verdict]  # one per mode checked, heaviest first
+
+
+def choose(
+    modes: np.ndarray,
+    weights: np.ndarray,
+    aff: np.ndarray,
+    speed_mps: float,
+    curvature: float,
+    cfg: SafetyConfig | None = None,
+) -> Choice:
+    """The fallback order: the heaviest mode if it passes, else the next heaviest that passes,
+    else :func:`keep_lane_brake`.
+
+    With ``cfg.check_fallback`` the braking trajectory is checked too. It is driven when it
+    passes or only "cannot stop" (it already brakes as hard as the rule assumes: nothing stops
+    sooner in this lane). When it would itself run into a car or off the road within the 1.5 s,
+    the candidate (modes and brake) whose first violation comes **latest** is driven instead (on
+    a tie the brake, which meets it slower, then the heaviest mode): braking in the lane of a car
+    too close to stop for makes the contact certain, while a swerve the rule finds too tight may
+    still miss it. Off by default (see :class:`SafetyConfig`).
+
+    Args:
+        modes: ``(K, 5, 2)`` proposals (K = 1 for a single trajectory) [m].
+        weights: ``(K,)`` their weights.
+        aff, speed_mps, curvature, cfg: as :func:`check`.
+
+    Returns:
+        The :class:`Choice`; its ``verdicts`` hold one per mode checked (heaviest first), then the
+        brake's when it was checked.
+    """
+    cfg = cfg or SafetyConfig()
+    modes = np.asarray(modes, dtype=np.float64)
+    order = np.argsort(-np.asarray(weights, dtype=np.float64), kind="stable")
+    verdicts = []
+    for rank, k in enumerate(order.tolist()):
+        verdict = check(modes[k], aff, speed_mps, curvature, cfg)
+        verdicts.append(verdict)
+        if verdict.ok:
+            return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
+    brake = keep_lane_brake(aff, speed_mps, curvature, cfg)
+    if not cfg.check_fallback:
+        return Choice(brake, "fallback", verdicts)
+    brake_verdict = check(brake, aff, speed_mps, curvature, cfg)
+    verdicts.append(brake_verdict)
+    if brake_verdict.ok or brake_verdict.kind == "cannot stop":
+        return Choice(brake, "fallback", verdicts)
+    latest = max(range(len(verdicts)), key=lambda j: (verdicts[j].t_s, j == len(order), -j))
+    if latest == len(order):
+        return Choice(brake, "fallback", verdicts)
+    source = "network" if latest == 0 else "other mode"
+    return Choice(modes[order[latest]], source, verdicts)

@@ -1,0 +1,221 @@
+"""Checkpoints that know what they were trained on, and :func:`train_or_load`.
+
+A checkpoint stores the model's settings, its weights *and normalisation buffers*, the training
+settings, the objective's name and the dataset's key (and Adam's state after the kept epoch, for
+a fine-tune to continue). :func:`load_checkpoint` refuses a checkpoint made with other settings
+or statistics (:class:`CheckpointMismatch`) instead of letting a driver run with the wrong
+normalisation; :func:`train_or_load` reuses a valid one and trains (seeded) otherwise.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..artifacts import artifact_path, atomic_write, settings_key
+from .dataset import DrivingData, DrivingDataset
+from .losses import Objective
+from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
+from .training import History, TrainConfig, fit, model_stats
+
+
+class CheckpointMismatch(ValueError):
+    """A checkpoint was made with other settings, statistics or data than asked for."""
+
+
+# ------------------------------------------------------------------ checkpoints
+def checkpoint_key(
+    model_cfg: ModelConfig, train_cfg: TrainConfig, objective: Objective, data_key: str
+) -> str:
+    """The settings key of a training run (the device is left out: CPU and GPU runs share it)."""
+    return settings_key(
+        "checkpoint-v1", model_cfg, {**asdict(train_cfg), "device": None}, objective.name, data_key
+    )
+
+
+def save_checkpoint(
+    path: Path | str,
+    model: DrivingModel,
+    train_cfg: TrainConfig,
+    objective: Objective,
+    data_key: str,
+    history: History | None = None,
+    key: str | None = None,
+) -> Path:
+    """Write a checkpoint (weights, normalisation, settings, data key, history) atomically.
+    ``key`` overrides the settings key (a fine-tune's includes its parent's)."""
+    blob = {
+        "key": key or checkpoint_key(model.cfg, train_cfg, objective, data_key),
+        "model_config": model.config_dict(),
+        "train_config": asdict(train_cfg),
+        "objective": objective.name,
+        "data_key": data_key,
+        "normalisation": model.normalisation(),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "history": None if history is None else history.to_dict(),
+        "optimizer": None if history is None else history.optimizer_state,
+    }
+    with atomic_write(path) as f:
+        torch.save(blob, f)
+    return Path(path)
+
+
+def load_checkpoint(
+    path: Path | str,
+    model_cfg: ModelConfig | None = None,
+    data_key: str | None = None,
+    normalisation: dict[str, np.ndarray] | None = None,
+    device: torch.device | str = "cpu",
+) -> tuple[DrivingModel, dict[str, Any]]:
+    """Load a checkpoint; refuse it (:class:`CheckpointMismatch`) when what is asked differs.
+
+    Args:
+        path: the file.
+        model_cfg: the settings the caller expects (None: accept the stored ones).
+        data_key: the dataset the caller drives/evaluates with (None: do not check).
+        normalisation: the statistics the caller expects (None: do not check).
+        device: where to put the model.
+
+    Returns:
+        ``(model in eval mode, the checkpoint's metadata)``.
+    """
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    stored_cfg = ModelConfig(**blob["model_config"])
+    if model_cfg is not None and stored_cfg != model_cfg:
+        raise CheckpointMismatch(
+            f"{Path(path).name} holds a model with settings {stored_cfg}, not the requested "
+            f"{model_cfg}; retrain or ask for the stored settings"
+        )
+    if data_key is not None and blob["data_key"] != data_key:
+        raise CheckpointMismatch(
+            f"{Path(path).name} was trained on dataset {blob['data_key']}, not {data_key}: its "
+            "normalisation belongs to that data; retrain on this one"
+        )
+    if normalisation is not None:
+        for name, value in normalisation.items():
+            stored = np.asarray(blob["normalisation"][name], dtype=np.float32).ravel()
+            value = np.asarray(value, dtype=np.float32).ravel()
+            if stored.shape != value.shape or not np.allclose(stored, value, rtol=1e-5, atol=1e-7):
+                raise CheckpointMismatch(
+                    f"{Path(path).name} normalises with other statistics ({name}: stored "
+                    f"{np.round(np.asarray(stored).ravel()[:4], 4).tolist()}..., expected "
+                    f"{np.round(np.asarray(value).ravel()[:4], 4).tolist()}...); refusing to drive "
+                    "with the wrong normalisation"
+                )
+    model = build_model(stored_cfg)
+    model.load_state_dict(blob["state_dict"])
+    model = prepare(model, torch.device(device))
+    model.eval()
+    meta = {k: blob[k] for k in ("key", "train_config", "objective", "data_key", "history")}
+    meta["optimizer"] = blob.get("optimizer")  # None in checkpoints saved before it was kept
+    return model, meta
+
+
+def train_or_load(
+    name: str,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    objective: Objective,
+    train_data: DrivingData,
+    val_data: DrivingData,
+    *,
+    train_rows: np.ndarray | None = None,
+    init_from: str | None = None,
+    carry_optimizer: bool = False,
+    keep_optimizer: bool = False,
+    progress: bool = True,
+) -> tuple[DrivingModel, History]:
+    """The model ``name`` from ``<outputs>/checkpoints/<name>.pt`` if it was trained with these
+    settings on this data; otherwise train it (seeded), save it and return it.
+
+    Either way ``objective`` comes back in its state after the last epoch
+    (``objective.start_epoch(train_cfg.epochs)``: a GMM's sigma warm-up is over), so a reused and
+    a freshly trained model are scored alike.
+
+    Args:
+        name: checkpoint and figure name.
+        model_cfg, train_cfg, objective: what to train and how.
+        train_data, val_data: the datasets (statistics come from ``train_data``).
+        train_rows: train on these rows of ``train_data`` only (e.g. without recovery views).
+        init_from: fine-tune: start from the weights of checkpoint ``<init_from>.pt`` (same model
+            settings and data; its key joins this checkpoint's, so a retrained parent makes this
+            one stale). Raises :class:`CheckpointMismatch` when it is missing or does not fit.
+        carry_optimizer: with ``init_from``, continue the parent's Adam state (at this run's
+            learning rate) instead of a fresh Adam; the parent must have kept it
+            (``keep_optimizer``), else :class:`CheckpointMismatch`.
+        keep_optimizer: a stored checkpoint without its optimiser state (saved before the course
+            kept it) is retrained, so a fine-tune can carry the state on.
+        progress: progress bars and per-epoch lines.
+    """
+    device = pick_device(train_cfg.device)
+    rows = np.arange(len(train_data)) if train_rows is None else np.asarray(train_rows)
+    data_key = settings_key(
+        train_data.info["key"],
+        val_data.info["key"],
+        None if train_rows is None else hashlib.sha256(rows.astype(np.int64).tobytes()).hexdigest(),
+    )
+    path = artifact_path("checkpoints", f"{name}.pt")
+    stats = model_stats(model_cfg, train_data, objective)
+    key = checkpoint_key(model_cfg, train_cfg, objective, data_key)
+    parent, parent_meta = None, {"optimizer": None}
+    if init_from is not None:
+        parent_path = artifact_path("checkpoints", f"{init_from}.pt")
+        if not parent_path.exists():
+            raise CheckpointMismatch(
+                f"{name} fine-tunes {init_from}, but {parent_path} does not exist: train it first"
+            )
+        parent, parent_meta = load_checkpoint(parent_path, model_cfg, data_key, stats, device)
+        key = settings_key(key, parent_meta["key"])
+        if carry_optimizer:
+            if parent_meta["optimizer"] is None:
+                raise CheckpointMismatch(
+                    f"{name} continues the optimiser of {init_from}, but {parent_path.name} has "
+                    "no optimiser state: retrain it with keep_optimizer=True"
+                )
+            key = settings_key(key, "optimizer carried")
+    elif carry_optimizer:
+        raise ValueError("carry_optimizer needs init_from: whose optimiser would it carry?")
+    if path.exists():
+        try:
+            model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
+            kept = meta["optimizer"] is not None or not keep_optimizer
+            if meta["key"] == key and meta["history"] is not None and kept:
+                if progress:
+                    print(f"[checkpoints] {name}: reusing {path.name}")
+                objective.start_epoch(train_cfg.epochs)  # as after training: warm-up over
+                return model, History(**meta["history"])
+            if progress:
+                why = "other settings" if kept else "no optimiser state kept"
+                print(f"[checkpoints] {name}: trained with {why}; retraining")
+        except CheckpointMismatch as err:
+            if progress:
+                print(f"[checkpoints] {name}: {err}; retraining")
+        except Exception as err:  # a corrupt file is retrained, never trusted
+            if progress:
+                print(f"[checkpoints] {name}: unreadable ({type(err).__name__}); retraining")
+    torch.manual_seed(train_cfg.seed)
+    if parent is not None:
+        model = parent
+    else:
+        model = build_model(model_cfg)
+        model.set_normalisation(stats)
+        model = prepare(model, device)
+    history = fit(
+        model,
+        objective,
+        DrivingDataset(train_data, rows),
+        DrivingDataset(val_data),
+        train_cfg,
+        name=name,
+        progress=progress,
+        optimizer_state=parent_meta["optimizer"] if carry_optimizer else None,
+    )
+    model.eval()
+    save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)
+    objective.start_epoch(train_cfg.epochs)  # fit left it at the last epoch's; this is after it
+    return model, history

@@ -1,0 +1,342 @@
+"""The expert's dataset (chapter 04): camera frames with clean labels, collected under noise.
+
+The collector drives the :class:`~e2e_lite.control.expert.Expert` through the lockstep rollout
+(:func:`~e2e_lite.driving.rollout.roll_out`, the closed-loop evaluator's loop) on
+the training (or validation) tracks, with random steering and acceleration *bursts* added to the
+commands it executes, so the recording also holds off-centre and off-heading states and the
+expert's recovery from them. Some bursts brake hard, and now and then a car is taken over and
+re-placed exactly as the evaluator re-places a car after a collision
+(:func:`~e2e_lite.driving.rollout.restart_state`: 20 m/s, below the cruise speed), so the data shows
+the expert getting back to speed from the states a learned driver restarts in (covariate shift;
+chapter 04 compares the two speed distributions). One sample per policy step (10 Hz).
+
+What one sample holds is :mod:`e2e_lite.learning.dataset`'s schema; the labels (trajectory format,
+affordances, throttle and brake) are :mod:`e2e_lite.control.labels`. Both are re-exported here, so a
+chapter reads the data's names from one module. The recovery views of seed 003 are
+:mod:`e2e_lite.learning.recovery`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..artifacts import artifact_path, cached, settings_key
+from ..config import Profile, check_pair, check_range, tqdm
+from ..control.expert import Expert, ExpertConfig
+from ..control.labels import (  # noqa: F401 (re-exported, as above)
+    AFFORDANCE_NAMES,
+    CHANGE,
+    GAP_CAP_M,
+    N_POINTS,
+    throttle_brake,
+)
+from ..driving.metrics import EvalResult
+from ..driving.rollout import EvalConfig, roll_out
+from ..simulation.camera import CameraConfig
+from ..simulation.policy import Actuation, Observation
+from ..simulation.world import World, WorldConfig
+from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's names here)
+    CHANGE_START_M,
+    FIELDS,
+    SCHEMA,
+    SLOW_MPS,
+    DrivingData,
+    DrivingDataset,
+    allocate,
+    concat,
+    dataset_stats,
+    load_dataset,
+    road_lateral,
+    save_dataset,
+    situation_shares,
+    situations,
+    synthetic_data,
+)
+
+
+def affordances(
+    worlds: list[World], s: np.ndarray, d: np.ndarray, heading_error: np.ndarray
+) -> np.ndarray:
+    """The affordances of B cars, ``(B, 9)`` float64 (see :data:`AFFORDANCE_NAMES` for units).
+
+    Args:
+        worlds: car i's world.
+        s, d: lane-frame position of each rear axle [m].
+        heading_error: heading minus the road's [rad].
+    """
+    n = len(worlds)
+    out = np.empty((n, len(AFFORDANCE_NAMES)))
+    for i, world in enumerate(worlds):
+        track, veh = world.track, world.vehicle
+        di = float(d[i])
+        lane = int(track.lane_index(di))
+        centre = float(track.lane_center(lane))
+        half_lane = track.lane_width / 2.0
+        front = float(s[i]) + veh.length_m - veh.rear_overhang_m
+        # start one parked-car length behind the rear bumper: a segment query does not see a
+        # shape it starts inside, and any car found from there reaches at least to our rear
+        start = front - veh.length_m - world.cars.length_m
+        gaps = []
+        for other in (lane, lane + 1, lane - 1):
+            if not 0 <= other < track.n_lanes:
+                gaps.append(0.0)
+                continue
+            hit = world.gap_ahead(start, other, GAP_CAP_M + front - start)
+            gaps.append(min(GAP_CAP_M, max(0.0, start + hit - front)))
+        out[i] = (
+            float(heading_error[i]),
+            di - centre,
+            centre + half_lane - di,
+            di - (centre - half_lane),
+            track.half_width - di,
+            di + track.half_width,
+            *gaps,
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Random bursts added to the executed commands (never to the labels).
+
+    A car not in a burst starts one with probability ``rate_per_s * policy period`` per decision.
+    A burst holds a steering offset of random sign and magnitude, and an acceleration offset, for
+    a random duration. A share ``brake_share`` of the bursts brake instead (acceleration offset
+    ``-brake_mps2``), taking 1-6 m/s off the speed, so the expert's recovery to its cruise speed
+    is labelled too.
+
+    Attributes:
+        rate_per_s: bursts per second of driving [1/s] (0 turns noise off).
+        duration_s: (min, max) duration of a burst [s].
+        steer_rad: (min, max) magnitude of the steering offset [rad].
+        accel_mps2: the acceleration offset is uniform in +-this [m/s^2].
+        brake_share: share of bursts that brake, in [0, 1].
+        brake_mps2: (min, max) deceleration added by a braking burst [m/s^2].
+    """
+
+    rate_per_s: float = 0.12
+    duration_s: tuple[float, float] = (0.5, 1.5)
+    steer_rad: tuple[float, float] = (0.003, 0.015)
+    accel_mps2: float = 1.0
+    brake_share: float = 0.25
+    brake_mps2: tuple[float, float] = (2.0, 4.0)
+
+    def __post_init__(self) -> None:
+        o = "NoiseConfig"
+        check_range(o, "rate_per_s", self.rate_per_s, 0.0, 10.0)
+        check_pair(o, "duration_s", self.duration_s, lo=0.0)
+        check_pair(o, "steer_rad", self.steer_rad, lo=0.0)
+        check_range(o, "accel_mps2", self.accel_mps2, 0.0, 10.0)
+        check_range(o, "brake_share", self.brake_share, 0.0, 1.0)
+        check_pair(o, "brake_mps2", self.brake_mps2, lo=0.0)
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """What to collect.
+
+    Attributes:
+        split: ``"train"`` or ``"val"`` tracks.
+        n_samples: samples to record.
+        n_tracks: tracks of the split the cars cycle through.
+        n_worlds: cars driven in lockstep.
+        world: roads, traffic, car, time steps.
+        expert: the expert's settings.
+        noise: the noise bursts.
+        camera: the camera (66 x 200 by default).
+        restart_rate_per_s: take-overs per second of driving [1/s]: the car is re-placed as the
+            evaluator re-places it after a collision (:func:`~e2e_lite.driving.rollout.restart_state`).
+            The default, one per 20 s, is about twice as often as chapter 10's GMM collided (once
+            per 39 s of driving) and doubles the share of samples between 20 and 24 m/s (7.6 % ->
+            17.8 % on 16,000 training samples); chapter 04 measures it.
+        seed: seeds the expert's draws, the noise and the start lanes.
+    """
+
+    split: str = "train"
+    n_samples: int = 48_000
+    n_tracks: int = 32
+    n_worlds: int = 16
+    world: WorldConfig = field(default_factory=WorldConfig)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    restart_rate_per_s: float = 0.05
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        o = "DataConfig"
+        if self.split not in ("train", "val"):
+            raise ValueError(f"{o}.split={self.split!r} is invalid: must be 'train' or 'val'")
+        check_range(o, "n_samples", self.n_samples, 1, integer=True)
+        check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
+        check_range(o, "n_worlds", self.n_worlds, 1, 1024, integer=True)
+        check_range(o, "restart_rate_per_s", self.restart_rate_per_s, 0.0, 1.0)
+        check_range(o, "seed", self.seed, 0, integer=True)
+
+    @classmethod
+    def for_profile(cls, profile: Profile, split: str = "train", **overrides: Any) -> DataConfig:
+        """The profile's sizes: its sample counts, training tracks or validation tracks."""
+        train = split == "train"
+        kwargs: dict[str, Any] = {
+            "split": split,
+            "n_samples": profile.n_train_samples if train else profile.n_val_samples,
+            "n_tracks": profile.n_train_tracks if train else profile.n_val_tracks,
+            "n_worlds": profile.n_worlds,
+            "world": WorldConfig.for_profile(profile),
+            "seed": 0 if train else 1,
+        }
+        kwargs.update(overrides)
+        return cls(**kwargs)
+
+    @property
+    def key(self) -> str:
+        """Settings key of the dataset these settings make."""
+        return settings_key("dataset-v2", self)
+
+
+class _Recorder:
+    """A policy: the expert plus noise bursts, recording every decision until ``n`` samples."""
+
+    def __init__(self, cfg: DataConfig, progress: bool) -> None:
+        self.cfg = cfg
+        self.camera = cfg.camera
+        self.expert = Expert(
+            cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed
+        )
+        self.rng = np.random.default_rng([cfg.seed, 23])
+        n = cfg.n_samples
+        h, w = cfg.camera.height_px, cfg.camera.width_px
+        self.a = allocate(n, (h, w))
+        self.count = 0
+        self.bar = tqdm(
+            total=n,
+            desc=f"collect {cfg.split}",
+            unit="sample",
+            disable=not progress,
+            leave=False,
+            mininterval=0.5,
+        )
+
+    def reset(self, n_worlds: int) -> None:
+        self.expert.reset(n_worlds)
+        self.burst_left = np.zeros(n_worlds)  # seconds of burst left per car
+        self.offset = np.zeros((n_worlds, 2))  # (steer, accel) offsets of the current bursts
+
+    def done(self) -> bool:
+        return self.count >= self.cfg.n_samples
+
+    def act(self, obs: Observation) -> Actuation:
+        traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
+        clean = self.expert.act(obs)
+        n = len(obs.s)
+        self._update_noise(n)
+        take = min(n, self.cfg.n_samples - self.count)
+        if take > 0:
+            self._record(obs, clean, traj, take)
+        period = self.cfg.world.sim.policy_period_s
+        return Actuation(
+            steer_rad=clean.steer_rad + self.offset[:, 0],
+            accel_mps2=clean.accel_mps2 + self.offset[:, 1],
+            restart=self.rng.random(n) < self.cfg.restart_rate_per_s * period,
+        )
+
+    def _update_noise(self, n: int) -> None:
+        """Continue the bursts, end finished ones, maybe start new ones."""
+        period = self.cfg.world.sim.policy_period_s
+        nz = self.cfg.noise
+        self.burst_left = np.maximum(self.burst_left - period, 0.0)
+        self.offset[self.burst_left <= 0] = 0.0
+        start = (self.burst_left <= 0) & (self.rng.random(n) < nz.rate_per_s * period)
+        k = int(start.sum())
+        if k:
+            self.burst_left[start] = self.rng.uniform(*nz.duration_s, k)
+            sign = self.rng.choice([-1.0, 1.0], k)
+            self.offset[start, 0] = sign * self.rng.uniform(*nz.steer_rad, k)
+            brake = self.rng.random(k) < nz.brake_share
+            self.offset[start, 1] = np.where(
+                brake,
+                -self.rng.uniform(*nz.brake_mps2, k),
+                self.rng.uniform(-nz.accel_mps2, nz.accel_mps2, k),
+            )
+
+    def _record(self, obs: Observation, clean: Actuation, traj: np.ndarray, take: int) -> None:
+        sl = slice(self.count, self.count + take)
+        a, plans, t = self.a, self.expert.plans[:take], slice(0, take)
+        a["images"][sl] = obs.images[t]
+        a["speed"][sl] = obs.speed[t]
+        a["actuators"][sl, 0] = clean.steer_rad[t]
+        a["actuators"][sl, 1] = clean.accel_mps2[t]
+        a["trajectory"][sl] = traj[t]
+        a["affordances"][sl] = affordances(obs.worlds[t], obs.s[t], obs.d[t], obs.heading_error[t])
+        a["track"][sl] = [w.track.track_id[1] for w in obs.worlds[t]]
+        a["s"][sl], a["d"][sl] = obs.s[t], obs.d[t]
+        a["lane"][sl] = obs.lane[t]
+        a["curvature"][sl] = obs.curvature[t]
+        a["expert_state"][sl] = [p.state for p in plans]
+        a["change_side"][sl] = [
+            0 if p.state != CHANGE or p.path is None else (1 if p.path.d_to > p.path.d_from else -1)
+            for p in plans
+        ]
+        a["overtaking"][sl] = [p.state == CHANGE and p.overtaking for p in plans]
+        a["noise"][sl] = self.burst_left[t] > 0
+        self.count += take
+        self.bar.update(take)
+
+
+def collect(cfg: DataConfig, progress: bool = True) -> DrivingData:
+    """Drive the noisy expert until ``cfg.n_samples`` samples are recorded (no caching)."""
+    rec = _Recorder(cfg, progress)
+    ev = EvalConfig(
+        miles=1e6,
+        n_worlds=cfg.n_worlds,
+        split=cfg.split,
+        n_tracks=cfg.n_tracks,
+        seed=cfg.seed,
+    )
+    result: EvalResult = roll_out(rec, cfg.world, ev, stop_when=rec.done)
+    rec.bar.close()
+    info = {
+        "key": cfg.key,
+        "split": cfg.split,
+        "n_samples": cfg.n_samples,
+        "shares": situation_shares(rec.a),
+        "manoeuvres": dict(rec.expert.manoeuvres),
+        "collection": result.to_dict(with_events=False),
+        "collision_events": result.events,
+    }
+    return DrivingData(rec.a, dataset_stats(rec.a), info)
+
+
+def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:
+    """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz``, or
+    ``<outputs>/data/<name>.npz`` for a variant kept beside it (e.g. chapter 07's data collected
+    the old way)."""
+    return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}'}.npz")
+
+
+def load_or_collect(cfg: DataConfig, progress: bool = True, name: str | None = None) -> DrivingData:
+    """The dataset of ``cfg`` from disk if it was made by these settings; else collect and save it
+    (``name``: see :func:`dataset_path`)."""
+    return cached(
+        dataset_path(cfg, name), cfg.key, lambda: collect(cfg, progress), save_dataset, load_dataset
+    )
+
+
+def describe(data: DrivingData) -> str:
+    """A few readable lines: size, shares of situations, the collection's collisions."""
+    info = data.info
+    sh = info["shares"]
+    col = info["collection"]
+    miles = col["miles"]
+    return (
+        f"{len(data)} samples ({info['split']}), {miles:.1f} mi driven, "
+        f"{col['collisions']} collisions under noise\n"
+        f"  curves {sh['curve']:.1%}, lane changes {sh['lane_change']:.1%} "
+        f"(overtake left {sh['overtake_left']:.1%}, right {sh['overtake_right']:.1%}, "
+        f"return {sh['return']:.1%}), passing {sh['pass']:.1%}, following {sh['follow']:.1%}, "
+        f"noise active {sh['noise']:.1%}"
+    )

@@ -1,0 +1,306 @@
+"""Training objectives: the target of each head, its per-sample loss, and readable metrics.
+
+Losses are computed **per sample** (shape (B,)) in normalised units; the training loop averages
+them (chapter 09's CVaR will instead average only the worst). Metrics are per sample too, in
+physical units, so a held-out table reads in degrees and metres.
+
+Each head's target, statistics, point loss and metrics are its class in
+:mod:`~e2e_lite.learning.heads`; an :class:`Objective` trains a point-estimate head (``steer``,
+``actuators``, ``trajectory``) with its mean squared error, :class:`GMMObjective` the ``gmm``
+head with its mixture's negative log-likelihood.
+
+Two wrappers change an objective without touching it (seed 000, sections 3.4 and 3.5):
+
+* :class:`WithAffordance` adds ``w x`` the squared error of the affordance head (chapter 08);
+* :class:`~e2e_lite.learning.cvar.CVaRObjective` reduces a batch by CVaR instead of the mean, so only the
+  worst ``1 - alpha`` of each batch is trained on (chapter 09; :mod:`e2e_lite.learning.cvar`). It wraps
+  the others (it is the outermost wrapper).
+
+The held-out measures of what the networks predict (how the modes split, which side they take,
+the affordance errors) are :mod:`e2e_lite.learning.heldout`.
+
+The training loop calls :meth:`Objective.batch_loss` and nothing else: :meth:`Objective.reduce`
+(the mean unless a wrapper says otherwise) of the per-sample losses.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..config import check_range
+from ..control.labels import AFFORDANCE_NAMES, N_POINTS, POINT_DIMS
+from .heads import HEADS, POINT_HEADS, Mixture, head_of
+from .models import DrivingModel
+
+#: How trajectory targets are scaled before the loss (:func:`~e2e_lite.learning.training.model_stats`):
+#: ``"coordinate"``: each of the 10 numbers by its own standard deviation (the paper's
+#: practicality); ``"axis"``: every x by one pooled standard deviation and every y by another
+#: (so an error keeps its size in metres within an axis: the 0.3 s lateral point, whose spread is
+#: about 6 cm, is no longer blown up 15-fold beside the 1.5 s one); ``"none"``: metres.
+TARGET_SCALES = ("coordinate", "axis", "none")
+
+
+def _target_scale(owner: str, normalise_targets: bool, target_scale: str | None) -> str:
+    scale = target_scale or ("coordinate" if normalise_targets else "none")
+    if scale not in TARGET_SCALES:
+        raise ValueError(
+            f"{owner}.target_scale={scale!r} is invalid: must be one of {TARGET_SCALES}"
+        )
+    return scale
+
+
+_SCALE_SUFFIX = {"coordinate": "", "axis": "-axis", "none": "-raw"}
+
+
+def target(head: str, batch: dict[str, torch.Tensor], wheelbase_m: float) -> torch.Tensor:
+    """The physical target of ``head`` for a batch, (B, target_size) (:mod:`~e2e_lite.learning.heads`)."""
+    return head_of(head).target(batch, wheelbase_m)
+
+
+class Objective:
+    """Mean squared error on the normalised target of a point-estimate head.
+
+    Args:
+        head: the model's head (``steer``, ``actuators`` or ``trajectory``).
+        wheelbase_m: to turn steering angles into curvatures [m].
+        normalise_targets: train on targets normalised per coordinate with the training set's
+            mean and standard deviation (the paper's practicality; otherwise the far
+            longitudinal points dominate); ``False`` trains on physical units (the model then
+            carries mean 0 and standard deviation 1).
+        target_scale: one of :data:`TARGET_SCALES`; overrides ``normalise_targets`` when given
+            (``"axis"``: one scale per axis, trajectories only).
+    """
+
+    def __init__(
+        self,
+        head: str,
+        wheelbase_m: float = 2.7,
+        normalise_targets: bool = True,
+        target_scale: str | None = None,
+    ) -> None:
+        if head not in POINT_HEADS:
+            raise ValueError(f"Objective.head={head!r} is invalid: must be one of {POINT_HEADS}")
+        self.head = head
+        self.wheelbase_m = wheelbase_m
+        self.target_scale = _target_scale("Objective", normalise_targets, target_scale)
+        self.normalise_targets = self.target_scale != "none"
+        self.name = f"mse-{head}" + _SCALE_SUFFIX[self.target_scale]
+
+    #: the training loop drops an epoch's last batch when it is smaller than this
+    min_batch: int = 2
+
+    def start_epoch(self, epoch: int) -> None:
+        """Called by the training loop before each epoch (a hook for schedules)."""
+
+    def frozen_prefixes(self, epoch: int) -> list[str]:
+        """Parameter-name prefixes this objective wants frozen in ``epoch`` (none)."""
+        return []
+
+    def reduce(self, losses: torch.Tensor) -> torch.Tensor:
+        """The batch loss the optimiser minimises, from per-sample losses (B,): their mean."""
+        return losses.mean()
+
+    def batch_loss(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """What the training loop minimises for a batch: :meth:`reduce` of :meth:`per_sample`."""
+        return self.reduce(self.per_sample(out, batch, model))
+
+    def per_sample(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """Loss of each sample, (B,): the mean over outputs of the squared normalised error."""
+        tgt = model.normalise_target(target(self.head, batch, self.wheelbase_m))
+        return HEADS[self.head].loss(out["main"], tgt)
+
+    def metrics(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> dict[str, torch.Tensor]:
+        """Per-sample absolute errors in physical units, by readable name."""
+        pred = model.denormalise(out["main"])
+        return HEADS[self.head].metrics(pred, batch, self.wheelbase_m)
+
+
+# ------------------------------------------------------------------------------ GMM
+class GMMObjective(Objective):
+    """The mixture-density loss of seed 000 (section 3.3) on the normalised trajectory.
+
+    Args:
+        n_modes: K (the paper: 2).
+        sigma_floor: smallest standard deviation, in normalised units (1 = one dataset standard
+            deviation of that coordinate).
+        sigma_warmup_epochs: for the first epochs every sigma is held at 1 (the loss is then a
+            mixture of squared errors) and the head's log-sigma layer is frozen; then opened
+            (the paper froze sigma for 5 epochs).
+        wheelbase_m: unused by the GMM; kept for the common interface.
+        normalise_targets: as :class:`Objective` (``False``: the floor and the warm-up's
+            sigma = 1 are then in metres).
+        target_scale: as :class:`Objective`.
+        sigma_floor_m: the floor in metres instead, the same for every point and axis
+            (``sigma_floor`` is then unused): :meth:`floor` turns it into each coordinate's
+            normalised units with the model's target scale.
+    """
+
+    def __init__(
+        self,
+        n_modes: int = 2,
+        sigma_floor: float = 0.01,
+        sigma_warmup_epochs: int = 1,
+        wheelbase_m: float = 2.7,
+        normalise_targets: bool = True,
+        target_scale: str | None = None,
+        sigma_floor_m: float | None = None,
+    ) -> None:
+        check_range("GMMObjective", "n_modes", n_modes, 1, 16, integer=True)
+        check_range("GMMObjective", "sigma_floor", sigma_floor, 0.0, 1.0, lo_open=True)
+        check_range("GMMObjective", "sigma_warmup_epochs", sigma_warmup_epochs, 0, integer=True)
+        if sigma_floor_m is not None:
+            check_range("GMMObjective", "sigma_floor_m", sigma_floor_m, 0.0, 10.0, lo_open=True)
+        self.head = "gmm"
+        self.n_modes = n_modes
+        self.sigma_floor = sigma_floor
+        self.sigma_floor_m = sigma_floor_m
+        self.sigma_warmup_epochs = sigma_warmup_epochs
+        self.wheelbase_m = wheelbase_m
+        self.target_scale = _target_scale("GMMObjective", normalise_targets, target_scale)
+        self.normalise_targets = self.target_scale != "none"
+        floor = f"floor{sigma_floor}" if sigma_floor_m is None else f"floor{sigma_floor_m:g}m"
+        self.name = (
+            f"gmm-nll-K{n_modes}-{floor}-warmup{sigma_warmup_epochs}"
+            + _SCALE_SUFFIX[self.target_scale]
+        )
+        self.sigma_fixed = sigma_warmup_epochs > 0
+
+    def floor(self, model: DrivingModel) -> float | torch.Tensor:
+        """The sigma floor in the model's normalised units: ``sigma_floor``, or ``sigma_floor_m``
+        divided by each coordinate's target scale, (10,)."""
+        if self.sigma_floor_m is None:
+            return self.sigma_floor
+        return self.sigma_floor_m / model.target_std
+
+    def start_epoch(self, epoch: int) -> None:
+        """Hold sigma at 1 during the warm-up epochs."""
+        self.sigma_fixed = epoch < self.sigma_warmup_epochs
+
+    def frozen_prefixes(self, epoch: int) -> list[str]:
+        """Parameters the training loop freezes this epoch: the log-sigma layer during warm-up."""
+        return ["head.log_sigma"] if epoch < self.sigma_warmup_epochs else []
+
+    def modes(
+        self, out: dict[str, torch.Tensor], model: DrivingModel
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(weights (B, K), means (B, K, 10) normalised, log_sigma (B, K, 10))``."""
+        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model))
+        return mix.weights, mix.means, mix.log_sigma
+
+    def per_sample(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """The NLL of each sample's normalised trajectory."""
+        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model), self.sigma_fixed)
+        return mix.nll(model.normalise_target(target("gmm", batch, self.wheelbase_m)))
+
+    def metrics(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> dict[str, torch.Tensor]:
+        """ADE/FDE of the most likely mode's mean [m], the best mode's ADE, the top weight."""
+        weights, means, _ = self.modes(out, model)
+        tgt = target("gmm", batch, self.wheelbase_m).reshape(-1, 1, N_POINTS, POINT_DIMS)
+        pts = model.denormalise(means).reshape(*means.shape[:2], N_POINTS, POINT_DIMS)
+        dist = (pts - tgt).norm(dim=-1)  # (B, K, 5)
+        top = weights.argmax(dim=-1)
+        rows = torch.arange(len(top), device=top.device)
+        return {
+            "ADE [m]": dist[rows, top].mean(dim=-1),
+            "FDE [m]": dist[rows, top, -1],
+            "min-ADE over modes [m]": dist.mean(dim=-1).min(dim=-1).values,
+            "top weight": weights.max(dim=-1).values,
+        }
+
+
+# ------------------------------------------------------------------------------ wrappers
+class WrappedObjective(Objective):
+    """An objective built on another one: everything is delegated to ``base`` (its settings such
+    as ``n_modes`` or ``sigma_floor`` read through) unless a subclass overrides it."""
+
+    def __init__(self, base: Objective) -> None:
+        self.base = base
+        self.head, self.wheelbase_m = base.head, base.wheelbase_m
+        self.min_batch = base.min_batch
+
+    def __getattr__(self, name: str):  # n_modes, sigma_floor, modes(), ... of the base
+        if name == "base":
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    def start_epoch(self, epoch: int) -> None:
+        self.base.start_epoch(epoch)
+
+    def frozen_prefixes(self, epoch: int) -> list[str]:
+        return self.base.frozen_prefixes(epoch)
+
+    def reduce(self, losses: torch.Tensor) -> torch.Tensor:
+        return self.base.reduce(losses)
+
+    def per_sample(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        return self.base.per_sample(out, batch, model)
+
+    def metrics(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> dict[str, torch.Tensor]:
+        return self.base.metrics(out, batch, model)
+
+
+class WithAffordance(WrappedObjective):
+    """``base + weight x affordance loss`` (seed 000, section 3.4): the affordance head learns the
+    dataset's 9 affordances (normalised per affordance) from the same fused features.
+
+    The affordance loss of a sample is the mean over the 9 of the squared normalised error. With
+    ``weight = 0`` this is exactly ``base`` (the head is then not trained).
+
+    Args:
+        base: the main objective (e.g. :class:`GMMObjective`); its settings (``n_modes``,
+            ``sigma_floor``, ...) are read through this wrapper.
+        weight: ``w >= 0``.
+    """
+
+    def __init__(self, base: Objective, weight: float) -> None:
+        check_range("WithAffordance", "weight", weight, 0.0)
+        super().__init__(base)
+        self.weight = float(weight)
+        self.name = f"{base.name}+affordance{self.weight:g}"
+
+    def affordance_loss(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """Per-sample mean squared normalised affordance error, (B,)."""
+        if "affordance" not in out:
+            raise ValueError(
+                "WithAffordance needs a model with an affordance head (affordance=True)"
+            )
+        tgt = (batch["affordances"] - model.affordance_mean) / model.affordance_std
+        return ((out["affordance"] - tgt) ** 2).mean(dim=1)
+
+    def per_sample(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> torch.Tensor:
+        """``base`` loss + ``weight`` x affordance loss, (B,)."""
+        main = self.base.per_sample(out, batch, model)
+        if self.weight == 0.0:
+            return main
+        return main + self.weight * self.affordance_loss(out, batch, model)
+
+    def metrics(
+        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+    ) -> dict[str, torch.Tensor]:
+        """The base's metrics, its loss alone, and per-affordance absolute errors [m or rad]."""
+        m = dict(self.base.metrics(out, batch, model))
+        m["main loss"] = self.base.per_sample(out, batch, model)
+        if "affordance" in out:
+            pred = out["affordance"] * model.affordance_std + model.affordance_mean
+            err = (pred - batch["affordances"]).abs()
+            for i, name in enumerate(AFFORDANCE_NAMES):
+                m[f"|err| {name}"] = err[:, i]
+        return m

@@ -1,0 +1,116 @@
+"""The interface between the world and a driver: what a policy sees at each decision
+(:class:`Observation`), what it answers (:class:`Actuation`), the :class:`Policy` protocol, and
+:func:`observe`, which reads an observation off a fleet of cars. Everything that drives (the
+expert, the scripted drivers, the networks, the safety module) is written against this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from .vehicle import H, V
+from .world import Fleet, World
+
+
+@dataclass
+class Observation:
+    """What a policy sees at one decision, for B cars.
+
+    Attributes:
+        state: ``(B, 5)`` ego states ``x, y, heading, speed, steer`` (rear axle; m, rad, m/s).
+        s, d: lane-frame position of the rear axle [m], ``(B,)``.
+        heading_error: heading minus the road's heading at ``s`` [rad], wrapped to (-pi, pi].
+        curvature: the road's curvature at ``s`` [1/m].
+        lane: index of the nearest lane (0 = rightmost), ``(B,)`` int.
+        respawned: ``(B,)`` bool, True when car i was (re)placed since the last decision (start,
+            new track, collision, stall): a stateful policy should forget car i's plan.
+        time_s: simulated time since the start [s].
+        worlds: the B worlds (privileged access for scripted drivers and the expert).
+        images: camera frames ``(B, H, W, 3)`` RGB uint8 when the policy has a ``camera``, else None.
+    """
+
+    state: np.ndarray
+    s: np.ndarray
+    d: np.ndarray
+    heading_error: np.ndarray
+    curvature: np.ndarray
+    lane: np.ndarray
+    respawned: np.ndarray
+    time_s: float
+    worlds: list[World]
+    images: np.ndarray | None = None
+
+    @property
+    def speed(self) -> np.ndarray:
+        """Speed of each car [m/s], ``(B,)``."""
+        return self.state[:, V]
+
+
+@dataclass
+class Actuation:
+    r"""A batch of actuator commands: road-wheel angle [rad] and acceleration [m/s^2], each ``(B,)``.
+
+    ``restart`` (optional, ``(B,)`` bool) asks the evaluator to take car i over and re-place it
+    exactly as after a collision (:func:`restart_state`), without counting a collision: the data
+    collector's way of showing the expert the states a learned driver restarts from.
+
+    ``info`` (optional) is what the policy wants counted about this decision, by name: numbers
+    and ``Counter``\ s are summed, lists concatenated, over the decisions and the shards of an
+    evaluation, into its result's ``info`` (:func:`~e2e_lite.driving.rollout.add_info`; the
+    safety module's interventions and false alarms come home this way, from threads or
+    processes alike, so no policy needs to know how it is run).
+    """
+
+    steer_rad: np.ndarray
+    accel_mps2: np.ndarray
+    restart: np.ndarray | None = None
+    info: dict[str, Any] | None = None
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Anything that drives: ``reset`` once per evaluation, then ``act`` every policy period.
+
+    A policy that sees through the front camera also has an attribute ``camera`` holding a
+    :class:`~e2e_lite.simulation.camera.CameraConfig`; the evaluator then renders one frame per car every
+    decision into ``obs.images`` (B, H, W, 3) RGB uint8. That buffer is reused: copy a frame to
+    keep it past the next decision. A policy without the attribute (or with ``None``) gets no
+    images and costs no rendering.
+    """
+
+    def reset(self, n_worlds: int) -> None:
+        """Forget everything; ``n_worlds`` cars are about to be driven."""
+
+    def act(self, obs: Observation) -> Actuation:
+        """Commands for every car in the batch."""
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def observe(
+    fleet: Fleet,
+    respawned: np.ndarray | bool = False,
+    time_s: float = 0.0,
+    images: np.ndarray | None = None,
+    frame: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> Observation:
+    """The observation of a fleet's cars now (``frame``: a lane frame already computed)."""
+    s, d, road_h, kappa = fleet.lane_frame() if frame is None else frame
+    n = len(fleet)
+    return Observation(
+        images=images,
+        state=fleet.state.copy(),
+        s=s,
+        d=d,
+        heading_error=_wrap(fleet.state[:, H] - road_h),
+        curvature=kappa,
+        lane=np.atleast_1d(fleet.worlds[0].track.lane_index(d)),
+        respawned=np.broadcast_to(np.asarray(respawned, dtype=bool), (n,)).copy(),
+        time_s=time_s,
+        worlds=list(fleet.worlds),
+    )
