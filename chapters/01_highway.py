@@ -195,8 +195,8 @@ artifacts.write_metrics(
         "profile": profile.name,
         "headline": headline,
         "drivers": {name: res.to_dict(with_events=False) for name, res in results.items()},
-        "figure": str(png.relative_to(artifacts.outputs_dir())),
     },
+    figures=(png,),
 )
 print("| driver | miles | collisions | per 100 mi [95% CI] | mph | autonomy |")
 print("|---|---:|---:|---|---:|---:|")

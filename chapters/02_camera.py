@@ -252,8 +252,8 @@ artifacts.write_metrics(
             "horizon_row": cam.horizon_row(),
             "shape": list(cam.shape),
         },
-        "figures": [str(p.relative_to(artifacts.outputs_dir())) for p in (gallery, sizes_png)],
     },
+    figures=(gallery, sizes_png),
 )
 print(f"| camera | frames/s |\n|---|---:|\n| 66 x 200, batches of {len(poses)} | {fps:,.0f} |")
 

@@ -357,11 +357,8 @@ artifacts.write_metrics(
             "lateral_rms_cm": rms_cm,
             "lateral_max_cm": max_cm,
         },
-        "figures": [
-            str(p.relative_to(artifacts.outputs_dir()))
-            for p in (gains_png, recovery_png, lane_change_png, trajectory_png)
-        ],
     },
+    figures=(gains_png, recovery_png, lane_change_png, trajectory_png),
 )
 print(
     "| driver | miles | collisions | lateral RMS | mph |\n|---|---:|---:|---:|---:|\n"

@@ -54,7 +54,7 @@ from e2e_lite.learning.data import (
 )
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
 from e2e_lite.simulation.geometry import Track
-from e2e_lite.simulation.raster import save_image
+from e2e_lite.simulation.raster import save_image, tile
 from e2e_lite.simulation.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
 from e2e_lite.simulation.world import ParkedCars, World, WorldConfig, make_world
 from e2e_lite.viz import draw_road, save_figure
@@ -261,12 +261,7 @@ for title, mask in groups.items():
     small = train.images[i]
     img[-small.shape[0] - 4 : -4, -small.shape[1] - 4 : -4] = small
     tiles.append(img)
-while len(tiles) % 2:
-    tiles.append(np.zeros_like(tiles[0]))
-grid = np.concatenate(
-    [np.concatenate(tiles[k : k + 2], axis=1) for k in range(0, len(tiles), 2)], axis=0
-)
-samples_png = save_image(artifacts.artifact_path("figures", "04_samples.png"), grid)
+samples_png = save_image(artifacts.artifact_path("figures", "04_samples.png"), tile(tiles, 2))
 print(f"saved {samples_png}")
 
 # %% [markdown]
@@ -362,11 +357,8 @@ artifacts.write_metrics(
         "slow_shares": slow_shares,
         "train": {k: v for k, v in train.info.items() if k != "collision_events"},
         "val": {k: v for k, v in val.info.items() if k != "collision_events"},
-        "figures": [
-            str(p.relative_to(artifacts.outputs_dir()))
-            for p in (strip_png, both_png, samples_png, hist_png, coverage_png)
-        ],
     },
+    figures=(strip_png, both_png, samples_png, hist_png, coverage_png),
 )
 print(
     "| driver | miles | collisions | per 100 mi [95% CI] | mph |\n|---|---:|---:|---:|---:|\n"

@@ -40,7 +40,7 @@ from e2e_lite.learning.models import build_model, count_parameters, pick_device,
 from e2e_lite.learning.recovery import RecoveryConfig, load_or_make_recovery
 from e2e_lite.learning.training import TrainConfig, epoch_batches, evaluate_loss, fit, model_stats
 from e2e_lite.simulation.camera import Camera, CameraConfig
-from e2e_lite.simulation.raster import save_image
+from e2e_lite.simulation.raster import save_image, tile
 from e2e_lite.simulation.world import WorldConfig, make_world
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -107,10 +107,8 @@ for k in np.linspace(0, len(views) - 1, 3).round().astype(int):
             2,
         )
         pair.append(img)
-    tiles.append(np.concatenate(pair, axis=1))
-views_png = save_image(
-    artifacts.artifact_path("figures", "05_recovery_views.png"), np.concatenate(tiles, axis=0)
-)
+    tiles += pair
+views_png = save_image(artifacts.artifact_path("figures", "05_recovery_views.png"), tile(tiles, 2))
 print(
     f"saved {views_png}: left the recorded frame, right its recovery view (network resolution, 3x)"
 )
@@ -279,12 +277,9 @@ for name, r in results.items():
         cv2.putText(img, f"{name[:26]}: {event['kind']}", (8, 22), 0, 0.55, (255, 255, 0), 2)
         tiles.append(img)
 if tiles:
-    while len(tiles) % 2:
-        tiles.append(np.zeros_like(tiles[0]))
-    grid = np.concatenate(
-        [np.concatenate(tiles[k : k + 2], axis=1) for k in range(0, len(tiles), 2)]
+    crashes_png = save_image(
+        artifacts.artifact_path("figures", "05_collisions.png"), tile(tiles, 2)
     )
-    crashes_png = save_image(artifacts.artifact_path("figures", "05_collisions.png"), grid)
     print(f"saved {crashes_png}")
 else:
     crashes_png = None
@@ -318,12 +313,8 @@ artifacts.write_metrics(
         "parameters": {"pilotnet": n_pilot, "actuators": n_act},
         "table_md": table,
         "recovery_views_verdict": verdict,
-        "figures": [
-            str(p.relative_to(artifacts.outputs_dir()))
-            for p in (views_png, crashes_png)
-            if p is not None
-        ],
     },
+    figures=(views_png, crashes_png),
 )
 
 # %% [markdown]

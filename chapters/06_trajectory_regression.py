@@ -213,8 +213,8 @@ artifacts.write_metrics(
             "validation_starts": split,
         },
         "table_md": table,
-        "figures": [str(p.relative_to(artifacts.outputs_dir())) for p in (fig2_png, scene_png)],
     },
+    figures=(fig2_png, scene_png),
 )
 
 # %% [markdown]

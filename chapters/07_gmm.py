@@ -931,11 +931,8 @@ artifacts.write_metrics(
             "sigma_by_situation": sigma_report,
         },
         "table_md": table,
-        "figures": [
-            str(f.relative_to(artifacts.outputs_dir()))
-            for f in (fig3_png, chart_png, coverage_png, scenes_png)
-        ],
     },
+    figures=(fig3_png, chart_png, coverage_png, scenes_png),
 )
 
 # %% [markdown]

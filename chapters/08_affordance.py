@@ -399,10 +399,8 @@ artifacts.write_metrics(
         "drive_gap_mae_m": drive_mae,
         "verdict_vs_gmm": verdict,
         "table_md": table,
-        "figures": [
-            str(f.relative_to(artifacts.outputs_dir())) for f in (scatter_png, drive_png, chart_png)
-        ],
     },
+    figures=(scatter_png, drive_png, chart_png),
 )
 
 # %% [markdown]

@@ -422,10 +422,8 @@ artifacts.write_metrics(
         },
         "matched_speed": matched_test,
         "table_md": table,
-        "figures": [
-            str(f.relative_to(artifacts.outputs_dir())) for f in (grid_png, curve_png, chart_png)
-        ],
     },
+    figures=(grid_png, curve_png, chart_png),
 )
 
 # %% [markdown]

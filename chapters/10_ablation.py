@@ -380,8 +380,8 @@ artifacts.write_metrics(
         "replays": [
             str((replay_dir / f).relative_to(artifacts.outputs_dir())) for _, f, _ in entries
         ],
-        "figures": [str(chart_png.relative_to(artifacts.outputs_dir()))],
     },
+    figures=(chart_png,),
 )
 
 # %% [markdown]

@@ -415,8 +415,8 @@ artifacts.write_metrics(
         "verdicts": verdicts,
         "table_md": table,
         "lines": lines,
-        "figures": [str(grid_png.relative_to(artifacts.outputs_dir()))] if grid_png else [],
     },
+    figures=(grid_png,),
 )
 
 # %% [markdown]

@@ -20,7 +20,7 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -195,8 +195,15 @@ def metrics_path(chapter: str) -> Path:
     return artifact_path("metrics", f"{Path(chapter).stem}.json")
 
 
-def write_metrics(chapter: str, metrics: dict[str, Any]) -> Path:
-    """Write a chapter's headline figures where the course runner reads them."""
+def write_metrics(
+    chapter: str, metrics: dict[str, Any], figures: Sequence[Path | None] = ()
+) -> Path:
+    """Write a chapter's headline numbers where the course runner (and the next chapters) read
+    them, with the chapter's ``figures`` (paths under the outputs folder; ``None`` skipped) as
+    ``metrics["figures"]``, relative to that folder."""
+    if figures:
+        root = outputs_dir()
+        metrics = {**metrics, "figures": [str(Path(f).relative_to(root)) for f in figures if f]}
     return save_json(metrics_path(chapter), metrics)
 
 

@@ -209,3 +209,15 @@ def test_a_car_turned_across_or_against_the_road_renders_sanely(heading_deg):
     assert np.all(img[:horizon] == SKY)
     if heading_deg != -135.0:  # looking back to the right, the sampled road is out of view
         assert np.any(img != view(straight_world([], [], length=400.0), pose=(0.0, 500.0, 0.0)))
+
+
+def test_tile_lays_images_out_in_rows_and_fills_the_last_with_black():
+    from e2e_lite.simulation.raster import tile
+
+    imgs = [np.full((2, 3, 3), v, np.uint8) for v in (10, 20, 30)]
+    out = tile(imgs, 2)
+    assert out.shape == (4, 6, 3)
+    assert out[0, 0, 0] == 10 and out[0, 3, 0] == 20 and out[2, 0, 0] == 30 and out[2, 3, 0] == 0
+    assert tile(imgs, 3).shape == (2, 9, 3)
+    with pytest.raises(ValueError, match="at least one"):
+        tile([], 2)

@@ -75,6 +75,10 @@ def test_outputs_dir_follows_the_environment(tmp_path):
     assert artifacts.read_metrics("97_full", "full") == {"profile": "full"}
     assert artifacts.read_metrics("97_full", "quick") is None
     assert artifacts.read_metrics("98_missing") is None
+    # a chapter's figures are stored relative to the outputs folder, missing ones skipped
+    fig = artifacts.artifact_path("figures", "99_demo.png")
+    artifacts.write_metrics("99_demo", {"headline": {}}, figures=(fig, None))
+    assert artifacts.read_metrics("99_demo")["figures"] == ["figures/99_demo.png"]
 
 
 def test_settings_key_is_stable_and_sensitive():

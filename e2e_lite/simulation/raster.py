@@ -8,6 +8,7 @@ anti-aliased rather than snapped.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -116,6 +117,16 @@ def clip_near(poly: np.ndarray, near: float) -> np.ndarray | None:
             f = (near - za) / (zb - za)
             out.append((xa + f * (xb - xa), ya + f * (yb - ya), near))
     return np.array(out) if len(out) >= 3 else None
+
+
+def tile(images: Sequence[np.ndarray], columns: int) -> np.ndarray:
+    """Images of one size ``(H, W, 3)`` laid out ``columns`` to a row, left to right and top to
+    bottom, the last row filled with black: one ``(rows x H, columns x W, 3)`` image."""
+    if not images:
+        raise ValueError("tile needs at least one image")
+    cells = list(images) + [np.zeros_like(images[0])] * (-len(images) % columns)
+    rows = [np.concatenate(cells[k : k + columns], axis=1) for k in range(0, len(cells), columns)]
+    return np.concatenate(rows, axis=0)
 
 
 def save_image(path: Path | str, rgb: np.ndarray) -> Path:
