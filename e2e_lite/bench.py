@@ -172,7 +172,7 @@ def bare_train_samples_per_s(
 
     def step() -> None:
         out = model(batch["image"], batch["speed"])
-        loss = objective.batch_loss(out, batch, model)
+        loss = objective.batch_loss(out, batch, model, epoch=0)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -185,7 +185,7 @@ def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples(
             super().__init__("trajectory")
             self.losses, self.ade = losses, ade
 
-        def per_sample(self, out, batch, model):
+        def per_sample(self, out, batch, model, *, epoch=None):
             return self.losses
 
         def metrics(self, out, batch, model):

@@ -149,13 +149,14 @@ def test_train_or_load_reuses_a_valid_checkpoint(capsys):
     assert "other settings" in capsys.readouterr().out
 
 
-def test_a_reused_and_a_trained_model_come_back_with_the_objective_in_the_same_state():
-    """After train_or_load the GMM's warm-up is over whether it trained or reused: the held-out
-    NLL of the two is the same number (it once depended on which path ran)."""
+def test_a_reused_and_a_trained_model_are_scored_alike_and_the_warm_up_is_an_argument():
+    """The GMM's warm-up is the epoch its loss is given, not the objective's state: a reused and
+    a trained model get the same held-out NLL (it once depended on which path ran)."""
     data, val = synthetic_data(32, 0), synthetic_data(16, 1)
     cfg = ModelConfig(head="gmm", fusion_width=16)
     trained_obj = GMMObjective(sigma_warmup_epochs=1)
-    assert trained_obj.sigma_fixed  # a fresh objective starts in its warm-up
+    assert trained_obj.sigma_fixed(0) and not trained_obj.sigma_fixed(1)
+    assert not trained_obj.sigma_fixed(None)  # scored after training: the warm-up is over
     model, _ = train_or_load(
         "state", cfg, small_train_cfg(epochs=2), trained_obj, data, val, progress=False
     )
@@ -163,10 +164,12 @@ def test_a_reused_and_a_trained_model_come_back_with_the_objective_in_the_same_s
     again, _ = train_or_load(
         "state", cfg, small_train_cfg(epochs=2), reused_obj, data, val, progress=False
     )
-    assert not trained_obj.sigma_fixed and not reused_obj.sigma_fixed
     a, _ = evaluate_loss(model, trained_obj, DrivingDataset(val))
     b, _ = evaluate_loss(again, reused_obj, DrivingDataset(val))
     np.testing.assert_allclose(a, b)
+    # the same model scored as in its warm-up epoch: sigma held at 1, another NLL
+    warm, _ = evaluate_loss(model, trained_obj, DrivingDataset(val), epoch=0)
+    assert not np.allclose(warm, a)
 
 
 def test_fine_tune_starts_from_its_parent_and_follows_it(capsys):

@@ -48,16 +48,14 @@ def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
     fixed = gmm_objective(FULL, warmup=FULL.train_epochs)
     learned = gmm_objective(FULL)
     for epoch in range(FULL.train_epochs):
-        fixed.start_epoch(epoch)
-        assert fixed.sigma_fixed and fixed.frozen_prefixes(epoch) == ["head.log_sigma"]
-    learned.start_epoch(FULL.train_epochs - 1)
-    assert not learned.sigma_fixed
+        assert fixed.sigma_fixed(epoch) and fixed.frozen_prefixes(epoch) == ["head.log_sigma"]
+    assert not learned.sigma_fixed(FULL.train_epochs - 1)
     assert fixed.name != learned.name  # a different checkpoint key
     # held at 1: the NLL is a soft mixture of squared errors whatever the raw log-sigmas say
     y, means = torch.zeros(3, 10), torch.randn(3, 2, 10)
     raw = torch.cat([means.reshape(3, -1), torch.full((3, 20), -5.0), torch.zeros(3, 2)], 1)
     model = SimpleNamespace(target_std=torch.ones(10), normalise_target=lambda t: t)
-    nll = fixed.per_sample({"main": raw}, {"trajectory": y}, model)
+    nll = fixed.per_sample({"main": raw}, {"trajectory": y}, model, epoch=FULL.train_epochs - 1)
     sq = 0.5 * ((y[:, None] - means) ** 2).sum(-1) + 5 * LOG_2PI
     expected = -torch.logsumexp(torch.log(torch.tensor(0.5)) - sq, dim=1)
     assert torch.allclose(nll, expected, atol=1e-5)

@@ -78,7 +78,6 @@ def _measure() -> dict[str, Any]:
         out[name] = _counts(evaluate(policy, world_cfg, ev, progress=False))
     for name, recipe in (("l2", recipes.trajectory_l2), ("gmm", recipes.gmm)):
         model, objective, hist = recipe(profile, train, val, name=f"ref_{name}", progress=False)
-        objective.start_epoch(10**6)
         out[name] = {
             "val_loss": float(hist.epochs[-1]["val_loss"]),
             **_counts(

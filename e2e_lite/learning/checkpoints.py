@@ -133,9 +133,9 @@ def train_or_load(
     """The model ``name`` from ``<outputs>/checkpoints/<name>.pt`` if it was trained with these
     settings on this data; otherwise train it (seeded), save it and return it.
 
-    Either way ``objective`` comes back in its state after the last epoch
-    (``objective.start_epoch(train_cfg.epochs)``: a GMM's sigma warm-up is over), so a reused and
-    a freshly trained model are scored alike.
+    The objective holds no training state (a GMM's warm-up is the ``epoch`` its loss is given;
+    scored without one, the warm-up is over), so a reused and a freshly trained model are scored
+    alike.
 
     Args:
         name: checkpoint and figure name.
@@ -187,7 +187,6 @@ def train_or_load(
             if meta["key"] == key and meta["history"] is not None and kept:
                 if progress:
                     print(f"[checkpoints] {name}: reusing {path.name}")
-                objective.start_epoch(train_cfg.epochs)  # as after training: warm-up over
                 return model, History(**meta["history"])
             if progress:
                 why = "other settings" if kept else "no optimiser state kept"
@@ -217,5 +216,4 @@ def train_or_load(
     )
     model.eval()
     save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)
-    objective.start_epoch(train_cfg.epochs)  # fit left it at the last epoch's; this is after it
     return model, history

@@ -165,10 +165,15 @@ class CVaRObjective(WrappedObjective):
         return cvar_loss(losses, self.alpha, self.min_tail)
 
     def batch_loss(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+        self,
+        out: dict[str, torch.Tensor],
+        batch: dict[str, torch.Tensor],
+        model: DrivingModel,
+        *,
+        epoch: int | None = None,
     ) -> torch.Tensor:
         """The mean loss over the batch's tail, ranked as :attr:`rank_by` says."""
-        losses = self.per_sample(out, batch, model)
+        losses = self.per_sample(out, batch, model, epoch=epoch)
         if self.rank_by == "loss":
             return self.reduce(losses)
         cvar_loss(losses.detach(), self.alpha, self.min_tail)  # the same checks and warning

@@ -89,9 +89,6 @@ class Objective:
     #: the training loop drops an epoch's last batch when it is smaller than this
     min_batch: int = 2
 
-    def start_epoch(self, epoch: int) -> None:
-        """Called by the training loop before each epoch (a hook for schedules)."""
-
     def frozen_prefixes(self, epoch: int) -> list[str]:
         """Parameter-name prefixes this objective wants frozen in ``epoch`` (none)."""
         return []
@@ -101,13 +98,24 @@ class Objective:
         return losses.mean()
 
     def batch_loss(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+        self,
+        out: dict[str, torch.Tensor],
+        batch: dict[str, torch.Tensor],
+        model: DrivingModel,
+        *,
+        epoch: int | None = None,
     ) -> torch.Tensor:
-        """What the training loop minimises for a batch: :meth:`reduce` of :meth:`per_sample`."""
-        return self.reduce(self.per_sample(out, batch, model))
+        """What the training loop minimises for a batch: :meth:`reduce` of :meth:`per_sample`.
+        ``epoch``: the training epoch the batch belongs to (None: after training)."""
+        return self.reduce(self.per_sample(out, batch, model, epoch=epoch))
 
     def per_sample(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+        self,
+        out: dict[str, torch.Tensor],
+        batch: dict[str, torch.Tensor],
+        model: DrivingModel,
+        *,
+        epoch: int | None = None,
     ) -> torch.Tensor:
         """Loss of each sample, (B,): the mean over outputs of the squared normalised error."""
         tgt = model.normalise_target(target(self.head, batch, self.wheelbase_m))
@@ -169,7 +177,6 @@ class GMMObjective(Objective):
             f"gmm-nll-K{n_modes}-{floor}-warmup{sigma_warmup_epochs}"
             + _SCALE_SUFFIX[self.target_scale]
         )
-        self.sigma_fixed = sigma_warmup_epochs > 0
 
     def floor(self, model: DrivingModel) -> float | torch.Tensor:
         """The sigma floor in the model's normalised units: ``sigma_floor``, or ``sigma_floor_m``
@@ -178,9 +185,9 @@ class GMMObjective(Objective):
             return self.sigma_floor
         return self.sigma_floor_m / model.target_std
 
-    def start_epoch(self, epoch: int) -> None:
-        """Hold sigma at 1 during the warm-up epochs."""
-        self.sigma_fixed = epoch < self.sigma_warmup_epochs
+    def sigma_fixed(self, epoch: int | None) -> bool:
+        """Whether every sigma is held at 1 in ``epoch`` (the warm-up; None: after training)."""
+        return epoch is not None and epoch < self.sigma_warmup_epochs
 
     def frozen_prefixes(self, epoch: int) -> list[str]:
         """Parameters the training loop freezes this epoch: the log-sigma layer during warm-up."""
@@ -194,10 +201,16 @@ class GMMObjective(Objective):
         return mix.weights, mix.means, mix.log_sigma
 
     def per_sample(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+        self,
+        out: dict[str, torch.Tensor],
+        batch: dict[str, torch.Tensor],
+        model: DrivingModel,
+        *,
+        epoch: int | None = None,
     ) -> torch.Tensor:
-        """The NLL of each sample's normalised trajectory."""
-        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model), self.sigma_fixed)
+        """The NLL of each sample's normalised trajectory (sigma held at 1 in a warm-up epoch)."""
+        fixed = self.sigma_fixed(epoch)
+        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model), fixed)
         return mix.nll(model.normalise_target(target("gmm", batch, self.wheelbase_m)))
 
     def metrics(
@@ -233,9 +246,6 @@ class WrappedObjective(Objective):
             raise AttributeError(name)
         return getattr(self.base, name)
 
-    def start_epoch(self, epoch: int) -> None:
-        self.base.start_epoch(epoch)
-
     def frozen_prefixes(self, epoch: int) -> list[str]:
         return self.base.frozen_prefixes(epoch)
 
@@ -243,9 +253,14 @@ class WrappedObjective(Objective):
         return self.base.reduce(losses)
 
     def per_sample(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+        self,
+        out: dict[str, torch.Tensor],
+        batch: dict[str, torch.Tensor],
+        model: DrivingModel,
+        *,
+        epoch: int | None = None,
     ) -> torch.Tensor:
-        return self.base.per_sample(out, batch, model)
+        return self.base.per_sample(out, batch, model, epoch=epoch)
 
     def metrics(
         self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
@@ -273,7 +288,12 @@ class WithAffordance(WrappedObjective):
         self.name = f"{base.name}+affordance{self.weight:g}"
 
     def affordance_loss(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+        self,
+        out: dict[str, torch.Tensor],
+        batch: dict[str, torch.Tensor],
+        model: DrivingModel,
+        *,
+        epoch: int | None = None,
     ) -> torch.Tensor:
         """Per-sample mean squared normalised affordance error, (B,)."""
         if "affordance" not in out:
@@ -284,10 +304,15 @@ class WithAffordance(WrappedObjective):
         return ((out["affordance"] - tgt) ** 2).mean(dim=1)
 
     def per_sample(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
+        self,
+        out: dict[str, torch.Tensor],
+        batch: dict[str, torch.Tensor],
+        model: DrivingModel,
+        *,
+        epoch: int | None = None,
     ) -> torch.Tensor:
         """``base`` loss + ``weight`` x affordance loss, (B,)."""
-        main = self.base.per_sample(out, batch, model)
+        main = self.base.per_sample(out, batch, model, epoch=epoch)
         if self.weight == 0.0:
             return main
         return main + self.weight * self.affordance_loss(out, batch, model)

@@ -174,8 +174,11 @@ def evaluate_loss(
     dataset: DrivingDataset,
     batch_size: int = 256,
     device: torch.device | None = None,
+    epoch: int | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Per-sample losses (N,) and per-sample metrics of ``model`` on ``dataset`` (eval mode)."""
+    """Per-sample losses (N,) and per-sample metrics of ``model`` on ``dataset`` (eval mode);
+    ``epoch``: score as in that training epoch (a GMM's warm-up holds sigma at 1), None: as after
+    training."""
     device = device or next(model.parameters()).device
     was_training = model.training
     model.eval()
@@ -184,7 +187,8 @@ def evaluate_loss(
         for rows in _batches(len(dataset), batch_size, None):
             batch = _to(dataset.batch(dataset.indices[rows]), device)
             out = model(batch["image"], batch["speed"])
-            losses.append(objective.per_sample(out, batch, model).float().cpu().numpy())
+            loss = objective.per_sample(out, batch, model, epoch=epoch)
+            losses.append(loss.float().cpu().numpy())
             for k, v in objective.metrics(out, batch, model).items():
                 metrics.setdefault(k, []).append(v.float().cpu().numpy())
     model.train(was_training)
@@ -233,7 +237,6 @@ def fit(
         )
         for pname, param in params.items():
             param.requires_grad_(not any(pname.startswith(p) for p in frozen))
-        objective.start_epoch(epoch)
         model.train()
         batches = epoch_batches(len(train), cfg.batch_size, cfg.seed, epoch)
         # batch norm needs two samples, a CVaR batch enough for its tail
@@ -251,7 +254,7 @@ def fit(
         for rows in bar:
             batch = _to(train.batch(train.indices[rows]), device)
             out = model(batch["image"], batch["speed"])
-            loss = objective.batch_loss(out, batch, model)
+            loss = objective.batch_loss(out, batch, model, epoch=epoch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip is not None:
@@ -263,7 +266,9 @@ def fit(
         bar.close()
         t_train += time.perf_counter() - t0
         n_seen += count
-        val_losses, val_metrics = evaluate_loss(model, objective, val_ds, device=device)
+        val_losses, val_metrics = evaluate_loss(
+            model, objective, val_ds, device=device, epoch=epoch
+        )
         record = {
             "epoch": epoch,
             "train_loss": total / max(count, 1),
