@@ -183,3 +183,32 @@ def test_no_library_file_is_longer_than_500_lines() -> None:
     root = Path(e2e_lite.__file__).parent
     long = {p.name: n for p in root.rglob("*.py") if (n := len(p.read_text().splitlines())) > 500}
     assert not long, long
+
+
+def test_the_readme_layout_names_every_library_file_in_its_folder() -> None:
+    """The README's layout section lists each folder and file of the library, indented under its
+    folder, and nothing that is not there."""
+    import re
+    from pathlib import Path
+
+    root = Path(e2e_lite.__file__).parent
+    readme = (root.parent / "README.md").read_text()
+    layout = readme.split("## Repository layout", 1)[1].split("```")[1]
+    listed, folder = set(), ""
+    for line in layout.splitlines():
+        m = re.match(r"^( {2,4})([a-z_]+(?:\.py|/))\s", line + " ")
+        if not m:
+            continue
+        depth, name = len(m.group(1)), m.group(2)
+        if depth == 2:
+            folder = name if name.endswith("/") else ""
+            if not name.endswith("/"):
+                listed.add(name)
+        else:
+            listed.add(folder + name)
+    present = {
+        str(p.relative_to(root))
+        for p in root.rglob("*.py")
+        if p.name != "__init__.py" and "__pycache__" not in p.parts
+    }
+    assert listed == present, (sorted(listed - present), sorted(present - listed))
