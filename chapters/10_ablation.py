@@ -282,23 +282,23 @@ print(f"open {index} in a browser")
 #   expert's own trajectories with the same tracker, drove 500 miles without a collision on the
 #   cycled tracks and with 4 on 500 miles of new road (0.8 per 100 miles): the representation
 #   and the controller are not what limits the learned drivers.
-# * **The GMM went the other way** (190 per 100 miles against L2's 29). The measured causes were
-#   ours, not the method's: restarts at 20 m/s in states the data barely showed (2.7 % of samples
-#   below 22 m/s; chapter 04 now takes the car over as the evaluator does), a loss that cared
-#   about the 0.3 s lateral point as much as the 1.5 s one (chapter 07 now scales per axis, with
-#   a floor in metres), and the epoch kept by the NLL, which falls as sigmas sharpen while the
-#   driving gets worse (now kept by the followed mode's error on the situations that decide
-#   collisions). Chapter 07 measures each change; this table, pooled over three training seeds,
-#   is the verdict. With those changes the GMM drives at cruise speed and well below the actuator
-#   baseline, but still collides about twice as often as L2. Section 3b's controls locate it:
-#   following the *mixture's mean* of the same checkpoints collides far more (averaging the two
-#   answers hurts, as the paper argues), the same loss with one mode collides far more still (the
-#   likelihood loss, not the choice, is what L2 does better here), and section 3c finds most of
+# * **The GMM went the other way** (in that first run, 190 per 100 miles against L2's 29). The
+#   measured causes were ours, not the method's: restarts at 20 m/s in states the data barely showed
+#   (2.7 % of samples below 22 m/s; chapter 04 now takes the car over as the evaluator does), a loss
+#   that cared about the 0.3 s lateral point as much as the 1.5 s one (chapter 07 now scales per
+#   axis, with a floor in metres), and the epoch kept by the NLL, which falls as sigmas sharpen
+#   while the driving gets worse (now kept by the followed mode's error on the situations that
+#   decide collisions). Chapter 07 measures each change; this table, pooled over three training
+#   seeds, is the verdict (the lines below print where the GMM stands against L2 and the actuators
+#   in this run; the README's Results section, in the full profile). Section 3b's controls locate a
+#   gap to L2: following the *mixture's mean* of the same checkpoints collides far more (averaging
+#   the two answers hurts, as the paper argues), the same loss with one mode collides far more still
+#   (the likelihood loss, not the choice, is what L2 does better here), and section 3c finds most of
 #   the GMM's extra collisions are a parked car in its own lane hit with the car centred in the
-#   lane: the followed mode kept the lane. The likelihood's culprit is the learned sigma: it
-#   weighs every sample by its predicted spread, so the decisive frames are learned least
-#   (chapter 07, section 8 measures the weights), and the same GMM with sigma held at 1 for the
-#   whole training is section 3b's last control. Read its line against L2's.
+#   lane: the followed mode kept the lane. The likelihood's culprit is the learned sigma: it weighs
+#   every sample by its predicted spread, so the decisive frames are learned least (chapter 07,
+#   section 8 measures the weights), and the same GMM with sigma held at 1 for the whole training is
+#   section 3b's last control. Read its line against L2's.
 # * **The evaluator drove each road four times** until the course gave every mile a road of its
 #   own: a deterministic driver crashed at the same places on each lap, so collisions came in
 #   clusters and the intervals were too narrow. Tables measured before that say so.
