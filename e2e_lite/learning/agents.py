@@ -38,7 +38,7 @@ from ..simulation.camera import CameraConfig
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import SimConfig
-from .heads import Mixture
+from .heads import GMM, HEADS, Mixture, Trajectory
 from .models import DrivingModel, images_to_tensor
 
 
@@ -204,7 +204,7 @@ class TrajectoryAgent(NetworkAgent):
                 f"TrajectoryAgent.decode={decode!r} is invalid: must be one of {DECODES}"
             )
         self.speed, self.preview_s, self.decode = speed, preview_s, decode
-        if model.cfg.head not in ("trajectory", "gmm"):
+        if not isinstance(HEADS[model.cfg.head], Trajectory):  # (a GMM is one too)
             raise ValueError(
                 f"TrajectoryAgent needs a trajectory or gmm head, not {model.cfg.head!r}"
             )
@@ -225,7 +225,7 @@ class TrajectoryAgent(NetworkAgent):
         if "affordance" in outputs:
             aff = outputs["affordance"] * model.affordance_std + model.affordance_mean
             extra["affordances"] = aff.double().cpu().numpy()
-        if model.cfg.head == "trajectory":
+        if not isinstance(HEADS[model.cfg.head], GMM):  # a point estimate of the trajectory
             pts = model.denormalise(out).reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy()
             self.last = {"points": pts, **extra}
             return pts
