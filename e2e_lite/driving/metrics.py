@@ -285,7 +285,8 @@ def speed_histogram(speeds_mps: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------------------ shards
 class ShardResult:
-    """What one thread of :func:`evaluate` measured on its cars (summed by :func:`_merge`)."""
+    """What one shard of :func:`~e2e_lite.driving.evaluation.evaluate` measured on its cars (summed by
+    :func:`merge_shards`)."""
 
     def __init__(self) -> None:
         self.miles_m = 0.0

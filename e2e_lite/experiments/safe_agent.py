@@ -64,15 +64,8 @@ class SafetyStats:
         """Decisions where the followed mode was not driven."""
         return self.decisions - self.sources["network"]
 
-    def counts(self) -> dict[str, Any]:
-        """The counters as plain data (copies)."""
-        return {
-            **{name: getattr(self, name) for name in COUNTS},
-            **{name: Counter(getattr(self, name)) for name in TABLES},
-        }
-
     def add(self, counts: dict[str, Any]) -> None:
-        """Add counters given as :meth:`counts` or as a result's ``info`` (other names ignored)."""
+        """Add the counters in a result's ``info`` (other names ignored)."""
         for name in COUNTS:
             setattr(self, name, getattr(self, name) + int(counts.get(name, 0)))
         for name in TABLES:

@@ -15,6 +15,7 @@ import warnings
 import numpy as np
 import torch
 
+from .heads import Batch
 from .losses import Objective, WrappedObjective
 from .models import DrivingModel
 
@@ -165,12 +166,7 @@ class CVaRObjective(WrappedObjective):
         return cvar_loss(losses, self.alpha, self.min_tail)
 
     def batch_loss(
-        self,
-        out: dict[str, torch.Tensor],
-        batch: dict[str, torch.Tensor],
-        model: DrivingModel,
-        *,
-        epoch: int | None = None,
+        self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         """The mean loss over the batch's tail, ranked as :attr:`rank_by` says."""
         losses = self.per_sample(out, batch, model, epoch=epoch)
@@ -179,9 +175,7 @@ class CVaRObjective(WrappedObjective):
         cvar_loss(losses.detach(), self.alpha, self.min_tail)  # the same checks and warning
         return _tail_mean(losses, self.alpha, rank=self.tail_rank(out, batch, model))
 
-    def tail_rank(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> torch.Tensor:
+    def tail_rank(self, out: Batch, batch: Batch, model: DrivingModel) -> torch.Tensor:
         """Each sample's rank score, (B,), larger is worse: the loss, or the followed
         trajectory's ADE [m]."""
         if self.rank_by == "loss":

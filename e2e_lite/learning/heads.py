@@ -8,7 +8,7 @@ prediction reads in physical units; :data:`HEADS` names them. Adding a head is o
 * ``trajectory``: five (x, y) points [m], flattened to 10 numbers;
 * ``gmm`` (seed 000, section 3.3): the same 10 numbers as a sample of a K-mode diagonal Gaussian
   mixture. Its flat output ``[K x 10 means | K x 10 raw log-sigmas | K logits]`` is read by
-  :meth:`GMM.mixture` into a :class:`Mixture` (its NLL, weights and most likely mode).
+  :meth:`Mixture.from_output` into a :class:`Mixture` (its NLL, weights and most likely mode).
 
 Targets and predictions are physical; losses see them normalised with the model's statistics.
 """
@@ -53,8 +53,12 @@ class Head:
         """The physical target of a batch, (B, target_size)."""
         raise NotImplementedError
 
-    def stats(self, data: DrivingData, wheelbase_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and standard deviation of the target over the training set (physical units)."""
+    def stats(
+        self, data: DrivingData, wheelbase_m: float, scale: str = "coordinate"
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and standard deviation of the target over the training set (physical units);
+        ``scale``: ``"coordinate"`` (one per output) or ``"axis"`` (a trajectory's, pooled per
+        axis; the other heads have one scale per output either way)."""
         raise NotImplementedError
 
     def loss(self, out: torch.Tensor, target_n: torch.Tensor) -> torch.Tensor:
@@ -75,7 +79,9 @@ class Steer(Head):
     def target(self, batch: Batch, wheelbase_m: float) -> torch.Tensor:
         return torch.tan(batch["actuators"][:, :1]) / wheelbase_m
 
-    def stats(self, data: DrivingData, wheelbase_m: float) -> tuple[np.ndarray, np.ndarray]:
+    def stats(
+        self, data: DrivingData, wheelbase_m: float, scale: str = "coordinate"
+    ) -> tuple[np.ndarray, np.ndarray]:
         kappa = np.tan(data.actuators[:, 0].astype(np.float64)) / wheelbase_m
         return np.array([kappa.mean()]), np.array([max(kappa.std(), 1e-6)])
 
@@ -96,7 +102,9 @@ class Actuators(Head):
     def target(self, batch: Batch, wheelbase_m: float) -> torch.Tensor:
         return batch["actuators"]
 
-    def stats(self, data: DrivingData, wheelbase_m: float) -> tuple[np.ndarray, np.ndarray]:
+    def stats(
+        self, data: DrivingData, wheelbase_m: float, scale: str = "coordinate"
+    ) -> tuple[np.ndarray, np.ndarray]:
         return data.stats["actuators_mean"], data.stats["actuators_std"]
 
     def metrics(self, pred: torch.Tensor, batch: Batch, wheelbase_m: float) -> Batch:
@@ -112,8 +120,18 @@ class Trajectory(Head):
     def target(self, batch: Batch, wheelbase_m: float) -> torch.Tensor:
         return batch["trajectory"]
 
-    def stats(self, data: DrivingData, wheelbase_m: float) -> tuple[np.ndarray, np.ndarray]:
-        return data.stats["trajectory_mean"].reshape(-1), data.stats["trajectory_std"].reshape(-1)
+    def stats(
+        self, data: DrivingData, wheelbase_m: float, scale: str = "coordinate"
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per coordinate; with ``scale="axis"`` one pooled standard deviation per axis,
+        ``sqrt(mean_k std_k^2)`` over the 5 points (an error keeps its size in metres)."""
+        std = data.stats["trajectory_std"]
+        if scale == "axis":
+            pooled = np.sqrt(np.mean(std.astype(np.float64) ** 2, axis=0))
+            return data.stats["trajectory_mean"].reshape(-1), np.tile(pooled, N_POINTS).astype(
+                np.float32
+            )
+        return data.stats["trajectory_mean"].reshape(-1), std.reshape(-1)
 
     def metrics(self, pred: torch.Tensor, batch: Batch, wheelbase_m: float) -> Batch:
         tgt = self.target(batch, wheelbase_m)
@@ -259,16 +277,6 @@ class GMM(Trajectory):
 
     def layer(self, width: int, n_modes: int) -> nn.Module:
         return MixtureLayer(width, n_modes)
-
-    def mixture(
-        self,
-        out: torch.Tensor,
-        n_modes: int,
-        floor: float | torch.Tensor,
-        sigma_fixed: bool = False,
-    ) -> Mixture:
-        """The :class:`Mixture` in the flat output (see :meth:`Mixture.from_output`)."""
-        return Mixture.from_output(out, n_modes, floor, sigma_fixed)
 
     def loss(self, out: torch.Tensor, target_n: torch.Tensor) -> torch.Tensor:
         raise TypeError("a GMM head's loss is its mixture's NLL: see GMMObjective")

@@ -29,7 +29,7 @@ import torch
 
 from ..config import check_range
 from ..control.labels import AFFORDANCE_NAMES, N_POINTS, POINT_DIMS
-from .heads import HEADS, POINT_HEADS, Mixture, head_of
+from .heads import HEADS, POINT_HEADS, Batch, Mixture, head_of
 from .models import DrivingModel
 
 #: How trajectory targets are scaled before the loss (:func:`~e2e_lite.learning.training.model_stats`):
@@ -52,7 +52,7 @@ def _target_scale(owner: str, normalise_targets: bool, target_scale: str | None)
 _SCALE_SUFFIX = {"coordinate": "", "axis": "-axis", "none": "-raw"}
 
 
-def target(head: str, batch: dict[str, torch.Tensor], wheelbase_m: float) -> torch.Tensor:
+def target(head: str, batch: Batch, wheelbase_m: float) -> torch.Tensor:
     """The physical target of ``head`` for a batch, (B, target_size) (:mod:`~e2e_lite.learning.heads`)."""
     return head_of(head).target(batch, wheelbase_m)
 
@@ -98,32 +98,20 @@ class Objective:
         return losses.mean()
 
     def batch_loss(
-        self,
-        out: dict[str, torch.Tensor],
-        batch: dict[str, torch.Tensor],
-        model: DrivingModel,
-        *,
-        epoch: int | None = None,
+        self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         """What the training loop minimises for a batch: :meth:`reduce` of :meth:`per_sample`.
         ``epoch``: the training epoch the batch belongs to (None: after training)."""
         return self.reduce(self.per_sample(out, batch, model, epoch=epoch))
 
     def per_sample(
-        self,
-        out: dict[str, torch.Tensor],
-        batch: dict[str, torch.Tensor],
-        model: DrivingModel,
-        *,
-        epoch: int | None = None,
+        self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         """Loss of each sample, (B,): the mean over outputs of the squared normalised error."""
         tgt = model.normalise_target(target(self.head, batch, self.wheelbase_m))
         return HEADS[self.head].loss(out["main"], tgt)
 
-    def metrics(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> dict[str, torch.Tensor]:
+    def metrics(self, out: Batch, batch: Batch, model: DrivingModel) -> Batch:
         """Per-sample absolute errors in physical units, by readable name."""
         pred = model.denormalise(out["main"])
         return HEADS[self.head].metrics(pred, batch, self.wheelbase_m)
@@ -201,21 +189,14 @@ class GMMObjective(Objective):
         return mix.weights, mix.means, mix.log_sigma
 
     def per_sample(
-        self,
-        out: dict[str, torch.Tensor],
-        batch: dict[str, torch.Tensor],
-        model: DrivingModel,
-        *,
-        epoch: int | None = None,
+        self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         """The NLL of each sample's normalised trajectory (sigma held at 1 in a warm-up epoch)."""
         fixed = self.sigma_fixed(epoch)
         mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model), fixed)
         return mix.nll(model.normalise_target(target("gmm", batch, self.wheelbase_m)))
 
-    def metrics(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> dict[str, torch.Tensor]:
+    def metrics(self, out: Batch, batch: Batch, model: DrivingModel) -> Batch:
         """ADE/FDE of the most likely mode's mean [m], the best mode's ADE, the top weight."""
         weights, means, _ = self.modes(out, model)
         tgt = target("gmm", batch, self.wheelbase_m).reshape(-1, 1, N_POINTS, POINT_DIMS)
@@ -253,18 +234,11 @@ class WrappedObjective(Objective):
         return self.base.reduce(losses)
 
     def per_sample(
-        self,
-        out: dict[str, torch.Tensor],
-        batch: dict[str, torch.Tensor],
-        model: DrivingModel,
-        *,
-        epoch: int | None = None,
+        self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         return self.base.per_sample(out, batch, model, epoch=epoch)
 
-    def metrics(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> dict[str, torch.Tensor]:
+    def metrics(self, out: Batch, batch: Batch, model: DrivingModel) -> Batch:
         return self.base.metrics(out, batch, model)
 
 
@@ -288,12 +262,7 @@ class WithAffordance(WrappedObjective):
         self.name = f"{base.name}+affordance{self.weight:g}"
 
     def affordance_loss(
-        self,
-        out: dict[str, torch.Tensor],
-        batch: dict[str, torch.Tensor],
-        model: DrivingModel,
-        *,
-        epoch: int | None = None,
+        self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         """Per-sample mean squared normalised affordance error, (B,)."""
         if "affordance" not in out:
@@ -304,12 +273,7 @@ class WithAffordance(WrappedObjective):
         return ((out["affordance"] - tgt) ** 2).mean(dim=1)
 
     def per_sample(
-        self,
-        out: dict[str, torch.Tensor],
-        batch: dict[str, torch.Tensor],
-        model: DrivingModel,
-        *,
-        epoch: int | None = None,
+        self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         """``base`` loss + ``weight`` x affordance loss, (B,)."""
         main = self.base.per_sample(out, batch, model, epoch=epoch)
@@ -317,9 +281,7 @@ class WithAffordance(WrappedObjective):
             return main
         return main + self.weight * self.affordance_loss(out, batch, model)
 
-    def metrics(
-        self, out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], model: DrivingModel
-    ) -> dict[str, torch.Tensor]:
+    def metrics(self, out: Batch, batch: Batch, model: DrivingModel) -> Batch:
         """The base's metrics, its loss alone, and per-affordance absolute errors [m or rad]."""
         m = dict(self.base.metrics(out, batch, model))
         m["main loss"] = self.base.per_sample(out, batch, model)

@@ -22,7 +22,6 @@ from matplotlib.figure import Figure
 
 from ..artifacts import artifact_path, save_figure, save_json
 from ..config import check_range, tqdm
-from ..control.labels import TRAJECTORY_DIMS
 from .dataset import DrivingData, DrivingDataset, situations
 from .heads import HEADS
 from .losses import Objective
@@ -131,15 +130,12 @@ class History:
 
 
 def model_stats(cfg: ModelConfig, data: DrivingData, objective: Objective) -> dict[str, np.ndarray]:
-    """The normalisation a model of ``cfg`` trained on ``data`` carries (from the training set;
-    the identity for the target when ``objective.normalise_targets`` is off; for a trajectory
-    with ``objective.target_scale == "axis"``, one pooled standard deviation per axis,
-    ``sqrt(mean_k std_k^2)`` over the 5 points)."""
+    """The normalisation a model of ``cfg`` trained on ``data`` carries (from the training set,
+    as its head computes it for ``objective.target_scale``; the identity for the target when
+    ``objective.normalise_targets`` is off)."""
     s = data.stats
-    t_mean, t_std = HEADS[cfg.head].stats(data, objective.wheelbase_m)
-    if cfg.target_size == TRAJECTORY_DIMS and getattr(objective, "target_scale", "") == "axis":
-        pooled = np.sqrt(np.mean(s["trajectory_std"].astype(np.float64) ** 2, axis=0))
-        t_std = np.tile(pooled, len(t_std) // 2).astype(np.float32)
+    scale = getattr(objective, "target_scale", "coordinate")
+    t_mean, t_std = HEADS[cfg.head].stats(data, objective.wheelbase_m, scale)
     if not getattr(objective, "normalise_targets", True):
         t_mean, t_std = np.zeros_like(t_mean), np.ones_like(t_std)
     return {
