@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pymunk
 import pytest
 from conftest import straight_world
 
 from e2e_lite.simulation.geometry import RoadConfig
-from e2e_lite.simulation.world import Fleet, TrafficConfig, WorldConfig, make_world
+from e2e_lite.simulation.world import CAT_CAR, Fleet, TrafficConfig, WorldConfig, make_world
 
 CFG = WorldConfig()
 
@@ -90,6 +91,31 @@ def test_gap_ahead_on_a_straight_and_a_curve():
     for s, lane, d in zip(w.cars.s, w.cars.lane, w.cars.d):
         gap = w.gap_ahead(s - 30.0, int(lane), 60.0)
         assert 30.0 - 2.25 - 0.5 <= gap <= 30.0 - 2.25 + 0.5, (s, lane, d, gap)
+
+
+def test_gap_ahead_shrinks_with_every_step_towards_a_car_as_pymunk_sees_it():
+    """Approaching a parked car, the gap falls by exactly the distance moved, down to the rear of
+    the car's pymunk shape inside the lane band (found here by point queries on a fine grid). The
+    old piece-wise segment query jumped by up to 9.9 m, or lost the car, near its pieces' starts."""
+    w = make_world(WorldConfig(road=RoadConfig(length_m=4_000.0)), "val", 1)
+    track, cars = w.track, w.cars
+    band = track.lane_width / 2.0 - 0.3
+    only_cars = pymunk.ShapeFilter(mask=CAT_CAR)
+    for k in range(0, len(cars), max(1, len(cars) // 6)):
+        lane, s_car = int(cars.lane[k]), float(cars.s[k])
+        centre = float(track.lane_center(lane))
+        grid = np.arange(s_car - 4.0, s_car + 1.0, 0.01)
+        seen = np.zeros(len(grid), dtype=bool)
+        for dd in centre + np.linspace(-band, band, 15):
+            for j, p in enumerate(np.asarray(track.position(grid, dd)).reshape(-1, 2)):
+                if not seen[j]:
+                    seen[j] = w.space.point_query_nearest(tuple(p), 0.0, only_cars) is not None
+        rear = float(grid[np.argmax(seen)])  # the shape's first point in the band
+        assert seen.any() and rear < s_car
+        for s0 in np.arange(rear - 45.0, rear - 0.5, 0.37):
+            assert w.gap_ahead(float(s0), lane, 60.0) == pytest.approx(rear - s0, abs=0.06), (k, s0)
+        assert w.gap_ahead(rear - 61.0, lane, 60.0) == np.inf  # out of range
+        assert w.gap_ahead(s_car, lane, 60.0) == 0.0  # the body reaches past s_from
 
 
 def test_parked_cars_follow_the_paper():

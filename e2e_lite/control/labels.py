@@ -52,7 +52,8 @@ AFFORDANCE_NAMES = (
 * ``left_edge_m`` / ``right_edge_m``: distance to the road's left / right edge [m];
 * ``gap_ego_m`` / ``gap_left_m`` / ``gap_right_m``: free distance ahead of the front bumper to the
   nearest parked car in the ego lane / the lane to its left / to its right, along the lane
-  (a pymunk segment query, :meth:`~e2e_lite.simulation.world.World.gap_ahead`) [m]. A car alongside
+  (the parked cars' boxes in the lane frame, :meth:`~e2e_lite.simulation.world.World.gap_ahead`)
+  [m]. A car alongside
   (overlapping the ego's length) gives 0. Capped at ``GAP_CAP_M`` (60 m), which also
   encodes "no car"; a lane that does not exist (left of the leftmost) gives 0 (blocked).
 """

@@ -77,9 +77,7 @@ def affordances(
         centre = float(track.lane_center(lane))
         half_lane = track.lane_width / 2.0
         front = float(s[i]) + veh.length_m - veh.rear_overhang_m
-        # start one parked-car length behind the rear bumper: a segment query does not see a
-        # shape it starts inside, and any car found from there reaches at least to our rear
-        start = front - veh.length_m - world.cars.length_m
+        start = front - veh.length_m  # the rear bumper: a car reaching past it is alongside
         gaps = []
         for other in (lane, lane + 1, lane - 1):
             if not 0 <= other < track.n_lanes:
@@ -194,8 +192,9 @@ class DataConfig:
 
     @property
     def key(self) -> str:
-        """Settings key of the dataset these settings make."""
-        return settings_key("dataset-v2", self)
+        """Settings key of the dataset these settings make (v3: the gap labels of the fixed
+        :meth:`~e2e_lite.simulation.world.World.gap_ahead`, 2026-11-24)."""
+        return settings_key("dataset-v3", self)
 
 
 class _Recorder:
