@@ -222,7 +222,7 @@ print(
 # two plausible answers, left and right, with their weights.
 
 # %%
-agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
+agent = TrajectoryAgent(model)
 dcfg = DataConfig.for_profile(profile, "val")
 
 
@@ -324,7 +324,8 @@ print(f"saved {fig3_png}")
 #
 # The course's GMM scales **per axis, in metres** (one standard deviation for every x, one for
 # every y: `GMMObjective(target_scale="axis")`) with a sigma floor of **0.1 m** on every point
-# (`sigma_floor_m`): finer than 10 cm does not change which way the car goes (a lane is 3.7 m,
+# (the model's `ModelConfig(sigma_floor_m=0.1)`: the network and whoever reads its sigmas share
+# it): finer than 10 cm does not change which way the car goes (a lane is 3.7 m,
 # a passing car clears by about 1.8 m), and it keeps the NLL from rewarding ever sharper
 # sigmas. The per-coordinate GMM is trained beside it (same data, seed and schedule) so the two
 # can be compared on held-out frames:
@@ -339,9 +340,9 @@ print(f"saved {fig3_png}")
 #   sideways is not taken for a lane change.
 
 # %%
-coord_objective = recipes.gmm_objective(profile, target_scale="coordinate", sigma_floor_m=None)
+coord_objective = recipes.gmm_objective(profile, target_scale="coordinate")
 coord_model, _, _ = recipes.gmm(
-    profile, train, val, name="07_gmm_coordinate", objective=coord_objective
+    profile, train, val, name="07_gmm_coordinate", objective=coord_objective, sigma_floor_m=None
 )
 l2_model, _, _ = recipes.trajectory_l2(profile, train, val)
 heading_error = val.affordances[:, AFFORDANCE_NAMES.index("heading_rad")]
@@ -364,12 +365,12 @@ def predict_rows(probe: TrajectoryAgent, rows: np.ndarray) -> dict[str, np.ndarr
 
 
 mode_report = {}
-for name, m, obj in (
-    ("GMM, per axis, floor 0.1 m (the course's)", model, objective),
-    ("GMM, per coordinate, floor 0.01 std", coord_model, coord_objective),
-    ("L2 (chapter 06)", l2_model, None),
+for name, m in (
+    ("GMM, per axis, floor 0.1 m (the course's)", model),
+    ("GMM, per coordinate, floor 0.01 std", coord_model),
+    ("L2 (chapter 06)", l2_model),
 ):
-    probe = TrajectoryAgent(m, sigma_floor=obj.floor(m) if obj is not None else 0.01)
+    probe = TrajectoryAgent(m)
     everywhere = predict_rows(probe, probe_rows)
     report = {}
     if "modes" in everywhere:
@@ -462,7 +463,7 @@ labels = val.trajectory[rows].astype(np.float64)
 _, _, _, v_label, a_label = trajectory_reference(labels)
 open_loop = {}
 for name, m in (("L2", l2_model), ("GMM", model)):
-    probe = TrajectoryAgent(m, sigma_floor=objective.floor(m))
+    probe = TrajectoryAgent(m)
     chunks = [rows[i : i + 256] for i in range(0, len(rows), 256)]
     pts = np.concatenate([probe.trajectories_from(val.images[c], val.speed[c]) for c in chunks])
     _, _, _, v_pred, a_pred = trajectory_reference(pts)
@@ -504,7 +505,7 @@ diag_miles = 0.2 if profile.quick else 30.0
 diagnosis: dict[str, dict] = {}
 for name, m in (("L2", l2_model), ("GMM", model)):
     for speed in SPEED_SOURCES:
-        rec = Recorder(TrajectoryAgent(m, sigma_floor=objective.floor(m), speed=speed), speeds)
+        rec = Recorder(TrajectoryAgent(m, speed=speed), speeds)
         r = evaluate(
             rec,
             world_cfg,
@@ -587,7 +588,7 @@ for band, b in speed_bands.items():
 #   those read from the labels, by situation.
 
 # %%
-followed = predict_rows(TrajectoryAgent(model, sigma_floor=objective.floor(model)), probe_rows)
+followed = predict_rows(TrajectoryAgent(model), probe_rows)
 label_pts = val.trajectory[probe_rows].astype(np.float64)
 noise_m = np.sqrt(np.mean((followed["points"] - label_pts) ** 2, axis=0))  # (5, 2) [m]
 print(f"GMM held-out RMSE per point [m]: x {np.round(noise_m[:, 0], 2).tolist()}, "
@@ -651,19 +652,19 @@ old_cfg = dataclasses.replace(
     noise=NoiseConfig(brake_share=0.0),
 )
 old_train = load_or_collect(old_cfg, name=f"train-{old_cfg.n_samples}-old-way")
-old_model, old_objective, _ = recipes.gmm(profile, old_train, val, name="07_gmm_old_data")
+old_model, _, _ = recipes.gmm(profile, old_train, val, name="07_gmm_old_data")
 before_after = {}
 visited = {}
 runs = (
-    ("old data", old_model, old_objective, (20.0, 25.0)),
-    ("new data", model, objective, (20.0, 25.0)),
+    ("old data", old_model, (20.0, 25.0)),
+    ("new data", model, (20.0, 25.0)),
     # the control for the loss: the same new data with section 4's per-coordinate targets
-    ("new data, per-coordinate targets", coord_model, coord_objective, (20.0,)),
+    ("new data, per-coordinate targets", coord_model, (20.0,)),
 )
-for name, m, obj, starts in runs:
+for name, m, starts in runs:
     for start in starts:
         r = evaluate(
-            TrajectoryAgent(m, sigma_floor=obj.floor(m)),
+            TrajectoryAgent(m),
             world_cfg,
             EvalConfig(
                 miles=diag_miles,
@@ -715,7 +716,7 @@ scene_cfg = ScenarioConfig(n_scenes=8 if profile.quick else 200)
 scene_drivers = {
     "expert": Expert(),
     "L2": TrajectoryAgent(l2_model),
-    "GMM": TrajectoryAgent(model, sigma_floor=objective.floor(model)),
+    "GMM": TrajectoryAgent(model),
 }
 scene_results = {
     name: run_scenarios(p, scene_cfg, world_cfg, desc=f"scenes: {name}")
@@ -780,7 +781,7 @@ print(f"saved {scenes_png} (25 scenes per driver: green passed, red collided, or
 # or a parked car hit off centre (during a lane change, or clipped beside).
 
 # %%
-held_gmm = predict_rows(TrajectoryAgent(model, sigma_floor=objective.floor(model)), probe_rows)
+held_gmm = predict_rows(TrajectoryAgent(model), probe_rows)
 heaviest = held_gmm["weights"].argmax(axis=1)
 followed_sigma = held_gmm["sigmas"][np.arange(len(heaviest)), heaviest]  # (N, 5, 2) [m]
 pull = 1.0 / followed_sigma**2  # each coordinate's weight on the mean, 1 / sigma^2 [1/m^2]
@@ -970,8 +971,9 @@ artifacts.write_metrics(
 # 4. Train a GMM on chapter 04's data with `DataConfig(restart_rate_per_s=0.2)` (a take-over
 #    every 5 s). Does section 6d's gap between restarts at 20 and 25 m/s close further, and what
 #    happens to the collisions at cruise speed?
-# 5. Lower `sigma_floor_m` to 1e-3 and train. Watch the training loss: what does an over-confident
-#    mode do to the NLL of a sample it gets wrong? Which epoch does `select_by="val_loss"` keep?
+# 5. Lower the floor to 1e-3 m (`recipes.gmm(..., sigma_floor_m=1e-3)`) and train. Watch the
+#    training loss: what does an over-confident mode do to the NLL of a sample it gets wrong?
+#    Which epoch does `select_by="val_loss"` keep?
 # 6. DAgger, one round: drive the GMM on the training tracks, label the states it visits with the
 #    expert (`Expert.trajectory_label` inside an `agents.Recorder`), add them to the data and
 #    retrain. Compare section 6d and section 7 before and after.

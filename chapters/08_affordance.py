@@ -134,7 +134,7 @@ if gmm07 is not None:
 # (no car in range), which shows as a column at the right edge.
 
 # %%
-agent = TrajectoryAgent(model, sigma_floor=objective.floor(model))
+agent = TrajectoryAgent(model)
 rows = np.arange(0, len(val), max(1, len(val) // 3000))
 chunks = []
 for c in np.array_split(rows, max(1, len(rows) // 256)):
@@ -255,7 +255,7 @@ paper_model, paper_objective, _ = recipes.gmm_affordance(
 
 def head_affordances(net) -> np.ndarray:
     """A network's own affordance predictions on the scatter's frames (``rows``)."""
-    probe_agent = TrajectoryAgent(net, sigma_floor=objective.floor(net))
+    probe_agent = TrajectoryAgent(net)
     out = []
     for c in np.array_split(rows, max(1, len(rows) // 256)):
         probe_agent.trajectories_from(val.images[c], val.speed[c])
@@ -301,7 +301,7 @@ def car0_affordances(obs, agent):
     return obs.time_s, agent.last["affordances"][0], truth
 
 
-recorder = Recorder(TrajectoryAgent(model, sigma_floor=objective.floor(model)), car0_affordances)
+recorder = Recorder(TrajectoryAgent(model), car0_affordances)
 evaluate(
     recorder,
     world_cfg,

@@ -274,7 +274,7 @@ easy = np.flatnonzero((val.expert_state == KEEP) & (np.abs(val.curvature) < 1e-4
 easy = easy[:: max(1, len(easy) // 2000)]
 easy_report = {}
 for name, m in (("base", base), ("control", control), ("cvar", model)):
-    probe = TrajectoryAgent(m, sigma_floor=objective.floor(m))
+    probe = TrajectoryAgent(m)
     chunks = np.array_split(easy, max(1, len(easy) // 256))
     pts = np.concatenate([probe.trajectories_from(val.images[c], val.speed[c]) for c in chunks])
     err_y5 = np.abs(pts[:, -1, 1] - val.trajectory[easy, -1, 1])

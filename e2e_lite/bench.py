@@ -43,6 +43,7 @@ from .control.expert import Expert
 from .control.oracle import Oracle
 from .driving.evaluation import evaluate
 from .driving.rollout import EvalConfig
+from .learning import recipes
 from .learning.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
 from .learning.checkpoints import load_checkpoint
 from .learning.data import DataConfig, DrivingDataset, collect, synthetic_data
@@ -241,9 +242,9 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     threads and in two worker processes (evaluate's ``workers=2``; also without the workers'
     start, which an evaluation pays once)."""
     name, cfg = {
-        "pilotnet": ("05_pilotnet", ModelConfig(kind="pilotnet", head="steer")),
-        "actuators": ("05_actuators", ModelConfig(kind="fusion", head="actuators")),
-        "gmm": ("07_gmm", ModelConfig(kind="fusion", head="gmm", gmm_modes=2)),
+        "pilotnet": ("05_pilotnet", recipes.PILOTNET_CFG),
+        "actuators": ("05_actuators", recipes.ACTUATORS_CFG),
+        "gmm": ("07_gmm", recipes.gmm_config()),
     }[agent]
     path = artifact_path("checkpoints", f"{name}.pt")
     if path.exists():

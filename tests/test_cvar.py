@@ -120,7 +120,7 @@ def test_affordance_weight_zero_is_the_plain_gmm_loss():
     aff = w.affordance_loss(out, batch, model)
     assert torch.all(aff > 0)
     torch.testing.assert_close(w.per_sample(out, batch, model), plain + 0.5 * aff)
-    assert w.n_modes == 2 and w.sigma_floor == gmm.sigma_floor  # the base's settings show through
+    assert w.n_modes == 2 and w.sigma_warmup_epochs == gmm.sigma_warmup_epochs  # the base's show
     m = w.metrics(out, batch, model)
     assert "|err| gap_ego_m" in m and "ADE [m]" in m
     with pytest.raises(ValueError, match="affordance head"):

@@ -592,13 +592,15 @@ def test_the_affordance_head_reads_where_it_is_told_and_old_keys_stand():
         out = model(batch["image"], batch["speed"])
         from_trunk = model.affordance_head(feats["trunk"])
     torch.testing.assert_close(out["affordance"], from_trunk)
-    # the field came after checkpoints existed: at its default it leaves their keys as they were
+    # fields that came after checkpoints existed: at their defaults they leave the keys as they were
     paper = ModelConfig(head="gmm", affordance=True)
+    later = ("affordance_from", "sigma_floor", "sigma_floor_m")
     without_field = {
         "__type__": "ModelConfig",
-        **{k: v for k, v in dataclasses.asdict(paper).items() if k != "affordance_from"},
+        **{k: v for k, v in dataclasses.asdict(paper).items() if k not in later},
     }
     assert settings_key(paper) == settings_key(without_field)
     assert settings_key(cfg) != settings_key(paper)
+    assert settings_key(dataclasses.replace(paper, sigma_floor_m=0.1)) != settings_key(paper)
     with pytest.raises(ValueError, match="affordance_from"):
         ModelConfig(affordance=True, affordance_from="speed")

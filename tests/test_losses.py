@@ -205,27 +205,35 @@ def test_side_shares_on_hand_made_offsets():
 
 
 def test_axis_scale_and_a_floor_in_metres():
-    """Per axis: every x shares one scale and every y another; the floor in metres becomes
-    floor / scale per coordinate, and the NLL respects it."""
+    """Per axis: every x shares one scale and every y another; the model's floor in metres
+    becomes floor / scale per coordinate, and the NLL (and an agent reading the sigmas)
+    respects it."""
     data = synthetic_data(32)
     data.arrays["trajectory"][:, :, 1] *= np.arange(1, 6) / 5.0  # lateral spread grows with time
     from e2e_lite.learning.data import dataset_stats
 
     data.stats.update(dataset_stats(data.arrays))
-    obj = GMMObjective(target_scale="axis", sigma_floor_m=0.1)
-    assert obj.name.endswith("floor0.1m-warmup1-axis")
-    cfg = ModelConfig(head="gmm", fusion_width=16)
+    obj = GMMObjective(target_scale="axis")
+    assert obj.name == "gmm-nll-K2-warmup1-axis"
+    cfg = ModelConfig(head="gmm", fusion_width=16, sigma_floor_m=0.1)
     model = build_model(cfg)
     model.set_normalisation(model_stats(cfg, data, obj))
     std = model.target_std.reshape(5, 2)
     assert torch.all(std[:, 0] == std[0, 0]) and torch.all(std[:, 1] == std[0, 1])
     per_coord = data.stats["trajectory_std"].astype(np.float64)
     assert float(std[0, 1]) == pytest.approx(np.sqrt(np.mean(per_coord[:, 1] ** 2)), rel=1e-5)
-    torch.testing.assert_close(obj.floor(model), 0.1 / model.target_std)
+    torch.testing.assert_close(model.sigma_floor(), 0.1 / model.target_std)
     out = {"main": torch.zeros(4, 42)}
     out["main"][:, 20:40] = -50.0  # raw log-sigma far below the floor
     _, _, log_sig = obj.modes(out, model)
     torch.testing.assert_close(torch.exp(log_sig[0, 0]) * model.target_std, torch.full((10,), 0.1))
+    # the model without a floor in metres: the default 0.01 standard deviations
+    plain = build_model(ModelConfig(head="gmm", fusion_width=16))
+    plain.set_normalisation(model_stats(cfg, data, obj))
+    _, _, log_sig = obj.modes(out, plain)
+    torch.testing.assert_close(torch.exp(log_sig[0, 0]), torch.full((10,), 0.01))
+    with pytest.raises(ValueError, match="sigma_floor_m"):
+        ModelConfig(head="gmm", sigma_floor_m=0.0)
     with pytest.raises(ValueError, match="target_scale"):
         GMMObjective(target_scale="pixel")
 

@@ -54,7 +54,12 @@ def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
     # held at 1: the NLL is a soft mixture of squared errors whatever the raw log-sigmas say
     y, means = torch.zeros(3, 10), torch.randn(3, 2, 10)
     raw = torch.cat([means.reshape(3, -1), torch.full((3, 20), -5.0), torch.zeros(3, 2)], 1)
-    model = SimpleNamespace(target_std=torch.ones(10), normalise_target=lambda t: t)
+    from e2e_lite.learning.heads import Mixture
+
+    model = SimpleNamespace(
+        normalise_target=lambda t: t,
+        mixture=lambda out, fixed=False: Mixture.from_output(out, 2, 0.01, fixed),
+    )
     nll = fixed.per_sample({"main": raw}, {"trajectory": y}, model, epoch=FULL.train_epochs - 1)
     sq = 0.5 * ((y[:, None] - means) ** 2).sum(-1) + 5 * LOG_2PI
     expected = -torch.logsumexp(torch.log(torch.tensor(0.5)) - sq, dim=1)

@@ -82,14 +82,12 @@ def _measure() -> dict[str, Any]:
     for name, policy in (("expert", Expert()), ("lane_keeper", LaneKeeper())):
         out[name] = _counts(evaluate(policy, world_cfg, ev, progress=False))
     for name, recipe in (("l2", recipes.trajectory_l2), ("gmm", recipes.gmm)):
-        model, objective, hist = recipe(profile, train, val, name=f"ref_{name}", progress=False)
+        model, _, hist = recipe(profile, train, val, name=f"ref_{name}", progress=False)
         out[name] = {
             "val_loss": float(hist.epochs[-1]["val_loss"]),
             **_counts(
                 evaluate(
-                    TrajectoryAgent(
-                        model, sigma_floor=getattr(objective, "floor", lambda m: 0.01)(model)
-                    ),
+                    TrajectoryAgent(model),
                     world_cfg,
                     ev,
                     progress=False,

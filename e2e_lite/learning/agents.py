@@ -38,7 +38,7 @@ from ..simulation.camera import CameraConfig
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import SimConfig
-from .heads import GMM, HEADS, Mixture, Trajectory
+from .heads import GMM, HEADS, Trajectory
 from .models import DrivingModel, images_to_tensor
 
 
@@ -171,8 +171,6 @@ class TrajectoryAgent(NetworkAgent):
     Args:
         model: a trajectory or GMM model.
         tracker: the LQR tracker (None: :func:`default_tracker` for this car and policy period).
-        sigma_floor: the GMM's sigma floor used to report sigmas, in normalised units: a number,
-            or one per coordinate (``objective.floor(model)``).
         speed: where the speed command comes from, one of :data:`SPEED_SOURCES`.
         preview_s: where along the predicted trajectory the tracker reads its references [s]
             (:func:`~e2e_lite.control.tracker.trajectory_reference`; 0 = the car's position now).
@@ -191,7 +189,6 @@ class TrajectoryAgent(NetworkAgent):
         self,
         model: DrivingModel,
         tracker: LQRTracker | None = None,
-        sigma_floor: float | torch.Tensor = 0.01,
         speed: str = DEFAULT_SPEED,
         preview_s: float = DEFAULT_PREVIEW_S,
         decode: str = "top",
@@ -210,7 +207,6 @@ class TrajectoryAgent(NetworkAgent):
             )
         self.tracker = tracker or default_tracker(self.vehicle, self.sim)
         self.cruise = CruiseControl(tracker=self.tracker) if speed == "cruise" else None
-        self.sigma_floor = sigma_floor
         self.last: dict[str, np.ndarray] = {}
 
     def trajectories(self, obs: Observation) -> np.ndarray:
@@ -229,7 +225,7 @@ class TrajectoryAgent(NetworkAgent):
             pts = model.denormalise(out).reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy()
             self.last = {"points": pts, **extra}
             return pts
-        mix = Mixture.from_output(out, model.cfg.gmm_modes, self.sigma_floor)
+        mix = model.mixture(out)  # sigmas floored as the model was trained
         weights, modes = mix.weights, model.denormalise(mix.means)
         sig = torch.exp(mix.log_sigma) * model.target_std
         pts = mix.followed(self.decode, modes)

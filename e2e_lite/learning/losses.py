@@ -29,7 +29,7 @@ import torch
 
 from ..config import check_range
 from ..control.labels import AFFORDANCE_NAMES, N_POINTS, POINT_DIMS
-from .heads import HEADS, POINT_HEADS, Batch, Mixture, head_of
+from .heads import HEADS, POINT_HEADS, Batch, head_of
 from .models import DrivingModel
 
 #: How trajectory targets are scaled before the loss (:func:`~e2e_lite.learning.training.model_stats`):
@@ -121,10 +121,11 @@ class Objective:
 class GMMObjective(Objective):
     """The mixture-density loss of seed 000 (section 3.3) on the normalised trajectory.
 
+    The sigma floor belongs to the model (:attr:`~e2e_lite.learning.models.ModelConfig.sigma_floor`,
+    ``sigma_floor_m``): the trained network and whoever reads its sigmas use the same one.
+
     Args:
         n_modes: K (the paper: 2).
-        sigma_floor: smallest standard deviation, in normalised units (1 = one dataset standard
-            deviation of that coordinate).
         sigma_warmup_epochs: for the first epochs every sigma is held at 1 (the loss is then a
             mixture of squared errors) and the head's log-sigma layer is frozen; then opened
             (the paper froze sigma for 5 epochs).
@@ -132,46 +133,27 @@ class GMMObjective(Objective):
         normalise_targets: as :class:`Objective` (``False``: the floor and the warm-up's
             sigma = 1 are then in metres).
         target_scale: as :class:`Objective`.
-        sigma_floor_m: the floor in metres instead, the same for every point and axis
-            (``sigma_floor`` is then unused): :meth:`floor` turns it into each coordinate's
-            normalised units with the model's target scale.
     """
 
     def __init__(
         self,
         n_modes: int = 2,
-        sigma_floor: float = 0.01,
         sigma_warmup_epochs: int = 1,
         wheelbase_m: float = 2.7,
         normalise_targets: bool = True,
         target_scale: str | None = None,
-        sigma_floor_m: float | None = None,
     ) -> None:
         check_range("GMMObjective", "n_modes", n_modes, 1, 16, integer=True)
-        check_range("GMMObjective", "sigma_floor", sigma_floor, 0.0, 1.0, lo_open=True)
         check_range("GMMObjective", "sigma_warmup_epochs", sigma_warmup_epochs, 0, integer=True)
-        if sigma_floor_m is not None:
-            check_range("GMMObjective", "sigma_floor_m", sigma_floor_m, 0.0, 10.0, lo_open=True)
         self.head = "gmm"
         self.n_modes = n_modes
-        self.sigma_floor = sigma_floor
-        self.sigma_floor_m = sigma_floor_m
         self.sigma_warmup_epochs = sigma_warmup_epochs
         self.wheelbase_m = wheelbase_m
         self.target_scale = _target_scale("GMMObjective", normalise_targets, target_scale)
         self.normalise_targets = self.target_scale != "none"
-        floor = f"floor{sigma_floor}" if sigma_floor_m is None else f"floor{sigma_floor_m:g}m"
         self.name = (
-            f"gmm-nll-K{n_modes}-{floor}-warmup{sigma_warmup_epochs}"
-            + _SCALE_SUFFIX[self.target_scale]
+            f"gmm-nll-K{n_modes}-warmup{sigma_warmup_epochs}" + _SCALE_SUFFIX[self.target_scale]
         )
-
-    def floor(self, model: DrivingModel) -> float | torch.Tensor:
-        """The sigma floor in the model's normalised units: ``sigma_floor``, or ``sigma_floor_m``
-        divided by each coordinate's target scale, (10,)."""
-        if self.sigma_floor_m is None:
-            return self.sigma_floor
-        return self.sigma_floor_m / model.target_std
 
     def sigma_fixed(self, epoch: int | None) -> bool:
         """Whether every sigma is held at 1 in ``epoch`` (the warm-up; None: after training)."""
@@ -185,15 +167,14 @@ class GMMObjective(Objective):
         self, out: dict[str, torch.Tensor], model: DrivingModel
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(weights (B, K), means (B, K, 10) normalised, log_sigma (B, K, 10))``."""
-        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model))
+        mix = model.mixture(out["main"])
         return mix.weights, mix.means, mix.log_sigma
 
     def per_sample(
         self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
         """The NLL of each sample's normalised trajectory (sigma held at 1 in a warm-up epoch)."""
-        fixed = self.sigma_fixed(epoch)
-        mix = Mixture.from_output(out["main"], self.n_modes, self.floor(model), fixed)
+        mix = model.mixture(out["main"], self.sigma_fixed(epoch))
         return mix.nll(model.normalise_target(target("gmm", batch, self.wheelbase_m)))
 
     def metrics(self, out: Batch, batch: Batch, model: DrivingModel) -> Batch:
@@ -215,14 +196,14 @@ class GMMObjective(Objective):
 # ------------------------------------------------------------------------------ wrappers
 class WrappedObjective(Objective):
     """An objective built on another one: everything is delegated to ``base`` (its settings such
-    as ``n_modes`` or ``sigma_floor`` read through) unless a subclass overrides it."""
+    as ``n_modes`` or ``sigma_warmup_epochs`` read through) unless a subclass overrides it."""
 
     def __init__(self, base: Objective) -> None:
         self.base = base
         self.head, self.wheelbase_m = base.head, base.wheelbase_m
         self.min_batch = base.min_batch
 
-    def __getattr__(self, name: str):  # n_modes, sigma_floor, modes(), ... of the base
+    def __getattr__(self, name: str):  # n_modes, sigma_fixed(), modes(), ... of the base
         if name == "base":
             raise AttributeError(name)
         return getattr(self.base, name)
@@ -251,7 +232,7 @@ class WithAffordance(WrappedObjective):
 
     Args:
         base: the main objective (e.g. :class:`GMMObjective`); its settings (``n_modes``,
-            ``sigma_floor``, ...) are read through this wrapper.
+            ``sigma_warmup_epochs``, ...) are read through this wrapper.
         weight: ``w >= 0``.
     """
 

@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from ..config import check_range
-from .heads import HEADS
+from .heads import HEADS, Mixture
 
 IMAGE_SHAPE = (3, 66, 200)
 TRUNK_FEATURES = 64 * 1 * 18  # seed 003's figure says 1164; the layers give 64 x 1 x 18 = 1152
@@ -55,6 +55,11 @@ class ModelConfig:
             paper's Fig. 1), or ``"trunk"``, the image backbone's features (chapter 08's probes:
             the trunk holds the affordances, the fusion MLP trained for the trajectory keeps only
             part of them).
+        sigma_floor: a GMM head's smallest standard deviation, in normalised units (1 = one
+            dataset standard deviation of that coordinate).
+        sigma_floor_m: a GMM head's floor in metres instead, the same for every point and axis
+            (``sigma_floor`` is then unused): :meth:`DrivingModel.sigma_floor` turns it into each
+            coordinate's normalised units with the model's target scale.
     """
 
     kind: str = "fusion"
@@ -66,10 +71,16 @@ class ModelConfig:
     dropout: float = 0.5
     batchnorm: bool = True
     affordance_from: str = "fused"
+    sigma_floor: float = 0.01
+    sigma_floor_m: float | None = None
 
     #: fields added after checkpoints existed, left out of settings keys at their default (see
     #: :func:`~e2e_lite.artifacts.settings_key`), so those checkpoints keep their keys
-    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("affordance_from",)
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = (
+        "affordance_from",
+        "sigma_floor",
+        "sigma_floor_m",
+    )
 
     def __post_init__(self) -> None:
         o = "ModelConfig"
@@ -81,6 +92,9 @@ class ModelConfig:
         check_range(o, "fusion_width", self.fusion_width, 8, 4096, integer=True)
         check_range(o, "fusion_layers", self.fusion_layers, 1, 8, integer=True)
         check_range(o, "dropout", self.dropout, 0.0, 1.0, hi_open=True)
+        check_range(o, "sigma_floor", self.sigma_floor, 0.0, 1.0, lo_open=True)
+        if self.sigma_floor_m is not None:
+            check_range(o, "sigma_floor_m", self.sigma_floor_m, 0.0, 10.0, lo_open=True)
         if self.affordance_from not in AFFORDANCE_SOURCES:
             raise ValueError(
                 f"{o}.affordance_from={self.affordance_from!r} is invalid: must be one of "
@@ -172,6 +186,19 @@ class DrivingModel(nn.Module):
     def denormalise(self, out: torch.Tensor) -> torch.Tensor:
         """Normalised main output (a point estimate, ``target_size`` wide) -> physical units."""
         return out * self.target_std + self.target_mean
+
+    def sigma_floor(self) -> float | torch.Tensor:
+        """A GMM head's sigma floor in normalised units: ``cfg.sigma_floor``, or
+        ``cfg.sigma_floor_m`` [m] divided by each coordinate's target scale, ``(10,)``."""
+        if self.cfg.sigma_floor_m is None:
+            return self.cfg.sigma_floor
+        return self.cfg.sigma_floor_m / self.target_std
+
+    def mixture(self, out: torch.Tensor, sigma_fixed: bool = False) -> Mixture:
+        """A GMM head's output ``(B, K x 21)`` as its :class:`~e2e_lite.learning.heads.Mixture`
+        (normalised units; sigmas floored at :meth:`sigma_floor`, or all 1 when
+        ``sigma_fixed``)."""
+        return Mixture.from_output(out, self.cfg.gmm_modes, self.sigma_floor(), sigma_fixed)
 
     def config_dict(self) -> dict:
         """The model's settings as a dict (stored in checkpoints)."""

@@ -11,7 +11,7 @@ Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.lea
   lowest error on the situations that decide collisions (``select_by="decisive_ade"``);
 * GMM models (K = 2): gradient clipping at 10, sigma frozen for the first third of the epochs,
   targets scaled per axis (:data:`GMM_TARGET_SCALE`) with a sigma floor in metres
-  (:data:`GMM_SIGMA_FLOOR_M`); chapter 07 measures both choices;
+  (:data:`GMM_SIGMA_FLOOR_M`, a setting of the model); chapter 07 measures both choices;
 * the affordance weight ``w``: a grid search (:func:`affordance_grid`) on a quarter of the
   training set, two epochs per candidate, scored by held-out trajectory NLL; the affordance head
   reads the trunk's features (:data:`AFFORDANCE_FROM`, chosen by chapter 08's probes);
@@ -127,19 +127,26 @@ def trajectory_l2(
     return model, objective, hist
 
 
+def gmm_config(modes: int = GMM_MODES, **changes: Any) -> ModelConfig:
+    """The course's GMM network: the fusion model, a ``modes``-component mixture head, sigmas
+    floored at :data:`GMM_SIGMA_FLOOR_M`; ``changes`` override settings (an affordance head)."""
+    settings = {"kind": "fusion", "head": "gmm", "gmm_modes": modes}
+    return ModelConfig(**{**settings, "sigma_floor_m": GMM_SIGMA_FLOOR_M, **changes})
+
+
 def gmm_objective(
     profile: Profile, epochs: int | None = None, warmup: int | None = None, **changes: Any
 ) -> GMMObjective:
-    """The course's GMM NLL: K modes, targets scaled per axis, the floor in metres, and the sigma
-    warm-up for a schedule of ``epochs`` (or ``warmup`` epochs); ``changes`` override settings
-    (chapter 07 trains the per-coordinate variant this way)."""
+    """The course's GMM NLL: K modes, targets scaled per axis, and the sigma warm-up for a
+    schedule of ``epochs`` (or ``warmup`` epochs); ``changes`` override settings (chapter 07
+    trains the per-coordinate variant this way). The sigma floor is the model's
+    (:func:`gmm_config`)."""
     settings = {
         "n_modes": GMM_MODES,
         "sigma_warmup_epochs": sigma_warmup(epochs or profile.train_epochs)
         if warmup is None
         else warmup,
         "target_scale": GMM_TARGET_SCALE,
-        "sigma_floor_m": GMM_SIGMA_FLOOR_M,
     }
     return GMMObjective(**{**settings, **changes})
 
@@ -153,13 +160,16 @@ def gmm(
     objective: GMMObjective | None = None,
     modes: int = GMM_MODES,
     sigma_fixed: bool = False,
+    sigma_floor_m: float | None = GMM_SIGMA_FLOOR_M,
     **kw: Any,
 ) -> Trained:
     """Chapter 07: the same network with a K = 2 mixture head (``seed``: the training seed;
     ``objective``: another loss than :func:`gmm_objective`'s, and ``modes``: another K, for
     chapter 07's comparisons; K = 1 is the same NLL without a choice of modes; ``sigma_fixed``:
     the warm-up lasts the whole schedule, so every sigma stays 1 and the loss is a soft mixture
-    of squared errors, chapter 07's control for the learned sigmas)."""
+    of squared errors, chapter 07's control for the learned sigmas; ``sigma_floor_m``: the
+    model's sigma floor in metres, None for :class:`~e2e_lite.learning.models.ModelConfig`'s
+    default floor in normalised units)."""
     if objective is None:
         warmup = profile.train_epochs if sigma_fixed else None
         objective = gmm_objective(profile, n_modes=modes, warmup=warmup)
@@ -169,7 +179,7 @@ def gmm(
         raise ValueError(f"the objective has {objective.n_modes} modes, the model {modes}")
     model, hist = train_or_load(
         name,
-        ModelConfig(kind="fusion", head="gmm", gmm_modes=modes),
+        gmm_config(modes, sigma_floor_m=sigma_floor_m),
         _train_cfg(profile, grad_clip=10.0, seed=seed, select_by=TRAJECTORY_SELECT_BY),
         objective,
         train,
@@ -186,9 +196,7 @@ def gmm(
 #: 0.46; the head itself 0.62 / 0.63 / 0.54). Chosen on those held-out errors, not on collisions;
 #: chapter 10's control ``gmm_affordance_fused`` keeps the paper's placement.
 AFFORDANCE_FROM = "trunk"
-AFFORDANCE_CFG = ModelConfig(
-    kind="fusion", head="gmm", gmm_modes=GMM_MODES, affordance=True, affordance_from=AFFORDANCE_FROM
-)
+AFFORDANCE_CFG = gmm_config(affordance=True, affordance_from=AFFORDANCE_FROM)
 
 
 def affordance_grid(
