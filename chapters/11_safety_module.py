@@ -27,9 +27,13 @@
 #    can still stop: `g - x_5 >= v_5 rho + v_5^2 / (2 beta) + margin` with reaction `rho = 0.2 s`,
 #    braking `beta = 6 m/s^2` (the tracker's limit), margin 2 m.
 #
-# On a failed check: the network's other GMM mode if it passes, else a **keep-lane braking**
-# trajectory (back to the lane centre, braking at `beta`). The **ground-truth variant** feeds the
-# world's true affordances into the same rule: the upper bound that better perception would buy.
+# On a failed check: the network's other GMM mode if it passes, else a **braking** trajectory
+# (braking at `beta` to a lane centre) that passes: first to the lane nearest to where the
+# network's heaviest mode was going, then the others (a car half-way through a lane change brakes
+# on into the lane it is entering instead of back towards the car it is passing), else the
+# **keep-lane brake** (back to the current lane's centre), the last resort. The **ground-truth
+# variant** feeds the world's true affordances into the same rule: the upper bound that better
+# perception would buy.
 #
 # Run it with `python chapters/11_safety_module.py` (add `--quick` for a run of seconds).
 
@@ -257,6 +261,19 @@ for name, v in verdicts.items():
     print(f"with the module ({name}) vs without: {v}")
 
 # %% [markdown]
+# Whose collisions are they? For every collision with the module, who drove the decision just
+# before it: the network (its heaviest mode, accepted), another mode the module picked, or the
+# module's own braking fallback.
+
+# %%
+for name, _ in variants:
+    hits = stats[name]["at_impact"]
+    total = max(1, sum(hits.values()))
+    print(f"{name}: the last decision before each collision was driven by " + (", ".join(
+        f"{k} {n} ({100.0 * n / total:.0f} %)" for k, n in sorted(hits.items(), key=lambda kv: -kv[1])
+    ) or "nobody (no collision)"))  # fmt: skip
+
+# %% [markdown]
 # Where do the collisions with the module come from? The speed at impact, per row, and why the
 # module rejected the followed mode. The network was trained on expert driving near the speed
 # limit (chapter 04's histogram); a module that brakes takes it to speeds it has seen little of.
@@ -428,8 +445,11 @@ artifacts.write_metrics(
 #   bound; with the network's predicted affordances it inherits their errors.
 # * Caution has a price, measured here in interventions, false alarms and miles per hour.
 # * An intervention changes the states the network drives from: a module that brakes hands the
-#   car back at speeds the expert's data rarely shows (chapter 04), and the collisions that
-#   follow are the network's, at low speed, not the module's rule.
+#   car back at speeds the expert's data rarely shows (chapter 04). Who drove the last decision
+#   before each collision (section 2) says whose collisions they are: the network's, or the
+#   module's own fallback's.
+# * A fallback is a driver too, and it must be checked like one: braking back to the lane
+#   centre, half-way through a lane change, steers the car back towards the car it is passing.
 #
 # ## Exercises
 #
@@ -438,9 +458,12 @@ artifacts.write_metrics(
 # 2. Feed the module the true gaps but the predicted offset and heading (or the reverse): which
 #    affordance does the perceived check suffer from most?
 # 3. Replace the fallback by "the heaviest mode, braking": when is it better than keep-lane?
+#    And set `SafetyConfig(fallback_lanes=False)` (brake only in the current lane): what happens
+#    to the collisions, and who drove into them (section 2's last table)?
 # 4. Check the L2 driver of chapter 06 (`ground_truth=True`; it has a single mode): does it gain
 #    more or less than the GMM from the module?
 # 5. `SafetyConfig(check_fallback=True)` checks the braking fallback too and, when it would itself
 #    hit something within the 1.5 s, drives whichever candidate meets trouble latest. With the
-#    true affordances (seed 0, 40 mi) it turned 21 car / 13 rail collisions into 12 / 23. Why
-#    would fewer car collisions come with more rail ones? (Look at the speed at impact.)
+#    true affordances (seed 0, 40 mi, before `fallback_lanes` existed) it turned 21 car / 13 rail
+#    collisions into 12 / 23. Why would fewer car collisions come with more rail ones? (Look at
+#    the speed at impact.)

@@ -14,7 +14,14 @@ from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.driving.metrics import add_info
 from e2e_lite.experiments.safe_agent import SafeAgent, SafetyStats
-from e2e_lite.experiments.safety import SafetyConfig, check, choose, keep_lane_brake
+from e2e_lite.experiments.safety import (
+    SafetyConfig,
+    brake_to_lane,
+    check,
+    choose,
+    end_lateral,
+    keep_lane_brake,
+)
 from e2e_lite.learning.data import AFFORDANCE_NAMES
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
@@ -82,12 +89,13 @@ def test_fallback_order_heaviest_passing_mode_then_keep_lane_braking():
     c = choose(np.stack([unsafe, safe]), np.array([0.7, 0.3]), a, 25.0, 0.0)
     assert c.source == "other mode" and np.array_equal(c.points, safe)
     assert [v.ok for v in c.verdicts] == [False, True]
-    # no mode passes: the brake, unchecked
-    c = choose(np.stack([unsafe, unsafe]), np.array([0.5, 0.5]), a, 25.0, 0.0)
+    # no mode passes: without the neighbouring lanes, the keep-lane brake, unchecked
+    lane_only = SafetyConfig(fallback_lanes=False)
+    c = choose(np.stack([unsafe, unsafe]), np.array([0.5, 0.5]), a, 25.0, 0.0, lane_only)
     assert c.source == "fallback" and len(c.verdicts) == 2
     assert np.allclose(c.points, keep_lane_brake(a, 25.0, 0.0))
     # checked, it meets the car 30 m ahead later than either mode, and is still driven
-    checked = SafetyConfig(check_fallback=True)
+    checked = SafetyConfig(fallback_lanes=False, check_fallback=True)
     c = choose(np.stack([unsafe, unsafe]), np.array([0.5, 0.5]), a, 25.0, 0.0, checked)
     assert c.source == "fallback" and len(c.verdicts) == 3
     assert c.verdicts[-1].kind == "collision course"
@@ -95,6 +103,34 @@ def test_fallback_order_heaviest_passing_mode_then_keep_lane_braking():
     # a brake that only "cannot stop" is driven: it already brakes as hard as the rule assumes
     c = choose(np.stack([unsafe]), np.array([1.0]), aff(gap_ego=50.0), 25.0, 0.0, checked)
     assert c.source == "fallback" and c.verdicts[-1].kind == "cannot stop"
+
+
+def test_half_way_through_a_lane_change_the_fallback_brakes_on_into_the_lane_being_entered():
+    """Chapter 11's ground-truth collisions: a car 1.5 m right of its lane centre, passing a
+    parked car 32 m ahead at 24.6 m/s, the network's mode turning back. Braking back to the lane
+    centre cannot stop in time; braking on into the free right lane passes the check."""
+    a = aff(gap_ego=32.0, gap_right=60.0, offset=-1.5)
+    back = straight(24.6, y_end=1.0)  # the heaviest mode: back into the blocked lane
+    assert not check(back, a, 24.6, 0.0).ok
+    assert not check(keep_lane_brake(a, 24.6, 0.0), a, 24.6, 0.0).ok
+    c = choose(back[None], np.array([1.0]), a, 24.6, 0.0)
+    assert c.source == "fallback" and c.verdicts[-1].ok
+    assert np.allclose(c.points, brake_to_lane(a, 24.6, 0.0, -1))
+    assert end_lateral(c.points, a, 0.0) == pytest.approx(-3.5)  # the right lane's centre
+    # the mode still heading right: the right lane is tried first
+    on = choose(straight(24.6, y_end=-1.0)[None], np.array([1.0]), a, 24.6, 0.0)
+    assert len(on.verdicts) == 2 and np.allclose(on.points, c.points)
+    # the right lane blocked too: no brake passes, the last resort is the keep-lane brake
+    both = aff(gap_ego=32.0, gap_right=20.0, gap_left=20.0, offset=-1.5)
+    c = choose(back[None], np.array([1.0]), both, 24.6, 0.0)
+    assert c.source == "fallback" and len(c.verdicts) == 1
+    assert np.allclose(c.points, keep_lane_brake(both, 24.6, 0.0))
+    # braking in the lane stops in time (15 m/s, a car 25 m ahead): it comes first, although
+    # the lanes beside are free
+    slow = aff(gap_ego=25.0)
+    c = choose(straight(15.0)[None], np.array([1.0]), slow, 15.0, 0.0)
+    assert c.verdicts[0].kind == "cannot stop" and len(c.verdicts) == 2
+    assert np.allclose(c.points, keep_lane_brake(slow, 15.0, 0.0))
 
 
 def swerve_left(speed=25.0, t_across=0.6) -> np.ndarray:
@@ -136,6 +172,11 @@ def test_keep_lane_braking_is_always_a_valid_trajectory(speed, offset, heading, 
     # it ends on the lane centre: the lateral offset it removes is the car's
     delta = pts[-1, 1] + heading * pts[-1, 0] - curvature * pts[-1, 0] ** 2 / 2
     assert delta == pytest.approx(-offset, abs=1e-9)
+    # braking into the lane to the left ends on that lane's centre, one lane width over
+    a = aff(offset=offset, heading=heading)
+    left = brake_to_lane(a, speed, curvature, 1, cfg)
+    assert np.allclose(left[:, 0], pts[:, 0])  # the same braking along the road
+    assert end_lateral(left, a, curvature) == pytest.approx(3.5, abs=1e-9)
 
 
 def test_settings_are_validated():
@@ -192,6 +233,23 @@ def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
     stats = SafetyStats.from_info(safe.info).to_dict()
     assert stats["interventions"] > 0 and stats["sources"]["fallback"] > 0
     assert stats["decisions"] == round(safe.sim_time_s / 0.1)
+    # every collision is told to the policy with the next decision: who drove into it
+    assert sum(stats["at_impact"].values()) == safe.collisions
+    assert set(stats["at_impact"]) <= {"network", "other mode", "fallback"}
+
+
+def test_the_rollout_tells_the_policy_of_each_collision_with_its_next_decision():
+    class Counting(StraightOn):
+        told = 0
+
+        def act(self, obs: Observation) -> Actuation:
+            assert obs.collided is not None and np.all(obs.respawned[obs.collided])
+            Counting.told += int(obs.collided.sum())
+            return super().act(obs)
+
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    res = evaluate(Counting(), world, EvalConfig(miles=1.0, n_worlds=2, n_tracks=2), progress=False)
+    assert res.collisions >= 3 and Counting.told == res.collisions
 
 
 def test_the_perceived_check_needs_predicted_affordances():

@@ -267,6 +267,7 @@ def drive_shard(
     sim_time = np.zeros(n)
     active = np.ones(n, dtype=bool)
     respawned = np.ones(n, dtype=bool)
+    collided = np.zeros(n, dtype=bool)
 
     def spawn_new_track(i: int) -> None:
         w = fleet.worlds[i]
@@ -327,8 +328,8 @@ def drive_shard(
             out.timing["frames"] += n
         tock = time.perf_counter()
         out.timing["render"] += tock - tick
-        obs = observe(fleet, respawned, t_sim, images, (s, d, road_h, kappa))
-        respawned[:] = False
+        obs = observe(fleet, respawned, t_sim, images, (s, d, road_h, kappa), collided)
+        respawned[:] = collided[:] = False
         out.speed_hist += speed_histogram(fleet.state[active, V])
         act = policy.act(obs)
         if act.info:
@@ -381,6 +382,7 @@ def drive_shard(
                     "miles": round(float(odometer[i] / M_PER_MILE), 4),
                 }
             )
+            collided[i] = True
             out.ttc.append(float(episode_t[i]))
             episode_t[i] = 0.0
             out.interventions += 1

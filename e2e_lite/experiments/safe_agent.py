@@ -24,7 +24,7 @@ from .safety import SafetyConfig, check, choose
 
 #: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
 COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
-TABLES = ("sources", "kinds")
+TABLES = ("sources", "kinds", "at_impact")
 
 
 @dataclass
@@ -38,6 +38,9 @@ class SafetyStats:
             ``fallback``).
         kinds: why the followed mode was rejected (``road edge``, ``collision course``,
             ``cannot stop``).
+        at_impact: for every collision, who drove the car's last decision before it
+            (``network``, ``other mode``, ``fallback``): the module's own fallback, or the
+            network it let through.
         audited: interventions audited (all, or one in ``audit_every``).
         false_alarms: audited interventions where a fresh expert, from the same state, would have driven
             what the network proposed (its trajectory within 1 m sideways and 5 m along at 1.5 s).
@@ -49,6 +52,7 @@ class SafetyStats:
     audited: int = 0
     sources: Counter = field(default_factory=Counter)
     kinds: Counter = field(default_factory=Counter)
+    at_impact: Counter = field(default_factory=Counter)
     false_alarms: int = 0
     perception_only: int = 0
 
@@ -80,6 +84,7 @@ class SafetyStats:
             "intervention_pct": 100.0 * self.interventions / n,
             "sources": dict(self.sources),
             "kinds": dict(self.kinds),
+            "at_impact": dict(self.at_impact),
             "audited": self.audited,
             "false_alarms": self.false_alarms,
             "false_alarm_pct": 100.0 * self.false_alarms / k,
@@ -126,6 +131,7 @@ class SafeAgent:
         self.audit_every = audit_every
         self._seen = 0  # interventions met by this copy (for audit_every)
         self._kept = 0  # examples reported since the last reset
+        self._driven: list[str] = []  # each car's last source
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
 
@@ -133,6 +139,7 @@ class SafeAgent:
         """Reset the network agent and the count of reported examples."""
         self.agent.reset(n_worlds)
         self._kept = 0
+        self._driven = [""] * n_worlds
 
     def fork(self, k: int) -> list[SafeAgent]:
         """``k`` agents for parallel shards, sharing the model."""
@@ -141,11 +148,15 @@ class SafeAgent:
             twin = SafeAgent.__new__(SafeAgent)
             twin.__dict__.update(self.__dict__)
             twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
+            twin._driven = []
             out.append(twin)
         return out
 
     def act(self, obs: Observation) -> Actuation:
         """Propose, check, follow."""
+        at_impact = Counter()
+        if obs.collided is not None and self._driven:
+            at_impact.update(self._driven[i] for i in np.flatnonzero(obs.collided).tolist())
         proposal = self.agent.trajectories(obs)
         last = self.agent.last
         modes = last.get("modes", proposal[:, None])
@@ -218,9 +229,11 @@ class SafeAgent:
             "perception_only": perception_only,
             "sources": Counter(sources),
             "kinds": Counter(kinds),
+            "at_impact": at_impact,
             "examples": examples,
         }
         self.last = {"chosen": chosen, "sources": sources}
+        self._driven = sources
         return dataclasses.replace(self.agent.follow(chosen, obs), info=info)
 
 

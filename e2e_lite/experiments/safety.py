@@ -28,8 +28,12 @@ feeds the world's true values into the same rule, an upper bound on what better 
    braking ``beta``; ``v_5`` the speed at the last point). A gap at the cap counts as free.
 
 On a failed check the module falls back, in this order: the network's other GMM modes (heaviest
-first) if one passes; otherwise :func:`keep_lane_brake`, a trajectory back to the centre of the
-current lane braking at ``beta`` (always returned, never checked: it is the last resort).
+first) if one passes; otherwise a braking trajectory (:func:`brake_to_lane`, braking at ``beta``
+to a lane centre): the first that passes the check among the current lane's and its neighbours',
+nearest first to where the network's heaviest mode was going (a car half-way through a lane
+change brakes on into the lane it is entering, not back towards the car it is leaving);
+otherwise :func:`keep_lane_brake`, back to the centre of the current lane (the last resort,
+unchecked).
 
 The driver that applies the rule to a trajectory network is :class:`~e2e_lite.experiments.safe_agent.SafeAgent`.
 """
@@ -62,11 +66,15 @@ class SafetyConfig:
         car_width_m, car_length_m: the ego's body [m].
         parked_length_m: a parked car's length [m].
         gap_free_m: a perceived gap at least this long means nothing was seen [m].
+        fallback_lanes: brake into a neighbouring lane when braking in the current lane fails
+            the check and braking there passes (see :func:`choose`). With the true affordances
+            the keep-lane brake alone pulled cars half-way through a lane change back in front
+            of the parked car they were passing (chapter 11).
         check_fallback: check the keep-lane braking fallback too, and when it would itself run
             into something within the horizon, drive the candidate whose violation comes latest
             (see :func:`choose`). Off by default: with the true affordances it traded car
             collisions for rail collisions (seed 0, 40 mi: 12 car / 23 rail against 21 / 13
-            unchecked); chapter 11's exercise 5.
+            unchecked; measured before ``fallback_lanes``); chapter 11's exercise 5.
     """
 
     reaction_s: float = 0.2
@@ -78,6 +86,7 @@ class SafetyConfig:
     car_length_m: float = 4.5
     parked_length_m: float = 4.5
     gap_free_m: float = GAP_CAP_M - 0.5
+    fallback_lanes: bool = True
     check_fallback: bool = False
 
     def __post_init__(self) -> None:
@@ -205,12 +214,39 @@ def check(
     return Verdict(True)
 
 
+def lane_width(aff: np.ndarray) -> float:
+    """The ego lane's width from its two marking distances [m] (at least 2 m)."""
+    return max(2.0, float(aff[_A["left_marking_m"]] + aff[_A["right_marking_m"]]))
+
+
+def end_lateral(points: np.ndarray, aff: np.ndarray, curvature: float) -> float:
+    """Where a trajectory ends across the road: its last point's offset from the ego lane's
+    centre, in the lane frame [m] (left positive; one lane width = the next lane's centre)."""
+    x, y = (float(v) for v in np.asarray(points, dtype=np.float64)[-1])
+    a = np.asarray(aff, dtype=np.float64)
+    return float(a[_A["center_offset_m"]] + y + a[_A["heading_rad"]] * x - curvature * x * x / 2)
+
+
 def keep_lane_brake(
     aff: np.ndarray, speed_mps: float, curvature: float, cfg: SafetyConfig | None = None
 ) -> np.ndarray:
     """The last-resort trajectory: back to the current lane's centre (smoothly, over the 1.5 s),
     braking at ``cfg.brake_mps2`` from ``speed_mps`` to a stop. ``(5, 2)`` car-frame points [m];
     progress never decreases and the speed never increases."""
+    return brake_to_lane(aff, speed_mps, curvature, 0, cfg)
+
+
+def brake_to_lane(
+    aff: np.ndarray,
+    speed_mps: float,
+    curvature: float,
+    lanes: int,
+    cfg: SafetyConfig | None = None,
+) -> np.ndarray:
+    """Braking at ``cfg.brake_mps2`` from ``speed_mps`` to a stop while moving (smoothly, over
+    the 1.5 s) to the centre of the lane ``lanes`` to the left of the current one (0: the current
+    lane, -1: the one to its right). ``(5, 2)`` car-frame points [m]; progress never decreases
+    and the speed never increases."""
     cfg = cfg or SafetyConfig()
     a = np.asarray(aff, dtype=np.float64)
     v = max(0.0, float(speed_mps))
@@ -221,7 +257,7 @@ def keep_lane_brake(
     u = t / t[-1]
     blend = u**3 * (10.0 - 15.0 * u + 6.0 * u**2)  # quintic: no lateral jerk at the ends
     offset = float(np.clip(a[_A["center_offset_m"]], -5.0, 5.0))
-    delta = -offset * blend
+    delta = (lanes * lane_width(a) - offset) * blend
     heading = float(np.clip(a[_A["heading_rad"]], -1.0, 1.0))
     y = delta - heading * x + curvature * x * x / 2.0
     return np.stack([x, y], axis=1)
@@ -245,7 +281,10 @@ def choose(
     cfg: SafetyConfig | None = None,
 ) -> Choice:
     """The fallback order: the heaviest mode if it passes, else the next heaviest that passes,
-    else :func:`keep_lane_brake`.
+    else (with ``cfg.fallback_lanes``) the first braking trajectory that passes among
+    :func:`brake_to_lane` to the current lane and its two neighbours, ordered by how near each
+    lane's centre is to where the heaviest mode ends (:func:`end_lateral`; on a tie the current
+    lane), else :func:`keep_lane_brake`.
 
     With ``cfg.check_fallback`` the braking trajectory is checked too. It is driven when it
     passes or only "cannot stop" (it already brakes as hard as the rule assumes: nothing stops
@@ -261,8 +300,9 @@ def choose(
         aff, speed_mps, curvature, cfg: as :func:`check`.
 
     Returns:
-        The :class:`Choice`; its ``verdicts`` hold one per mode checked (heaviest first), then the
-        brake's when it was checked.
+        The :class:`Choice`; its ``verdicts`` hold one per mode checked (heaviest first), then,
+        when a lane's brake passed, one per braking trajectory checked up to it, or else the
+        keep-lane brake's when ``cfg.check_fallback`` checked it.
     """
     cfg = cfg or SafetyConfig()
     modes = np.asarray(modes, dtype=np.float64)
@@ -273,6 +313,15 @@ def choose(
         verdicts.append(verdict)
         if verdict.ok:
             return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
+    if cfg.fallback_lanes:
+        heading_to = end_lateral(modes[order[0]], aff, curvature) / lane_width(aff)
+        for lanes in sorted((0, 1, -1), key=lambda n: (abs(heading_to - n), abs(n))):
+            brake = brake_to_lane(aff, speed_mps, curvature, lanes, cfg)
+            verdict = check(brake, aff, speed_mps, curvature, cfg)
+            verdicts.append(verdict)
+            if verdict.ok:
+                return Choice(brake, "fallback", verdicts)
+        verdicts = verdicts[: len(order)]  # none passed: the last resort, as without them
     brake = keep_lane_brake(aff, speed_mps, curvature, cfg)
     if not cfg.check_fallback:
         return Choice(brake, "fallback", verdicts)

@@ -30,6 +30,8 @@ class Observation:
         time_s: simulated time since the start [s].
         worlds: the B worlds (privileged access for scripted drivers and the expert).
         images: camera frames ``(B, H, W, 3)`` RGB uint8 when the policy has a ``camera``, else None.
+        collided: ``(B,)`` bool, True when car i collided since the last decision (it was then
+            re-placed, so ``respawned`` is True too); None when the caller does not say.
     """
 
     state: np.ndarray
@@ -42,6 +44,7 @@ class Observation:
     time_s: float
     worlds: list[World]
     images: np.ndarray | None = None
+    collided: np.ndarray | None = None
 
     @property
     def speed(self) -> np.ndarray:
@@ -98,8 +101,10 @@ def observe(
     time_s: float = 0.0,
     images: np.ndarray | None = None,
     frame: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    collided: np.ndarray | None = None,
 ) -> Observation:
-    """The observation of a fleet's cars now (``frame``: a lane frame already computed)."""
+    """The observation of a fleet's cars now (``frame``: a lane frame already computed;
+    ``collided``: which cars collided since the last decision)."""
     s, d, road_h, kappa = fleet.lane_frame() if frame is None else frame
     n = len(fleet)
     return Observation(
@@ -113,4 +118,5 @@ def observe(
         respawned=np.broadcast_to(np.asarray(respawned, dtype=bool), (n,)).copy(),
         time_s=time_s,
         worlds=list(fleet.worlds),
+        collided=None if collided is None else np.asarray(collided, dtype=bool).copy(),
     )
