@@ -56,10 +56,10 @@ from e2e_lite.driving.evaluation import (
     EvalConfig,
     compare_rates,
     disjoint_runs,
-    evaluate,
     pool_results,
     result_dict,
     result_events,
+    result_info,
     results_table,
 )
 from e2e_lite.experiments import ablation
@@ -68,7 +68,7 @@ from e2e_lite.experiments.safety import SafetyConfig, check
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.simulation.world import WorldConfig
+from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.viz import save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -204,7 +204,9 @@ false_alarm_reasons = {"by_check": dict(why), "ghost_car_pct_of_free_frames": gh
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
 # sends the module's counters home). Every training seed of the driver drives its share of the
 # miles on its own roads, with and without the module, and the counts are pooled. The rows
-# without the module are chapter 10's evaluations, stored and reused. The module audits one
+# without the module are chapter 10's evaluations, stored and reused; the guarded drives are
+# stored the same way, with the module's counts and examples (`ablation.evaluate_stored`), so a
+# second run of the chapter reads them back. The module audits one
 # intervention in four: would a fresh expert, from the same state, have driven what the network
 # proposed (then the intervention was a **false alarm**)? And would the ground-truth rule have
 # accepted it (then **perception alone** caused it)?
@@ -223,17 +225,18 @@ for name, gt in variants:
     per_seed, counts, first = [], SafetyStats(), []
     for k, (policy, run) in enumerate(zip(seeded, runs)):
         safe = SafeAgent(TrajectoryAgent(policy.model), cfg, ground_truth=gt, audit_every=4)
-        res = evaluate(
+        res = ablation.evaluate_stored(
+            f"11_{key}_{'truth' if gt else 'perceived'}_seed{k}",
+            f"with the module ({name}, seed {k})",
             safe,
             world_cfg,
             run,
-            desc=f"with the module ({name}, seed {k})",
             workers=profile.ablation_workers,
         )
-        print(f"with the module ({name}, seed {k}): {res.summary()}")
         per_seed.append(res)
-        counts.add(res.info)  # what the module reported with its decisions, added up
-        first = first or res.info["examples"]  # the examples of section 3 come from seed 0
+        info = result_info(res)  # what the module reported with its decisions, added up
+        counts.add(info)
+        first = first or info["examples"]  # the examples of section 3 come from seed 0
     guarded[name], stats[name] = (pool_results(per_seed), first), counts.to_dict()
 
 label = ablation.BY_KEY[key].label
@@ -309,15 +312,15 @@ starts = (runs[0].start_speed_mps, 8.0)  # [m/s]
 slow_start = {}
 for v0 in starts:
     run = dataclasses.replace(runs[0], miles=probe_miles, start_speed_mps=v0)
-    r = evaluate(
+    r = ablation.evaluate_stored(
+        f"11_{key}_seed0_start{v0:g}",
+        f"without the module, seed 0, starts at {v0:g} m/s",
         TrajectoryAgent(seeded[0].model),
         world_cfg,
         run,
-        desc=f"without the module, starts at {v0:g} m/s",
         workers=profile.ablation_workers,
     )
     slow_start[f"{v0:g} m/s"] = {**result_dict(r), "events": None}
-    print(f"without the module, seed 0, starts at {v0:g} m/s: {r.summary()}")
 fast, slow = (slow_start[f"{v0:g} m/s"] for v0 in starts)
 slow_start["verdict"] = compare_rates(slow, fast)["verdict"]
 print(f"starts at {starts[1]:g} m/s against {starts[0]:g} m/s: {slow_start['verdict']}")
@@ -345,10 +348,11 @@ if n_rows:
             if row >= len(examples[name]):
                 continue
             ex = examples[name][row]
-            img = view.render(ex["track"], ex["cars"], tuple(ex["pose"]), ex["s"])
+            w = make_world(world_cfg, *ex["track_id"])  # the road and cars it was driving
+            img = view.render(w.track, w.cars, tuple(ex["pose"]), ex["s"])
             for k in np.argsort(ex["weights"]):
-                draw_trajectory(img, ex["modes"][k], view, MODE_RGB[k % 2])
-            draw_trajectory(img, ex["chosen"], view, DRIVEN_RGB)
+                draw_trajectory(img, np.asarray(ex["modes"][k]), view, MODE_RGB[k % 2])
+            draw_trajectory(img, np.asarray(ex["chosen"]), view, DRIVEN_RGB)
             ax.imshow(img)
             weights = ", ".join(
                 f"{('blue', 'orange')[k % 2]} {w:.2f}" for k, w in enumerate(ex["weights"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import json
 from collections import Counter
 
 import numpy as np
@@ -252,6 +253,28 @@ def test_the_rollout_tells_the_policy_of_each_collision_with_its_next_decision()
     assert res.collisions >= 3 and Counting.told == res.collisions
 
 
+def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(tmp_path, monkeypatch):
+    from e2e_lite.driving.metrics import result_info
+    from e2e_lite.experiments.ablation import evaluate_stored, fingerprint
+
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2)
+    guarded = SafeAgent(StraightOn(), ground_truth=True)
+    first = evaluate_stored("guarded", "guarded", guarded, world, cfg, progress=False, workers=1)
+    again = evaluate_stored("guarded", "guarded", guarded, world, cfg, progress=False, workers=1)
+    assert not isinstance(again, type(first)) and again["collisions"] == first.collisions
+    stored = SafetyStats.from_info(result_info(again)).to_dict()
+    assert stored == SafetyStats.from_info(first.info).to_dict() and stored["interventions"] > 0
+    assert result_info(again)["examples"] == first.info["examples"]
+    # the module's settings and audits are part of the driver's identity
+    other = SafeAgent(StraightOn(), SafetyConfig(fallback_lanes=False), ground_truth=True)
+    assert fingerprint(other) != fingerprint(guarded)
+    assert fingerprint(SafeAgent(StraightOn(), ground_truth=True, audit_every=4)) != fingerprint(
+        guarded
+    )
+
+
 def test_the_perceived_check_needs_predicted_affordances():
     world = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(2, 2)))
     with pytest.raises(ValueError, match="affordances"):
@@ -269,10 +292,13 @@ def test_the_module_counts_the_same_in_threads_and_in_processes():
     (r_t, s_t), (r_p, s_p) = runs["threads"], runs["processes"]
     assert r_t.events == r_p.events and s_t == s_p and s_p["interventions"] > 0
     # a second evaluation of the same agent counts its own decisions, and the examples come
-    # home from the worker processes with their camera frames (none here: no camera)
+    # home from the worker processes, JSON-able, up to keep_examples per shard
     again = evaluate(guarded, world, cfg, progress=False, workers=2, parallel="processes")
     assert SafetyStats.from_info(again.info).to_dict() == s_p
-    assert again.info["examples"] == [] and "info" not in again.to_dict()
+    examples = again.info["examples"]
+    assert 0 < len(examples) <= 2 * guarded.keep_examples and "info" not in again.to_dict()
+    assert json.loads(json.dumps(examples)) == examples
+    assert examples == r_t.info["examples"]  # the same in threads
     # the decisions' info adds up: numbers and Counters summed, lists concatenated
     total = add_info({}, {"n": 1, "sources": Counter(a=1), "examples": [1]})
     add_info(total, {"n": 2, "sources": Counter(a=1, b=1), "examples": [2]})

@@ -38,6 +38,7 @@ from .metrics import (  # noqa: F401 (re-exported: the chapters read the evaluat
     pool_results,
     result_dict,
     result_events,
+    result_info,
     results_table,
     speed_histogram,
 )

@@ -129,6 +129,12 @@ def result_events(r: EvalResult | dict[str, Any]) -> list[dict[str, Any]]:
     return r.events if isinstance(r, EvalResult) else r.get("events", [])
 
 
+def result_info(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
+    """What the policy reported with its decisions, added up (``EvalResult.info``, or the
+    ``"info"`` a stored result kept; ``{}`` when none)."""
+    return r.info if isinstance(r, EvalResult) else r.get("info", {})
+
+
 def results_table(
     rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
     extra: Sequence[tuple[str, Sequence[str]]] = (),

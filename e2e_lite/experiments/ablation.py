@@ -33,7 +33,7 @@ from ..config import FULL, Profile
 from ..control.expert import Expert
 from ..control.oracle import Oracle
 from ..driving.evaluation import evaluate
-from ..driving.metrics import EvalResult, pool_results, result_dict, results_table
+from ..driving.metrics import EvalResult, pool_results, result_dict, result_info, results_table
 from ..driving.rollout import EvalConfig, disjoint_runs
 from ..learning import recipes
 from ..learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
@@ -288,6 +288,8 @@ def fingerprint(policy: Policy) -> str:
     inner = getattr(policy, "agent", None)  # a wrapper (e.g. the safety module) around a driver
     if inner is not None:
         parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
+        # what the safety module reports (its audits and examples) is stored with the result
+        parts += [getattr(policy, a, None) for a in ("audit", "audit_every", "keep_examples")]
     return settings_key(*parts)
 
 
@@ -317,27 +319,33 @@ def evaluate_drivers(
         if isinstance(policy, (list, tuple)):
             runs = disjoint_runs(cfg, world_cfg, len(policy))
             parts = [
-                _evaluate_one(f"{key}_seed{k}", f"{label} (seed {k})", p, world_cfg, run,
-                              reuse, progress, workers)
+                evaluate_stored(f"{key}_seed{k}", f"{label} (seed {k})", p, world_cfg, run,
+                                reuse=reuse, progress=progress, workers=workers)
                 for k, (p, run) in enumerate(zip(policy, runs))
             ]  # fmt: skip
             out[key] = pool_results(parts, cfg.intervention_cost_s)
         else:
-            out[key] = _evaluate_one(key, label, policy, world_cfg, cfg, reuse, progress, workers)
+            out[key] = evaluate_stored(
+                key, label, policy, world_cfg, cfg, reuse=reuse, progress=progress, workers=workers
+            )
     return out
 
 
-def _evaluate_one(
+def evaluate_stored(
     file: str,
     label: str,
     policy: Policy,
     world_cfg: WorldConfig,
     cfg: EvalConfig,
-    reuse: bool,
-    progress: bool,
-    workers: int,
+    *,
+    reuse: bool = True,
+    progress: bool = True,
+    workers: int = WORKERS,
 ) -> EvalResult | dict[str, Any]:
-    """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` (see
+    """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` with what the
+    policy reported (``result.info``, which must be JSON-able; read it back with
+    :func:`~e2e_lite.driving.metrics.result_info`), and read back instead of driven again while
+    the driver (:func:`fingerprint`), world, settings and shard count are the same (see
     :func:`evaluate_drivers`)."""
 
     def run() -> EvalResult:
@@ -359,12 +367,14 @@ def _evaluate_one(
 
 
 def _save_result(path: Path, result: EvalResult, key: str) -> None:
-    save_json(path, {"key": key, "result": result.to_dict()})
+    info = {"info": result_info(result)} if result_info(result) else {}
+    save_json(path, {"key": key, "result": result.to_dict(), **info})
 
 
 def _load_result(path: Path) -> tuple[dict[str, Any], str]:
     stored = load_json(path)
-    return stored["result"], stored["key"]
+    info = {"info": stored["info"]} if "info" in stored else {}
+    return {**stored["result"], **info}, stored["key"]
 
 
 def _fmt(value: float | None, unit: str = "") -> str:

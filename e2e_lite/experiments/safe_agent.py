@@ -3,7 +3,9 @@ checks each proposed trajectory with :func:`~e2e_lite.experiments.safety.check` 
 affordances, falls back as :func:`~e2e_lite.experiments.safety.choose` says, and reports what it did with
 each decision (``Actuation.info``, added up by the evaluator into ``result.info``; read it with
 :meth:`SafetyStats.from_info`): interventions by source and kind, false alarms audited against a
-fresh expert's trajectory from the same state, and a few examples with their camera frames.
+fresh expert's trajectory from the same state, and a few examples (JSON-able: the
+track's id, the pose, the modes and what was driven; rebuild the view with
+:func:`~e2e_lite.simulation.world.make_world`).
 """
 
 from __future__ import annotations
@@ -107,7 +109,7 @@ class SafeAgent:
             it was needed (the false-alarm counts; costs time).
         audit_every: audit one intervention in this many (1: all; the rates are then
             estimated from that sample).
-        keep_examples: interventions kept per shard for figures (with the camera frame).
+        keep_examples: interventions kept per shard for figures (JSON-able, see above).
     """
 
     def __init__(
@@ -201,22 +203,18 @@ class SafeAgent:
                         proposal[i], true_aff[j], float(obs.speed[i]), obs.curvature[i], self.cfg
                     )
                     perception_only += int(gt.ok)
-        examples = []
+        examples = []  # JSON-able: stored with the evaluation (rebuild the world from track_id)
         for i, c in audits[: max(0, self.keep_examples - self._kept)]:
-            if obs.images is None:
-                break
             examples.append(
                 {
-                    "time_s": obs.time_s,
-                    "track": obs.worlds[i].track,
-                    "cars": obs.worlds[i].cars,
-                    "pose": obs.state[i, :3].copy(),
+                    "time_s": float(obs.time_s),
+                    "track_id": list(obs.worlds[i].track.track_id),
+                    "pose": obs.state[i, :3].tolist(),
                     "s": float(obs.s[i]),
                     "speed": float(obs.speed[i]),
-                    "frame": obs.images[i].copy(),
-                    "modes": np.asarray(modes[i]).copy(),
-                    "weights": np.asarray(weights[i]).copy(),
-                    "chosen": c.points.copy(),
+                    "modes": np.asarray(modes[i]).tolist(),
+                    "weights": np.asarray(weights[i]).tolist(),
+                    "chosen": c.points.tolist(),
                     "source": c.source,
                     "reason": c.verdicts[0].reason,
                 }
