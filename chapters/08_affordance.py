@@ -185,6 +185,36 @@ for what, ratio in goals.items():
 print(f"saved {scatter_png}")
 
 # %% [markdown]
+# ### The head over the epochs, and the epoch that was kept
+#
+# The checkpoint is the epoch with the lowest *decisive ADE* (chapter 07: the trajectory on the
+# frames that decide a drive), because the network is kept for how it drives. The head has no
+# say in that choice. Its validation error after each epoch (all frames, MAE, from the training
+# history) against the mean predictor's shows what the choice costs the perception: when the
+# first epoch (sigma frozen) drives best, the head that is kept has trained for one epoch.
+
+# %%
+head_names = ("center_offset_m", "gap_ego_m", "heading_rad")
+mean_mae_all = {  # the mean predictor on every validation frame, as the history's errors are
+    n: float(np.mean(np.abs(a_mean[AFFORDANCE_INDEX[n]] - val.affordances[:, AFFORDANCE_INDEX[n]])))
+    for n in head_names
+}
+head_by_epoch = [
+    {
+        "epoch": e["epoch"],
+        "decisive_ade_m": e.get("decisive ADE [m]"),
+        **{n: e[f"|err| {n}"] / mean_mae_all[n] for n in head_names},
+    }
+    for e in hist.epochs
+    if all(f"|err| {n}" in e for n in head_names)
+]
+print("epoch  decisive ADE [m]  head MAE / mean predictor's MAE: " + ", ".join(head_names))
+for row in head_by_epoch:
+    kept = "  <- kept" if row["epoch"] == hist.best_epoch else ""
+    ratios = "  ".join(f"{row[n]:5.2f}" for n in head_names)
+    print(f"{row['epoch'] + 1:5d}  {row['decisive_ade_m'] or float('nan'):16.3f}  {ratios}{kept}")
+
+# %% [markdown]
 # ### Where the offset's error sits
 #
 # The lane-centre offset is measured from the *nearest* lane's centre, so it jumps by a lane
@@ -395,6 +425,8 @@ artifacts.write_metrics(
         "affordance_goals": goals,
         "offset_error_split": offset_split,
         "affordance_probes": probe_goals,
+        "head_by_epoch": head_by_epoch,
+        "kept_epoch": hist.best_epoch,
         "affordances_learned": learned,
         "drive_gap_mae_m": drive_mae,
         "verdict_vs_gmm": verdict,
