@@ -866,9 +866,9 @@ else:
             seeds = " / ".join(f"{x['collisions_per_100mi']:.1f}" for x in r.get("seeds") or [])
             print(f"  {label:34s} {r['collisions_per_100mi']:6.1f} per 100 mi over "
                   f"{miles_text(r['miles'])} (seeds: {seeds or '-'})")  # fmt: skip
-    for what, verdict in m10.get("control_tests", {}).items():
+    for what, test in m10.get("control_tests", {}).items():
         if any(word in what for word in ("mode", "mixture", "sigma", "NLL")):  # the GMM's tests
-            print(f"  {what}: {verdict}")
+            print(f"  {what}: {test}")
 
 # %% [markdown]
 # ## Headline figures

@@ -62,6 +62,27 @@ def test_chapter_runs_in_quick_profile(path, quick_course):
         }
 
 
+def test_a_chapter_run_again_after_the_later_ones_stores_the_same_metrics(quick_course):
+    """Chapter 07 reads chapter 10's stored results when they exist; run again after the course
+    (its checkpoints reused), it must store the same verdicts it stored the first time (a loop
+    over chapter 10's tests once overwrote its GMM-against-L2 verdict)."""
+    proc, outputs = quick_course
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    path = outputs / "metrics" / "07_gmm.json"
+    first = json.loads(path.read_text())
+    assert (outputs / "metrics" / "10_ablation.json").exists()
+    env = dict(os.environ, E2E_LITE_OUTPUTS=str(outputs.parent), E2E_LITE_QUICK="1")
+    again = subprocess.run(
+        [sys.executable, str(ROOT / "chapters" / "07_gmm.py")],
+        env=env, cwd=outputs.parent, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stderr[-3000:]
+    second = json.loads(path.read_text())
+    assert second["verdict_vs_l2"].startswith("GMM vs L2: ")
+    assert second["verdict_vs_l2"] == first["verdict_vs_l2"]
+    assert second["headline"] == first["headline"]
+
+
 def test_the_quick_course_takes_seconds(quick_course):
     """Every chapter and the total are timed (the README's timing table quotes a run)."""
     proc, _ = quick_course
