@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import subprocess
@@ -138,6 +139,52 @@ def test_chapter_01_as_a_notebook_shows_its_figures(tmp_path, monkeypatch):
     assert len(images) >= 1
     assert "quick profile" in text and "IProgress" not in text
     assert (tmp_path / "outputs" / "quick" / "figures" / "01_highway.png").exists()
+
+
+def _loops(nodes: list[ast.stmt]):
+    """The ``for`` statements among ``nodes`` and the blocks they open (not inside functions)."""
+    for node in nodes:
+        if isinstance(node, ast.For):
+            yield node
+        if isinstance(node, (ast.For, ast.If, ast.With, ast.While, ast.Try)):
+            for block in ("body", "orelse", "finalbody"):
+                yield from _loops(getattr(node, block, None) or [])
+
+
+def reused_loop_names(source: str) -> list[tuple[str, int]]:
+    """Names a chapter assigns at top level, then rebinds as a ``for`` loop's variable and reads
+    after the loop: a script's cells share one namespace, so the later read sees the loop's last
+    value, not the earlier result (how chapter 07 once stored a wrong verdict)."""
+    tree = ast.parse(source)
+    first: dict[str, int] = {}
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else []
+        targets += [node.target] if isinstance(node, ast.AnnAssign) else []
+        for t in targets:
+            for n in ast.walk(t):
+                if isinstance(n, ast.Name):
+                    first.setdefault(n.id, node.lineno)
+    found = []
+    for loop in _loops(tree.body):
+        for n in ast.walk(loop.target):
+            if not isinstance(n, ast.Name) or first.get(n.id, loop.lineno) >= loop.lineno:
+                continue
+            if any(
+                isinstance(m, ast.Name) and m.id == n.id and isinstance(m.ctx, ast.Load)
+                and m.lineno > loop.end_lineno
+                for m in ast.walk(tree)
+            ):  # fmt: skip
+                found.append((n.id, loop.lineno))
+    return found
+
+
+def test_no_chapter_rebinds_a_result_as_a_loop_variable():
+    bad = "verdict = 'GMM vs L2'\nfor what, verdict in {'a': 'b'}.items():\n    pass\nprint(verdict)\n"
+    assert reused_loop_names(bad) == [("verdict", 2)]
+    ok = "verdict = 'GMM vs L2'\nfor what, test in {'a': 'b'}.items():\n    pass\nprint(verdict)\n"
+    assert reused_loop_names(ok) == []
+    for _, path in CHAPTERS:
+        assert reused_loop_names(path.read_text()) == [], path.name
 
 
 def test_chapters_are_percent_format_with_summary_and_exercises():
