@@ -65,6 +65,7 @@ from e2e_lite.driving.evaluation import (
 from e2e_lite.experiments import ablation
 from e2e_lite.experiments.safe_agent import SafeAgent, SafetyStats
 from e2e_lite.experiments.safety import SafetyConfig, check
+from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
@@ -96,7 +97,12 @@ else:
     key = "gmm_affordance"
     print("chapter 10 has not run in this profile: using GMM + affordance")
 seeded = ablation.build_seeded_drivers(profile, [key], train=train, val=val)[key]
-model = seeded[0].model  # section 1 probes training seed 0; section 2 drives every seed
+# the module reads each network's affordance head refit on its kept trunk (chapter 08): the same
+# driving, to the bit, with the head trained to the end
+perceivers = [
+    recipes.perceiving(policy.model, train, f"11_{key}_seed{k}") for k, policy in enumerate(seeded)
+]
+model = perceivers[0]  # section 1 probes training seed 0; section 2 drives every seed
 agent = TrajectoryAgent(model)
 
 rows = np.arange(0, len(val), max(1, len(val) // 4000))  # up to ~4,000 samples
@@ -223,8 +229,8 @@ variants = (("perceived", False), ("ground truth", True))
 runs = disjoint_runs(ev, world_cfg, len(seeded))  # seed k's roads, as chapter 10's
 for name, gt in variants:
     per_seed, counts, first = [], SafetyStats(), []
-    for k, (policy, run) in enumerate(zip(seeded, runs)):
-        safe = SafeAgent(TrajectoryAgent(policy.model), cfg, ground_truth=gt, audit_every=4)
+    for k, (perceiver, run) in enumerate(zip(perceivers, runs)):
+        safe = SafeAgent(TrajectoryAgent(perceiver), cfg, ground_truth=gt, audit_every=4)
         res = ablation.evaluate_stored(
             f"11_{key}_{'truth' if gt else 'perceived'}_seed{k}",
             f"with the module ({name}, seed {k})",

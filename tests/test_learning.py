@@ -21,6 +21,7 @@ from e2e_lite.learning.agents import (
 from e2e_lite.learning.checkpoints import (
     CheckpointMismatch,
     load_checkpoint,
+    refit_or_load,
     save_checkpoint,
     train_or_load,
 )
@@ -28,6 +29,7 @@ from e2e_lite.learning.data import DrivingDataset, synthetic_data
 from e2e_lite.learning.losses import GMMObjective, Objective, target
 from e2e_lite.learning.models import (
     TRUNK_FEATURES,
+    DrivingModel,
     FusionNet,
     ModelConfig,
     Normalise,
@@ -37,7 +39,12 @@ from e2e_lite.learning.models import (
     count_parameters,
     prepare,
 )
-from e2e_lite.learning.probes import layer_features, probe_affordances
+from e2e_lite.learning.probes import (
+    HeadRefit,
+    layer_features,
+    probe_affordances,
+    refit_affordance_head,
+)
 from e2e_lite.learning.training import (
     DECISIVE,
     TrainConfig,
@@ -604,3 +611,81 @@ def test_the_affordance_head_reads_where_it_is_told_and_old_keys_stand():
     assert settings_key(dataclasses.replace(paper, sigma_floor_m=0.1)) != settings_key(paper)
     with pytest.raises(ValueError, match="affordance_from"):
         ModelConfig(affordance=True, affordance_from="speed")
+
+
+def _brightness_data(n: int, seed: int):
+    """Synthetic samples whose affordances are a linear function of each frame's brightness (a
+    random gain on the image): something a network's trunk can see."""
+    data = synthetic_data(n, seed)
+    gain = np.random.default_rng(seed).uniform(0.1, 1.0, n)
+    data.arrays["images"][:] = (data.arrays["images"] * gain[:, None, None, None]).astype(np.uint8)
+    data.arrays["affordances"][:] = np.outer(gain, np.linspace(-2.0, 2.0, 9) + 0.1)
+    return data
+
+
+def _affordance_net(train) -> DrivingModel:
+    torch.manual_seed(0)
+    cfg = ModelConfig(head="gmm", affordance=True, affordance_from="trunk")
+    model = build_model(cfg)
+    model.set_normalisation(model_stats(cfg, train, GMMObjective()))
+    return prepare(model, torch.device("cpu")).eval()
+
+
+def _outputs(model: DrivingModel, data) -> dict[str, torch.Tensor]:
+    batch = DrivingDataset(data).batch(np.arange(len(data.arrays["speed"])))
+    with torch.inference_mode():
+        return model(batch["image"], batch["speed"])
+
+
+def test_a_refit_head_learns_from_frozen_features_and_leaves_the_driving_to_the_bit():
+    train, val = _brightness_data(256, 0), _brightness_data(64, 1)
+    model = _affordance_net(train)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    refit = refit_affordance_head(model, DrivingDataset(train), HeadRefit(epochs=60))
+    for k, v in model.state_dict().items():  # the original is left as it was
+        torch.testing.assert_close(v, before[k], rtol=0, atol=0)
+    old, new = _outputs(model, val), _outputs(refit, val)
+    torch.testing.assert_close(new["main"], old["main"], rtol=0, atol=0)  # drives the same
+    for k, v in refit.state_dict().items():
+        if not k.startswith("affordance_head."):
+            torch.testing.assert_close(v, before[k], rtol=0, atol=0)
+    # the refit head beats the untrained one and the mean predictor, in normalised units
+    true = (
+        torch.from_numpy(val.arrays["affordances"]).float() - model.affordance_mean
+    ) / model.affordance_std
+    floor = (true**2).mean()  # the mean predictor: the training mean is 0 in normalised units
+    assert ((new["affordance"] - true) ** 2).mean() < 0.3 * floor
+    assert ((old["affordance"] - true) ** 2).mean() > 0.8 * floor  # untrained: the mean, or worse
+    again = refit_affordance_head(model, DrivingDataset(train), HeadRefit(epochs=60))
+    torch.testing.assert_close(
+        _outputs(again, val)["affordance"], new["affordance"], rtol=0, atol=0
+    )
+
+
+def test_a_refit_of_no_epochs_is_the_same_head_after_the_standardisation_folds_back():
+    train = _brightness_data(64, 0)
+    model = _affordance_net(train)
+    same = refit_affordance_head(model, DrivingDataset(train), HeadRefit(epochs=0))
+    torch.testing.assert_close(
+        _outputs(same, train)["affordance"], _outputs(model, train)["affordance"],
+        rtol=1e-4, atol=1e-5,
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="epochs"):
+        HeadRefit(epochs=-1)
+    with pytest.raises(ValueError, match="no affordance head"):
+        refit_affordance_head(build_model(ModelConfig(head="gmm")), DrivingDataset(train))
+
+
+def test_a_refit_head_is_stored_and_refit_only_for_another_network(capsys):
+    train = _brightness_data(64, 0)
+    model, settings = _affordance_net(train), HeadRefit(epochs=2)
+    first = refit_or_load("net", model, train, settings)
+    assert artifact_path("checkpoints", "net_head.pt").exists()
+    again = refit_or_load("net", model, train, settings)
+    assert "reusing the refit head" in capsys.readouterr().out
+    for k, v in first.state_dict().items():
+        torch.testing.assert_close(again.state_dict()[k], v, rtol=0, atol=0)
+    with torch.no_grad():  # another network (a retrained trunk): its head is refit
+        model.trunk.convs[0].weight.mul_(1.01)
+    refit_or_load("net", model, train, settings)
+    assert "refitting" in capsys.readouterr().out

@@ -20,7 +20,6 @@ running the chapter again reuses it when nothing changed.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ from ..driving.metrics import EvalResult, pool_results, result_dict, result_info
 from ..driving.rollout import EvalConfig, disjoint_runs
 from ..learning import recipes
 from ..learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
+from ..learning.checkpoints import weights_digest
 from ..learning.data import DataConfig, DrivingData, load_or_collect
 from ..simulation.policy import Policy
 from ..simulation.world import WorldConfig
@@ -271,11 +271,11 @@ def fingerprint(policy: Policy) -> str:
     of its weights and normalisation buffers."""
     parts: list[Any] = [type(policy).__name__]
     if isinstance(policy, NetworkAgent):
-        digest = hashlib.sha256()
-        for name, tensor in policy.model.state_dict().items():
-            digest.update(name.encode())
-            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-        parts += [digest.hexdigest(), repr(policy.model.cfg), getattr(policy, "speed", None)]
+        parts += [
+            weights_digest(policy.model),
+            repr(policy.model.cfg),
+            getattr(policy, "speed", None),
+        ]
         parts += [getattr(policy, "preview_s", 0.0)]
         if getattr(policy, "decode", "top") != "top":  # (so the stored keys of "top" stay)
             parts.append(policy.decode)

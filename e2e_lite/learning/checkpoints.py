@@ -9,6 +9,7 @@ normalisation; :func:`train_or_load` reuses a valid one and trains (seeded) othe
 
 from __future__ import annotations
 
+import copy
 import hashlib
 from dataclasses import asdict
 from pathlib import Path
@@ -21,6 +22,7 @@ from ..artifacts import artifact_path, atomic_write, settings_key
 from .dataset import DrivingData, DrivingDataset
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
+from .probes import HeadRefit, refit_affordance_head
 from .training import History, TrainConfig, fit, model_stats
 
 
@@ -29,6 +31,16 @@ class CheckpointMismatch(ValueError):
 
 
 # ------------------------------------------------------------------ checkpoints
+def weights_digest(model: torch.nn.Module) -> str:
+    """A SHA-256 hex digest of a model's weights and buffers (names and bytes, in order): what
+    identifies a trained network's behaviour, whatever file it came from."""
+    digest = hashlib.sha256()
+    for name, tensor in model.state_dict().items():
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
 def checkpoint_key(
     model_cfg: ModelConfig, train_cfg: TrainConfig, objective: Objective, data_key: str
 ) -> str:
@@ -217,3 +229,45 @@ def train_or_load(
     model.eval()
     save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)
     return model, history
+
+
+def refit_or_load(
+    name: str,
+    model: DrivingModel,
+    train_data: DrivingData,
+    settings: HeadRefit,
+    *,
+    progress: bool = True,
+) -> DrivingModel:
+    """``model`` with its affordance head refit on its frozen features
+    (:func:`~e2e_lite.learning.probes.refit_affordance_head`, every training frame), the head
+    stored as ``<outputs>/checkpoints/<name>_head.pt`` and read back while the network's weights
+    (:func:`weights_digest`), the data and ``settings`` are the same; otherwise refit (seeded)
+    and stored. Only the head is stored: the rest of the network is ``model``'s own checkpoint.
+
+    Returns:
+        A copy of ``model`` (eval mode) with the refit head; ``model`` is left as it was.
+    """
+    key = settings_key("head-refit-v1", settings, weights_digest(model), train_data.info["key"])
+    path = artifact_path("checkpoints", f"{name}_head.pt")
+    if path.exists():
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+            if blob["key"] == key:
+                out = copy.deepcopy(model)
+                out.affordance_head.load_state_dict(blob["head"])
+                if progress:
+                    print(f"[checkpoints] {name}: reusing the refit head {path.name}")
+                return out.eval()
+            if progress:
+                print(f"[checkpoints] {name}: head refit for another network or data; refitting")
+        except Exception as err:  # a corrupt file is refit, never trusted
+            if progress:
+                print(f"[checkpoints] {name}: unreadable head ({type(err).__name__}); refitting")
+    if progress:
+        print(f"[checkpoints] {name}: refitting the affordance head on the frozen features")
+    out = refit_affordance_head(model, DrivingDataset(train_data), settings)
+    head = {k: v.detach().cpu() for k, v in out.affordance_head.state_dict().items()}
+    with atomic_write(path) as f:
+        torch.save({"key": key, "head": head}, f)
+    return out

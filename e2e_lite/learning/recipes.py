@@ -29,11 +29,12 @@ import numpy as np
 
 from ..config import Profile
 from ..control.labels import AFFORDANCE_NAMES
-from .checkpoints import train_or_load
+from .checkpoints import refit_or_load, train_or_load
 from .cvar import CVaRObjective
 from .dataset import DrivingData, DrivingDataset
 from .losses import GMMObjective, Objective, WithAffordance
 from .models import DrivingModel, ModelConfig
+from .probes import HeadRefit
 from .training import History, TrainConfig, evaluate_loss
 
 Trained = tuple[DrivingModel, Objective, History]
@@ -291,6 +292,23 @@ def gmm_affordance(
         **kw,
     )
     return model, objective, hist
+
+
+#: How a driving network's affordance head is refit on its kept trunk before anything reads its
+#: affordances (:func:`perceiving`): the probes' schedule, 30 epochs at 1e-3.
+HEAD_REFIT = HeadRefit()
+
+
+def perceiving(model: DrivingModel, train: DrivingData, name: str, **kw: Any) -> DrivingModel:
+    """The network whose affordances the course reads (chapter 08's scatter, chapter 11's safety
+    module): ``model`` with its affordance head refit alone on its frozen trunk
+    (:data:`HEAD_REFIT`, stored as ``<name>_head.pt``). It drives exactly as ``model`` (every
+    other weight is ``model``'s); ``kw``: ``progress``.
+
+    Why: a trajectory network keeps the epoch that drives best (``select_by``), and the head
+    rides along; when an early epoch wins, the head it carries has trained for one epoch
+    (chapter 08, "the head over the epochs")."""
+    return refit_or_load(name, model, train, HEAD_REFIT, **kw)
 
 
 #: How chapter 09's fine-tunes reduce a batch (:func:`gmm_affordance_cvar`): the paper's CVaR
