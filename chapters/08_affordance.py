@@ -469,6 +469,9 @@ artifacts.write_metrics(
 # * The predicted affordances make the network's perception readable: the scatter and the drive
 #   show what it sees of the lane and the car ahead, and where it is wrong. Judge them against
 #   the floor printed beside them (always answering the mean): a head can train without learning.
+# * A network kept for how it drives carries the head of that epoch. When an early epoch drives
+#   best, the head has barely trained (the per-epoch table); training the head alone on the kept
+#   trunk afterwards (`recipes.perceiving`) finishes it without moving a weight that drives.
 # * An error can also sit in the label: the lane-centre offset jumps by a lane width at every
 #   marking the car crosses, so a lane change's frames weigh in its RMSE far beyond their number
 #   (the split after the scatter).

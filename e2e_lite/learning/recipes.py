@@ -15,6 +15,8 @@ Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.lea
 * the affordance weight ``w``: a grid search (:func:`affordance_grid`) on a quarter of the
   training set, two epochs per candidate, scored by held-out trajectory NLL; the affordance head
   reads the trunk's features (:data:`AFFORDANCE_FROM`, chosen by chapter 08's probes);
+* the affordances the course reads (chapter 08's figures, chapter 11's module) come from the
+  head refit alone on the kept network's frozen trunk (:func:`perceiving`, :data:`HEAD_REFIT`);
 * CVaR: one epoch fine-tuning the GMM + affordance model on the worst 10 % of each batch of 256
   (the tail then holds 25.6 samples), continuing the base training's Adam state at learning rate
   1e-4; its control is the same fine-tune with the batch mean.
