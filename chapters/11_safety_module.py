@@ -82,7 +82,9 @@ print(f"{cfg}")
 # Before trusting a check, run it on trajectories known to be safe: the expert's labels of the
 # validation set (it never collides). With the **true** affordances, the share it rejects is the
 # rule's own strictness; with the affordances the **network predicts** for the same frames, the
-# extra rejections are what imperfect perception adds.
+# extra rejections are what imperfect perception adds. The network's affordances come from its
+# head refit on the kept trunk (chapter 08, `recipes.perceiving`): the driving is the network's
+# own, to the bit, and the head has trained to the end.
 
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
