@@ -18,6 +18,7 @@ from e2e_lite.experiments.safe_agent import SafeAgent, SafetyStats
 from e2e_lite.experiments.safety import (
     SafetyConfig,
     brake_to_lane,
+    calibrate_gap_free,
     check,
     choose,
     end_lateral,
@@ -69,6 +70,36 @@ def test_changing_into_a_blocked_lane_is_rejected_and_into_a_free_one_accepted()
     assert check(to_left, aff(gap_ego=40.0, gap_left=60.0), 25.0, 0.0).ok
     blocked = check(to_left, aff(gap_ego=40.0, gap_left=25.0), 25.0, 0.0)
     assert not blocked.ok and blocked.lane == "left"
+
+
+def test_the_calibrated_gap_free_threshold_is_the_noise_quantile_on_free_lanes_only():
+    rng = np.random.default_rng(0)
+    n = 2000
+    true = np.stack([aff() for _ in range(n)])
+    true[: n // 2, AFFORDANCE_NAMES.index("gap_ego_m")] = 20.0  # a car ahead: not a free lane
+    pred = true.copy()
+    gaps = [AFFORDANCE_NAMES.index(g) for g in ("gap_ego_m", "gap_left_m", "gap_right_m")]
+    free = true[:, gaps] >= 60.0
+    noise = rng.uniform(50.0, 60.0, size=free.shape)
+    pred[:, gaps] = np.where(free, noise, 5.0)  # the car ahead is seen far too close: ignored
+    cfg = calibrate_gap_free(SafetyConfig(), pred, true, ghost_share=0.05)
+    assert cfg.gap_free_m == pytest.approx(np.quantile(noise[free], 0.05))
+    assert 50.3 < cfg.gap_free_m < 50.7  # the 5 % point of U(50, 60)
+    assert np.mean(noise[free] < cfg.gap_free_m) == pytest.approx(0.05, abs=0.002)
+    # only gap_free_m changes, and the check now trusts a free lane seen at 52 m
+    assert cfg == SafetyConfig(gap_free_m=cfg.gap_free_m)
+    assert not check(straight(25.0), aff(gap_ego=52.0), 25.0, 0.0).ok
+    assert check(straight(25.0), aff(gap_ego=52.0), 25.0, 0.0, cfg).ok
+    # never above the setting it starts from; unchanged when no lane is free
+    exact = calibrate_gap_free(SafetyConfig(), true, true)
+    assert exact.gap_free_m == SafetyConfig().gap_free_m
+    blocked = true.copy()
+    blocked[:, gaps] = 10.0
+    assert calibrate_gap_free(SafetyConfig(), pred, blocked) == SafetyConfig()
+    with pytest.raises(ValueError, match="ghost_share"):
+        calibrate_gap_free(SafetyConfig(), pred, true, ghost_share=1.0)
+    with pytest.raises(ValueError, match="predictions and truths"):
+        calibrate_gap_free(SafetyConfig(), pred[:, :8], true[:, :8])
 
 
 def test_a_trajectory_leaving_the_road_is_rejected():

@@ -40,7 +40,7 @@ The driver that applies the rule to a trajectory network is :class:`~e2e_lite.ex
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -65,7 +65,10 @@ class SafetyConfig:
             guard rail is further out) [m].
         car_width_m, car_length_m: the ego's body [m].
         parked_length_m: a parked car's length [m].
-        gap_free_m: a perceived gap at least this long means nothing was seen [m].
+        gap_free_m: a perceived gap at least this long means nothing was seen [m]. Right
+            for the true affordances (exactly the 60 m cap when the lane is free); a learned head
+            answers near the cap with noise, so the perceived module calibrates it on training
+            frames (:func:`calibrate_gap_free`).
         fallback_lanes: brake into a neighbouring lane when braking in the current lane fails
             the check and braking there passes (see :func:`choose`). With the true affordances
             the keep-lane brake alone pulled cars half-way through a lane change back in front
@@ -212,6 +215,50 @@ def check(
                     N_POINTS * POINT_DT_S,
                 )
     return Verdict(True)
+
+
+#: The share of training frames with nothing within the cap on which a calibrated
+#: ``gap_free_m`` may still see a car (:func:`calibrate_gap_free`).
+GHOST_SHARE = 0.01
+_GAPS = [_A[n] for n in ("gap_ego_m", "gap_left_m", "gap_right_m")]
+
+
+def calibrate_gap_free(
+    cfg: SafetyConfig, predicted: np.ndarray, true: np.ndarray, ghost_share: float = GHOST_SHARE
+) -> SafetyConfig:
+    """``cfg`` with ``gap_free_m`` set for a perception whose gaps are noisy at the cap.
+
+    A free lane's true gap is exactly :data:`~e2e_lite.control.labels.GAP_CAP_M`; a learned head
+    answers around it (chapter 11 prints how widely), so a threshold just under the cap sees a
+    parked car on the free frames whose answer falls under it, and "cannot stop" brakes for it.
+    The calibrated threshold is the ``ghost_share`` quantile of the predicted gaps (ego, left
+    and right lanes pooled) on frames whose true gap is at the cap: with it, at most that share
+    of those frames sees a car that is not there. The price: a car between the threshold and
+    the cap counts as not seen until it comes nearer (at 25 m/s, 2.5 m per decision).
+
+    Args:
+        cfg: the settings to start from; its ``gap_free_m`` is an upper bound.
+        predicted, true: (N, 9) affordances of the same frames, predicted and true (training
+            frames: the threshold must not be chosen on the evaluation's tracks).
+        ghost_share: the share of free frames allowed to see a car, in (0, 1).
+
+    Returns:
+        The settings with ``gap_free_m = min(cfg.gap_free_m, quantile)`` (at least 1 m); ``cfg``
+        unchanged when no lane of the frames is free.
+    """
+    p, t = np.asarray(predicted, np.float64), np.asarray(true, np.float64)
+    if p.shape != t.shape or p.ndim != 2 or p.shape[1] != len(_A):
+        raise ValueError(
+            f"calibrate_gap_free needs (N, {len(_A)}) predictions and truths; got {p.shape}, "
+            f"{t.shape}"
+        )
+    if not 0.0 < ghost_share < 1.0:
+        raise ValueError(f"calibrate_gap_free: ghost_share={ghost_share} must lie in (0, 1)")
+    free = t[:, _GAPS] >= GAP_CAP_M
+    if not free.any():
+        return cfg
+    quantile = float(np.quantile(p[:, _GAPS][free], ghost_share))
+    return replace(cfg, gap_free_m=max(1.0, min(cfg.gap_free_m, quantile)))
 
 
 def lane_width(aff: np.ndarray) -> float:
