@@ -24,7 +24,7 @@ from e2e_lite.experiments.safety import (
     end_lateral,
     keep_lane_brake,
 )
-from e2e_lite.learning.data import AFFORDANCE_NAMES
+from e2e_lite.learning.data import AFFORDANCE_NAMES, affordances
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
 
@@ -72,34 +72,49 @@ def test_changing_into_a_blocked_lane_is_rejected_and_into_a_free_one_accepted()
     assert not blocked.ok and blocked.lane == "left"
 
 
-def test_the_calibrated_gap_free_threshold_is_the_noise_quantile_on_free_lanes_only():
+def test_the_calibrated_gap_free_thresholds_are_each_lanes_noise_quantile_on_free_lanes_only():
     rng = np.random.default_rng(0)
-    n = 2000
+    n = 4000
     true = np.stack([aff() for _ in range(n)])
-    true[: n // 2, AFFORDANCE_NAMES.index("gap_ego_m")] = 20.0  # a car ahead: not a free lane
+    ego, left, right = (
+        AFFORDANCE_NAMES.index(g) for g in ("gap_ego_m", "gap_left_m", "gap_right_m")
+    )
+    true[: n // 2, ego] = 20.0  # a car ahead: not a free lane
+    true[: n // 4, left] = 0.0  # no lane there
     pred = true.copy()
-    gaps = [AFFORDANCE_NAMES.index(g) for g in ("gap_ego_m", "gap_left_m", "gap_right_m")]
-    free = true[:, gaps] >= 60.0
-    noise = rng.uniform(50.0, 60.0, size=free.shape)
-    pred[:, gaps] = np.where(free, noise, 5.0)  # the car ahead is seen far too close: ignored
+    pred[:, ego] = np.where(true[:, ego] >= 60.0, rng.uniform(55.0, 60.0, n), 5.0)
+    side_noise = rng.uniform(40.0, 60.0, (n, 2))
+    free_side = true[:, [left, right]] >= 60.0
+    pred[:, [left, right]] = np.where(free_side, side_noise, 3.0)  # blocked lanes: ignored
     cfg = calibrate_gap_free(SafetyConfig(), pred, true, ghost_share=0.05)
-    assert cfg.gap_free_m == pytest.approx(np.quantile(noise[free], 0.05))
-    assert 50.3 < cfg.gap_free_m < 50.7  # the 5 % point of U(50, 60)
-    assert np.mean(noise[free] < cfg.gap_free_m) == pytest.approx(0.05, abs=0.002)
-    # only gap_free_m changes, and the check now trusts a free lane seen at 52 m
-    assert cfg == SafetyConfig(gap_free_m=cfg.gap_free_m)
-    assert not check(straight(25.0), aff(gap_ego=52.0), 25.0, 0.0).ok
-    assert check(straight(25.0), aff(gap_ego=52.0), 25.0, 0.0, cfg).ok
-    # never above the setting it starts from; unchanged when no lane is free
+    assert cfg.gap_free_m == pytest.approx(np.quantile(pred[n // 2 :, ego], 0.05))
+    assert 55.1 < cfg.gap_free_m < 55.4  # the 5 % point of U(55, 60)
+    assert cfg.gap_free_side_m == pytest.approx(np.quantile(side_noise[free_side], 0.05))
+    assert 40.6 < cfg.gap_free_side_m < 41.4  # the 5 % point of U(40, 60)
+    # only the thresholds change; the check reads each lane's own
+    assert cfg == SafetyConfig(gap_free_m=cfg.gap_free_m, gap_free_side_m=cfg.gap_free_side_m)
+    assert "gap_free_side_m" in repr(cfg) and "gap_free_side_m" not in repr(SafetyConfig())
+    assert (
+        cfg.free_from_m("ego") == cfg.gap_free_m and cfg.free_from_m("left") == cfg.gap_free_side_m
+    )
+    assert not check(straight(25.0), aff(gap_ego=56.0), 25.0, 0.0).ok
+    assert check(straight(25.0), aff(gap_ego=56.0), 25.0, 0.0, cfg).ok
+    assert not check(straight(25.0), aff(gap_ego=50.0), 25.0, 0.0, cfg).ok  # ego sees at 50 m
+    into_left = straight(25.0, y_end=3.5)
+    assert not check(into_left, aff(gap_left=50.0), 25.0, 0.0).ok
+    assert check(into_left, aff(gap_left=50.0), 25.0, 0.0, cfg).ok  # 50 m: beyond the side's
+    # never above the setting it starts from; unchanged where no lane is free
     exact = calibrate_gap_free(SafetyConfig(), true, true)
-    assert exact.gap_free_m == SafetyConfig().gap_free_m
+    assert exact.gap_free_m == exact.gap_free_side_m == SafetyConfig().gap_free_m
     blocked = true.copy()
-    blocked[:, gaps] = 10.0
+    blocked[:, [ego, left, right]] = 10.0
     assert calibrate_gap_free(SafetyConfig(), pred, blocked) == SafetyConfig()
     with pytest.raises(ValueError, match="ghost_share"):
         calibrate_gap_free(SafetyConfig(), pred, true, ghost_share=1.0)
     with pytest.raises(ValueError, match="predictions and truths"):
         calibrate_gap_free(SafetyConfig(), pred[:, :8], true[:, :8])
+    with pytest.raises(ValueError, match="gap_free_side_m"):
+        SafetyConfig(gap_free_side_m=0.0)
 
 
 def test_a_trajectory_leaving_the_road_is_rejected():
@@ -304,6 +319,45 @@ def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(tmp_path, 
     assert fingerprint(SafeAgent(StraightOn(), ground_truth=True, audit_every=4)) != fingerprint(
         guarded
     )
+
+
+class BlindToCars(StraightOn):
+    """StraightOn with an affordance "head" that is exact but sees no parked car (every gap at the
+    cap)."""
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        pts = super().trajectories(obs)
+        seen = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        seen[:, [AFFORDANCE_NAMES.index(g) for g in GAPS]] = 60.0
+        self.last["affordances"] = seen
+        return pts
+
+
+GAPS = ("gap_ego_m", "gap_left_m", "gap_right_m")
+
+
+def test_true_affordances_replace_only_the_named_predictions():
+    from e2e_lite.experiments.ablation import fingerprint
+
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    blind = evaluate(SafeAgent(BlindToCars(), audit=False), world, cfg, progress=False)
+    truth = evaluate(SafeAgent(StraightOn(), ground_truth=True, audit=False), world, cfg,
+                     progress=False)  # fmt: skip
+    mended = SafeAgent(BlindToCars(), true_affordances=GAPS, audit=False)
+    fixed = evaluate(mended, world, cfg, progress=False)
+    # blind to cars, the module never intervenes: the driver alone, collision for collision
+    assert blind.collisions == alone.collisions >= 3
+    assert SafetyStats.from_info(blind.info).interventions == 0
+    # given the true gaps (the rest was exact already), it is the ground-truth module
+    assert fixed.collisions == truth.collisions < alone.collisions
+    assert (
+        SafetyStats.from_info(fixed.info).to_dict() == SafetyStats.from_info(truth.info).to_dict()
+    )
+    assert fingerprint(mended) != fingerprint(SafeAgent(BlindToCars(), audit=False))
+    with pytest.raises(ValueError, match="not affordances"):
+        SafeAgent(BlindToCars(), true_affordances=("gap_ahead",))
 
 
 def test_the_perceived_check_needs_predicted_affordances():

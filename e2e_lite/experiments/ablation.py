@@ -290,6 +290,8 @@ def fingerprint(policy: Policy) -> str:
         parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
         # what the safety module reports (its audits and examples) is stored with the result
         parts += [getattr(policy, a, None) for a in ("audit", "audit_every", "keep_examples")]
+        if getattr(policy, "true_affordances", ()):  # (only when set: the other keys stay)
+            parts.append(policy.true_affordances)
     return settings_key(*parts)
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from ..config import check_range
 from ..control.expert import Expert
+from ..control.labels import AFFORDANCE_INDEX, AFFORDANCE_NAMES
 from ..learning.data import affordances
 from ..simulation.policy import Actuation, Observation
 from ..simulation.world import SimConfig
@@ -110,6 +112,9 @@ class SafeAgent:
         audit_every: audit one intervention in this many (1: all; the rates are then
             estimated from that sample).
         keep_examples: interventions kept per shard for figures (JSON-able, see above).
+        true_affordances: names (of :data:`~e2e_lite.control.labels.AFFORDANCE_NAMES`) whose
+            true values replace the network's in the perceived check, the others staying
+            predicted: which affordances' errors matter (chapter 11's targeted runs).
     """
 
     def __init__(
@@ -120,8 +125,16 @@ class SafeAgent:
         audit: bool = True,
         audit_every: int = 1,
         keep_examples: int = 6,
+        true_affordances: Sequence[str] = (),
     ) -> None:
         check_range("SafeAgent", "audit_every", audit_every, 1, integer=True)
+        unknown = sorted(set(true_affordances) - set(AFFORDANCE_NAMES))
+        if unknown:
+            raise ValueError(
+                f"SafeAgent: true_affordances {unknown} are not affordances; they are "
+                f"{', '.join(AFFORDANCE_NAMES)}"
+            )
+        self.true_affordances = tuple(n for n in AFFORDANCE_NAMES if n in set(true_affordances))
         model = getattr(agent, "model", None)
         if not ground_truth and model is not None and not model.cfg.affordance:
             raise ValueError(
@@ -164,11 +177,15 @@ class SafeAgent:
         modes = last.get("modes", proposal[:, None])
         weights = last.get("weights", np.ones((len(proposal), 1)))
         truth = None
-        if self.ground_truth:
+        if self.ground_truth or self.true_affordances:
             truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
         if not self.ground_truth and "affordances" not in last:
             raise ValueError("the agent predicted no affordances; use ground_truth=True")
         seen = truth if self.ground_truth else last["affordances"]
+        if self.true_affordances and not self.ground_truth:
+            columns = [AFFORDANCE_INDEX[n] for n in self.true_affordances]
+            seen = seen.copy()
+            seen[:, columns] = truth[:, columns]
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
         for i in range(len(proposal)):

@@ -40,7 +40,7 @@ The driver that applies the rule to a trajectory network is :class:`~e2e_lite.ex
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -69,6 +69,9 @@ class SafetyConfig:
             for the true affordances (exactly the 60 m cap when the lane is free); a learned head
             answers near the cap with noise, so the perceived module calibrates it on training
             frames (:func:`calibrate_gap_free`).
+        gap_free_side_m: the same threshold for the left and right lanes' gaps [m]; ``None``:
+            ``gap_free_m``. A head may see the neighbouring lanes less sharply than its own
+            (:func:`calibrate_gap_free` sets both).
         fallback_lanes: brake into a neighbouring lane when braking in the current lane fails
             the check and braking there passes (see :func:`choose`). With the true affordances
             the keep-lane brake alone pulled cars half-way through a lane change back in front
@@ -91,6 +94,7 @@ class SafetyConfig:
     gap_free_m: float = GAP_CAP_M - 0.5
     fallback_lanes: bool = True
     check_fallback: bool = False
+    gap_free_side_m: float | None = field(default=None, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -103,6 +107,22 @@ class SafetyConfig:
         check_range(o, "car_length_m", self.car_length_m, 1.0, 20.0)
         check_range(o, "parked_length_m", self.parked_length_m, 1.0, 20.0)
         check_range(o, "gap_free_m", self.gap_free_m, 1.0, 1000.0)
+        if self.gap_free_side_m is not None:
+            check_range(o, "gap_free_side_m", self.gap_free_side_m, 1.0, 1000.0)
+
+    def __repr__(self) -> str:
+        # the dataclass's own form, with gap_free_side_m only when set (stored results are keyed
+        # by this text: settings without it keep their keys)
+        shown = [f"{f.name}={getattr(self, f.name)!r}" for f in fields(self) if f.repr]
+        if self.gap_free_side_m is not None:
+            shown.append(f"gap_free_side_m={self.gap_free_side_m!r}")
+        return f"{type(self).__name__}({', '.join(shown)})"
+
+    def free_from_m(self, lane: str) -> float:
+        """The perceived gap from which ``lane`` (``"ego"``, ``"left"``, ``"right"``) counts as
+        free [m]."""
+        side = self.gap_free_side_m
+        return self.gap_free_m if lane == "ego" or side is None else side
 
     def stopping_m(self, speed_mps: float) -> float:
         """RSS's safe distance to a standing obstacle: ``v rho + v^2 / (2 beta) + margin`` [m]."""
@@ -184,7 +204,7 @@ def check(
         if not occupied.any():
             continue
         gap = float(a[_A[gap_name]])
-        if gap >= cfg.gap_free_m:
+        if gap >= cfg.free_from_m(lane):
             continue
         # 4a. the front bumper reaches the parked car while the body is in its lane
         front = x  # progress of the front bumper [m] (the rear axle's, the body is rigid)
@@ -226,25 +246,29 @@ _GAPS = [_A[n] for n in ("gap_ego_m", "gap_left_m", "gap_right_m")]
 def calibrate_gap_free(
     cfg: SafetyConfig, predicted: np.ndarray, true: np.ndarray, ghost_share: float = GHOST_SHARE
 ) -> SafetyConfig:
-    """``cfg`` with ``gap_free_m`` set for a perception whose gaps are noisy at the cap.
+    """``cfg`` with the "nothing seen" thresholds set for a perception whose gaps are noisy at
+    the cap: ``gap_free_m`` for the ego lane, ``gap_free_side_m`` for the left and right lanes.
 
     A free lane's true gap is exactly :data:`~e2e_lite.control.labels.GAP_CAP_M`; a learned head
     answers around it (chapter 11 prints how widely), so a threshold just under the cap sees a
     parked car on the free frames whose answer falls under it, and "cannot stop" brakes for it.
-    The calibrated threshold is the ``ghost_share`` quantile of the predicted gaps (ego, left
-    and right lanes pooled) on frames whose true gap is at the cap: with it, at most that share
-    of those frames sees a car that is not there. The price: a car between the threshold and
-    the cap counts as not seen until it comes nearer (at 25 m/s, 2.5 m per decision).
+    Each calibrated threshold is the ``ghost_share`` quantile of the predicted gaps on frames
+    whose true gap is at the cap (the ego lane's alone; the left and right lanes' pooled): with
+    it, at most that share of those frames sees a car that is not there. The price: a car
+    between the threshold and the cap counts as not seen until it comes nearer (at 25 m/s,
+    2.5 m per decision). The lanes are calibrated apart because a head may see its own lane
+    more sharply than its neighbours (a pooled quantile would then blind the ego lane to the
+    cars the network overtakes).
 
     Args:
-        cfg: the settings to start from; its ``gap_free_m`` is an upper bound.
+        cfg: the settings to start from; its ``gap_free_m`` bounds both thresholds.
         predicted, true: (N, 9) affordances of the same frames, predicted and true (training
-            frames: the threshold must not be chosen on the evaluation's tracks).
+            frames: the thresholds must not be chosen on the evaluation's tracks).
         ghost_share: the share of free frames allowed to see a car, in (0, 1).
 
     Returns:
-        The settings with ``gap_free_m = min(cfg.gap_free_m, quantile)`` (at least 1 m); ``cfg``
-        unchanged when no lane of the frames is free.
+        The settings with each threshold ``min(cfg.gap_free_m, quantile)`` (at least 1 m); a
+        threshold whose lanes are never free in the frames is left as it was.
     """
     p, t = np.asarray(predicted, np.float64), np.asarray(true, np.float64)
     if p.shape != t.shape or p.ndim != 2 or p.shape[1] != len(_A):
@@ -254,11 +278,20 @@ def calibrate_gap_free(
         )
     if not 0.0 < ghost_share < 1.0:
         raise ValueError(f"calibrate_gap_free: ghost_share={ghost_share} must lie in (0, 1)")
-    free = t[:, _GAPS] >= GAP_CAP_M
-    if not free.any():
-        return cfg
-    quantile = float(np.quantile(p[:, _GAPS][free], ghost_share))
-    return replace(cfg, gap_free_m=max(1.0, min(cfg.gap_free_m, quantile)))
+
+    def threshold(columns: list[int], current: float | None) -> float | None:
+        free = t[:, columns] >= GAP_CAP_M
+        if not free.any():
+            return current
+        quantile = float(np.quantile(p[:, columns][free], ghost_share))
+        return max(1.0, min(cfg.gap_free_m, quantile))
+
+    ego, side = _GAPS[:1], _GAPS[1:]
+    return replace(
+        cfg,
+        gap_free_m=threshold(ego, cfg.gap_free_m),
+        gap_free_side_m=threshold(side, cfg.gap_free_side_m),
+    )
 
 
 def lane_width(aff: np.ndarray) -> float:
