@@ -282,6 +282,10 @@ def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
     assert stats["decisions"] == round(safe.sim_time_s / 0.1)
     # every collision is told to the policy with the next decision: who drove into it
     assert sum(stats["at_impact"].values()) == safe.collisions
+    # and how many of its last 30 decisions the module overrode
+    assert sum(stats["before_impact"].values()) == safe.collisions
+    assert all(0 <= int(n) <= 30 for n in stats["before_impact"])
+    assert sum(int(n) * c for n, c in stats["before_impact"].items()) <= stats["interventions"]
     assert set(stats["at_impact"]) <= {"network", "other mode", "fallback"}
 
 
@@ -350,6 +354,7 @@ def test_true_affordances_replace_only_the_named_predictions():
     # blind to cars, the module never intervenes: the driver alone, collision for collision
     assert blind.collisions == alone.collisions >= 3
     assert SafetyStats.from_info(blind.info).interventions == 0
+    assert SafetyStats.from_info(blind.info).before_impact == {"0": blind.collisions}
     # given the true gaps (the rest was exact already), it is the ground-truth module
     assert fixed.collisions == truth.collisions < alone.collisions
     assert (

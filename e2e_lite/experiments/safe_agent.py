@@ -28,7 +28,9 @@ from .safety import SafetyConfig, check, choose
 
 #: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
 COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
-TABLES = ("sources", "kinds", "at_impact")
+TABLES = ("sources", "kinds", "at_impact", "before_impact")
+#: the decisions before a collision in which :class:`SafeAgent` counts its interventions (3 s)
+BEFORE_IMPACT = 30
 
 
 @dataclass
@@ -45,6 +47,10 @@ class SafetyStats:
         at_impact: for every collision, who drove the car's last decision before it
             (``network``, ``other mode``, ``fallback``): the module's own fallback, or the
             network it let through.
+        before_impact: for every collision, how many of the car's last :data:`BEFORE_IMPACT`
+            decisions (3 s at 10 Hz) the module overrode, keyed by that number (as text): a
+            collision after a run of interventions is the module's doing even when the network
+            drove the very last decision.
         audited: interventions audited (all, or one in ``audit_every``).
         false_alarms: audited interventions where a fresh expert, from the same state, would have driven
             what the network proposed (its trajectory within 1 m sideways and 5 m along at 1.5 s).
@@ -57,6 +63,7 @@ class SafetyStats:
     sources: Counter = field(default_factory=Counter)
     kinds: Counter = field(default_factory=Counter)
     at_impact: Counter = field(default_factory=Counter)
+    before_impact: Counter = field(default_factory=Counter)
     false_alarms: int = 0
     perception_only: int = 0
 
@@ -89,6 +96,7 @@ class SafetyStats:
             "sources": dict(self.sources),
             "kinds": dict(self.kinds),
             "at_impact": dict(self.at_impact),
+            "before_impact": dict(self.before_impact),
             "audited": self.audited,
             "false_alarms": self.false_alarms,
             "false_alarm_pct": 100.0 * self.false_alarms / k,
@@ -147,6 +155,7 @@ class SafeAgent:
         self._seen = 0  # interventions met by this copy (for audit_every)
         self._kept = 0  # examples reported since the last reset
         self._driven: list[str] = []  # each car's last source
+        self._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)  # each car's recent decisions
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
 
@@ -155,6 +164,7 @@ class SafeAgent:
         self.agent.reset(n_worlds)
         self._kept = 0
         self._driven = [""] * n_worlds
+        self._overrode = np.zeros((n_worlds, BEFORE_IMPACT), dtype=bool)
 
     def fork(self, k: int) -> list[SafeAgent]:
         """``k`` agents for parallel shards, sharing the model."""
@@ -164,14 +174,19 @@ class SafeAgent:
             twin.__dict__.update(self.__dict__)
             twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
             twin._driven = []
+            twin._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)
             out.append(twin)
         return out
 
     def act(self, obs: Observation) -> Actuation:
         """Propose, check, follow."""
         at_impact = Counter()
+        before_impact = Counter()
         if obs.collided is not None and self._driven:
-            at_impact.update(self._driven[i] for i in np.flatnonzero(obs.collided).tolist())
+            hit = np.flatnonzero(obs.collided).tolist()
+            at_impact.update(self._driven[i] for i in hit)
+            before_impact.update(str(int(self._overrode[i].sum())) for i in hit)
+            self._overrode[hit] = False  # the car starts afresh
         proposal = self.agent.trajectories(obs)
         last = self.agent.last
         modes = last.get("modes", proposal[:, None])
@@ -245,10 +260,14 @@ class SafeAgent:
             "sources": Counter(sources),
             "kinds": Counter(kinds),
             "at_impact": at_impact,
+            "before_impact": before_impact,
             "examples": examples,
         }
         self.last = {"chosen": chosen, "sources": sources}
         self._driven = sources
+        if len(self._overrode) == len(sources):
+            self._overrode = np.roll(self._overrode, -1, axis=1)
+            self._overrode[:, -1] = [src != "network" for src in sources]
         return dataclasses.replace(self.agent.follow(chosen, obs), info=info)
 
 
