@@ -582,7 +582,12 @@ artifacts.write_metrics(
 # * A trajectory can be checked before it is driven: a few lines of geometry (where the body
 #   goes, which lanes it enters, whether it can still stop) decide.
 # * The check is only as good as what it is fed: with the world's true gaps it is the upper
-#   bound; with the network's predicted affordances it inherits their errors.
+#   bound; with the network's predicted affordances it inherits their errors. Feeding it the
+#   true gaps or the true geometry, the rest predicted, says whose errors cost what.
+# * A threshold that suits exact inputs ("60 m means nothing seen") does not suit a noisy
+#   head: calibrate it on training frames, per lane, where the head's noise lies.
+# * A module that overrides in bursts and hands back can cause the collision the network then
+#   drives into: count the overrides before each collision, not only who drove last.
 # * Caution has a price, measured here in interventions, false alarms and miles per hour.
 # * An intervention changes the states the network drives from: a module that brakes hands the
 #   car back at speeds the expert's data rarely shows (chapter 04). Who drove the last decision
