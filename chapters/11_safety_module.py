@@ -54,6 +54,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from e2e_lite import artifacts
+from e2e_lite.control.labels import GAP_NAMES
 from e2e_lite.driving.evaluation import (
     EvalConfig,
     compare_rates,
@@ -250,16 +251,11 @@ calibrated = [
 print("calibrated per training seed (ego lane / left and right lanes): " + ", ".join(
     f"seed {k} {c.gap_free_m:.1f} / {c.gap_free_side_m:.1f} m" for k, c in enumerate(calibrated)
 ))  # fmt: skip
-ok_cal = np.array([
-    check(a["trajectory"][r], predicted[j], float(a["speed"][r]), float(a["curvature"][r]),
-          calibrated[0]).ok
+ok_cal, net_cal = np.array([
+    [check(points, predicted[j], float(a["speed"][r]), float(a["curvature"][r]), calibrated[0]).ok
+     for points in (a["trajectory"][r], proposed[j])]  # the expert's, then the network's
     for j, r in enumerate(rows)
-])  # fmt: skip
-net_cal = np.array([
-    check(proposed[j], predicted[j], float(a["speed"][r]), float(a["curvature"][r]),
-          calibrated[0]).ok
-    for j, r in enumerate(rows)
-])  # fmt: skip
+]).T  # fmt: skip
 ghost_cal = (
     100.0 * float(np.mean(predicted[free, gap_i] < calibrated[0].gap_free_m)) if free.any() else 0.0
 )
@@ -314,7 +310,6 @@ stored = ablation.evaluate_drivers({key: seeded}, world_cfg, ev, workers=profile
 without = stored[key]
 guarded = {}
 stats = {}
-GAP_NAMES = ("gap_ego_m", "gap_left_m", "gap_right_m")
 GEOMETRY = tuple(n for n in AFFORDANCE_NAMES if n not in GAP_NAMES)  # heading, offset, distances
 # (name, what the stored results are called, each seed's settings, how the module perceives):
 # the calibrated module, its upper bound, then three controls: with the true gaps or the true

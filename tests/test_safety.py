@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from e2e_lite.control.labels import GAP_NAMES
 from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.driving.metrics import add_info
@@ -76,9 +77,7 @@ def test_the_calibrated_gap_free_thresholds_are_each_lanes_noise_quantile_on_fre
     rng = np.random.default_rng(0)
     n = 4000
     true = np.stack([aff() for _ in range(n)])
-    ego, left, right = (
-        AFFORDANCE_NAMES.index(g) for g in ("gap_ego_m", "gap_left_m", "gap_right_m")
-    )
+    ego, left, right = (AFFORDANCE_NAMES.index(g) for g in GAP_NAMES)
     true[: n // 2, ego] = 20.0  # a car ahead: not a free lane
     true[: n // 4, left] = 0.0  # no lane there
     pred = true.copy()
@@ -332,12 +331,9 @@ class BlindToCars(StraightOn):
     def trajectories(self, obs: Observation) -> np.ndarray:
         pts = super().trajectories(obs)
         seen = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
-        seen[:, [AFFORDANCE_NAMES.index(g) for g in GAPS]] = 60.0
+        seen[:, [AFFORDANCE_NAMES.index(g) for g in GAP_NAMES]] = 60.0
         self.last["affordances"] = seen
         return pts
-
-
-GAPS = ("gap_ego_m", "gap_left_m", "gap_right_m")
 
 
 def test_true_affordances_replace_only_the_named_predictions():
@@ -349,7 +345,7 @@ def test_true_affordances_replace_only_the_named_predictions():
     blind = evaluate(SafeAgent(BlindToCars(), audit=False), world, cfg, progress=False)
     truth = evaluate(SafeAgent(StraightOn(), ground_truth=True, audit=False), world, cfg,
                      progress=False)  # fmt: skip
-    mended = SafeAgent(BlindToCars(), true_affordances=GAPS, audit=False)
+    mended = SafeAgent(BlindToCars(), true_affordances=GAP_NAMES, audit=False)
     fixed = evaluate(mended, world, cfg, progress=False)
     # blind to cars, the module never intervenes: the driver alone, collision for collision
     assert blind.collisions == alone.collisions >= 3

@@ -58,6 +58,9 @@ AFFORDANCE_NAMES = (
   encodes "no car"; a lane that does not exist (left of the leftmost) gives 0 (blocked).
 """
 
+#: The three gaps ahead (ego, left and right lanes), in that order.
+GAP_NAMES = ("gap_ego_m", "gap_left_m", "gap_right_m")
+
 #: Each affordance's column in an ``(N, 9)`` array, by name.
 AFFORDANCE_INDEX = {name: i for i, name in enumerate(AFFORDANCE_NAMES)}
 

@@ -143,6 +143,7 @@ class SafeAgent:
                 f"{', '.join(AFFORDANCE_NAMES)}"
             )
         self.true_affordances = tuple(n for n in AFFORDANCE_NAMES if n in set(true_affordances))
+        self._true_columns = [AFFORDANCE_INDEX[n] for n in self.true_affordances]
         model = getattr(agent, "model", None)
         if not ground_truth and model is not None and not model.cfg.affordance:
             raise ValueError(
@@ -198,9 +199,8 @@ class SafeAgent:
             raise ValueError("the agent predicted no affordances; use ground_truth=True")
         seen = truth if self.ground_truth else last["affordances"]
         if self.true_affordances and not self.ground_truth:
-            columns = [AFFORDANCE_INDEX[n] for n in self.true_affordances]
             seen = seen.copy()
-            seen[:, columns] = truth[:, columns]
+            seen[:, self._true_columns] = truth[:, self._true_columns]
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
         for i in range(len(proposal)):

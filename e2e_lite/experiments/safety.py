@@ -45,7 +45,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from ..config import check_range
-from ..control.labels import AFFORDANCE_INDEX, GAP_CAP_M, N_POINTS, POINT_DT_S
+from ..control.labels import AFFORDANCE_INDEX, GAP_CAP_M, GAP_NAMES, N_POINTS, POINT_DT_S
 
 _A = AFFORDANCE_INDEX
 _SUBSTEPS = 4  # interpolated positions per 0.3 s between points
@@ -240,7 +240,7 @@ def check(
 #: The share of training frames with nothing within the cap on which a calibrated
 #: ``gap_free_m`` may still see a car (:func:`calibrate_gap_free`).
 GHOST_SHARE = 0.01
-_GAPS = [_A[n] for n in ("gap_ego_m", "gap_left_m", "gap_right_m")]
+_GAPS = [_A[n] for n in GAP_NAMES]
 
 
 def calibrate_gap_free(
