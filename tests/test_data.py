@@ -213,3 +213,23 @@ def test_road_lateral_removes_heading_and_curve():
     np.testing.assert_allclose(road_lateral(turned, np.array([0.02]), np.zeros(1)), [0.0])
     np.testing.assert_allclose(road_lateral(bend, np.zeros(1), np.array([0.002])), [0.0])
     np.testing.assert_allclose(road_lateral(straight, np.array([0.02]), np.zeros(1)), [0.75])
+
+
+def test_approach_views_stand_the_car_at_the_drawn_gap_behind_the_next_car_in_its_lane():
+    from e2e_lite.learning.recovery import ApproachConfig, approach_views
+
+    cfg = small_cfg(n_samples=192)
+    data = collect(cfg, progress=False)
+    approach = ApproachConfig(fraction=1.0, gap_m=(2.0, 30.0), shift_m=0.0, rotation_rad=0.0)
+    views = approach_views(data, cfg, approach, progress=False)
+    rows = views.info["source_rows"]
+    assert 0 < len(views) <= len(data) and np.all(views.noise)  # marked: no driver trains on them
+    assert np.array_equal(views.d, data.d[rows]) and np.all(views.s > 0.0)
+    gap = views.affordances[:, AFFORDANCE_NAMES.index("gap_ego_m")]
+    # no shift: the car stays in its lane, so the gap is the drawn one (2-30 m; a car's heading
+    # jitter moves its rear by centimetres)
+    assert np.all((gap > 1.9) & (gap < 30.1)), gap
+    assert views.images.shape[1:] == data.images.shape[1:]
+    assert not np.array_equal(views.images, data.images[rows])  # re-rendered
+    again = approach_views(data, cfg, approach, progress=False)
+    assert np.array_equal(again.images, views.images)  # seeded

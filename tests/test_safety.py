@@ -18,6 +18,7 @@ from e2e_lite.driving.metrics import add_info
 from e2e_lite.experiments.safe_agent import SafeAgent, SafetyStats
 from e2e_lite.experiments.safety import (
     SafetyConfig,
+    brake_along,
     brake_to_lane,
     calibrate_gap_free,
     check,
@@ -177,6 +178,52 @@ def test_half_way_through_a_lane_change_the_fallback_brakes_on_into_the_lane_bei
     c = choose(straight(15.0)[None], np.array([1.0]), slow, 15.0, 0.0)
     assert c.verdicts[0].kind == "cannot stop" and len(c.verdicts) == 2
     assert np.allclose(c.points, keep_lane_brake(slow, 15.0, 0.0))
+
+
+def test_with_brake_along_path_a_parked_car_is_braked_for_on_the_networks_own_path():
+    """The perceived module's fallback (chapter 11): the heaviest mode heads for a car 30 m
+    ahead; the lanes beside look free, but the lane fallback would steer by perceived geometry.
+    With ``brake_along_path`` the mode's own path is driven, braking."""
+    along = SafetyConfig(brake_along_path=True)
+    a = aff(gap_ego=30.0)
+    drift = straight(25.0, y_end=0.4)  # the network's path, drifting a little left
+    c = choose(drift[None], np.array([1.0]), a, 25.0, 0.0, along)
+    assert c.source == "fallback" and np.allclose(c.points, brake_along(drift, 25.0, along))
+    assert not c.verdicts[0].ok and len(c.verdicts) == 1  # its brake fails too: the last resort
+    # without the option, the lane fallback brakes into the left lane's centre
+    lanes = choose(drift[None], np.array([1.0]), a, 25.0, 0.0)
+    assert np.allclose(lanes.points, brake_to_lane(a, 25.0, 0.0, 1))
+    # a passing braked path is taken from the modes heaviest first: 40 m ahead at 15 m/s, the
+    # mode's own path cannot stop, braking along it can
+    b = aff(gap_ego=40.0)
+    c = choose(straight(15.0)[None], np.array([1.0]), b, 15.0, 0.0, along)
+    assert c.verdicts[0].kind == "cannot stop" and c.verdicts[-1].ok
+    # a road-edge rejection keeps the lane fallback: the path itself leaves the road
+    off = straight(25.0, y_end=8.0)
+    edge = choose(off[None], np.array([1.0]), aff(), 25.0, 0.0, along)
+    assert edge.verdicts[0].kind == "road edge"
+    assert np.allclose(edge.points, choose(off[None], np.array([1.0]), aff(), 25.0, 0.0).points)
+    # stored keys: the option shows in the settings' text only when set
+    assert "brake_along_path" in repr(along) and "brake_along_path" not in repr(SafetyConfig())
+
+
+@settings(max_examples=60, deadline=None)
+@given(speed=st.floats(0.0, 40.0), y_end=st.floats(-4.0, 4.0), pace=st.floats(0.5, 1.5))
+def test_braking_along_a_path_stays_on_it_and_slows_down(speed, y_end, pace):
+    path = straight(pace * max(speed, 1.0), y_end=y_end)
+    pts = brake_along(path, speed)
+    assert pts.shape == (5, 2) and np.all(np.isfinite(pts))
+    whole = np.concatenate([np.zeros((1, 2)), pts])
+    steps = np.hypot(*np.diff(whole, axis=0).T)
+    assert np.all(np.diff(steps) <= 1e-9)  # never faster
+    assert steps.sum() <= speed * 1.5 + 1e-9  # never further than at the speed now
+    # every point lies on the proposed path: on the segment between two of its points
+    dense = np.concatenate([np.zeros((1, 2)), path])
+    u = np.linspace(0.0, 1.0, 2001)[:, None, None]
+    on_path = (dense[:-1] + u * np.diff(dense, axis=0)).reshape(-1, 2)
+    nearest = np.min(np.hypot(*(pts[:, None] - on_path[None]).transpose(2, 0, 1)), axis=1)
+    step = np.max(np.hypot(*np.diff(dense, axis=0).T)) / 2000
+    assert np.all(nearest <= step + 1e-6)
 
 
 def swerve_left(speed=25.0, t_across=0.6) -> np.ndarray:

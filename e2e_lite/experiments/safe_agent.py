@@ -171,7 +171,7 @@ class SafeAgent:
         """``k`` agents for parallel shards, sharing the model."""
         out = []
         for inner in self.agent.fork(k):
-            twin = SafeAgent.__new__(SafeAgent)
+            twin = type(self).__new__(type(self))
             twin.__dict__.update(self.__dict__)
             twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
             twin._driven = []

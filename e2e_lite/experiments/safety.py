@@ -33,7 +33,9 @@ to a lane centre): the first that passes the check among the current lane's and 
 nearest first to where the network's heaviest mode was going (a car half-way through a lane
 change brakes on into the lane it is entering, not back towards the car it is leaving);
 otherwise :func:`keep_lane_brake`, back to the centre of the current lane (the last resort,
-unchecked).
+unchecked). With ``SafetyConfig.brake_along_path``, a mode rejected for a parked car is instead
+braked along its own path (:func:`brake_along`): on perception, the lane fallback's path is made
+of the very affordances that are wrong (chapter 11).
 
 The driver that applies the rule to a trajectory network is :class:`~e2e_lite.experiments.safe_agent.SafeAgent`.
 """
@@ -76,6 +78,13 @@ class SafetyConfig:
             the check and braking there passes (see :func:`choose`). With the true affordances
             the keep-lane brake alone pulled cars half-way through a lane change back in front
             of the parked car they were passing (chapter 11).
+        brake_along_path: when no mode passes and the heaviest was rejected for a parked car
+            ("collision course" or "cannot stop"), brake along the modes' own paths
+            (:func:`brake_along`, heaviest first, the first that passes, else the heaviest's)
+            instead of steering to a lane centre; road-edge rejections keep the lane fallback.
+            A path to a lane centre is made of the perceived heading, offset and lane width, and
+            its lane is chosen by the perceived side gaps; the network's own path needs neither
+            (chapter 11 measures both fallbacks on perception).
         check_fallback: check the keep-lane braking fallback too, and when it would itself run
             into something within the horizon, drive the candidate whose violation comes latest
             (see :func:`choose`). Off by default: with the true affordances it traded car
@@ -95,6 +104,7 @@ class SafetyConfig:
     fallback_lanes: bool = True
     check_fallback: bool = False
     gap_free_side_m: float | None = field(default=None, repr=False)  # (shown when set)
+    brake_along_path: bool = field(default=False, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -111,11 +121,13 @@ class SafetyConfig:
             check_range(o, "gap_free_side_m", self.gap_free_side_m, 1.0, 1000.0)
 
     def __repr__(self) -> str:
-        # the dataclass's own form, with gap_free_side_m only when set (stored results are keyed
-        # by this text: settings without it keep their keys)
-        shown = [f"{f.name}={getattr(self, f.name)!r}" for f in fields(self) if f.repr]
-        if self.gap_free_side_m is not None:
-            shown.append(f"gap_free_side_m={self.gap_free_side_m!r}")
+        # the dataclass's own form, with the fields added later only when not at their defaults
+        # (stored results are keyed by this text: settings without them keep their keys)
+        shown = [
+            f"{f.name}={getattr(self, f.name)!r}"
+            for f in fields(self)
+            if f.repr or getattr(self, f.name) != f.default
+        ]
         return f"{type(self).__name__}({', '.join(shown)})"
 
     def free_from_m(self, lane: str) -> float:
@@ -343,6 +355,22 @@ def brake_to_lane(
     return np.stack([x, y], axis=1)
 
 
+def brake_along(
+    points: np.ndarray, speed_mps: float, cfg: SafetyConfig | None = None
+) -> np.ndarray:
+    """The path of ``points`` driven braking at ``cfg.brake_mps2`` from ``speed_mps`` to a stop:
+    each point at the distance braking covers by its time, measured along the polyline from the
+    car through the 5 points (an automatic emergency brake that keeps the planned path). ``(5,
+    2)`` car-frame points [m]; never past the path's end."""
+    cfg = cfg or SafetyConfig()
+    pts = np.concatenate([np.zeros((1, 2)), np.asarray(points, dtype=np.float64)])
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    v = max(0.0, float(speed_mps))
+    t = np.minimum(POINT_DT_S * np.arange(1, N_POINTS + 1), v / cfg.brake_mps2)
+    covered = np.minimum(v * t - 0.5 * cfg.brake_mps2 * t**2, along[-1])
+    return np.stack([np.interp(covered, along, pts[:, 0]), np.interp(covered, along, pts[:, 1])], 1)
+
+
 @dataclass
 class Choice:
     """What the module did for one car at one decision."""
@@ -361,6 +389,8 @@ def choose(
     cfg: SafetyConfig | None = None,
 ) -> Choice:
     """The fallback order: the heaviest mode if it passes, else the next heaviest that passes,
+    else, with ``cfg.brake_along_path`` and the heaviest rejected for a parked car, the modes'
+    paths braking (:func:`brake_along`; the first that passes, else the heaviest's),
     else (with ``cfg.fallback_lanes``) the first braking trajectory that passes among
     :func:`brake_to_lane` to the current lane and its two neighbours, ordered by how near each
     lane's centre is to where the heaviest mode ends (:func:`end_lateral`; on a tie the current
@@ -393,6 +423,15 @@ def choose(
         verdicts.append(verdict)
         if verdict.ok:
             return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
+    if cfg.brake_along_path and verdicts[0].kind in ("collision course", "cannot stop"):
+        for k in order.tolist():
+            brake = brake_along(modes[k], speed_mps, cfg)
+            verdict = check(brake, aff, speed_mps, curvature, cfg)
+            verdicts.append(verdict)
+            if verdict.ok:
+                return Choice(brake, "fallback", verdicts)
+        verdicts = verdicts[: len(order)]  # none passed: the heaviest mode's path, braking
+        return Choice(brake_along(modes[order[0]], speed_mps, cfg), "fallback", verdicts)
     if cfg.fallback_lanes:
         heading_to = end_lateral(modes[order[0]], aff, curvature) / lane_width(aff)
         for lanes in sorted((0, 1, -1), key=lambda n: (abs(heading_to - n), abs(n))):

@@ -1,9 +1,15 @@
-"""Recovery views (seed 003, PilotNet): the same recorded frames seen from a car shifted
-sideways and turned, each labelled with the steering that brings it back (chapter 05).
+"""Extra views of the recorded frames, rendered exactly (a real car would need extra cameras and
+a view synthesis):
 
-The renderer makes them exactly (a real car would need extra cameras and a view synthesis); the
-labels are recomputed with the LQR tracker from the shifted pose, the expert's clean trajectory
-expressed in the new car frame.
+* recovery views (seed 003, PilotNet; chapter 05): the same frames seen from a car shifted
+  sideways and turned, each labelled with the steering that brings it back (recomputed with the
+  LQR tracker from the shifted pose, the expert's clean trajectory expressed in the new car
+  frame);
+* approach views (chapter 11): the car moved along its lane to a random distance behind the
+  next parked car in it, and sideways, labelled with their affordances only. The expert changes
+  lanes long before a parked car comes near, so its frames almost never show one within 30 m
+  (4 of 4,000 validation frames within 15 m); a safety module reads the affordance head exactly
+  there, when the network it guards has not changed lanes in time.
 """
 
 from __future__ import annotations
@@ -132,6 +138,118 @@ def recovery_views(
         "source_rows": rows,
     }
     return DrivingData(out, dict(data.stats), info)
+
+
+@dataclass(frozen=True)
+class ApproachConfig:
+    """Approach views: frames re-rendered with the car behind the next parked car in its lane.
+
+    For a random subset of samples the car keeps its speed and its heading error (plus a turn),
+    moves sideways by a random shift, and moves along the road to ``gap_m`` behind the rear of
+    the next parked car in its lane (the gap measured from the front bumper, as the affordance).
+    Samples whose lane holds no parked car further on are skipped. The views carry the
+    recomputed affordances; their trajectory and commands are the source sample's, **not** labels
+    of the new pose, so the views train an affordance head only (:func:`~e2e_lite.learning.
+    recipes.perceiving`), never a driver (``noise`` is set on every view, which marks them).
+
+    Attributes:
+        fraction: share of samples that get one view.
+        gap_m: (min, max) of the uniform distance to the parked car [m].
+        shift_m: the lateral shift is uniform in +-this [m] (half a lane: the car may straddle a
+            marking, as a network does when it starts its lane change late).
+        rotation_rad: the heading offset is uniform in +-this [rad].
+        seed: seeds which samples and which offsets.
+    """
+
+    fraction: float = 0.25
+    gap_m: tuple[float, float] = (0.5, 50.0)
+    shift_m: float = 1.8
+    rotation_rad: float = 0.06
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        o = "ApproachConfig"
+        check_range(o, "fraction", self.fraction, 0.0, 1.0, lo_open=True)
+        check_pair(o, "gap_m", self.gap_m, lo=0.0)
+        check_range(o, "shift_m", self.shift_m, 0.0, 5.0)
+        check_range(o, "rotation_rad", self.rotation_rad, 0.0, 0.5)
+        check_range(o, "seed", self.seed, 0, integer=True)
+
+
+def approach_views(
+    data: DrivingData, data_cfg: DataConfig, cfg: ApproachConfig, progress: bool = True
+) -> DrivingData:
+    """Render approach views of ``data`` (made with ``data_cfg``); see :class:`ApproachConfig`."""
+    rng = np.random.default_rng([cfg.seed, 37])
+    n = len(data)
+    rows = np.sort(rng.choice(n, max(1, round(cfg.fraction * n)), replace=False))
+    gap = rng.uniform(*cfg.gap_m, len(rows))
+    shift = rng.uniform(-cfg.shift_m, cfg.shift_m, len(rows))
+    turn = rng.uniform(-cfg.rotation_rad, cfg.rotation_rad, len(rows))
+    worlds: dict[int, World] = {}
+    s_new = np.full(len(rows), np.nan)
+    for j, r in enumerate(rows.tolist()):  # where each view stands (cheap: no rendering)
+        t_idx = int(data.track[r])
+        if t_idx not in worlds:
+            worlds[t_idx] = make_world(data_cfg.world, data_cfg.split, t_idx)
+        w = worlds[t_idx]
+        cars, lane = w.cars, int(data.lane[r])
+        rear = cars.s - cars.length_m / 2.0  # (a jittered car's box reaches a few cm further)
+        ahead = np.flatnonzero((cars.lane == lane) & (rear > float(data.s[r])))
+        front = w.vehicle.length_m - w.vehicle.rear_overhang_m  # rear axle to front bumper
+        if len(ahead) and rear[ahead[0]] - front - gap[j] > 0.0:
+            s_new[j] = rear[ahead[0]] - front - gap[j]
+    keep = np.isfinite(s_new)
+    rows, s_new, shift, turn = rows[keep], s_new[keep], shift[keep], turn[keep]
+    m = len(rows)
+    out = {name: data.arrays[name][rows].copy() for name in ("images", *FIELDS)}
+    out["noise"][:] = True  # not the expert's clean driving: no driver may train on these rows
+    camera = Camera(data_cfg.camera)
+    chunk = 256
+    bar = tqdm(
+        total=m, desc="approach views", unit="view", disable=not progress, leave=False,
+        mininterval=0.5,
+    )  # fmt: skip
+    for lo in range(0, m, chunk):
+        sl = slice(lo, min(m, lo + chunk))
+        r = rows[sl]
+        ws = [worlds[int(t_idx)] for t_idx in data.track[r]]
+        s, d = s_new[sl], data.d[r].astype(np.float64) + shift[sl]
+        he = data.affordances[r, 0].astype(np.float64) + turn[sl]
+        pose = np.array([w.track.pose(si, di) for w, si, di in zip(ws, s, d)])
+        pose[:, 2] += he
+        out["s"][sl], out["d"][sl] = s, d
+        out["lane"][sl] = ws[0].track.lane_index(d)
+        out["affordances"][sl] = affordances(ws, s, d, he)
+        camera.render_batch(
+            [w.track for w in ws], [w.cars for w in ws], pose, s, out=out["images"][sl]
+        )
+        bar.update(len(r))
+    bar.close()
+    info = {
+        "key": settings_key("approach-v1", data.info["key"], cfg),
+        "split": data.info["split"],
+        "n_samples": m,
+        "source_key": data.info["key"],
+        "approach": cfg,
+        "source_rows": rows,
+    }
+    return DrivingData(out, dict(data.stats), info)
+
+
+def load_or_make_approach(
+    data: DrivingData,
+    data_cfg: DataConfig,
+    cfg: ApproachConfig | None = None,
+    progress: bool = True,
+) -> DrivingData:
+    """The approach views of ``data`` from disk if made by these settings, else render and save."""
+    cfg = cfg or ApproachConfig()
+    key = settings_key("approach-v1", data.info["key"], cfg)
+    path = artifact_path("data", f"{data_cfg.split}-{data_cfg.n_samples}-approach.npz")
+    return cached(
+        path, key, lambda: approach_views(data, data_cfg, cfg, progress), save_dataset, load_dataset
+    )
 
 
 def load_or_make_recovery(
