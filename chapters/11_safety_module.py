@@ -244,11 +244,15 @@ false_alarm_reasons = {"by_check": dict(why), "ghost_car_pct_of_free_frames": gh
 
 # %%
 train_rows = np.arange(0, len(train), max(1, len(train) // 4000))
-calibrated = [
-    calibrate_gap_free(cfg, perceive(TrajectoryAgent(p), train, train_rows)[0],
-                       train.arrays["affordances"][train_rows])
-    for p in perceivers
-]  # fmt: skip
+
+
+def calibrate(head) -> SafetyConfig:
+    """``cfg`` with the thresholds calibrated on ``head``'s answers on training frames."""
+    seen = perceive(TrajectoryAgent(head), train, train_rows)[0]
+    return calibrate_gap_free(cfg, seen, train.arrays["affordances"][train_rows])
+
+
+calibrated = [calibrate(p) for p in perceivers]
 print("calibrated per training seed (ego lane / left and right lanes): " + ", ".join(
     f"seed {k} {c.gap_free_m:.1f} / {c.gap_free_side_m:.1f} m" for k, c in enumerate(calibrated)
 ))  # fmt: skip
@@ -306,7 +310,8 @@ approached = [
 ]
 view_rows = np.arange(0, len(val_views), max(1, len(val_views) // 2000))
 true_views = val_views.arrays["affordances"][view_rows]
-gap_bins = ((0.0, 15.0), (15.0, 30.0), (30.0, 45.0), (45.0, GAP_CAP_M))
+gap_bins = tuple(itertools.pairwise(edges))  # section 1's distances
+off = AFFORDANCE_NAMES.index("center_offset_m")
 approach_error = {}
 print("| seed 0's head, ego gap MAE on approach views | " + " | ".join(
     f"{lo:.0f}-{hi:.0f} m" for lo, hi in gap_bins) + " | offset RMSE |")  # fmt: skip
@@ -321,15 +326,10 @@ for name, head in (
         float(np.mean(np.abs(seen_views[m, gap_i] - g[m]))) if m.any() else float("nan")
         for m in ((g >= lo) & (g < hi) for lo, hi in gap_bins)
     ]
-    off = AFFORDANCE_NAMES.index("center_offset_m")
     rmse = float(np.sqrt(np.mean((seen_views[:, off] - true_views[:, off]) ** 2)))
     approach_error[name] = {"gap_mae_m_by_bin": mae, "offset_rmse_m": rmse}
     print(f"| {name} | " + " | ".join(f"{v:.1f} m" for v in mae) + f" | {rmse:.2f} m |")
-calibrated_approach = [
-    calibrate_gap_free(cfg, perceive(TrajectoryAgent(p), train, train_rows)[0],
-                       train.arrays["affordances"][train_rows])
-    for p in approached
-]  # fmt: skip
+calibrated_approach = [calibrate(p) for p in approached]
 
 # %% [markdown]
 # The fallback has the same weakness from the other side: a braking path to a lane centre is

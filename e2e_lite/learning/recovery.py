@@ -14,7 +14,9 @@ a view synthesis):
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -73,6 +75,52 @@ def to_car_frame(points: np.ndarray, pose_from: np.ndarray, pose_to: np.ndarray)
     return np.stack([c1 * dx + s1 * dy, -s1 * dx + c1 * dy], axis=-1)
 
 
+def _world_cache(data_cfg: DataConfig) -> Callable[[np.ndarray], list[World]]:
+    """``worlds(track_ids)``: each row's world, every track built once."""
+    made: dict[int, World] = {}
+
+    def worlds(track_ids: np.ndarray) -> list[World]:
+        for t_idx in np.unique(track_ids).tolist():
+            if t_idx not in made:
+                made[t_idx] = make_world(data_cfg.world, data_cfg.split, t_idx)
+        return [made[int(t_idx)] for t_idx in track_ids]
+
+    return worlds
+
+
+def _poses(ws: list[World], s: np.ndarray, d: np.ndarray, heading_error: np.ndarray) -> np.ndarray:
+    """World poses ``(B, 3)`` of rear axles at lane-frame ``(s, d)`` turned by ``heading_error``
+    from the road [m, m, rad]."""
+    pose = np.array([w.track.pose(si, di) for w, si, di in zip(ws, s, d)])
+    pose[:, 2] += heading_error
+    return pose
+
+
+def _chunks(m: int, desc: str, progress: bool, size: int = 256) -> Iterator[slice]:
+    """Slices of ``size`` rows over ``m`` views, with a progress bar."""
+    bar = tqdm(total=m, desc=desc, unit="view", disable=not progress, leave=False, mininterval=0.5)
+    for lo in range(0, m, size):
+        sl = slice(lo, min(m, lo + size))
+        yield sl
+        bar.update(sl.stop - sl.start)
+    bar.close()
+
+
+def _views(
+    tag: str, name: str, data: DrivingData, cfg: Any, rows: np.ndarray, out: dict
+) -> DrivingData:
+    """The views' container: the source's statistics, their key and where they came from."""
+    info = {
+        "key": settings_key(tag, data.info["key"], cfg),
+        "split": data.info["split"],
+        "n_samples": len(rows),
+        "source_key": data.info["key"],
+        name: cfg,
+        "source_rows": rows,
+    }
+    return DrivingData(out, dict(data.stats), info)
+
+
 def recovery_views(
     data: DrivingData, data_cfg: DataConfig, cfg: RecoveryConfig, progress: bool = True
 ) -> DrivingData:
@@ -85,35 +133,18 @@ def recovery_views(
     turn = rng.uniform(-cfg.rotation_rad, cfg.rotation_rad, m)
     out = {name: data.arrays[name][rows].copy() for name in ("images", *FIELDS)}
     out["noise"][:] = False
-    worlds: dict[int, World] = {}
+    worlds = _world_cache(data_cfg)
     camera = Camera(data_cfg.camera)
     tracker = LQRTracker(vehicle=data_cfg.world.vehicle)
-    chunk = 256
-    bar = tqdm(
-        total=m,
-        desc="recovery views",
-        unit="view",
-        disable=not progress,
-        leave=False,
-        mininterval=0.5,
-    )
-    for lo in range(0, m, chunk):
-        sl = slice(lo, min(m, lo + chunk))
+    for sl in _chunks(m, "recovery views", progress):
         r = rows[sl]
-        tracks_idx = data.track[r]
-        for t_idx in np.unique(tracks_idx).tolist():
-            if t_idx not in worlds:
-                worlds[t_idx] = make_world(data_cfg.world, data_cfg.split, t_idx)
-        ws = [worlds[int(t_idx)] for t_idx in tracks_idx]
+        ws = worlds(data.track[r])
         s = data.s[r].astype(np.float64)
         d0 = data.d[r].astype(np.float64)
         d1 = d0 + shift[sl]
         he0 = data.affordances[r, 0].astype(np.float64)
         he1 = he0 + turn[sl]
-        pose0 = np.array([w.track.pose(si, di) for w, si, di in zip(ws, s, d0)])
-        pose1 = np.array([w.track.pose(si, di) for w, si, di in zip(ws, s, d1)])
-        pose0[:, 2] += he0
-        pose1[:, 2] += he1
+        pose0, pose1 = _poses(ws, s, d0, he0), _poses(ws, s, d1, he1)
         pts0 = data.trajectory[r].astype(np.float64)
         pts1 = to_car_frame(pts0, pose0, pose1)
         speed = data.speed[r].astype(np.float64)
@@ -127,17 +158,7 @@ def recovery_views(
         camera.render_batch(
             [w.track for w in ws], [w.cars for w in ws], pose1, s, out=out["images"][sl]
         )
-        bar.update(len(r))
-    bar.close()
-    info = {
-        "key": settings_key("recovery-v1", data.info["key"], cfg),
-        "split": data.info["split"],
-        "n_samples": m,
-        "source_key": data.info["key"],
-        "recovery": cfg,
-        "source_rows": rows,
-    }
-    return DrivingData(out, dict(data.stats), info)
+    return _views("recovery-v1", "recovery", data, cfg, rows, out)
 
 
 @dataclass(frozen=True)
@@ -186,13 +207,9 @@ def approach_views(
     gap = rng.uniform(*cfg.gap_m, len(rows))
     shift = rng.uniform(-cfg.shift_m, cfg.shift_m, len(rows))
     turn = rng.uniform(-cfg.rotation_rad, cfg.rotation_rad, len(rows))
-    worlds: dict[int, World] = {}
+    worlds = _world_cache(data_cfg)
     s_new = np.full(len(rows), np.nan)
-    for j, r in enumerate(rows.tolist()):  # where each view stands (cheap: no rendering)
-        t_idx = int(data.track[r])
-        if t_idx not in worlds:
-            worlds[t_idx] = make_world(data_cfg.world, data_cfg.split, t_idx)
-        w = worlds[t_idx]
+    for j, (w, r) in enumerate(zip(worlds(data.track[rows]), rows.tolist())):  # (no rendering)
         cars, lane = w.cars, int(data.lane[r])
         rear = cars.s - cars.length_m / 2.0  # (a jittered car's box reaches a few cm further)
         ahead = np.flatnonzero((cars.lane == lane) & (rear > float(data.s[r])))
@@ -201,40 +218,40 @@ def approach_views(
             s_new[j] = rear[ahead[0]] - front - gap[j]
     keep = np.isfinite(s_new)
     rows, s_new, shift, turn = rows[keep], s_new[keep], shift[keep], turn[keep]
-    m = len(rows)
     out = {name: data.arrays[name][rows].copy() for name in ("images", *FIELDS)}
     out["noise"][:] = True  # not the expert's clean driving: no driver may train on these rows
     camera = Camera(data_cfg.camera)
-    chunk = 256
-    bar = tqdm(
-        total=m, desc="approach views", unit="view", disable=not progress, leave=False,
-        mininterval=0.5,
-    )  # fmt: skip
-    for lo in range(0, m, chunk):
-        sl = slice(lo, min(m, lo + chunk))
+    for sl in _chunks(len(rows), "approach views", progress):
         r = rows[sl]
-        ws = [worlds[int(t_idx)] for t_idx in data.track[r]]
+        ws = worlds(data.track[r])
         s, d = s_new[sl], data.d[r].astype(np.float64) + shift[sl]
         he = data.affordances[r, 0].astype(np.float64) + turn[sl]
-        pose = np.array([w.track.pose(si, di) for w, si, di in zip(ws, s, d)])
-        pose[:, 2] += he
         out["s"][sl], out["d"][sl] = s, d
         out["lane"][sl] = ws[0].track.lane_index(d)
         out["affordances"][sl] = affordances(ws, s, d, he)
         camera.render_batch(
-            [w.track for w in ws], [w.cars for w in ws], pose, s, out=out["images"][sl]
-        )
-        bar.update(len(r))
-    bar.close()
-    info = {
-        "key": settings_key("approach-v1", data.info["key"], cfg),
-        "split": data.info["split"],
-        "n_samples": m,
-        "source_key": data.info["key"],
-        "approach": cfg,
-        "source_rows": rows,
-    }
-    return DrivingData(out, dict(data.stats), info)
+            [w.track for w in ws], [w.cars for w in ws], _poses(ws, s, d, he), s,
+            out=out["images"][sl],
+        )  # fmt: skip
+    return _views("approach-v1", "approach", data, cfg, rows, out)
+
+
+def _load_or_make(
+    tag: str,
+    kind: str,
+    make: Callable[..., DrivingData],
+    data: DrivingData,
+    data_cfg: DataConfig,
+    cfg: Any,
+    progress: bool,
+) -> DrivingData:
+    """Views of ``data`` from ``<outputs>/data/<split>-<n>-<kind>.npz`` if made by these settings,
+    else ``make(data, data_cfg, cfg, progress)``, saved there."""
+    key = settings_key(tag, data.info["key"], cfg)
+    path = artifact_path("data", f"{data_cfg.split}-{data_cfg.n_samples}-{kind}.npz")
+    return cached(
+        path, key, lambda: make(data, data_cfg, cfg, progress), save_dataset, load_dataset
+    )
 
 
 def load_or_make_approach(
@@ -245,11 +262,7 @@ def load_or_make_approach(
 ) -> DrivingData:
     """The approach views of ``data`` from disk if made by these settings, else render and save."""
     cfg = cfg or ApproachConfig()
-    key = settings_key("approach-v1", data.info["key"], cfg)
-    path = artifact_path("data", f"{data_cfg.split}-{data_cfg.n_samples}-approach.npz")
-    return cached(
-        path, key, lambda: approach_views(data, data_cfg, cfg, progress), save_dataset, load_dataset
-    )
+    return _load_or_make("approach-v1", "approach", approach_views, data, data_cfg, cfg, progress)
 
 
 def load_or_make_recovery(
@@ -260,8 +273,4 @@ def load_or_make_recovery(
 ) -> DrivingData:
     """The recovery views of ``data`` from disk if made by these settings, else render and save."""
     cfg = cfg or RecoveryConfig()
-    key = settings_key("recovery-v1", data.info["key"], cfg)
-    path = artifact_path("data", f"{data_cfg.split}-{data_cfg.n_samples}-recovery.npz")
-    return cached(
-        path, key, lambda: recovery_views(data, data_cfg, cfg, progress), save_dataset, load_dataset
-    )
+    return _load_or_make("recovery-v1", "recovery", recovery_views, data, data_cfg, cfg, progress)
