@@ -304,6 +304,8 @@ for name, ok, net, ghost in (
 # %%
 views = load_or_make_approach(train, DataConfig.for_profile(profile, "train"))
 val_views = load_or_make_approach(val, DataConfig.for_profile(profile, "val"))
+print(f"approach views: {len(views):,} training, {len(val_views):,} validation (lanes with no "
+      "parked car further on give none)")  # fmt: skip
 approached = [
     recipes.perceiving(policy.model, train, f"11_{key}_seed{k}_approach", views=views)
     for k, policy in enumerate(seeded)
