@@ -340,6 +340,8 @@ calibrated_approach = [calibrate(p) for p in approached]
 # along the network's own path (`safety.brake_along`) when a parked car was the reason; a
 # road-edge rejection keeps the lane fallback (braking along a path that leaves the road would
 # follow it into the rail). Section 2 drives the module with each change alone and with both.
+# Two controls follow them: both changes with the true geometry, or with the true heading
+# alone, in place of the network's (the rest predicted): which errors the changes leave.
 
 # %% [markdown]
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
@@ -385,6 +387,10 @@ variants = (
     ("perceived, approach views + brake along path", "approachpath", both, {}, approached),
     ("perceived, brake along path", "alongpath", along, {}, perceivers),
     ("perceived, approach views", "approach", calibrated_approach, {}, approached),
+    ("perceived, approach views + brake along path, true geometry", "approachpath_truegeometry",
+     both, {"true_affordances": GEOMETRY}, approached),
+    ("perceived, approach views + brake along path, true heading", "approachpath_trueheading",
+     both, {"true_affordances": ("heading_rad",)}, approached),
     ("perceived, uncalibrated", "perceived", [cfg] * n_seeds, {}, perceivers),  # (it crawls)
 )  # fmt: skip
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
