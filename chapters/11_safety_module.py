@@ -667,6 +667,9 @@ artifacts.write_metrics(
 #   module's own fallback's.
 # * A fallback is a driver too, and it must be checked like one: braking back to the lane
 #   centre, half-way through a lane change, steers the car back towards the car it is passing.
+# * A head is judged where the module reads it, not on the expert's frames: the approach views
+#   show it parked cars at the distances the module brakes for. Replacing one perceived
+#   affordance at a time by the truth then says what is left to perceive (here, the heading).
 #
 # ## Exercises
 #
@@ -684,3 +687,9 @@ artifacts.write_metrics(
 #    true affordances (seed 0, 40 mi, before `fallback_lanes` existed) it turned 21 car / 13 rail
 #    collisions into 12 / 23. Why would fewer car collisions come with more rail ones? (Look at
 #    the speed at impact.)
+# 6. The heading is what the module with both changes still gets wrong (section 2's "true
+#    heading" row). Render views of wider poses for the head refit (`recovery.RecoveryConfig`
+#    with `shift_m=(0.0, 2.0)` and `rotation_rad=0.3`; join them to the approach views with
+#    `learning.dataset.concat` and pass both to `recipes.perceiving(..., views=)` under a new
+#    name). Does the heading improve where the module takes the car (slow, turned)? What does
+#    it cost the gaps on the approach views, and the collisions?
