@@ -346,10 +346,11 @@ calibrated_approach = [calibrate(p) for p in approached]
 # %% [markdown]
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
 #
-# The perceived module uses each seed's calibrated thresholds. Three controls follow the
+# The perceived module uses each seed's calibrated thresholds. Controls follow the
 # ground-truth row: the module with the true gaps or the true geometry (heading, offset,
 # markings, edges) in place of the network's, the rest predicted (whose errors cost the
-# collisions), and with the uncalibrated 59.5 m (what the calibration does).
+# collisions); section 1's two changes, together, each alone, and together with the true
+# geometry or the true heading; and the uncalibrated 59.5 m (what the calibration does).
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
 # sends the module's counters home). Every training seed of the driver drives its share of the
@@ -370,13 +371,13 @@ without = stored[key]
 guarded = {}
 stats = {}
 GEOMETRY = tuple(n for n in AFFORDANCE_NAMES if n not in GAP_NAMES)  # heading, offset, distances
-# (name, what the stored results are called, each seed's settings, how the module perceives):
-# the calibrated module, its upper bound, then three controls: with the true gaps or the true
-# geometry (the rest predicted), which say whose errors cost the collisions; and uncalibrated
 n_seeds = len(seeded)
 along = [dataclasses.replace(c, brake_along_path=True) for c in calibrated]
 both = [dataclasses.replace(c, brake_along_path=True) for c in calibrated_approach]
-# (name, stored as, settings per seed, how the module perceives, heads per seed)
+# (name, stored as, settings per seed, how the module perceives, heads per seed): the calibrated
+# module, its upper bound, the true gaps or the true geometry in place of the head's (the rest
+# predicted: whose errors cost the collisions), section 1's two changes together and alone, the
+# two together with the true geometry or the true heading (what they leave), and uncalibrated
 variants = (
     ("perceived", "calibrated", calibrated, {}, perceivers),
     ("ground truth", "truth", [cfg] * n_seeds, {"ground_truth": True}, perceivers),

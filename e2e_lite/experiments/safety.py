@@ -319,6 +319,14 @@ def end_lateral(points: np.ndarray, aff: np.ndarray, curvature: float) -> float:
     return float(a[_A["center_offset_m"]] + y + a[_A["heading_rad"]] * x - curvature * x * x / 2)
 
 
+def braking_progress(speed_mps: float, brake_mps2: float) -> np.ndarray:
+    """How far a car at ``speed_mps`` [m/s] braking at ``brake_mps2`` [m/s^2] to a stop has gone
+    at each of the 5 points' times: ``(5,)`` [m], never decreasing, constant once stopped."""
+    v = max(0.0, float(speed_mps))
+    t = np.minimum(POINT_DT_S * np.arange(1, N_POINTS + 1), v / brake_mps2)
+    return v * t - 0.5 * brake_mps2 * t**2
+
+
 def keep_lane_brake(
     aff: np.ndarray, speed_mps: float, curvature: float, cfg: SafetyConfig | None = None
 ) -> np.ndarray:
@@ -341,11 +349,8 @@ def brake_to_lane(
     and the speed never increases."""
     cfg = cfg or SafetyConfig()
     a = np.asarray(aff, dtype=np.float64)
-    v = max(0.0, float(speed_mps))
+    x = braking_progress(speed_mps, cfg.brake_mps2)
     t = POINT_DT_S * np.arange(1, N_POINTS + 1)
-    t_stop = v / cfg.brake_mps2
-    tc = np.minimum(t, t_stop)
-    x = v * tc - 0.5 * cfg.brake_mps2 * tc**2
     u = t / t[-1]
     blend = u**3 * (10.0 - 15.0 * u + 6.0 * u**2)  # quintic: no lateral jerk at the ends
     offset = float(np.clip(a[_A["center_offset_m"]], -5.0, 5.0))
@@ -365,9 +370,7 @@ def brake_along(
     cfg = cfg or SafetyConfig()
     pts = np.concatenate([np.zeros((1, 2)), np.asarray(points, dtype=np.float64)])
     along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
-    v = max(0.0, float(speed_mps))
-    t = np.minimum(POINT_DT_S * np.arange(1, N_POINTS + 1), v / cfg.brake_mps2)
-    covered = np.minimum(v * t - 0.5 * cfg.brake_mps2 * t**2, along[-1])
+    covered = np.minimum(braking_progress(speed_mps, cfg.brake_mps2), along[-1])
     return np.stack([np.interp(covered, along, pts[:, 0]), np.interp(covered, along, pts[:, 1])], 1)
 
 
@@ -424,14 +427,15 @@ def choose(
         if verdict.ok:
             return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
     if cfg.brake_along_path and verdicts[0].kind in ("collision course", "cannot stop"):
+        heaviest = brake_along(modes[order[0]], speed_mps, cfg)
         for k in order.tolist():
-            brake = brake_along(modes[k], speed_mps, cfg)
+            brake = heaviest if k == order[0] else brake_along(modes[k], speed_mps, cfg)
             verdict = check(brake, aff, speed_mps, curvature, cfg)
             verdicts.append(verdict)
             if verdict.ok:
                 return Choice(brake, "fallback", verdicts)
         verdicts = verdicts[: len(order)]  # none passed: the heaviest mode's path, braking
-        return Choice(brake_along(modes[order[0]], speed_mps, cfg), "fallback", verdicts)
+        return Choice(heaviest, "fallback", verdicts)
     if cfg.fallback_lanes:
         heading_to = end_lateral(modes[order[0]], aff, curvature) / lane_width(aff)
         for lanes in sorted((0, 1, -1), key=lambda n: (abs(heading_to - n), abs(n))):

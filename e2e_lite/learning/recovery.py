@@ -106,12 +106,18 @@ def _chunks(m: int, desc: str, progress: bool, size: int = 256) -> Iterator[slic
     bar.close()
 
 
+def _key(tag: str, data: DrivingData, cfg: Any) -> str:
+    """The views' key: their kind's tag, the source data's key and their settings (what the
+    disk cache compares)."""
+    return settings_key(tag, data.info["key"], cfg)
+
+
 def _views(
     tag: str, name: str, data: DrivingData, cfg: Any, rows: np.ndarray, out: dict
 ) -> DrivingData:
     """The views' container: the source's statistics, their key and where they came from."""
     info = {
-        "key": settings_key(tag, data.info["key"], cfg),
+        "key": _key(tag, data, cfg),
         "split": data.info["split"],
         "n_samples": len(rows),
         "source_key": data.info["key"],
@@ -247,10 +253,13 @@ def _load_or_make(
 ) -> DrivingData:
     """Views of ``data`` from ``<outputs>/data/<split>-<n>-<kind>.npz`` if made by these settings,
     else ``make(data, data_cfg, cfg, progress)``, saved there."""
-    key = settings_key(tag, data.info["key"], cfg)
     path = artifact_path("data", f"{data_cfg.split}-{data_cfg.n_samples}-{kind}.npz")
     return cached(
-        path, key, lambda: make(data, data_cfg, cfg, progress), save_dataset, load_dataset
+        path,
+        _key(tag, data, cfg),
+        lambda: make(data, data_cfg, cfg, progress),
+        save_dataset,
+        load_dataset,
     )
 
 
