@@ -342,6 +342,21 @@ calibrated_approach = [calibrate(p) for p in approached]
 # follow it into the rail). Section 2 drives the module with each change alone and with both.
 # Two controls follow them: both changes with the true geometry, or with the true heading
 # alone, in place of the network's (the rest predicted): which errors the changes leave.
+#
+# The heading is what they leave (section 2). The head learned it from the expert's frames,
+# near the lane centre at cruise speed, where it is sharp; slow or turned, where the module's
+# braking takes the car, it errs several times more and answers small headings for large ones
+# (the README's trace of it along seed 0's roads). A car knows how far it has turned: a gyro gives
+# its yaw change between decisions exactly. `SafetyConfig(gyro_heading=True)` fuses the two,
+# each decision, per car (`safe_agent.fuse_heading`, a complementary filter):
+#
+# $$h_t = (1 - g)\,(h_{t-1} + \Delta\psi - \kappa v \Delta t) + g\,\hat h_t,\qquad
+#   g = \mathrm{clip}\big((v / 25\ \mathrm{m/s})^2,\ 0.1,\ 1\big)$$
+#
+# predict with the gyro (the car turned by $\Delta\psi$, the road under it by $\kappa v \Delta t$),
+# correct with the camera's $\hat h_t$, trusting the camera fully at cruise speed and a tenth at
+# a standstill; a car just placed starts from the camera's answer. The row "+ gyro heading"
+# drives both changes with it.
 
 # %% [markdown]
 # ## 2. Closed loop: without, with (perceived), with (ground truth)
@@ -349,8 +364,9 @@ calibrated_approach = [calibrate(p) for p in approached]
 # The perceived module uses each seed's calibrated thresholds. Controls follow the
 # ground-truth row: the module with the true gaps or the true geometry (heading, offset,
 # markings, edges) in place of the network's, the rest predicted (whose errors cost the
-# collisions); section 1's two changes, together, each alone, and together with the true
-# geometry or the true heading; and the uncalibrated 59.5 m (what the calibration does).
+# collisions); section 1's two changes, together, each alone, together with the true
+# geometry or the true heading, and together with the gyro's heading; and the uncalibrated
+# 59.5 m (what the calibration does).
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
 # sends the module's counters home). Every training seed of the driver drives its share of the
@@ -374,10 +390,12 @@ GEOMETRY = tuple(n for n in AFFORDANCE_NAMES if n not in GAP_NAMES)  # heading, 
 n_seeds = len(seeded)
 along = [dataclasses.replace(c, brake_along_path=True) for c in calibrated]
 both = [dataclasses.replace(c, brake_along_path=True) for c in calibrated_approach]
+gyro = [dataclasses.replace(c, gyro_heading=True) for c in both]  # (the heading fused, above)
 # (name, stored as, settings per seed, how the module perceives, heads per seed): the calibrated
 # module, its upper bound, the true gaps or the true geometry in place of the head's (the rest
 # predicted: whose errors cost the collisions), section 1's two changes together and alone, the
-# two together with the true geometry or the true heading (what they leave), and uncalibrated
+# two together with the true geometry or the true heading (what they leave) or with the heading
+# fused with a gyro, and uncalibrated
 variants = (
     ("perceived", "calibrated", calibrated, {}, perceivers),
     ("ground truth", "truth", [cfg] * n_seeds, {"ground_truth": True}, perceivers),
@@ -392,6 +410,8 @@ variants = (
      both, {"true_affordances": GEOMETRY}, approached),
     ("perceived, approach views + brake along path, true heading", "approachpath_trueheading",
      both, {"true_affordances": ("heading_rad",)}, approached),
+    ("perceived, approach views + brake along path + gyro heading", "approachpath_gyro",
+     gyro, {}, approached),
     ("perceived, uncalibrated", "perceived", [cfg] * n_seeds, {}, perceivers),  # (it crawls)
 )  # fmt: skip
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
@@ -671,6 +691,9 @@ artifacts.write_metrics(
 # * A head is judged where the module reads it, not on the expert's frames: the approach views
 #   show it parked cars at the distances the module brakes for. Replacing one perceived
 #   affordance at a time by the truth then says what is left to perceive (here, the heading).
+# * What a camera perceives poorly, another sensor may know: the car's own yaw rate carries the
+#   heading through the slow, turned states the head never learned, and the camera corrects its
+#   drift at speed.
 #
 # ## Exercises
 #

@@ -15,7 +15,13 @@ from e2e_lite.control.labels import GAP_NAMES
 from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.driving.metrics import add_info
-from e2e_lite.experiments.safe_agent import SafeAgent, SafetyStats
+from e2e_lite.experiments.safe_agent import (
+    GYRO_FULL_SPEED_MPS,
+    GYRO_MIN_CAMERA_WEIGHT,
+    SafeAgent,
+    SafetyStats,
+    fuse_heading,
+)
 from e2e_lite.experiments.safety import (
     SafetyConfig,
     brake_along,
@@ -406,6 +412,67 @@ def test_true_affordances_replace_only_the_named_predictions():
     assert fingerprint(mended) != fingerprint(SafeAgent(BlindToCars(), audit=False))
     with pytest.raises(ValueError, match="not affordances"):
         SafeAgent(BlindToCars(), true_affordances=("gap_ahead",))
+
+
+def test_the_fused_heading_is_the_cameras_at_cruise_and_the_gyros_when_slow():
+    one = np.ones(3)
+    last, camera, turned = 0.10 * one, np.array([0.0, 0.0, 0.3]), 0.02 * one
+    speed, kappa = np.array([GYRO_FULL_SPEED_MPS, 0.0, 30.0]), np.array([0.0, 0.0, 0.01])
+    fused = fuse_heading(last, camera, turned, speed, kappa, 0.1)
+    assert fused[0] == camera[0] and fused[2] == camera[2]  # at and above cruise: the camera
+    g = GYRO_MIN_CAMERA_WEIGHT  # at standstill: mostly the gyro's prediction
+    assert fused[1] == pytest.approx((1 - g) * (0.10 + 0.02) + g * 0.0)
+    # the road turning under a moving car turns the heading to the lane the other way
+    half = GYRO_FULL_SPEED_MPS / 2
+    at_half = fuse_heading(last[:1], camera[:1], turned[:1], np.array([half]), kappa[2:], 0.1)
+    assert at_half[0] == pytest.approx(0.75 * (0.12 - 0.01 * half * 0.1))
+
+
+class NoisyHeading(StraightOn):
+    """StraightOn with exact affordances except the heading, misread by N(0, 0.05 rad) each
+    decision (independently: what a gyro can average away)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rng = np.random.default_rng(0)
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        pts = super().trajectories(obs)
+        seen = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        seen[:, AFFORDANCE_NAMES.index("heading_rad")] += self.rng.normal(0.0, 0.05, len(seen))
+        self.last["affordances"] = seen
+        return pts
+
+
+def test_the_gyro_heading_averages_away_a_noisy_camera_and_restarts_with_each_car():
+    col = AFFORDANCE_NAMES.index("heading_rad")
+    rows = []
+
+    class Recording(SafeAgent):
+        def act(self, obs: Observation) -> Actuation:
+            out = super().act(obs)
+            truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)[:, col]
+            camera, fused = self.agent.last["affordances"][:, col], self.last["seen"][:, col]
+            rows.append((camera - truth, fused - truth, obs.respawned.copy(), camera, fused))
+            return out
+
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=0.5, n_worlds=2, n_tracks=2)
+    agent = Recording(NoisyHeading(), SafetyConfig(gyro_heading=True), audit=False)
+    evaluate(agent, world, cfg, progress=False)
+    cam_err, fused_err = (np.concatenate([r[k] for r in rows]) for k in (0, 1))
+    rmse = lambda e: float(np.sqrt(np.mean(e**2)))  # noqa: E731
+    assert rmse(fused_err) < 0.8 * rmse(cam_err)  # about 0.7 at 20 m/s (g = 0.64)
+    respawned = np.concatenate([r[2] for r in rows])
+    assert respawned.sum() >= 2  # (the start, at least)
+    camera, fused = (np.concatenate([r[k] for r in rows]) for k in (3, 4))
+    assert np.array_equal(fused[respawned], camera[respawned])  # a placed car starts afresh
+    assert not np.array_equal(fused[~respawned], camera[~respawned])
+    from e2e_lite.experiments.ablation import fingerprint
+
+    plain = SafeAgent(NoisyHeading(), audit=False)
+    assert fingerprint(agent) != fingerprint(plain)
+    assert "gyro_heading" not in repr(SafetyConfig())  # stored results keep their keys
 
 
 def test_the_perceived_check_needs_predicted_affordances():

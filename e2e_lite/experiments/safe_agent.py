@@ -23,6 +23,7 @@ from ..control.expert import Expert
 from ..control.labels import AFFORDANCE_INDEX, AFFORDANCE_NAMES
 from ..learning.data import affordances
 from ..simulation.policy import Actuation, Observation
+from ..simulation.vehicle import H
 from ..simulation.world import SimConfig
 from .safety import SafetyConfig, check, choose
 
@@ -31,6 +32,46 @@ COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
 TABLES = ("sources", "kinds", "at_impact", "before_impact")
 #: the decisions before a collision in which :class:`SafeAgent` counts its interventions (3 s)
 BEFORE_IMPACT = 30
+#: the speed from which the fused heading is the camera's alone [m/s] (the roads' cruise speed)
+GYRO_FULL_SPEED_MPS = 25.0
+#: the camera's least weight in the fused heading (at standstill)
+GYRO_MIN_CAMERA_WEIGHT = 0.1
+_HEADING = AFFORDANCE_INDEX["heading_rad"]
+
+
+def fuse_heading(
+    previous: np.ndarray,
+    camera: np.ndarray,
+    yaw_change: np.ndarray,
+    speed_mps: np.ndarray,
+    curvature: np.ndarray,
+    dt_s: float,
+) -> np.ndarray:
+    r"""One step of a complementary filter on the heading to the lane [rad], per car.
+
+    The camera's heading is sharp at cruise speed and poor when the car is slow or turned (the
+    views it learned from are the expert's); the car's own yaw rate (a gyro) is exact over a few
+    decisions. Predict with the gyro, correct with the camera, trusting it more the faster:
+
+        h_t = (1 - g) (h_{t-1} + dpsi - kappa v dt) + g h_camera,
+        g = clip((v / GYRO_FULL_SPEED_MPS)^2, GYRO_MIN_CAMERA_WEIGHT, 1)
+
+    Args:
+        previous: the fused heading at the last decision [rad], ``(B,)``.
+        camera: the perceived heading now [rad], ``(B,)``.
+        yaw_change: the car's yaw change since the last decision [rad], ``(B,)`` (wrapped).
+        speed_mps: speeds [m/s], ``(B,)``.
+        curvature: the road's curvature [1/m], ``(B,)`` (kappa v dt: how far the road turned
+            under the car).
+        dt_s: time since the last decision [s].
+
+    Returns:
+        The fused heading [rad], ``(B,)``.
+    """
+    v = np.maximum(np.asarray(speed_mps, dtype=float), 0.0)
+    g = np.clip((v / GYRO_FULL_SPEED_MPS) ** 2, GYRO_MIN_CAMERA_WEIGHT, 1.0)
+    predicted = previous + yaw_change - curvature * v * dt_s
+    return (1.0 - g) * predicted + g * camera
 
 
 @dataclass
@@ -157,6 +198,7 @@ class SafeAgent:
         self._kept = 0  # examples reported since the last reset
         self._driven: list[str] = []  # each car's last source
         self._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)  # each car's recent decisions
+        self._gyro: tuple[float, np.ndarray, np.ndarray] | None = None  # time, yaw, fused heading
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
 
@@ -166,6 +208,7 @@ class SafeAgent:
         self._kept = 0
         self._driven = [""] * n_worlds
         self._overrode = np.zeros((n_worlds, BEFORE_IMPACT), dtype=bool)
+        self._gyro = None
 
     def fork(self, k: int) -> list[SafeAgent]:
         """``k`` agents for parallel shards, sharing the model."""
@@ -176,6 +219,7 @@ class SafeAgent:
             twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
             twin._driven = []
             twin._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)
+            twin._gyro = None
             out.append(twin)
         return out
 
@@ -201,6 +245,9 @@ class SafeAgent:
         if self.true_affordances and not self.ground_truth:
             seen = seen.copy()
             seen[:, self._true_columns] = truth[:, self._true_columns]
+        if self.cfg.gyro_heading and not self.ground_truth:
+            seen = seen.copy()
+            seen[:, _HEADING] = self._fused_heading(obs, seen[:, _HEADING])
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
         for i in range(len(proposal)):
@@ -263,12 +310,25 @@ class SafeAgent:
             "before_impact": before_impact,
             "examples": examples,
         }
-        self.last = {"chosen": chosen, "sources": sources}
+        self.last = {"chosen": chosen, "sources": sources, "seen": seen}
         self._driven = sources
         if len(self._overrode) == len(sources):
             self._overrode = np.roll(self._overrode, -1, axis=1)
             self._overrode[:, -1] = [src != "network" for src in sources]
         return dataclasses.replace(self.agent.follow(chosen, obs), info=info)
+
+    def _fused_heading(self, obs: Observation, camera: np.ndarray) -> np.ndarray:
+        """The perceived heading fused with each car's yaw change since the last decision
+        (:func:`fuse_heading`); a car just (re)placed starts from the camera's [rad]."""
+        yaw = obs.state[:, H].copy()
+        fused = camera.copy()
+        if self._gyro is not None and len(self._gyro[1]) == len(yaw):
+            t, last_yaw, last = self._gyro
+            turned = (yaw - last_yaw + np.pi) % (2.0 * np.pi) - np.pi
+            step = fuse_heading(last, camera, turned, obs.speed, obs.curvature, obs.time_s - t)
+            fused = np.where(obs.respawned, camera, step)
+        self._gyro = (obs.time_s, yaw, fused)
+        return fused
 
 
 def _expert_labels(obs: Observation, idx: list[int], sim: SimConfig | None = None) -> np.ndarray:

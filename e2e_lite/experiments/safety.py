@@ -90,6 +90,9 @@ class SafetyConfig:
             (see :func:`choose`). Off by default: with the true affordances it traded car
             collisions for rail collisions (seed 0, 40 mi: 12 car / 23 rail against 21 / 13
             unchecked; measured before ``fallback_lanes``); chapter 11's exercise 5.
+        gyro_heading: fuse the perceived heading with the car's own yaw rate (a gyro) before
+            the check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`): the camera's
+            heading is sharp at cruise speed and poor when the car is slow or turned.
     """
 
     reaction_s: float = 0.2
@@ -105,6 +108,7 @@ class SafetyConfig:
     check_fallback: bool = False
     gap_free_side_m: float | None = field(default=None, repr=False)  # (shown when set)
     brake_along_path: bool = field(default=False, repr=False)  # (shown when set)
+    gyro_heading: bool = field(default=False, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
