@@ -365,8 +365,8 @@ calibrated_approach = [calibrate(p) for p in approached]
 # ground-truth row: the module with the true gaps or the true geometry (heading, offset,
 # markings, edges) in place of the network's, the rest predicted (whose errors cost the
 # collisions); section 1's two changes, together, each alone, together with the true
-# geometry or the true heading, and together with the gyro's heading; and the uncalibrated
-# 59.5 m (what the calibration does).
+# geometry or the true heading, and together with the gyro's heading (alone, and with the true
+# gaps: what is left after it); and the uncalibrated 59.5 m (what the calibration does).
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
 # sends the module's counters home). Every training seed of the driver drives its share of the
@@ -395,7 +395,7 @@ gyro = [dataclasses.replace(c, gyro_heading=True) for c in both]  # (the heading
 # module, its upper bound, the true gaps or the true geometry in place of the head's (the rest
 # predicted: whose errors cost the collisions), section 1's two changes together and alone, the
 # two together with the true geometry or the true heading (what they leave) or with the heading
-# fused with a gyro, and uncalibrated
+# fused with a gyro (and then the true gaps: what the gyro leaves), and uncalibrated
 variants = (
     ("perceived", "calibrated", calibrated, {}, perceivers),
     ("ground truth", "truth", [cfg] * n_seeds, {"ground_truth": True}, perceivers),
@@ -412,6 +412,8 @@ variants = (
      both, {"true_affordances": ("heading_rad",)}, approached),
     ("perceived, approach views + brake along path + gyro heading", "approachpath_gyro",
      gyro, {}, approached),
+    ("perceived, approach views + brake along path + gyro heading, true gaps",
+     "approachpath_gyro_truegaps", gyro, {"true_affordances": GAP_NAMES}, approached),
     ("perceived, uncalibrated", "perceived", [cfg] * n_seeds, {}, perceivers),  # (it crawls)
 )  # fmt: skip
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
