@@ -719,3 +719,7 @@ artifacts.write_metrics(
 #    `learning.dataset.concat` and pass both to `recipes.perceiving(..., views=)` under a new
 #    name). Does the heading improve where the module takes the car (slow, turned)? What does
 #    it cost the gaps on the approach views, and the collisions?
+# 7. With the gyro's heading and the true gaps the module still collides, slowly and after its
+#    own fallback (section 2). Which fallback is it? Drive the ground-truth module with
+#    `brake_along_path=True`, and the gyro row with `brake_along_path=False`. What would a
+#    fallback need to be right on perception: which affordances does each one read?
