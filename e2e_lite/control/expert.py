@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import check_pair, check_range
-from ..simulation.geometry import Track
+from ..simulation.geometry import Track, wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
@@ -296,7 +296,7 @@ class Expert:
         for k in range(N_POINTS * per_point):
             if k:
                 s, d, road_h, kap = lane_frame(tracks, st, seg)
-                he = (st[:, H] - road_h + np.pi) % (2 * np.pi) - np.pi
+                he = wrap_angle(st[:, H] - road_h)
             steer, accel = self._decide(plans, st, s, d, he, kap, obs.worlds, False)
             for _ in range(self.sim.steps_per_policy):
                 bicycle_step(st, steer, accel, self.vehicle, self.sim.dt_s)

@@ -22,6 +22,7 @@ from ..config import check_range
 from ..control.expert import Expert
 from ..control.labels import AFFORDANCE_INDEX, AFFORDANCE_NAMES
 from ..learning.data import affordances
+from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H
 from ..simulation.world import SimConfig
@@ -242,12 +243,12 @@ class SafeAgent:
         if not self.ground_truth and "affordances" not in last:
             raise ValueError("the agent predicted no affordances; use ground_truth=True")
         seen = truth if self.ground_truth else last["affordances"]
-        if self.true_affordances and not self.ground_truth:
-            seen = seen.copy()
-            seen[:, self._true_columns] = truth[:, self._true_columns]
-        if self.cfg.gyro_heading and not self.ground_truth:
-            seen = seen.copy()
-            seen[:, _HEADING] = self._fused_heading(obs, seen[:, _HEADING])
+        if not self.ground_truth and (self.true_affordances or self.cfg.gyro_heading):
+            seen = seen.copy()  # (the agent's own predictions stay as they were)
+            if self.true_affordances:
+                seen[:, self._true_columns] = truth[:, self._true_columns]
+            if self.cfg.gyro_heading:
+                seen[:, _HEADING] = self._fused_heading(obs, seen[:, _HEADING])
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
         for i in range(len(proposal)):
@@ -321,10 +322,10 @@ class SafeAgent:
         """The perceived heading fused with each car's yaw change since the last decision
         (:func:`fuse_heading`); a car just (re)placed starts from the camera's [rad]."""
         yaw = obs.state[:, H].copy()
-        fused = camera.copy()
+        fused = camera.copy()  # (camera is a column of the agent's array)
         if self._gyro is not None and len(self._gyro[1]) == len(yaw):
             t, last_yaw, last = self._gyro
-            turned = (yaw - last_yaw + np.pi) % (2.0 * np.pi) - np.pi
+            turned = wrap_angle(yaw - last_yaw)
             step = fuse_heading(last, camera, turned, obs.speed, obs.curvature, obs.time_s - t)
             fused = np.where(obs.respawned, camera, step)
         self._gyro = (obs.time_s, yaw, fused)

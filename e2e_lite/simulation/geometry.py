@@ -33,6 +33,11 @@ SPLITS = {"train": 1, "val": 2, "test": 3}
 _STRAIGHT_EPS = 1e-12  # |curvature| below this is a straight [1/m]
 
 
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles [rad] wrapped to [-pi, pi)."""
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
 @dataclass(frozen=True)
 class RoadConfig:
     """Settings of the procedural road.
@@ -336,7 +341,7 @@ def _project(
         rx, ry = px - cx, py - cy
         sign = np.sign(k)
         h = np.arctan2(ry, rx) + sign * np.pi / 2.0
-        dh = (h - h0 + np.pi) % (2.0 * np.pi) - np.pi
+        dh = wrap_angle(h - h0)
         k_safe = np.where(straight, 1.0, k)
         u_arc = dh / k_safe
         d_arc = 1.0 / k_safe - sign * np.hypot(rx, ry)

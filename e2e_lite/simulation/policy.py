@@ -11,6 +11,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from .geometry import wrap_angle
 from .vehicle import H, V
 from .world import Fleet, World
 
@@ -91,10 +92,6 @@ class Policy(Protocol):
         """Commands for every car in the batch."""
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def observe(
     fleet: Fleet,
     respawned: np.ndarray | bool = False,
@@ -112,7 +109,7 @@ def observe(
         state=fleet.state.copy(),
         s=s,
         d=d,
-        heading_error=_wrap(fleet.state[:, H] - road_h),
+        heading_error=wrap_angle(fleet.state[:, H] - road_h),
         curvature=kappa,
         lane=np.atleast_1d(fleet.worlds[0].track.lane_index(d)),
         respawned=np.broadcast_to(np.asarray(respawned, dtype=bool), (n,)).copy(),
