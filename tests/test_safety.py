@@ -27,6 +27,7 @@ from e2e_lite.experiments.safety import (
     brake_along,
     brake_to_lane,
     calibrate_gap_free,
+    cap_speed,
     check,
     choose,
     end_lateral,
@@ -232,6 +233,37 @@ def test_braking_along_a_path_stays_on_it_and_slows_down(speed, y_end, pace):
     assert np.all(nearest <= step + 1e-6)
 
 
+@settings(max_examples=60, deadline=None)
+@given(free=st.floats(5.0, 120.0), reaction=st.floats(0.0, 1.0), brake=st.floats(1.0, 10.0))
+def test_the_sight_speed_stops_exactly_within_the_sight(free, reaction, brake):
+    cfg = SafetyConfig(gap_free_m=free, reaction_s=reaction, brake_mps2=brake)
+    v = cfg.sight_speed_mps()
+    assert v >= 0.0 and cfg.stopping_m(v) == pytest.approx(max(free, cfg.margin_m), abs=1e-6)
+    # the true affordances' threshold (59.5 m) allows the roads' cruise speed, barely
+    assert 25.0 < SafetyConfig().sight_speed_mps() < 25.2
+
+
+@settings(max_examples=60, deadline=None)
+@given(speed=st.floats(1.0, 40.0), y_end=st.floats(-4.0, 4.0), cap=st.floats(0.0, 40.0))
+def test_capping_the_speed_keeps_the_path_and_never_exceeds_the_cap(speed, y_end, cap):
+    path = straight(speed, y_end=y_end)
+    pts = cap_speed(path, cap)
+    assert pts.shape == (5, 2) and np.all(np.isfinite(pts))
+    whole = np.concatenate([np.zeros((1, 2)), pts])
+    along = np.cumsum(np.hypot(*np.diff(whole, axis=0).T))
+    assert np.all(along <= cap * T + 1e-6)  # never further along than the cap allows
+    if speed * 1.01 <= cap:  # a proposal under the cap is driven as proposed
+        assert np.array_equal(pts, path)
+    # on the proposed path (as braking along it), and a batch of them capped at once
+    dense = np.concatenate([np.zeros((1, 2)), path])
+    u = np.linspace(0.0, 1.0, 2001)[:, None, None]
+    on_path = (dense[:-1] + u * np.diff(dense, axis=0)).reshape(-1, 2)
+    nearest = np.min(np.hypot(*(pts[:, None] - on_path[None]).transpose(2, 0, 1)), axis=1)
+    assert np.all(nearest <= np.max(np.hypot(*np.diff(dense, axis=0).T)) / 2000 + 1e-6)
+    batch = cap_speed(np.stack([path, straight(0.5 * speed)])[None], cap)
+    assert batch.shape == (1, 2, 5, 2) and np.array_equal(batch[0, 0], pts)
+
+
 def swerve_left(speed=25.0, t_across=0.6) -> np.ndarray:
     """Points at constant speed, one lane (3.5 m) to the left within ``t_across`` seconds."""
     return np.stack([speed * T, 3.5 * np.minimum(1.0, T / t_across)], axis=1)
@@ -339,6 +371,29 @@ def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
     assert all(0 <= int(n) <= 30 for n in stats["before_impact"])
     assert sum(int(n) * c for n, c in stats["before_impact"].items()) <= stats["interventions"]
     assert set(stats["at_impact"]) <= {"network", "other mode", "fallback"}
+
+
+def test_the_speed_cap_alone_slows_the_driver_and_unchecked_it_is_the_driver_alone():
+    """``check_proposals=False`` is the control: without ``sight_speed`` it drives exactly what
+    the driver alone drives; with it, the same paths no faster than the sight allows."""
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    off = SafetyConfig(check_proposals=False)
+    unchecked = evaluate(SafeAgent(StraightOn(), off, ground_truth=True), world, cfg,
+                         progress=False)  # fmt: skip
+    assert unchecked.events == alone.events and unchecked.collisions == alone.collisions >= 3
+    assert SafetyStats.from_info(unchecked.info).interventions == 0
+    short = SafetyConfig(gap_free_m=25.0, sight_speed=True, check_proposals=False)
+    assert 15.0 < short.sight_speed_mps() < 16.0  # StraightOn proposes 20 m/s
+    capped = evaluate(SafeAgent(StraightOn(), short, ground_truth=True), world, cfg,
+                      progress=False)  # fmt: skip
+    assert SafetyStats.from_info(capped.info).interventions == 0
+    assert capped.mean_speed_mph < 0.85 * alone.mean_speed_mph
+    # (about 0.2 m/s over the cap: each placed car starts at 20 m/s and takes a second to slow)
+    assert capped.mean_speed_mph * 0.44704 <= short.sight_speed_mps() + 0.5
+    assert "sight_speed=True" in repr(short) and "check_proposals=False" in repr(short)
+    assert "sight_speed" not in repr(SafetyConfig())  # stored results keep their keys
 
 
 def test_the_rollout_tells_the_policy_of_each_collision_with_its_next_decision():

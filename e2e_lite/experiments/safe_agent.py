@@ -26,7 +26,7 @@ from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H
 from ..simulation.world import SimConfig
-from .safety import SafetyConfig, check, choose
+from .safety import Choice, SafetyConfig, cap_speed, check, choose
 
 #: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
 COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
@@ -237,6 +237,9 @@ class SafeAgent:
         last = self.agent.last
         modes = last.get("modes", proposal[:, None])
         weights = last.get("weights", np.ones((len(proposal), 1)))
+        if self.cfg.sight_speed:  # what the module checks and audits is the capped proposal
+            modes = cap_speed(modes, self.cfg.sight_speed_mps())
+            proposal = cap_speed(proposal, self.cfg.sight_speed_mps())
         truth = None
         if self.ground_truth or self.true_affordances:
             truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
@@ -252,9 +255,12 @@ class SafeAgent:
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
         for i in range(len(proposal)):
-            c = choose(
-                modes[i], weights[i], seen[i], float(obs.speed[i]), obs.curvature[i], self.cfg
-            )
+            if self.cfg.check_proposals:
+                c = choose(
+                    modes[i], weights[i], seen[i], float(obs.speed[i]), obs.curvature[i], self.cfg
+                )
+            else:  # the control: the heaviest mode (capped with sight_speed), unchecked
+                c = Choice(modes[i][int(np.argmax(weights[i]))], "network", [])
             chosen[i] = c.points
             sources.append(c.source)
             if c.source != "network":

@@ -93,6 +93,14 @@ class SafetyConfig:
         gyro_heading: fuse the perceived heading with the car's own yaw rate (a gyro) before
             the check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`): the camera's
             heading is sharp at cruise speed and poor when the car is slow or turned.
+        sight_speed: never plan faster than the car can stop within what it sees: every
+            proposal is driven along its own path at no more than :meth:`sight_speed_mps`
+            (:func:`cap_speed`; the rule of the "assured clear distance ahead"). A car first
+            seen at the ego lane's "nothing seen" threshold is then one the brake can stop for;
+            at cruise speed it is not (chapter 11).
+        check_proposals: check the proposals and fall back (the module). ``False`` drives the
+            network's heaviest mode unchecked: with ``sight_speed``, the speed cap alone (the
+            control that says what slowing down does without the check).
     """
 
     reaction_s: float = 0.2
@@ -109,6 +117,8 @@ class SafetyConfig:
     gap_free_side_m: float | None = field(default=None, repr=False)  # (shown when set)
     brake_along_path: bool = field(default=False, repr=False)  # (shown when set)
     gyro_heading: bool = field(default=False, repr=False)  # (shown when set)
+    sight_speed: bool = field(default=False, repr=False)  # (shown when set)
+    check_proposals: bool = field(default=True, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -144,6 +154,15 @@ class SafetyConfig:
         """RSS's safe distance to a standing obstacle: ``v rho + v^2 / (2 beta) + margin`` [m]."""
         v = max(0.0, speed_mps)
         return v * self.reaction_s + v * v / (2.0 * self.brake_mps2) + self.margin_m
+
+    def sight_speed_mps(self) -> float:
+        """The fastest speed from which the car stops within its sight [m/s]: the ``v`` with
+        :meth:`stopping_m` ``(v)`` equal to the ego lane's "nothing seen" threshold
+        (:meth:`free_from_m`; a parked car is first seen there),
+        ``v = beta (sqrt(rho^2 + 2 (D - margin) / beta) - rho)``."""
+        room = max(0.0, self.free_from_m("ego") - self.margin_m)
+        rho, beta = self.reaction_s, self.brake_mps2
+        return float(beta * (np.sqrt(rho * rho + 2.0 * room / beta) - rho))
 
 
 @dataclass(frozen=True)
@@ -372,10 +391,31 @@ def brake_along(
     car through the 5 points (an automatic emergency brake that keeps the planned path). ``(5,
     2)`` car-frame points [m]; never past the path's end."""
     cfg = cfg or SafetyConfig()
-    pts = np.concatenate([np.zeros((1, 2)), np.asarray(points, dtype=np.float64)])
-    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
-    covered = np.minimum(braking_progress(speed_mps, cfg.brake_mps2), along[-1])
-    return np.stack([np.interp(covered, along, pts[:, 0]), np.interp(covered, along, pts[:, 1])], 1)
+    return _at_progress(points, lambda along: braking_progress(speed_mps, cfg.brake_mps2))
+
+
+def cap_speed(points: np.ndarray, max_speed_mps: float) -> np.ndarray:
+    """Trajectories ``(..., 5, 2)`` [m] driven along their own paths at no more than
+    ``max_speed_mps`` [m/s]: each point moves back along the polyline from the car through the 5
+    points to ``min(its own progress, max_speed_mps t_i)``. Slower proposals are unchanged; a car
+    faster than the cap is asked to slow at once (as far as the tracker's braking allows)."""
+    limit = max(0.0, float(max_speed_mps)) * POINT_DT_S * np.arange(1, N_POINTS + 1)
+    return _at_progress(points, lambda along: np.minimum(along, limit))
+
+
+def _at_progress(points: np.ndarray, progress) -> np.ndarray:
+    """The points ``(..., 5, 2)`` [m] moved along their polyline (from the car through them) to
+    ``progress(along)`` [m], given each point's own distance along it ``along`` ``(5,)``."""
+    pts = np.asarray(points, dtype=np.float64)
+    flat = pts.reshape(-1, N_POINTS, 2)
+    out = flat.copy()
+    for m, p in enumerate(flat):  # (cars x modes: a few hundred per decision)
+        poly = np.concatenate([np.zeros((1, 2)), p])
+        along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poly, axis=0).T))])
+        covered = np.minimum(progress(along[1:]), along[-1])
+        if np.any(covered != along[1:]):
+            out[m] = np.stack([np.interp(covered, along, poly[:, c]) for c in (0, 1)], axis=1)
+    return out.reshape(pts.shape)
 
 
 @dataclass
