@@ -252,7 +252,8 @@ def test_capping_the_speed_keeps_the_path_and_never_exceeds_the_cap(speed, y_end
     whole = np.concatenate([np.zeros((1, 2)), pts])
     along = np.cumsum(np.hypot(*np.diff(whole, axis=0).T))
     assert np.all(along <= cap * T + 1e-6)  # never further along than the cap allows
-    if speed * 1.01 <= cap:  # a proposal under the cap is driven as proposed
+    own = np.cumsum(np.hypot(*np.diff(np.concatenate([np.zeros((1, 2)), path]), axis=0).T))
+    if np.all(own <= cap * T):  # a proposal under the cap (along its path) is driven as proposed
         assert np.array_equal(pts, path)
     # on the proposed path (as braking along it), and a batch of them capped at once
     dense = np.concatenate([np.zeros((1, 2)), path])

@@ -93,14 +93,11 @@ class SafetyConfig:
         gyro_heading: fuse the perceived heading with the car's own yaw rate (a gyro) before
             the check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`): the camera's
             heading is sharp at cruise speed and poor when the car is slow or turned.
-        sight_speed: never plan faster than the car can stop within what it sees: every
-            proposal is driven along its own path at no more than :meth:`sight_speed_mps`
-            (:func:`cap_speed`; the rule of the "assured clear distance ahead"). A car first
-            seen at the ego lane's "nothing seen" threshold is then one the brake can stop for;
-            at cruise speed it is not (chapter 11).
-        check_proposals: check the proposals and fall back (the module). ``False`` drives the
-            network's heaviest mode unchecked: with ``sight_speed``, the speed cap alone (the
-            control that says what slowing down does without the check).
+        sight_speed: drive every proposal along its own path at no more than
+            :meth:`sight_speed_mps` (:func:`cap_speed`; "assured clear distance ahead"): a car
+            first seen at the ego lane's threshold can then be stopped for (chapter 11).
+        check_proposals: ``False`` drives the heaviest mode unchecked (with ``sight_speed``:
+            the speed cap alone, the control that says what slowing down does by itself).
     """
 
     reaction_s: float = 0.2
@@ -413,7 +410,7 @@ def _at_progress(points: np.ndarray, progress) -> np.ndarray:
         poly = np.concatenate([np.zeros((1, 2)), p])
         along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poly, axis=0).T))])
         covered = np.minimum(progress(along[1:]), along[-1])
-        if np.any(covered != along[1:]):
+        if np.any(np.abs(covered - along[1:]) > 1e-9):  # (re-timed)
             out[m] = np.stack([np.interp(covered, along, poly[:, c]) for c in (0, 1)], axis=1)
     return out.reshape(pts.shape)
 
