@@ -18,6 +18,13 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
   of a piece-wise pymunk query that lost cars near its pieces' starts. In the quick dataset only
   the gap columns of ``affordances`` moved (by at most 0.013 m); collision counts and losses are
   unchanged.
+* 2026-11-25, tolerances only: a trained network's numbers depend on the CPU's instruction set
+  (oneDNN and MKL pick their kernels per machine, and training amplifies the rounding). On an
+  AVX-512 AMD EPYC the recorded code itself (commit 90714a7) trains the quick L2 network to a
+  validation loss 4e-4 (relative) above the reference and the GMM's driver covers 0.19 % more
+  miles, with the same collisions; with oneDNN, MKL and ATen held to AVX2 the loss matches to
+  1e-5. So the scripted drivers and every collision count stay exact, and a trained network's
+  validation loss and miles are compared within :data:`TRAINED_RTOL`.
 """
 
 from __future__ import annotations
@@ -32,6 +39,9 @@ from unittest import mock
 import numpy as np
 
 REFERENCE = Path(__file__).parent / "data" / "reference_metrics.json"
+#: How far a trained network's figures may move with the CPU's kernels (relative), ten times the
+#: largest difference measured between two machines (module docstring); counts stay exact.
+TRAINED_RTOL = {"val_loss": 4e-3, "miles": 2e-2}
 
 
 def _counts(result: Any) -> dict[str, Any]:
@@ -104,8 +114,9 @@ def test_behaviour_equals_the_reference_recorded_before_the_reorganisation() -> 
     assert now["samples"] == reference["samples"]
     for name in ("expert", "lane_keeper", "l2", "gmm"):
         ref, got = dict(reference[name]), dict(now[name])
-        if "val_loss" in ref:
-            assert np.isclose(got.pop("val_loss"), ref.pop("val_loss"), rtol=1e-5, atol=1e-6), name
+        if "val_loss" in ref:  # a trained network: its floats follow the machine's kernels
+            for key, rtol in TRAINED_RTOL.items():
+                assert np.isclose(got.pop(key), ref.pop(key), rtol=rtol, atol=0.0), (name, key)
         assert got == ref, f"{name}: {got} != reference {ref}"
 
 
