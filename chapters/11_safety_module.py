@@ -752,6 +752,12 @@ artifacts.write_metrics(
 # * What a camera perceives poorly, another sensor may know: the car's own yaw rate carries the
 #   heading through the slow, turned states the head never learned, and the camera corrects its
 #   drift at speed.
+# * A network that reads its own speed learns what a speed meant in the expert's data: below
+#   cruise, going round a parked car. Handed back slow by the module, it drives that. Telling it
+#   at least the median speed (the "speed input >= median" rows) is the control that shows it;
+#   data whose speeds do not predict the manoeuvre would be the cure.
+# * Training seeds fail differently (one drifts onto the rail at cruise speed, another turns too
+#   little when slow): pool them, and read each seed's row before crediting the module.
 #
 # ## Exercises
 #
