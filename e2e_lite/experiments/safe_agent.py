@@ -238,8 +238,8 @@ class SafeAgent:
         modes = last.get("modes", proposal[:, None])
         weights = last.get("weights", np.ones((len(proposal), 1)))
         if self.cfg.sight_speed:  # what the module checks and audits is the capped proposal
-            modes = cap_speed(modes, self.cfg.sight_speed_mps())
-            proposal = cap_speed(proposal, self.cfg.sight_speed_mps())
+            cap = self.cfg.sight_speed_mps()
+            modes, proposal = cap_speed(modes, cap), cap_speed(proposal, cap)
         truth = None
         if self.ground_truth or self.true_affordances:
             truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)

@@ -93,9 +93,8 @@ class SafetyConfig:
         gyro_heading: fuse the perceived heading with the car's own yaw rate (a gyro) before
             the check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`): the camera's
             heading is sharp at cruise speed and poor when the car is slow or turned.
-        sight_speed: drive every proposal along its own path at no more than
-            :meth:`sight_speed_mps` (:func:`cap_speed`; "assured clear distance ahead"): a car
-            first seen at the ego lane's threshold can then be stopped for (chapter 11).
+        sight_speed: drive every proposal no faster than :meth:`sight_speed_mps` (:func:`cap_speed`;
+            "assured clear distance ahead"): a car first seen can be stopped for (chapter 11).
         check_proposals: ``False`` drives the heaviest mode unchecked (with ``sight_speed``:
             the speed cap alone, the control that says what slowing down does by itself).
     """
@@ -153,10 +152,8 @@ class SafetyConfig:
         return v * self.reaction_s + v * v / (2.0 * self.brake_mps2) + self.margin_m
 
     def sight_speed_mps(self) -> float:
-        """The fastest speed from which the car stops within its sight [m/s]: the ``v`` with
-        :meth:`stopping_m` ``(v)`` equal to the ego lane's "nothing seen" threshold
-        (:meth:`free_from_m`; a parked car is first seen there),
-        ``v = beta (sqrt(rho^2 + 2 (D - margin) / beta) - rho)``."""
+        """The fastest speed that stops within sight [m/s]: :meth:`stopping_m` ``(v)`` equals the
+        ego lane's threshold :meth:`free_from_m` (where a parked car is first seen)."""
         room = max(0.0, self.free_from_m("ego") - self.margin_m)
         rho, beta = self.reaction_s, self.brake_mps2
         return float(beta * (np.sqrt(rho * rho + 2.0 * room / beta) - rho))
@@ -383,35 +380,38 @@ def brake_to_lane(
 def brake_along(
     points: np.ndarray, speed_mps: float, cfg: SafetyConfig | None = None
 ) -> np.ndarray:
-    """The path of ``points`` driven braking at ``cfg.brake_mps2`` from ``speed_mps`` to a stop:
-    each point at the distance braking covers by its time, measured along the polyline from the
-    car through the 5 points (an automatic emergency brake that keeps the planned path). ``(5,
-    2)`` car-frame points [m]; never past the path's end."""
+    """``points`` ``(5, 2)`` [m] driven along their own path braking at ``cfg.brake_mps2`` from
+    ``speed_mps`` to a stop, never past its end (an emergency brake keeping the planned path)."""
     cfg = cfg or SafetyConfig()
     return _at_progress(points, lambda along: braking_progress(speed_mps, cfg.brake_mps2))
 
 
 def cap_speed(points: np.ndarray, max_speed_mps: float) -> np.ndarray:
     """Trajectories ``(..., 5, 2)`` [m] driven along their own paths at no more than
-    ``max_speed_mps`` [m/s]: each point moves back along the polyline from the car through the 5
-    points to ``min(its own progress, max_speed_mps t_i)``. Slower proposals are unchanged; a car
-    faster than the cap is asked to slow at once (as far as the tracker's braking allows)."""
+    ``max_speed_mps`` [m/s] (each point moved back to ``max_speed_mps t_i`` along the path if
+    further); slower proposals are unchanged."""
     limit = max(0.0, float(max_speed_mps)) * POINT_DT_S * np.arange(1, N_POINTS + 1)
     return _at_progress(points, lambda along: np.minimum(along, limit))
 
 
 def _at_progress(points: np.ndarray, progress) -> np.ndarray:
-    """The points ``(..., 5, 2)`` [m] moved along their polyline (from the car through them) to
-    ``progress(along)`` [m], given each point's own distance along it ``along`` ``(5,)``."""
+    """Points ``(..., 5, 2)`` [m] moved along their polylines to ``progress(along)`` [m] (``along``
+    ``(M, 5)``: each point's own distance), all at once, to the bit as :func:`numpy.interp`."""
     pts = np.asarray(points, dtype=np.float64)
-    flat = pts.reshape(-1, N_POINTS, 2)
-    out = flat.copy()
-    for m, p in enumerate(flat):  # (cars x modes: a few hundred per decision)
-        poly = np.concatenate([np.zeros((1, 2)), p])
-        along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poly, axis=0).T))])
-        covered = np.minimum(progress(along[1:]), along[-1])
-        if np.any(np.abs(covered - along[1:]) > 1e-9):  # (re-timed)
-            out[m] = np.stack([np.interp(covered, along, poly[:, c]) for c in (0, 1)], axis=1)
+    poly = np.pad(pts.reshape(-1, N_POINTS, 2), ((0, 0), (1, 0), (0, 0)))
+    step = np.diff(poly, axis=1)
+    along = np.pad(np.cumsum(np.hypot(step[..., 0], step[..., 1]), axis=1), ((0, 0), (1, 0)))
+    covered = np.minimum(progress(along[:, 1:]), along[:, -1:])
+    out = poly[:, 1:].copy()
+    moved = np.any(np.abs(covered - along[:, 1:]) > 1e-9, axis=1)  # (re-timed)
+    a, x, p = along[moved], covered[moved], poly[moved]
+    j = np.minimum((x[:, :, None] >= a[:, None, :]).sum(axis=2) - 1, N_POINTS - 1)  # segment
+    lo, hi = np.take_along_axis(a, j, axis=1), np.take_along_axis(a, j + 1, axis=1)
+    p_lo, p_hi = (np.take_along_axis(p, i[..., None], axis=1) for i in (j, j + 1))
+    with np.errstate(divide="ignore", invalid="ignore"):  # (a zero-length step is replaced)
+        at = (p_hi - p_lo) / (hi - lo)[..., None] * (x - lo)[..., None] + p_lo
+    end = (x >= a[:, -1:])[..., None]  # on a vertex or at the end: that point (as np.interp)
+    out[moved] = np.where((x == lo)[..., None] | end, np.where(end, p[:, -1:], p_lo), at)
     return out.reshape(pts.shape)
 
 
