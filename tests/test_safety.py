@@ -561,3 +561,20 @@ def test_the_module_counts_the_same_in_threads_and_in_processes():
     assert total == {"n": 3, "sources": Counter(a=2, b=1), "examples": [1, 2]}
     with pytest.raises(TypeError, match="cannot add up"):
         add_info(total, {"n": "x"})
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), cap=st.floats(0.0, 40.0))
+def test_capping_a_batch_equals_np_interp_on_each_path_to_the_bit(seed, cap):
+    """The batched re-timing answers what np.interp answers per path, repeated points included."""
+    rng = np.random.default_rng(seed)
+    steps = rng.uniform(0.0, 4.0, (6, 5, 2)) * rng.choice([0.0, 1.0], (6, 5, 1), p=[0.2, 0.8])
+    paths = np.round(np.cumsum(steps * np.array([8.0, 0.5]), axis=1), int(rng.integers(0, 3)))
+    limit = cap * 0.3 * np.arange(1, 6)  # (as cap_speed computes it: the same bits)
+    for path, got in zip(paths, cap_speed(paths, cap)):
+        poly = np.concatenate([np.zeros((1, 2)), path])
+        along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poly, axis=0).T))])
+        covered = np.minimum(np.minimum(along[1:], limit), along[-1])
+        want = np.stack([np.interp(covered, along, poly[:, c]) for c in (0, 1)], axis=1)
+        moved = np.any(np.abs(covered - along[1:]) > 1e-9)
+        np.testing.assert_array_equal(got, want if moved else path)
