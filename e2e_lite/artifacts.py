@@ -86,15 +86,28 @@ def artifact_path(*parts: str) -> Path:
     return path
 
 
+def _plain(obj: Any, for_key: bool) -> Any:
+    """``dataclasses.asdict``'s plain values, except that for a key, at every level, the fields a
+    dataclass names in ``KEY_DEFAULTS_OMITTED`` are left out while at their default."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        omitted = getattr(type(obj), "KEY_DEFAULTS_OMITTED", ()) if for_key else ()
+        return {
+            f.name: _plain(getattr(obj, f.name), for_key)
+            for f in dataclasses.fields(obj)
+            if not (f.name in omitted and getattr(obj, f.name) == f.default)
+        }
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_plain(v, for_key) for v in obj)
+    if isinstance(obj, dict):
+        return {k: _plain(v, for_key) for k, v in obj.items()}
+    return obj
+
+
 def _jsonable(obj: Any, for_key: bool = False) -> Any:
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        fields = dataclasses.asdict(obj)  # (nested dataclasses become plain dicts)
-        if for_key:  # fields added after artifacts were keyed keep those keys at their default
-            defaults = {f.name: f.default for f in dataclasses.fields(obj)}
-            for name in getattr(type(obj), "KEY_DEFAULTS_OMITTED", ()):
-                if fields[name] == defaults[name]:
-                    del fields[name]
-        return {"__type__": type(obj).__name__, **_jsonable(fields, for_key)}
+        # (nested dataclasses become plain dicts; fields added after artifacts were keyed keep
+        # those keys at their default)
+        return {"__type__": type(obj).__name__, **_jsonable(_plain(obj, for_key), for_key)}
     if isinstance(obj, dict):
         return {str(k): _jsonable(v, for_key) for k, v in obj.items()}  # keys keep their order
     if isinstance(obj, (list, tuple)):

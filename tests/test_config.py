@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -86,6 +88,32 @@ def test_settings_key_is_stable_and_sensitive():
     assert a == artifacts.settings_key(RoadConfig(), {"n": 3})
     assert a != artifacts.settings_key(RoadConfig(n_lanes=4), {"n": 3})
     assert a != artifacts.settings_key(RoadConfig(), {"n": 4})
+
+
+@dataclasses.dataclass(frozen=True)
+class _Inner:
+    a: int = 1
+    b: tuple[float, float] = (1.0, 2.0)  # came later: at its default it leaves the keys alone
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("b",)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Outer:
+    inner: _Inner = dataclasses.field(default_factory=_Inner)
+    items: tuple[_Inner, ...] = (_Inner(),)
+    n: int = 3
+
+
+def test_settings_key_omits_later_fields_at_their_default_at_every_level():
+    # the keys the settings had before `b` existed: nested dataclasses as plain dicts
+    before = {"a": 1}
+    old = {"__type__": "_Outer", "inner": before, "items": [before], "n": 3}
+    assert artifacts.settings_key(_Outer()) == artifacts.settings_key(old)
+    moved = _Inner(b=(1.0, 3.0))
+    assert artifacts.settings_key(_Outer(inner=moved)) != artifacts.settings_key(old)
+    assert artifacts.settings_key(_Outer(items=(moved,))) != artifacts.settings_key(old)
+    # what is written (not a key) keeps every field
+    assert json.loads(artifacts.to_json(_Outer()))["inner"]["b"] == [1.0, 2.0]
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):

@@ -185,6 +185,24 @@ def test_restarts_and_braking_bursts_put_slow_samples_in_the_data():
     assert slow[1] > 2 * slow[0]
 
 
+def test_deep_braking_bursts_show_slow_speeds_and_leave_the_default_data_alone():
+    base = small_cfg(n_samples=800, restart_rate_per_s=0.0, noise=NoiseConfig(brake_share=1.0))
+    deep = dataclasses.replace(base, noise=NoiseConfig(brake_share=1.0, slow_share=1.0))
+    plain, slow = collect(base, progress=False), collect(deep, progress=False)
+    assert plain.speed.min() > 15.0  # braking bursts take 1-6 m/s off (these cars start at 20)
+    assert np.mean(slow.speed < 15.0) > 0.1  # braked to 6-18 m/s, then the expert's recovery
+    assert slow.speed.min() >= 6.0 - 0.5  # (one decision's braking past the target at most)
+    # the labels stay the expert's: back to speed from the slow states
+    rows = (slow.speed < 15.0) & ~slow.arrays["noise"]
+    assert rows.any() and (slow.arrays["actuators"][rows, 1] > 0).mean() > 0.9
+    # at its default the option changes neither the data nor its key
+    explicit = dataclasses.replace(base, noise=NoiseConfig(brake_share=1.0, slow_share=0.0))
+    assert explicit.key == base.key
+    np.testing.assert_array_equal(collect(explicit, progress=False).speed, plain.speed)
+    with pytest.raises(ValueError, match=r"NoiseConfig\.slow_share"):
+        NoiseConfig(slow_share=1.5)
+
+
 def test_situation_masks_on_hand_made_rows():
     arrays = {
         "expert_state": np.array([CHANGE, CHANGE, 0, 0]),

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -105,7 +105,11 @@ class NoiseConfig:
     A burst holds a steering offset of random sign and magnitude, and an acceleration offset, for
     a random duration. A share ``brake_share`` of the bursts brake instead (acceleration offset
     ``-brake_mps2``), taking 1-6 m/s off the speed, so the expert's recovery to its cruise speed
-    is labelled too.
+    is labelled too. A share ``slow_share`` of the braking bursts brake *deep*: the car is braked
+    at ``brake_mps2`` until it is down to a speed drawn from ``slow_to_mps`` (or for at most 12 s),
+    whatever the expert commands, then handed back. The expert's data otherwise holds almost no
+    sample under 15 m/s (25 of 48,000), the speeds a braking driver or safety module leaves a
+    learned driver at.
 
     Attributes:
         rate_per_s: bursts per second of driving [1/s] (0 turns noise off).
@@ -114,7 +118,15 @@ class NoiseConfig:
         accel_mps2: the acceleration offset is uniform in +-this [m/s^2].
         brake_share: share of bursts that brake, in [0, 1].
         brake_mps2: (min, max) deceleration added by a braking burst [m/s^2].
+        slow_share: share of the braking bursts that brake deep, in [0, 1] (0: none, the
+            course's default data).
+        slow_to_mps: (min, max) speed a deep braking burst brakes the car down to [m/s].
     """
+
+    #: added after the course's datasets were keyed: at their defaults those keys stay
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("slow_share", "slow_to_mps")
+    #: the longest a deep braking burst lasts [s]
+    SLOW_MAX_S: ClassVar[float] = 12.0
 
     rate_per_s: float = 0.12
     duration_s: tuple[float, float] = (0.5, 1.5)
@@ -122,6 +134,8 @@ class NoiseConfig:
     accel_mps2: float = 1.0
     brake_share: float = 0.25
     brake_mps2: tuple[float, float] = (2.0, 4.0)
+    slow_share: float = 0.0
+    slow_to_mps: tuple[float, float] = (6.0, 18.0)
 
     def __post_init__(self) -> None:
         o = "NoiseConfig"
@@ -131,6 +145,8 @@ class NoiseConfig:
         check_range(o, "accel_mps2", self.accel_mps2, 0.0, 10.0)
         check_range(o, "brake_share", self.brake_share, 0.0, 1.0)
         check_pair(o, "brake_mps2", self.brake_mps2, lo=0.0)
+        check_range(o, "slow_share", self.slow_share, 0.0, 1.0)
+        check_pair(o, "slow_to_mps", self.slow_to_mps, lo=0.0)
 
 
 @dataclass(frozen=True)
@@ -224,6 +240,7 @@ class _Recorder:
         self.expert.reset(n_worlds)
         self.burst_left = np.zeros(n_worlds)  # seconds of burst left per car
         self.offset = np.zeros((n_worlds, 2))  # (steer, accel) offsets of the current bursts
+        self.slow_to = np.zeros(n_worlds)  # a deep braking burst's target speed, 0: none [m/s]
 
     def done(self) -> bool:
         return self.count >= self.cfg.n_samples
@@ -232,23 +249,27 @@ class _Recorder:
         traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
         clean = self.expert.act(obs)
         n = len(obs.s)
-        self._update_noise(n)
+        self._update_noise(n, obs.speed)
         take = min(n, self.cfg.n_samples - self.count)
         if take > 0:
             self._record(obs, clean, traj, take)
         period = self.cfg.world.sim.policy_period_s
+        deep = self.slow_to > 0  # braked whatever the expert commands
         return Actuation(
             steer_rad=clean.steer_rad + self.offset[:, 0],
-            accel_mps2=clean.accel_mps2 + self.offset[:, 1],
+            accel_mps2=np.where(deep, 0.0, clean.accel_mps2) + self.offset[:, 1],
             restart=self.rng.random(n) < self.cfg.restart_rate_per_s * period,
         )
 
-    def _update_noise(self, n: int) -> None:
-        """Continue the bursts, end finished ones, maybe start new ones."""
+    def _update_noise(self, n: int, speed: np.ndarray) -> None:
+        """Continue the bursts, end finished ones (deep braking ones at their speed [m/s]), maybe
+        start new ones."""
         period = self.cfg.world.sim.policy_period_s
         nz = self.cfg.noise
         self.burst_left = np.maximum(self.burst_left - period, 0.0)
+        self.burst_left[(self.slow_to > 0) & (speed <= self.slow_to)] = 0.0
         self.offset[self.burst_left <= 0] = 0.0
+        self.slow_to[self.burst_left <= 0] = 0.0
         start = (self.burst_left <= 0) & (self.rng.random(n) < nz.rate_per_s * period)
         k = int(start.sum())
         if k:
@@ -261,6 +282,11 @@ class _Recorder:
                 -self.rng.uniform(*nz.brake_mps2, k),
                 self.rng.uniform(-nz.accel_mps2, nz.accel_mps2, k),
             )
+            if nz.slow_share > 0:  # (no extra draws without: the default data stays the same)
+                deep = brake & (self.rng.random(k) < nz.slow_share)
+                cars = np.flatnonzero(start)[deep]
+                self.slow_to[cars] = self.rng.uniform(*nz.slow_to_mps, len(cars))
+                self.burst_left[cars] = nz.SLOW_MAX_S
 
     def _record(self, obs: Observation, clean: Actuation, traj: np.ndarray, take: int) -> None:
         sl = slice(self.count, self.count + take)
