@@ -109,7 +109,7 @@ class NoiseConfig:
     at ``brake_mps2`` until it is down to a speed drawn from ``slow_to_mps`` (or for at most 12 s),
     whatever the expert commands, then handed back. The expert's data otherwise holds almost no
     sample under 15 m/s (25 of 48,000), the speeds a braking driver or safety module leaves a
-    learned driver at.
+    learned driver at; chapter 11 (section 5) trains on data with ``slow_share=0.5``.
 
     Attributes:
         rate_per_s: bursts per second of driving [1/s] (0 turns noise off).
