@@ -835,8 +835,8 @@ print("| trained on | collisions | " + " | ".join(
 ) + " | rail |")  # fmt: skip
 print("|---|---:|" + "---:|" * (len(speed_bins) + 1))
 data_by_speed = {}
-for name, r in data_results.items():
-    impact = [(e["speed_mps"], e["kind"]) for e in result_events(r)]
+for name, res in data_results.items():
+    impact = [(e["speed_mps"], e["kind"]) for e in result_events(res)]
     counts = [sum(lo <= v < hi for v, _ in impact) for lo, hi in speed_bins]
     rail = sum(k == "rail" for _, k in impact)
     data_by_speed[name] = {"collisions": len(impact), "by_speed": counts, "rail": rail}
@@ -893,9 +893,10 @@ slow_data = {
 #   p = 0.41), because the evaluator rarely leaves a car slow.
 # * The module is what leaves a car slow. The ground-truth module on the deep-braking networks
 #   drove 2 collisions in 500 mi against 23 without it. On the second draw's networks it drove
-#   20 against 30, 11 of them rail collisions after slow hand-backs. The perceived module is no
-#   better than none on either (29 against 23, 44 against 30). Most of its collisions follow its
-#   own fallback, which reads the perceived geometry.
+#   20 against 30. All 20 were under 20 m/s and 11 went into the rail, each while the module
+#   drove one of that network's own slow proposals. The perceived module is no better than none
+#   on either (29 against 23, 44 against 30). Most of its collisions follow its own fallback,
+#   which reads the perceived geometry.
 
 # %% [markdown]
 # ## Headline figures
