@@ -68,7 +68,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 25),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 12, 10),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 90),
-    11: ChapterInfo("the safety module on the affordances", 15, 170),
+    11: ChapterInfo("the safety module on the affordances", 24, 170),
 }
 
 
@@ -256,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"<== {path.stem} done in {seconds:.1f} s", flush=True)
         rows.append((path.stem, seconds, read_metrics(path.stem)))
     print(
-        f"\nAll {len(rows)} chapters passed in {time.perf_counter() - t_course:.1f} s "
+        f"\n{'The chapter' if len(rows) == 1 else f'All {len(rows)} chapters'} passed in "
+        f"{time.perf_counter() - t_course:.1f} s "
         f"({profile} profile).\n"
     )
     print(summary_table(rows))

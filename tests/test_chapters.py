@@ -219,6 +219,7 @@ def test_course_runner_runs_a_chapter_and_prints_the_table(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "==> [1/1] 01_highway" in proc.stdout
+    assert "The chapter passed in" in proc.stdout  # (not "All 1 chapters")
     assert "| 01_highway |" in proc.stdout and "collisions/100mi" in proc.stdout
 
 
