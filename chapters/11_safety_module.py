@@ -562,20 +562,26 @@ for name, *_ in variants:
 # %%
 probe_miles = 0.2 if profile.quick else 40.0
 starts = (runs[0].start_speed_mps, 8.0)  # [m/s]
-slow_start = {}
-for v0 in starts:
-    run = dataclasses.replace(runs[0], miles=probe_miles, start_speed_mps=v0)
-    r = ablation.evaluate_stored(
-        f"11_{key}_seed0_start{v0:g}",
-        f"without the module, seed 0, starts at {v0:g} m/s",
-        TrajectoryAgent(seeded[0].model),
-        world_cfg,
-        run,
-        workers=profile.ablation_workers,
-    )
-    slow_start[f"{v0:g} m/s"] = {**result_dict(r), "events": None}
-fast, slow = (slow_start[f"{v0:g} m/s"] for v0 in starts)
-slow_start["verdict"] = compare_rates(slow, fast)["verdict"]
+
+
+def start_probe(file: str, label: str, policy) -> dict:
+    """``policy`` on seed 0's first ``probe_miles`` of road, started (and restarted after every
+    collision) at each speed of ``starts`` [m/s]: each result, and the slow start's verdict."""
+    out = {}
+    for v0 in starts:
+        run = dataclasses.replace(runs[0], miles=probe_miles, start_speed_mps=v0)
+        r = ablation.evaluate_stored(
+            f"{file}_start{v0:g}", f"{label}, starts at {v0:g} m/s", policy, world_cfg, run,
+            workers=profile.ablation_workers,
+        )  # fmt: skip
+        out[f"{v0:g} m/s"] = {**result_dict(r), "events": None}
+    fast, slow = (out[f"{v0:g} m/s"] for v0 in starts)
+    return {**out, "verdict": compare_rates(slow, fast)["verdict"]}
+
+
+slow_start = start_probe(
+    f"11_{key}_seed0", "without the module, seed 0", TrajectoryAgent(seeded[0].model)
+)
 print(f"starts at {starts[1]:g} m/s against {starts[0]:g} m/s: {slow_start['verdict']}")
 
 # %% [markdown]
@@ -845,21 +851,13 @@ for name, res in data_results.items():
 # section 2's targeted check on each new data's seed 0: started at 20 and at 8 m/s
 data_start = {}
 for name in new_data:
-    probes = {}
-    for v0 in starts:
-        run = dataclasses.replace(runs[0], miles=probe_miles, start_speed_mps=v0)
-        r = ablation.evaluate_stored(
-            f"11_{course_key}_{data_rows[name][0]}_seed0_start{v0:g}",
-            f"trained on {name}, seed 0, starts at {v0:g} m/s",
-            TrajectoryAgent(trained[name][0][0]), world_cfg, run,
-            workers=profile.ablation_workers,
-        )  # fmt: skip
-        probes[f"{v0:g} m/s"] = {**result_dict(r), "events": None}
-    fast, slow = (probes[f"{v0:g} m/s"] for v0 in starts)
-    probes["verdict"] = compare_rates(slow, fast)["verdict"]
-    data_start[name] = probes
+    data_start[name] = start_probe(
+        f"11_{course_key}_{data_rows[name][0]}_seed0",
+        f"trained on {name}, seed 0",
+        TrajectoryAgent(trained[name][0][0]),
+    )
     print(f"trained on {name}, seed 0: starts at {starts[1]:g} m/s against {starts[0]:g} m/s: "
-          f"{probes['verdict']}")  # fmt: skip
+          f"{data_start[name]['verdict']}")  # fmt: skip
 slow_data = {
     "speed_shares": speed_shares,
     "kept_epochs": {n: [h.best_epoch + 1 for _, h in t] for n, t in trained.items()},

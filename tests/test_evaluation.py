@@ -401,6 +401,9 @@ def test_pooled_results_are_one_drive_of_the_summed_counts():
         (a.miles + b.miles) * M_PER_MILE / (a.sim_time_s + b.sim_time_s) * MPS_TO_MPH
     )
     assert [s["collisions"] for s in pooled["seeds"]] == [a.collisions, b.collisions]
+    # a result read back from storage (with what its policy reported) pools to the same
+    stored = [{**x.to_dict(), "info": {"interventions": 3}} for x in (a, b)]
+    assert pool_results(stored) == pooled
     assert sum(pooled["speed_hist"]) == sum(a.speed_hist) + sum(b.speed_hist)
     assert pooled["events"] == a.events + b.events  # (classified by collision_kinds)
     # one result pools to itself

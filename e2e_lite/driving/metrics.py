@@ -204,9 +204,11 @@ def pool_results(
     speed, autonomy (``intervention_cost_s`` per intervention, as :class:`EvalConfig`) and the
     time to collision recomputed from the sums; ``events``: every input's, in input order (a
     car's ``world`` number is its index in its own evaluation); ``seeds`` keeps each input (as
-    :func:`result_dict`, without events)."""
+    :func:`result_dict`, without events or info)."""
     events = [e for r in results for e in result_events(r)]
-    rs = [{k: v for k, v in result_dict(r).items() if k != "events"} for r in results]
+    # (without events, and without what a policy reported: a stored result read back carries it
+    # and a fresh one's to_dict does not, so a pool is the same either way)
+    rs = [{k: v for k, v in result_dict(r).items() if k not in ("events", "info")} for r in results]
     if not rs:
         raise ValueError("pool_results needs at least one result")
     total = {
