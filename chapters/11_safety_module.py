@@ -858,6 +858,61 @@ for name in new_data:
     )
     print(f"trained on {name}, seed 0: starts at {starts[1]:g} m/s against {starts[0]:g} m/s: "
           f"{data_start[name]['verdict']}")  # fmt: skip
+
+# the picture: each network's rate without the module, with the perceived (gyro) module and with
+# the ground-truth module, per data; and the slow-start probes
+module_of = {  # (row label, results per data name)
+    "no module": {n: data_results[n] for n in data_rows},
+    "gyro module": {n: data_results[f"{n} + safety module ({gyro_row})"] for n in new_data},
+    "ground-truth module": {
+        n: data_results[f"{n} + safety module (ground truth)"] for n in new_data
+    },
+}
+if key == course_key:  # section 2 guarded the course's networks with the same modules
+    module_of["gyro module"]["the course's data"] = guarded[
+        "perceived, approach views + brake along path + gyro heading"][0]  # fmt: skip
+    module_of["ground-truth module"]["the course's data"] = guarded["ground truth"][0]
+FLOOR = 0.05  # where a rate of 0 is drawn on the log scale [per 100 mi]
+fig = Figure(figsize=(12.5, 4.2), layout="constrained")
+ax, ax_probe = fig.subplots(1, 2, width_ratios=(2.2, 1))
+colours = ("tab:gray", "tab:orange", "tab:green")
+for j, (row, per_data) in enumerate(module_of.items()):
+    for i, name in enumerate(data_rows):
+        if name not in per_data:
+            continue
+        res = result_dict(per_data[name])
+        x = i + (j - 1) * 0.26
+        rate = res["collisions_per_100mi"]
+        ax.bar(x, max(rate, FLOOR), 0.24, color=colours[j], alpha=0.55,
+               label=row if i == len(data_rows) - 1 else None)  # fmt: skip
+        # the pooled rate written at the bar's foot, below the zeros' dots
+        ax.text(x, 0.015, f"{rate:.1f}", transform=ax.get_xaxis_transform(), ha="center",
+                va="bottom", fontsize=8)  # fmt: skip
+        seeds = [max(s["collisions_per_100mi"], FLOOR) for s in res.get("seeds") or []]
+        ax.plot([x] * len(seeds), seeds, "o", color=colours[j], ms=4, mec="k", mew=0.5)
+ax.set_yscale("log")
+ax.set_ylim(bottom=FLOOR / 4)
+ax.set_xticks(range(len(data_rows)), [textwrap.fill(n, 24) for n in data_rows], fontsize=9)
+ax.set_ylabel(f"collisions per 100 mi\n(bar: pooled, dots: seeds; 0 drawn at {FLOOR:g})")
+ax.set_title("The same recipe on three training sets: without and with the module", fontsize=10)
+ax.legend(fontsize=8, loc="upper right")
+probe_rows = {"the course's data": slow_start, **data_start}
+for i, probes in enumerate(probe_rows.values()):
+    for j, v0 in enumerate(starts):
+        rate = probes[f"{v0:g} m/s"]["collisions_per_100mi"]
+        x = i + (j - 0.5) * 0.38
+        ax_probe.bar(x, max(rate, FLOOR), 0.36, color=("tab:blue", "tab:red")[j],
+                     label=f"starts at {v0:g} m/s" if i == 0 else None)  # fmt: skip
+        ax_probe.annotate(f"{rate:.1f}", (x, max(rate, FLOOR)), textcoords="offset points",
+                          xytext=(0, 2), ha="center", fontsize=8)  # fmt: skip
+ax_probe.set_yscale("log")
+ax_probe.set_xticks(range(len(probe_rows)), [textwrap.fill(n, 16) for n in probe_rows], fontsize=8)
+ax_probe.set_ylabel("collisions per 100 mi (seed 0, no module)")
+ax_probe.set_title("Handed back slow: the slow-start probe", fontsize=10)
+ax_probe.legend(fontsize=8)
+data_png = save_figure(fig, artifacts.artifact_path("figures", "11_slow_data.png"))
+print(f"saved {data_png}")
+
 slow_data = {
     "speed_shares": speed_shares,
     "kept_epochs": {n: [h.best_epoch + 1 for _, h in t] for n, t in trained.items()},
@@ -951,7 +1006,7 @@ artifacts.write_metrics(
         "table_md": table,
         "lines": lines,
     },
-    figures=(grid_png,),
+    figures=(grid_png, data_png),
 )
 
 # %% [markdown]
