@@ -66,3 +66,40 @@ def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
     assert torch.allclose(nll, expected, atol=1e-5)
     with pytest.raises(ValueError, match="not both"):
         gmm(FULL, None, None, objective=learned, sigma_fixed=True)
+
+
+def test_the_affordance_weight_is_scored_once_per_data_and_grid(tmp_path, monkeypatch):
+    """Chapters that build several seeds ask for ``w`` once per seed: the grid is scored once, and
+    again when a grid checkpoint changes or the data has no settings key."""
+    from types import SimpleNamespace
+
+    from e2e_lite import artifacts
+    from e2e_lite.config import QUICK
+    from e2e_lite.learning import recipes
+
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
+    monkeypatch.setattr(recipes, "_CHOSEN_WEIGHTS", {})
+    scored = []
+
+    def fake_grid(profile, train, val, **kw):
+        scored.append(train.info.get("key"))
+        return {0.0: {"trajectory_nll": 2.0, "affordance_rel_mae": 0.9},
+                1.0: {"trajectory_nll": 1.0, "affordance_rel_mae": 0.5}}  # fmt: skip
+
+    monkeypatch.setattr(recipes, "affordance_grid", fake_grid)
+    train, val = SimpleNamespace(info={"key": "t"}), SimpleNamespace(info={"key": "v"})
+    assert [recipes.affordance_weight(QUICK, train, val) for _ in range(3)] == [1.0] * 3
+    assert scored == ["t"]
+    # another training set is scored
+    recipes.affordance_weight(QUICK, SimpleNamespace(info={"key": "t2"}), val)
+    assert scored == ["t", "t2"]
+    # a grid checkpoint written (or retrained) since: scored again, then remembered
+    artifacts.artifact_path("checkpoints", "08_grid_w1.pt").write_bytes(b"retrained")
+    recipes.affordance_weight(QUICK, train, val)
+    recipes.affordance_weight(QUICK, train, val)
+    assert scored == ["t", "t2", "t"]
+    # data without a settings key is never remembered
+    keyless = SimpleNamespace(info={})
+    recipes.affordance_weight(QUICK, keyless, val)
+    recipes.affordance_weight(QUICK, keyless, val)
+    assert scored == ["t", "t2", "t", None, None]

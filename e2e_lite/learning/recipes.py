@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from ..artifacts import artifact_path
 from ..config import Profile
 from ..control.labels import AFFORDANCE_NAMES
 from .checkpoints import refit_or_load, train_or_load
@@ -215,7 +216,7 @@ def affordance_grid(
         (held-out means; ``affordance_rel_mae``: each affordance's MAE over its training
         standard deviation, averaged over the 9).
     """
-    grid = (0.0, 1.0) if profile.quick else (0.0, 0.1, 0.3, 1.0, 3.0)
+    grid = _grid(profile)
     epochs = 1 if profile.quick else 2
     rows = np.arange(len(train)) if profile.quick else np.arange(0, len(train), 4)
     cfg = _train_cfg(profile, epochs=epochs, max_val_samples=2000, grad_clip=10.0, seed=1)
@@ -264,9 +265,35 @@ def choose_affordance_weight(scores: dict[float, dict[str, float]]) -> tuple[flo
     )
 
 
+def _grid(profile: Profile) -> tuple[float, ...]:
+    """The affordance weights chapter 08's grid tries."""
+    return (0.0, 1.0) if profile.quick else (0.0, 0.1, 0.3, 1.0, 3.0)
+
+
+#: :func:`affordance_weight`'s answers in this process, by profile, data and the grid's files
+_CHOSEN_WEIGHTS: dict[tuple[Any, ...], float] = {}
+
+
 def affordance_weight(profile: Profile, train: DrivingData, val: DrivingData, **kw: Any) -> float:
-    """Chapter 08's choice of ``w`` (the grid's checkpoints are reused when valid)."""
-    return choose_affordance_weight(affordance_grid(profile, train, val, **kw))[0]
+    """Chapter 08's choice of ``w`` (the grid's checkpoints are reused when valid).
+
+    Scoring the grid takes a validation pass per candidate (about 23 s in the full profile); the
+    answer is remembered in this process for the same profile, data and grid checkpoint files
+    (path, size and modification time), so chapters that build several training seeds score it
+    once, and a grid retrained in between is scored again."""
+
+    def grid_files() -> tuple[Any, ...]:
+        paths = [artifact_path("checkpoints", f"08_grid_w{w:g}.pt") for w in _grid(profile)]
+        return tuple((str(p), p.stat().st_size, p.stat().st_mtime_ns) if p.exists() else (str(p),)
+                     for p in paths)  # fmt: skip
+
+    data = (train.info.get("key"), val.info.get("key"))
+    if None not in data and (key := (profile, data, grid_files())) in _CHOSEN_WEIGHTS:
+        return _CHOSEN_WEIGHTS[key]
+    weight = choose_affordance_weight(affordance_grid(profile, train, val, **kw))[0]
+    if None not in data:  # (data without a settings key, e.g. synthetic, is never remembered)
+        _CHOSEN_WEIGHTS[(profile, data, grid_files())] = weight
+    return weight
 
 
 def gmm_affordance(
