@@ -455,24 +455,33 @@ variants = (
     ("perceived, uncalibrated", "perceived", [cfg] * n_seeds, {}, perceivers),  # (it crawls)
 )  # fmt: skip
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
-for name, tag, settings, perceives, heads, *agent_kw in variants:
+
+
+def drive_guarded(file: str, label: str, heads, settings, perceives: dict, agent_kw=None) -> tuple:
+    """Each training seed's network ``heads[k]`` driven with the module ``settings[k]`` on seed
+    k's roads (stored as ``<file>_seed<k>``; ``perceives``: how the module perceives,
+    ``agent_kw``: the network's settings): the pooled result, what the module reported added up
+    over the seeds, and seed 0's examples."""
     per_seed, counts, first = [], SafetyStats(), []
     for k, (perceiver, run, seed_cfg) in enumerate(zip(heads, runs, settings)):
-        driver = TrajectoryAgent(perceiver, **(agent_kw[0] if agent_kw else {}))
-        safe = SafeAgent(driver, seed_cfg, audit_every=4, **perceives)
+        driver = TrajectoryAgent(perceiver, **(agent_kw or {}))
         res = ablation.evaluate_stored(
-            f"11_{key}_{tag}_seed{k}",
-            f"with the module ({name}, seed {k})",
-            safe,
-            world_cfg,
-            run,
+            f"{file}_seed{k}", f"{label}, seed {k}",
+            SafeAgent(driver, seed_cfg, audit_every=4, **perceives), world_cfg, run,
             workers=profile.ablation_workers,
-        )
+        )  # fmt: skip
         per_seed.append(res)
         info = result_info(res)  # what the module reported with its decisions, added up
         counts.add(info)
         first = first or info["examples"]  # the examples of section 3 come from seed 0
-    guarded[name], stats[name] = (pool_results(per_seed), first), counts.to_dict()
+    return pool_results(per_seed), counts.to_dict(), first
+
+
+for name, tag, settings, perceives, heads, *agent_kw in variants:
+    pooled, stats[name], first = drive_guarded(
+        f"11_{key}_{tag}", f"with the module ({name})", heads, settings, perceives, *agent_kw
+    )
+    guarded[name] = (pooled, first)
 
 label = ablation.BY_KEY[key].label
 table = results_table(
@@ -534,19 +543,32 @@ for name, *_ in variants:
 
 # %%
 speed_bins = ((0.0, 10.0), (10.0, 20.0), (20.0, np.inf))
-print("| driver | collisions | " + " | ".join(
-    f"at {lo:.0f}-{hi:.0f} m/s" if np.isfinite(hi) else f"at {lo:.0f}+ m/s" for lo, hi in speed_bins
-) + " | rail under 10 m/s |")  # fmt: skip
-print("|---|---:|" + "---:|" * (len(speed_bins) + 1))
-by_speed = {}
-for name, r in [("without", without), ("without, speed input >= median", without_told)] + [
-    (n, guarded[n][0]) for n, *_ in variants
-]:
-    impact = [(e["speed_mps"], e["kind"]) for e in result_events(r)]
-    counts = [sum(lo <= v < hi for v, _ in impact) for lo, hi in speed_bins]
-    slow_rail = sum(v < 10.0 and k == "rail" for v, k in impact)
-    by_speed[name] = {"collisions": len(impact), "by_speed": counts, "rail_under_10": slow_rail}
-    print(f"| {name} | {len(impact)} | " + " | ".join(map(str, counts)) + f" | {slow_rail} |")
+
+
+def print_by_speed(rows: dict, first: str, last: str, last_key: str, count_last) -> dict:
+    """Print a table of ``rows``' (name: result) collisions by speed at impact [m/s] (first column
+    titled ``first``; last column ``last``, counted by ``count_last`` on the ``(speed, kind)`` of
+    every collision) and return it by name (``last_key``: the last column's key)."""
+    print(f"| {first} | collisions | " + " | ".join(
+        f"at {lo:.0f}-{hi:.0f} m/s" if np.isfinite(hi) else f"at {lo:.0f}+ m/s"
+        for lo, hi in speed_bins) + f" | {last} |")  # fmt: skip
+    print("|---|---:|" + "---:|" * (len(speed_bins) + 1))
+    table = {}
+    for name, res in rows.items():
+        impact = [(e["speed_mps"], e["kind"]) for e in result_events(res)]
+        counts = [sum(lo <= v < hi for v, _ in impact) for lo, hi in speed_bins]
+        table[name] = {"collisions": len(impact), "by_speed": counts, last_key: count_last(impact)}
+        print(f"| {name} | {len(impact)} | " + " | ".join(map(str, counts)) +
+              f" | {table[name][last_key]} |")  # fmt: skip
+    return table
+
+
+by_speed = print_by_speed(
+    {"without": without, "without, speed input >= median": without_told}
+    | {n: guarded[n][0] for n, *_ in variants},
+    "driver", "rail under 10 m/s", "rail_under_10",
+    lambda impact: sum(v < 10.0 and k == "rail" for v, k in impact),
+)  # fmt: skip
 for name, *_ in variants:
     kinds = stats[name]["kinds"]
     total = max(1, sum(kinds.values()))
@@ -783,18 +805,11 @@ for name in new_data:
     ]
     for row, row_tag, perceives in module_rows:
         settings = [cfg] * n_seeds if perceives.get("ground_truth") else gyro_cfgs
-        per_seed, counts = [], SafetyStats()
-        for k, (head, run, seed_cfg) in enumerate(zip(heads, runs, settings)):
-            res = ablation.evaluate_stored(
-                f"11_{course_key}_{tag}_{row_tag}_seed{k}",
-                f"trained on {name}, with the module ({row}, seed {k})",
-                SafeAgent(TrajectoryAgent(head), seed_cfg, audit_every=4, **perceives),
-                world_cfg, run, workers=profile.ablation_workers,
-            )  # fmt: skip
-            per_seed.append(res)
-            counts.add(result_info(res))
-        data_results[f"{name} + safety module ({row})"] = pool_results(per_seed)
-        data_stats[f"{name} + safety module ({row})"] = counts.to_dict()
+        row_name = f"{name} + safety module ({row})"
+        data_results[row_name], data_stats[row_name], _ = drive_guarded(
+            f"11_{course_key}_{tag}_{row_tag}", f"trained on {name}, with the module ({row})",
+            heads, settings, perceives,
+        )  # fmt: skip
 
 print(results_table(
     [(f"{course_label}, trained on {n}", r) for n, r in data_results.items()],
@@ -821,9 +836,11 @@ data_verdicts = {
 # the course's networks with it, when section 2 guards this driver)
 nine = list(data_rows) if key == course_key else new_data
 pooled_without = pool_results([data_results[n] for n in nine])
+# (section 2's rows of the course's networks, when it guards this driver)
+course_guarded = {"gyro module": "perceived, approach views + brake along path + gyro heading",
+                  "ground-truth module": "ground truth"} if key == course_key else {}  # fmt: skip
 pooled_gyro = pool_results(
-    [guarded["perceived, approach views + brake along path + gyro heading"][0]]
-    * (key == course_key)
+    ([guarded[course_guarded["gyro module"]][0]] if course_guarded else [])
     + [data_results[f"{n} + safety module ({gyro_row})"] for n in new_data]
 )
 data_verdicts[f"all {len(nine) * n_seeds} networks, module ({gyro_row}) vs without"] = (
@@ -836,17 +853,9 @@ print(results_table(
 ))  # fmt: skip
 for what, v in data_verdicts.items():
     print(f"{what}: {v}")
-print("| trained on | collisions | " + " | ".join(
-    f"at {lo:.0f}-{hi:.0f} m/s" if np.isfinite(hi) else f"at {lo:.0f}+ m/s" for lo, hi in speed_bins
-) + " | rail |")  # fmt: skip
-print("|---|---:|" + "---:|" * (len(speed_bins) + 1))
-data_by_speed = {}
-for name, res in data_results.items():
-    impact = [(e["speed_mps"], e["kind"]) for e in result_events(res)]
-    counts = [sum(lo <= v < hi for v, _ in impact) for lo, hi in speed_bins]
-    rail = sum(k == "rail" for _, k in impact)
-    data_by_speed[name] = {"collisions": len(impact), "by_speed": counts, "rail": rail}
-    print(f"| {name} | {len(impact)} | " + " | ".join(map(str, counts)) + f" | {rail} |")
+data_by_speed = print_by_speed(
+    data_results, "trained on", "rail", "rail", lambda impact: sum(k == "rail" for _, k in impact)
+)
 
 # section 2's targeted check on each new data's seed 0: started at 20 and at 8 m/s
 data_start = {}
@@ -868,10 +877,8 @@ module_of = {  # (row label, results per data name)
         n: data_results[f"{n} + safety module (ground truth)"] for n in new_data
     },
 }
-if key == course_key:  # section 2 guarded the course's networks with the same modules
-    module_of["gyro module"]["the course's data"] = guarded[
-        "perceived, approach views + brake along path + gyro heading"][0]  # fmt: skip
-    module_of["ground-truth module"]["the course's data"] = guarded["ground truth"][0]
+for module, row in course_guarded.items():  # section 2 guarded the course's networks alike
+    module_of[module]["the course's data"] = guarded[row][0]
 FLOOR = 0.05  # where a rate of 0 is drawn on the log scale [per 100 mi]
 fig = Figure(figsize=(12.5, 4.2), layout="constrained")
 ax, ax_probe = fig.subplots(1, 2, width_ratios=(2.2, 1))

@@ -224,7 +224,7 @@ def affordance_grid(
     for w in grid:
         objective = WithAffordance(gmm_objective(profile, epochs), w)
         model, _ = train_or_load(
-            f"08_grid_w{w:g}", AFFORDANCE_CFG, cfg, objective, train, val, train_rows=rows, **kw
+            _grid_name(w), AFFORDANCE_CFG, cfg, objective, train, val, train_rows=rows, **kw
         )
         _, metrics = evaluate_loss(model, objective, DrivingDataset(val))
         scores[w] = {
@@ -270,6 +270,11 @@ def _grid(profile: Profile) -> tuple[float, ...]:
     return (0.0, 1.0) if profile.quick else (0.0, 0.1, 0.3, 1.0, 3.0)
 
 
+def _grid_name(weight: float) -> str:
+    """The checkpoint name of the grid's candidate ``weight``."""
+    return f"08_grid_w{weight:g}"
+
+
 #: :func:`affordance_weight`'s answers in this process, by profile, data and the grid's files
 _CHOSEN_WEIGHTS: dict[tuple[Any, ...], float] = {}
 
@@ -283,9 +288,9 @@ def affordance_weight(profile: Profile, train: DrivingData, val: DrivingData, **
     once, and a grid retrained in between is scored again."""
 
     def grid_files() -> tuple[Any, ...]:
-        paths = [artifact_path("checkpoints", f"08_grid_w{w:g}.pt") for w in _grid(profile)]
-        return tuple((str(p), p.stat().st_size, p.stat().st_mtime_ns) if p.exists() else (str(p),)
-                     for p in paths)  # fmt: skip
+        paths = [artifact_path("checkpoints", f"{_grid_name(w)}.pt") for w in _grid(profile)]
+        stats = [p.stat() if p.exists() else None for p in paths]
+        return tuple((str(p), s and (s.st_size, s.st_mtime_ns)) for p, s in zip(paths, stats))
 
     data = (train.info.get("key"), val.info.get("key"))
     if None not in data and (key := (profile, data, grid_files())) in _CHOSEN_WEIGHTS:
