@@ -47,7 +47,14 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from ..config import check_range
-from ..control.labels import AFFORDANCE_INDEX, GAP_CAP_M, GAP_NAMES, N_POINTS, POINT_DT_S
+from ..control.labels import (
+    AFFORDANCE_INDEX,
+    GAP_CAP_M,
+    GAP_NAMES,
+    N_POINTS,
+    POINT_DT_S,
+    along_path,
+)
 
 _A = AFFORDANCE_INDEX
 _SUBSTEPS = 4  # interpolated positions per 0.3 s between points
@@ -85,14 +92,14 @@ class SafetyConfig:
             A path to a lane centre is made of the perceived heading, offset and lane width, and
             its lane is chosen by the perceived side gaps; the network's own path needs neither
             (chapter 11 measures both fallbacks on perception).
-        check_fallback: check the keep-lane braking fallback too, and when it would itself run
-            into something within the horizon, drive the candidate whose violation comes latest
-            (see :func:`choose`). Off by default: with the true affordances it traded car
-            collisions for rail collisions (seed 0, 40 mi: 12 car / 23 rail against 21 / 13
-            unchecked; measured before ``fallback_lanes``); chapter 11's exercise 5.
-        gyro_heading: fuse the perceived heading with the car's own yaw rate (a gyro) before
-            the check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`): the camera's
-            heading is sharp at cruise speed and poor when the car is slow or turned.
+        check_fallback: check the keep-lane brake too (see :func:`choose`). Off: with the true
+            affordances it traded car for rail collisions (seed 0, 40 mi: 12 car / 23 rail
+            against 21 / 13 unchecked, before ``fallback_lanes``); chapter 11's exercise 5.
+        gyro_heading: fuse the perceived heading with the car's yaw rate (a gyro) before the
+            check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`).
+        gyro_camera_weight: the camera's weight in that fusion at every speed, in (0, 1];
+            ``None``: the speed-dependent weight (the camera alone at cruise speed).
+        gyro_offset: with ``gyro_heading``, fuse the offset too (``safe_agent.fuse_offset``).
         sight_speed: drive every proposal no faster than :meth:`sight_speed_mps` (:func:`cap_speed`;
             "assured clear distance ahead"): a car first seen can be stopped for (chapter 11).
         check_proposals: ``False`` drives the heaviest mode unchecked (with ``sight_speed``:
@@ -113,6 +120,8 @@ class SafetyConfig:
     gap_free_side_m: float | None = field(default=None, repr=False)  # (shown when set)
     brake_along_path: bool = field(default=False, repr=False)  # (shown when set)
     gyro_heading: bool = field(default=False, repr=False)  # (shown when set)
+    gyro_camera_weight: float | None = field(default=None, repr=False)  # (shown when set)
+    gyro_offset: bool = field(default=False, repr=False)  # (shown when set)
     sight_speed: bool = field(default=False, repr=False)  # (shown when set)
     check_proposals: bool = field(default=True, repr=False)  # (shown when set)
 
@@ -126,13 +135,18 @@ class SafetyConfig:
         check_range(o, "car_width_m", self.car_width_m, 0.5, 4.0)
         check_range(o, "car_length_m", self.car_length_m, 1.0, 20.0)
         check_range(o, "parked_length_m", self.parked_length_m, 1.0, 20.0)
-        check_range(o, "gap_free_m", self.gap_free_m, 1.0, 1000.0)
-        if self.gap_free_side_m is not None:
-            check_range(o, "gap_free_side_m", self.gap_free_side_m, 1.0, 1000.0)
+        for name in ("gap_free_m", "gap_free_side_m"):
+            if getattr(self, name) is not None:
+                check_range(o, name, getattr(self, name), 1.0, 1000.0)
+        if self.gyro_camera_weight is not None:
+            check_range(o, "gyro_camera_weight", self.gyro_camera_weight, 0.0, 1.0, lo_open=True)
+        if self.gyro_offset and not self.gyro_heading:
+            raise ValueError(
+                "SafetyConfig: gyro_offset fuses with the gyro's heading: set gyro_heading"
+            )
 
     def __repr__(self) -> str:
-        # the dataclass's own form, with the fields added later only when not at their defaults
-        # (stored results are keyed by this text: settings without them keep their keys)
+        # the fields added later shown only when set (stored results are keyed by this text)
         shown = [
             f"{f.name}={getattr(self, f.name)!r}"
             for f in fields(self)
@@ -141,8 +155,7 @@ class SafetyConfig:
         return f"{type(self).__name__}({', '.join(shown)})"
 
     def free_from_m(self, lane: str) -> float:
-        """The perceived gap from which ``lane`` (``"ego"``, ``"left"``, ``"right"``) counts as
-        free [m]."""
+        """The perceived gap from which ``lane`` (``"ego"``, ``"left"``, ``"right"``) is free [m]."""
         side = self.gap_free_side_m
         return self.gap_free_m if lane == "ego" or side is None else side
 
@@ -383,7 +396,7 @@ def brake_along(
     """``points`` ``(5, 2)`` [m] driven along their own path braking at ``cfg.brake_mps2`` from
     ``speed_mps`` to a stop, never past its end (an emergency brake keeping the planned path)."""
     cfg = cfg or SafetyConfig()
-    return _at_progress(points, lambda along: braking_progress(speed_mps, cfg.brake_mps2))
+    return along_path(points, lambda along: braking_progress(speed_mps, cfg.brake_mps2))
 
 
 def cap_speed(points: np.ndarray, max_speed_mps: float) -> np.ndarray:
@@ -391,28 +404,7 @@ def cap_speed(points: np.ndarray, max_speed_mps: float) -> np.ndarray:
     ``max_speed_mps`` [m/s] (each point moved back to ``max_speed_mps t_i`` along the path if
     further); slower proposals are unchanged."""
     limit = max(0.0, float(max_speed_mps)) * POINT_DT_S * np.arange(1, N_POINTS + 1)
-    return _at_progress(points, lambda along: np.minimum(along, limit))
-
-
-def _at_progress(points: np.ndarray, progress) -> np.ndarray:
-    """Points ``(..., 5, 2)`` [m] moved along their polylines to ``progress(along)`` [m] (``along``
-    ``(M, 5)``: each point's own distance), all at once, to the bit as :func:`numpy.interp`."""
-    pts = np.asarray(points, dtype=np.float64)
-    poly = np.pad(pts.reshape(-1, N_POINTS, 2), ((0, 0), (1, 0), (0, 0)))
-    step = np.diff(poly, axis=1)
-    along = np.pad(np.cumsum(np.hypot(step[..., 0], step[..., 1]), axis=1), ((0, 0), (1, 0)))
-    covered = np.minimum(progress(along[:, 1:]), along[:, -1:])
-    out = poly[:, 1:].copy()
-    moved = np.any(np.abs(covered - along[:, 1:]) > 1e-9, axis=1)  # (re-timed)
-    a, x, p = along[moved], covered[moved], poly[moved]
-    j = np.minimum((x[:, :, None] >= a[:, None, :]).sum(axis=2) - 1, N_POINTS - 1)  # segment
-    lo, hi = np.take_along_axis(a, j, axis=1), np.take_along_axis(a, j + 1, axis=1)
-    p_lo, p_hi = (np.take_along_axis(p, i[..., None], axis=1) for i in (j, j + 1))
-    with np.errstate(divide="ignore", invalid="ignore"):  # (a zero-length step is replaced)
-        at = (p_hi - p_lo) / (hi - lo)[..., None] * (x - lo)[..., None] + p_lo
-    end = (x >= a[:, -1:])[..., None]  # on a vertex or at the end: that point (as np.interp)
-    out[moved] = np.where((x == lo)[..., None] | end, np.where(end, p[:, -1:], p_lo), at)
-    return out.reshape(pts.shape)
+    return along_path(points, lambda along: np.minimum(along, limit))
 
 
 @dataclass
