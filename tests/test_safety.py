@@ -21,7 +21,6 @@ from e2e_lite.experiments.safe_agent import (
     SafeAgent,
     SafetyStats,
     fuse_heading,
-    fuse_offset,
 )
 from e2e_lite.experiments.safety import (
     SafetyConfig,
@@ -545,66 +544,6 @@ def test_the_gyro_heading_averages_away_a_noisy_camera_and_restarts_with_each_ca
     evaluate(Recording(NoisyHeading(), steady, audit=False), world, cfg, progress=False)
     steady_err = np.concatenate([r[1] for r in rows])
     assert rmse(steady_err) < 0.6 * rmse(fused_err)
-
-
-def test_the_fused_offset_follows_the_sideways_drive_and_the_lane_crossings():
-    width, dt, v = np.full(3, 3.6), 0.1, np.full(3, 20.0)
-    heading = np.array([0.0, 0.05, 0.05])  # pointing left: 0.1 m sideways per decision
-    last, camera = np.array([0.5, 1.7, 1.0]), np.array([0.5, -1.8, 1.2])
-    fused = fuse_offset(last, camera, heading, v, width, dt, camera_weight=0.1)
-    moved = 20.0 * dt * np.sin(0.05)
-    assert fused[0] == pytest.approx(0.5)  # agreeing answers stay
-    # across the left marking the camera measures from the new lane: the prediction follows it
-    assert fused[1] == pytest.approx(0.9 * (1.7 + moved - 3.6) + 0.1 * -1.8)
-    assert fused[2] == pytest.approx(0.9 * (1.0 + moved) + 0.1 * 1.2)  # no crossing
-    at_cruise = fuse_offset(last, camera, heading, np.full(3, 30.0), width, dt)
-    assert np.array_equal(at_cruise, camera)  # the speed-dependent weight: the camera at cruise
-    with pytest.raises(ValueError, match="gyro_offset"):
-        SafetyConfig(gyro_offset=True)
-
-
-class NoisyOffset(StraightOn):
-    """StraightOn with exact affordances except the lane-centre offset, misread by N(0, 0.2 m)
-    each decision (the markings and edges misread alike)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.rng = np.random.default_rng(1)
-
-    def trajectories(self, obs: Observation) -> np.ndarray:
-        pts = super().trajectories(obs)
-        seen = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
-        error = self.rng.normal(0.0, 0.2, len(seen))
-        left = [AFFORDANCE_NAMES.index(n) for n in ("left_marking_m", "left_edge_m")]
-        right = [AFFORDANCE_NAMES.index(n) for n in ("right_marking_m", "right_edge_m")]
-        seen[:, AFFORDANCE_NAMES.index("center_offset_m")] += error
-        seen[:, left] -= error[:, None]
-        seen[:, right] += error[:, None]
-        self.last["affordances"] = seen
-        return pts
-
-
-def test_the_gyro_offset_averages_away_a_noisy_camera_and_moves_the_markings_with_it():
-    names = ("center_offset_m", "left_marking_m", "right_edge_m")
-    cols = [AFFORDANCE_NAMES.index(n) for n in names]
-    rows = []
-
-    class Recording(SafeAgent):
-        def act(self, obs: Observation) -> Actuation:
-            out = super().act(obs)
-            truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)[:, cols]
-            rows.append((self.agent.last["affordances"][:, cols] - truth,
-                         self.last["seen"][:, cols] - truth))  # fmt: skip
-            return out
-
-    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
-    cfg = EvalConfig(miles=0.5, n_worlds=2, n_tracks=2)
-    fused_cfg = SafetyConfig(gyro_heading=True, gyro_camera_weight=0.1, gyro_offset=True)
-    evaluate(Recording(NoisyOffset(), fused_cfg, audit=False), world, cfg, progress=False)
-    camera, fused = (np.concatenate([r[k] for r in rows]) for k in (0, 1))
-    rmse = np.sqrt(np.mean(fused**2, axis=0)) / np.sqrt(np.mean(camera**2, axis=0))
-    assert np.all(rmse < 0.6)  # the offset, and the markings and edges moved with it
-    assert "gyro_offset" not in repr(SafetyConfig(gyro_heading=True))  # stored keys kept
 
 
 def test_the_perceived_check_needs_predicted_affordances():

@@ -37,10 +37,7 @@ BEFORE_IMPACT = 30
 GYRO_FULL_SPEED_MPS = 25.0
 #: the camera's least weight in the fused heading (at standstill)
 GYRO_MIN_CAMERA_WEIGHT = 0.1
-_HEADING, _OFFSET = AFFORDANCE_INDEX["heading_rad"], AFFORDANCE_INDEX["center_offset_m"]
-_LEFT_MARK, _RIGHT_MARK = AFFORDANCE_INDEX["left_marking_m"], AFFORDANCE_INDEX["right_marking_m"]
-_LEFT_SIDE = [_LEFT_MARK, AFFORDANCE_INDEX["left_edge_m"]]  # (nearer as the car moves left)
-_RIGHT_SIDE = [_RIGHT_MARK, AFFORDANCE_INDEX["right_edge_m"]]
+_HEADING = AFFORDANCE_INDEX["heading_rad"]
 
 
 def fuse_heading(
@@ -79,46 +76,6 @@ def fuse_heading(
     if camera_weight is not None:
         g = np.full_like(v, camera_weight)
     predicted = previous + yaw_change - curvature * v * dt_s
-    return (1.0 - g) * predicted + g * camera
-
-
-def fuse_offset(
-    previous: np.ndarray,
-    camera: np.ndarray,
-    heading: np.ndarray,
-    speed_mps: np.ndarray,
-    lane_width_m: np.ndarray,
-    dt_s: float,
-    camera_weight: float | None = None,
-) -> np.ndarray:
-    r"""One step of the same complementary filter on the offset from the lane centre [m], per car
-    (left positive): predict with the distance driven sideways, correct with the camera.
-
-        p = o_{t-1} + v dt sin(h),   o_t = (1 - g) p + g o_camera
-
-    The camera measures from the centre of the lane the car is in, so after a marking is crossed
-    its answer jumps by a lane width: ``p`` is moved by whole lane widths to the camera's lane
-    first. ``g`` as in :func:`fuse_heading`.
-
-    Args:
-        previous: the fused offset at the last decision [m], ``(B,)``.
-        camera: the perceived offset now [m], ``(B,)``.
-        heading: the heading to the lane over the step [rad], ``(B,)`` (the fused one).
-        speed_mps: speeds [m/s], ``(B,)``.
-        lane_width_m: the perceived lane widths [m], ``(B,)`` (markings' distances added).
-        dt_s: time since the last decision [s].
-        camera_weight: ``g`` at every speed; ``None``: :func:`fuse_heading`'s formula.
-
-    Returns:
-        The fused offset [m], ``(B,)``.
-    """
-    v = np.maximum(np.asarray(speed_mps, dtype=float), 0.0)
-    g = np.clip((v / GYRO_FULL_SPEED_MPS) ** 2, GYRO_MIN_CAMERA_WEIGHT, 1.0)
-    if camera_weight is not None:
-        g = np.full_like(v, camera_weight)
-    width = np.maximum(np.asarray(lane_width_m, dtype=float), 2.0)
-    predicted = previous + v * dt_s * np.sin(heading)
-    predicted -= np.round((predicted - camera) / width) * width  # (into the camera's lane)
     return (1.0 - g) * predicted + g * camera
 
 
@@ -298,7 +255,7 @@ class SafeAgent:
             if self.true_affordances:
                 seen[:, self._true_columns] = truth[:, self._true_columns]
             if self.cfg.gyro_heading:
-                self._fuse_geometry(obs, seen)
+                seen[:, _HEADING] = self._fused_heading(obs, seen[:, _HEADING])
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
         for i in range(len(proposal)):
@@ -371,33 +328,19 @@ class SafeAgent:
             self._overrode[:, -1] = [src != "network" for src in sources]
         return dataclasses.replace(self.agent.follow(chosen, obs), info=info)
 
-    def _fuse_geometry(self, obs: Observation, seen: np.ndarray) -> None:
-        """Fuse, in ``seen`` (N, 9), the perceived heading with each car's yaw change since the
-        last decision (:func:`fuse_heading`) and, with ``cfg.gyro_offset``, the perceived offset
-        with the distance driven sideways (:func:`fuse_offset`; the markings and edges moved with
-        it); a car just (re)placed starts from the camera's answers."""
-        yaw, width = obs.state[:, H].copy(), seen[:, _LEFT_MARK] + seen[:, _RIGHT_MARK]
-        camera = seen[:, [_HEADING, _OFFSET]].copy()
-        fused = camera.copy()
+    def _fused_heading(self, obs: Observation, camera: np.ndarray) -> np.ndarray:
+        """The perceived heading fused with each car's yaw change since the last decision
+        (:func:`fuse_heading`); a car just (re)placed starts from the camera's [rad]."""
+        yaw = obs.state[:, H].copy()
+        fused = camera.copy()  # (camera is a column of the agent's array)
         if self._gyro is not None and len(self._gyro[1]) == len(yaw):
             t, last_yaw, last = self._gyro
-            dt_s, weight = obs.time_s - t, self.cfg.gyro_camera_weight
             turned = wrap_angle(yaw - last_yaw)
-            heading = fuse_heading(
-                last[:, 0], camera[:, 0], turned, obs.speed, obs.curvature, dt_s, weight
-            )
-            mean_heading = (last[:, 0] + heading) / 2.0  # (over the step)
-            offset = fuse_offset(
-                last[:, 1], camera[:, 1], mean_heading, obs.speed, width, dt_s, weight
-            )
-            fused = np.where(obs.respawned[:, None], camera, np.stack([heading, offset], axis=1))
+            dt_s, weight = obs.time_s - t, self.cfg.gyro_camera_weight
+            step = fuse_heading(last, camera, turned, obs.speed, obs.curvature, dt_s, weight)
+            fused = np.where(obs.respawned, camera, step)
         self._gyro = (obs.time_s, yaw, fused)
-        seen[:, _HEADING] = fused[:, 0]
-        if self.cfg.gyro_offset:
-            moved = fused[:, 1] - camera[:, 1]  # left positive
-            seen[:, _OFFSET] = fused[:, 1]
-            seen[:, _LEFT_SIDE] -= moved[:, None]
-            seen[:, _RIGHT_SIDE] += moved[:, None]
+        return fused
 
 
 def _expert_labels(obs: Observation, idx: list[int], sim: SimConfig | None = None) -> np.ndarray:

@@ -99,7 +99,6 @@ class SafetyConfig:
             check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`).
         gyro_camera_weight: the camera's weight in that fusion at every speed, in (0, 1];
             ``None``: the speed-dependent weight (the camera alone at cruise speed).
-        gyro_offset: with ``gyro_heading``, fuse the offset too (``safe_agent.fuse_offset``).
         sight_speed: drive every proposal no faster than :meth:`sight_speed_mps` (:func:`cap_speed`;
             "assured clear distance ahead"): a car first seen can be stopped for (chapter 11).
         check_proposals: ``False`` drives the heaviest mode unchecked (with ``sight_speed``:
@@ -121,7 +120,6 @@ class SafetyConfig:
     brake_along_path: bool = field(default=False, repr=False)  # (shown when set)
     gyro_heading: bool = field(default=False, repr=False)  # (shown when set)
     gyro_camera_weight: float | None = field(default=None, repr=False)  # (shown when set)
-    gyro_offset: bool = field(default=False, repr=False)  # (shown when set)
     sight_speed: bool = field(default=False, repr=False)  # (shown when set)
     check_proposals: bool = field(default=True, repr=False)  # (shown when set)
 
@@ -140,10 +138,6 @@ class SafetyConfig:
                 check_range(o, name, getattr(self, name), 1.0, 1000.0)
         if self.gyro_camera_weight is not None:
             check_range(o, "gyro_camera_weight", self.gyro_camera_weight, 0.0, 1.0, lo_open=True)
-        if self.gyro_offset and not self.gyro_heading:
-            raise ValueError(
-                "SafetyConfig: gyro_offset fuses with the gyro's heading: set gyro_heading"
-            )
 
     def __repr__(self) -> str:
         # the fields added later shown only when set (stored results are keyed by this text)
