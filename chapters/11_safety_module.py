@@ -388,10 +388,12 @@ calibrated_approach = [calibrate(p) for p in approached]
 # markings, edges) in place of the network's, the rest predicted (whose errors cost the
 # collisions); section 1's two changes, together, each alone, together with the true
 # geometry or the true heading, and together with the gyro's heading (alone, and with the true
-# gaps: what is left after it); then the gyro module with the sight speed, the sight speed alone
-# with nothing checked (what slowing down does by itself), and the gyro module with and without
-# the sight speed on a network told at least the median speed (compared with that driver told
-# the same, without the module); and the uncalibrated 59.5 m (what the calibration does).
+# gaps: what is left after it); then the gyro module with the sight speed, and with the camera's
+# heading weight fixed at 0.03 at every speed (`gyro_camera_weight`; section 5 says why), the
+# sight speed alone with nothing checked (what slowing down does by itself), the gyro module
+# with and without the sight speed on a network told at least the median speed (compared with
+# that driver told the same, without the module); and the uncalibrated 59.5 m (what the
+# calibration does).
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
 # sends the module's counters home). Every training seed of the driver drives its share of the
