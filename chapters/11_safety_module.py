@@ -845,19 +845,18 @@ data_verdicts = {
 # the course's networks with it, when section 2 guards this driver)
 nine = list(data_rows) if key == course_key else new_data
 pooled_without = pool_results([data_results[n] for n in nine])
-# (section 2's rows of the course's networks, when it guards this driver)
-course_guarded = {
-    "gyro module": "perceived, approach views + brake along path + gyro heading",
-    "gyro module, camera weight 0.03":
-        "perceived, approach views + brake along path + gyro heading, camera weight 0.03",
-    "ground-truth module": "ground truth",
-} if key == course_key else {}  # fmt: skip
-pooled_guarded = {  # (module row: its pool over every network)
+modules = {  # (short name: this section's row, section 2's row of the course's networks)
+    "gyro module": (gyro_row, f"perceived, {gyro_row}"),
+    "gyro module, camera weight 0.03": (steady_row, f"perceived, {steady_row}"),
+    "ground-truth module": ("ground truth", "ground truth"),
+}
+guards_course = key == course_key  # (section 2 guarded the course's networks alike)
+pooled_guarded = {  # (the two gyro rows: each pooled over every network)
     row: pool_results(
-        ([guarded[course_guarded[module]][0]] if course_guarded else [])
+        ([guarded[course_row][0]] if guards_course else [])
         + [data_results[f"{n} + safety module ({row})"] for n in new_data]
     )
-    for module, row in (("gyro module", gyro_row), ("gyro module, camera weight 0.03", steady_row))
+    for row, course_row in list(modules.values())[:2]
 }
 for row, pooled in pooled_guarded.items():
     data_verdicts[f"all {len(nine) * n_seeds} networks, module ({row}) vs without"] = compare_rates(
@@ -890,18 +889,11 @@ for name in new_data:
 
 # the picture: each network's rate without the module, with the perceived (gyro) module and with
 # the ground-truth module, per data; and the slow-start probes
-module_of = {  # (row label, results per data name)
-    "no module": {n: data_results[n] for n in data_rows},
-    "gyro module": {n: data_results[f"{n} + safety module ({gyro_row})"] for n in new_data},
-    "gyro module, camera weight 0.03": {
-        n: data_results[f"{n} + safety module ({steady_row})"] for n in new_data
-    },
-    "ground-truth module": {
-        n: data_results[f"{n} + safety module (ground truth)"] for n in new_data
-    },
-}
-for module, row in course_guarded.items():  # section 2 guarded the course's networks alike
-    module_of[module]["the course's data"] = guarded[row][0]
+module_of = {"no module": {n: data_results[n] for n in data_rows}} | {
+    module: ({"the course's data": guarded[course_row][0]} if guards_course else {})
+    | {n: data_results[f"{n} + safety module ({row})"] for n in new_data}
+    for module, (row, course_row) in modules.items()
+}  # (short name: results per data name)
 FLOOR = 0.05  # where a rate of 0 is drawn on the log scale [per 100 mi]
 fig = Figure(figsize=(12.5, 4.2), layout="constrained")
 ax, ax_probe = fig.subplots(1, 2, width_ratios=(2.2, 1))
@@ -993,43 +985,45 @@ slow_data = {
 # at a time: the **heading**; the **offsets** (lane-centre offset, markings, road edges); both
 # (the **geometry**); the three **gaps**; and pairs of them. Each is driven with both fallbacks:
 # braking along the network's own path (the gyro module's) and braking into a lane (the rule's
-# own, which needs the side gaps). One more row trusts the camera's heading a tenth at every
-# speed (`gyro_camera_weight=0.1`), not only when slow: the gyro's prediction is nearly exact
-# (the yaw change less the road's turn), and the camera's heading errs most near parked cars.
+# own, which needs the side gaps). Two more rows trust the camera's heading a tenth, then 0.03,
+# at every speed (`gyro_camera_weight`), not only when slow: the gyro's prediction is nearly
+# exact (the yaw change less the road's turn), and the camera's heading errs most near parked
+# cars. Rows the section drove above are read from them, not driven again.
 
 # %%
 OFFSETS = tuple(n for n in GEOMETRY if n != "heading_rad")  # offset, markings, road edges
-TRUE_SETS = {  # (label: the affordances put back, true)
-    "nothing (perceived)": (), "the heading": ("heading_rad",), "the offsets": OFFSETS,
-    "the geometry": GEOMETRY, "the gaps": GAP_NAMES, "the gaps and the heading":
-    (*GAP_NAMES, "heading_rad"), "the gaps and the offsets": GAP_NAMES + OFFSETS,
-    "everything": AFFORDANCE_NAMES,
-}  # fmt: skip
+HEADING = ("heading_rad",)
 along_cfgs = data_gyro[deep]
 lane_cfgs = [dataclasses.replace(c, brake_along_path=False) for c in along_cfgs]
 plain_along = [dataclasses.replace(c, gyro_heading=False) for c in along_cfgs]
 truth_along = [dataclasses.replace(cfg, brake_along_path=True)] * n_seeds
-decompose = {  # (true set, fallback): (stored as, settings per seed, how it perceives)
-    ("nothing (perceived)", "along path"): ("approachpath_gyro", along_cfgs, {}),
-    ("the heading", "along path"): ("approachpath_trueheading", plain_along, TRUE_SETS["the heading"]),
+weight01 = [dataclasses.replace(c, gyro_camera_weight=0.1) for c in along_cfgs]
+# (true set, fallback): the row driven above (by its label), or (stored as, settings per seed,
+# the affordances put back true, or "truth": the ground-truth module)
+decompose = {
+    ("nothing (perceived)", "along path"): gyro_row,
+    ("the heading", "along path"): ("approachpath_trueheading", plain_along, HEADING),
     ("the offsets", "along path"): ("approachpath_gyro_trueoffsets", along_cfgs, OFFSETS),
     ("the geometry", "along path"): ("approachpath_gyro_truegeometry", along_cfgs, GEOMETRY),
-    ("the gaps", "along path"): ("approachpath_gyro_truegaps", along_cfgs, GAP_NAMES),
+    ("the gaps", "along path"): module_rows[1][0],
     ("the gaps and the heading", "along path"): (
-        "approachpath_gyro_truegaps_trueheading", along_cfgs, TRUE_SETS["the gaps and the heading"]),
+        "approachpath_gyro_truegaps_trueheading", along_cfgs, GAP_NAMES + HEADING),
     ("the gaps and the offsets", "along path"): (
-        "approachpath_gyro_truegaps_trueoffsets", along_cfgs, TRUE_SETS["the gaps and the offsets"]),
+        "approachpath_gyro_truegaps_trueoffsets", along_cfgs, GAP_NAMES + OFFSETS),
     ("everything", "along path"): ("truth_alongpath", truth_along, "truth"),
-    ("nothing (perceived)", "into a lane"): ("approach_gyro", lane_cfgs, {}),
+    ("nothing (perceived)", "into a lane"): ("approach_gyro", lane_cfgs, ()),
     ("the geometry", "into a lane"): ("approach_gyro_truegeometry", lane_cfgs, GEOMETRY),
     ("the gaps", "into a lane"): ("approach_gyro_truegaps", lane_cfgs, GAP_NAMES),
-    ("everything", "into a lane"): ("truth", [cfg] * n_seeds, "truth"),
-    **{(f"nothing, camera weight {w:g}", "along path"): (f"approachpath_gyro{tag}", [
-        dataclasses.replace(c, gyro_camera_weight=w) for c in along_cfgs], {})
-       for w, tag in ((0.1, "01"), (0.03, "003"))},
+    ("everything", "into a lane"): "ground truth",
+    ("nothing, camera weight 0.1", "along path"): ("approachpath_gyro01", weight01, ()),
+    ("nothing, camera weight 0.03", "along path"): steady_row,
 }  # fmt: skip
 decomposed = {}
-for (true_set, fallback), (row_tag, settings, true_names) in decompose.items():
+for (true_set, fallback), row in decompose.items():
+    if isinstance(row, str):  # (one of the rows above: read, not driven again)
+        decomposed[true_set, fallback] = data_results[f"{deep} + safety module ({row})"]
+        continue
+    row_tag, settings, true_names = row
     perceives = {"ground_truth": True} if true_names == "truth" else (
         {"true_affordances": true_names} if true_names else {})  # fmt: skip
     decomposed[true_set, fallback], _, _ = drive_guarded(
@@ -1045,12 +1039,11 @@ print("| true in the module | braking along the path | braking into a lane |")
 print("|---|---:|---:|")
 fallbacks = ("along path", "into a lane")
 for true_set in dict.fromkeys(t for t, _ in decompose):
-    cells = []
-    for fallback in fallbacks:
-        r = decomposed.get((true_set, fallback))
-        cells.append("-" if r is None else (lambda d: f"{d['collisions']} "
-                     f"({d['collisions_per_100mi']:.1f})")(result_dict(r)))  # fmt: skip
-    print(f"| {true_set} | " + " | ".join(cells) + " |")
+    cells = [result_dict(decomposed[true_set, f]) if (true_set, f) in decomposed else None
+             for f in fallbacks]  # fmt: skip
+    print(f"| {true_set} | " + " | ".join(
+        "-" if d is None else f"{d['collisions']} ({d['collisions_per_100mi']:.1f})" for d in cells
+    ) + " |")  # fmt: skip
 slow_data["decomposition"] = {
     f"{fallback}: true {true_set}": {
         **{k: result_dict(r)[k] for k in ("collisions", "collisions_per_100mi", "mean_speed_mph")},
