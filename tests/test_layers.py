@@ -21,7 +21,7 @@ from e2e_lite.learning.dataset import FIELDS, SCHEMA, allocate, synthetic_data
 from e2e_lite.learning.models import ModelConfig, build_model
 from e2e_lite.simulation.world import SimConfig, WorldConfig
 
-SIMULATOR = ("pymunk", "cv2", "control")
+SIMULATOR = ("pymunk", "cv2", "e2e_lite.control.tracker")
 
 
 def test_the_learning_modules_import_without_the_simulator() -> None:
@@ -39,6 +39,30 @@ def test_the_learning_modules_import_without_the_simulator() -> None:
     code = f"import sys, e2e_lite.learning.data; print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == str(sorted(SIMULATOR))
+
+
+def test_an_evaluation_worker_imports_neither_scipy_stats_nor_python_control() -> None:
+    """A shard worker unpickles a network agent (trackers already built) and drives: the p-values'
+    scipy.stats and the LQR design's python-control (which loads matplotlib) are imported where
+    they are used, not at the top, and cost a worker's start ~1 s when they were."""
+    heavy = ("scipy.stats", "control", "matplotlib")
+    code = (
+        "import sys\n"
+        "import e2e_lite.driving.shard_worker, e2e_lite.driving.parallel\n"
+        "import e2e_lite.learning.agents, e2e_lite.experiments.safe_agent\n"
+        f"print(sorted(m for m in {heavy!r} if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+    # the tracker still designs its gains where it is built (and imports python-control then)
+    code = (
+        "import sys\n"
+        "from e2e_lite.control.tracker import LQRTracker\n"
+        "LQRTracker()\n"
+        "print('control' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "True", out.stdout + out.stderr
 
 
 def test_the_schema_makes_the_field_list_the_arrays_the_synthetic_data_and_the_docs() -> None:

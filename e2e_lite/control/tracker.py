@@ -30,14 +30,17 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import control
 import numpy as np
 
 from ..config import check_range
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import SimConfig
 from .labels import N_POINTS, POINT_DT_S
+
+if TYPE_CHECKING:
+    import control
 
 #: How the speed command is read off a trajectory (:func:`follow_trajectory`): ``"trajectory"``
 #: (the paper: ``a = a_ref + k (v_ref - v)``) or ``"trajectory_no_ff"`` (``a = k (v_ref - v)``,
@@ -86,6 +89,9 @@ class TrackerConfig:
 def lateral_model(speed_mps: float, wheelbase_m: float, period_s: float) -> control.StateSpace:
     """The ZOH-discretised lateral error model at one speed: states ``(e [m], psi [rad])``,
     input feedback steering [rad], sampled every ``period_s`` [s]."""
+    import control  # (here, not at the top: python-control and the matplotlib it loads cost an
+    # evaluation worker 0.3 s to import, and a worker is handed trackers already built)
+
     a = np.array([[0.0, speed_mps], [0.0, 0.0]])
     b = np.array([[0.0], [speed_mps / wheelbase_m]])
     return control.c2d(control.ss(a, b, np.eye(2), np.zeros((2, 1))), period_s)
@@ -99,6 +105,8 @@ def gain_table(cfg: TrackerConfig, wheelbase_m: float) -> tuple[np.ndarray, np.n
         ``(speeds [m/s] (S,), gains (S, 2) [rad/m, rad/rad], closed-loop eigenvalues (S, 2))``.
         Cached per ``(cfg, wheelbase_m)``: the table is computed once per process.
     """
+    import control  # (see lateral_model)
+
     lo, hi, count = cfg.speed_grid_mps
     speeds = np.linspace(lo, hi, count)
     q = np.diag([1.0 / cfg.lateral_max_m**2, 1.0 / cfg.heading_max_rad**2])
