@@ -251,3 +251,36 @@ def test_approach_views_stand_the_car_at_the_drawn_gap_behind_the_next_car_in_it
     assert not np.array_equal(views.images, data.images[rows])  # re-rendered
     again = approach_views(data, cfg, approach, progress=False)
     assert np.array_equal(again.images, views.images)  # seeded
+
+
+def test_entry_views_stand_the_car_across_a_marking_turned_into_the_lane_of_the_car_ahead():
+    from e2e_lite.learning.recovery import ApproachConfig, approach_views
+
+    cfg = small_cfg(n_samples=192)
+    data = collect(cfg, progress=False)
+    approach = ApproachConfig(
+        fraction=1.0, gap_m=(2.0, 30.0), shift_m=0.0, rotation_rad=0.0, entry_share=1.0
+    )
+    views = approach_views(data, cfg, approach, progress=False)
+    rows = views.info["source_rows"]
+    assert len(views) > 20 and np.all(views.noise)
+    track = generate_track(cfg.world.road, cfg.split, int(views.track[0]))  # (one cross-section)
+    src = data.lane[rows]
+    side = np.sign(views.d - track.lane_center(src))  # which lane it enters
+    marking = track.lane_center(src) + side * track.lane_width / 2.0
+    past = side * (views.d - marking)  # how far past the marking [m]
+    assert np.all((past >= -0.5) & (past <= 1.5)), past
+    assert set(side.tolist()) == {-1.0, 1.0}  # both sides drawn
+    # turned towards the lane it enters, by at most entry_turn_rad beyond the sample's heading
+    heading = AFFORDANCE_NAMES.index("heading_rad")
+    extra = side * (views.affordances[:, heading] - data.affordances[rows, heading])
+    assert np.all((extra >= -1e-4) & (extra <= approach.entry_turn_rad + 1e-4)), extra
+    # once over the marking the car ahead is in the ego lane, at the drawn gap
+    over = past > 0.0
+    gap = views.affordances[over, AFFORDANCE_NAMES.index("gap_ego_m")]
+    assert over.any() and np.all((gap > 1.0) & (gap < 31.0)), gap
+    # the plain views are untouched by the option (their own draws)
+    plain = approach_views(
+        data, cfg, dataclasses.replace(approach, entry_share=0.0), progress=False
+    )
+    assert np.allclose(plain.d, data.d[plain.info["source_rows"]])

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -186,13 +186,26 @@ class ApproachConfig:
             marking, as a network does when it starts its lane change late).
         rotation_rad: the heading offset is uniform in +-this [rad].
         seed: seeds which samples and which offsets.
+        entry_share: share of the views that show the car **entering** a lane instead: the parked
+            car is the next one in a lane beside the sample's (left or right at random, the other
+            side at the road's edge), and the car is placed ``gap_m`` behind it with its rear
+            axle 0.5 m short of to 1.5 m past the marking between the lanes, turned towards the
+            lane it enters by up to ``entry_turn_rad`` more than the sample's heading error.
+            That is where chapter 11's module misread the gap ahead (a car that has just changed
+            lanes, turned, with a parked car 10-30 m ahead in its new lane). Drawn from a
+            generator of their own: ``entry_share=0`` gives the plain approach views, bit for bit.
+        entry_turn_rad: the entering car's extra turn is uniform in 0-this [rad].
     """
+
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("entry_share", "entry_turn_rad")
 
     fraction: float = 0.25
     gap_m: tuple[float, float] = (0.5, 50.0)
     shift_m: float = 1.8
     rotation_rad: float = 0.06
     seed: int = 0
+    entry_share: float = 0.0
+    entry_turn_rad: float = 0.15
 
     def __post_init__(self) -> None:
         o = "ApproachConfig"
@@ -201,6 +214,8 @@ class ApproachConfig:
         check_range(o, "shift_m", self.shift_m, 0.0, 5.0)
         check_range(o, "rotation_rad", self.rotation_rad, 0.0, 0.5)
         check_range(o, "seed", self.seed, 0, integer=True)
+        check_range(o, "entry_share", self.entry_share, 0.0, 1.0)
+        check_range(o, "entry_turn_rad", self.entry_turn_rad, 0.0, 0.5)
 
 
 def approach_views(
@@ -213,25 +228,39 @@ def approach_views(
     gap = rng.uniform(*cfg.gap_m, len(rows))
     shift = rng.uniform(-cfg.shift_m, cfg.shift_m, len(rows))
     turn = rng.uniform(-cfg.rotation_rad, cfg.rotation_rad, len(rows))
+    d_new = data.d[rows].astype(np.float64) + shift
+    he_new = data.affordances[rows, 0].astype(np.float64) + turn
+    # the entering views draw from a generator of their own: the plain views stay as they were
+    entry = np.random.default_rng([cfg.seed, 41])
+    entering = entry.random(len(rows)) < cfg.entry_share
+    side = entry.choice([-1, 1], len(rows))  # +1: into the lane on the left
+    past = entry.uniform(-0.5, 1.5, len(rows))  # rear axle past the marking [m]
+    towards = entry.uniform(0.0, cfg.entry_turn_rad, len(rows))
     worlds = _world_cache(data_cfg)
     s_new = np.full(len(rows), np.nan)
     for j, (w, r) in enumerate(zip(worlds(data.track[rows]), rows.tolist())):  # (no rendering)
-        cars, lane = w.cars, int(data.lane[r])
+        cars, lane, track = w.cars, int(data.lane[r]), w.track
+        if entering[j]:
+            if not 0 <= lane + side[j] < track.n_lanes:
+                side[j] = -side[j]
+            marking = float(track.lane_center(lane)) + side[j] * track.lane_width / 2.0
+            d_new[j] = marking + side[j] * past[j]
+            he_new[j] = float(data.affordances[r, 0]) + side[j] * towards[j]
+            lane += int(side[j])
         rear = cars.s - cars.length_m / 2.0  # (a jittered car's box reaches a few cm further)
         ahead = np.flatnonzero((cars.lane == lane) & (rear > float(data.s[r])))
         front = w.vehicle.length_m - w.vehicle.rear_overhang_m  # rear axle to front bumper
         if len(ahead) and rear[ahead[0]] - front - gap[j] > 0.0:
             s_new[j] = rear[ahead[0]] - front - gap[j]
     keep = np.isfinite(s_new)
-    rows, s_new, shift, turn = rows[keep], s_new[keep], shift[keep], turn[keep]
+    rows, s_new, d_new, he_new = rows[keep], s_new[keep], d_new[keep], he_new[keep]
     out = {name: data.arrays[name][rows].copy() for name in ("images", *FIELDS)}
     out["noise"][:] = True  # not the expert's clean driving: no driver may train on these rows
     camera = Camera(data_cfg.camera)
     for sl in _chunks(len(rows), "approach views", progress):
         r = rows[sl]
         ws = worlds(data.track[r])
-        s, d = s_new[sl], data.d[r].astype(np.float64) + shift[sl]
-        he = data.affordances[r, 0].astype(np.float64) + turn[sl]
+        s, d, he = s_new[sl], d_new[sl], he_new[sl]
         out["s"][sl], out["d"][sl] = s, d
         out["lane"][sl] = ws[0].track.lane_index(d)
         out["affordances"][sl] = affordances(ws, s, d, he)
@@ -269,9 +298,11 @@ def load_or_make_approach(
     cfg: ApproachConfig | None = None,
     progress: bool = True,
 ) -> DrivingData:
-    """The approach views of ``data`` from disk if made by these settings, else render and save."""
+    """The approach views of ``data`` from disk if made by these settings, else render and save
+    (views with entering cars in a file of their own: ``...-approach-entry<share>.npz``)."""
     cfg = cfg or ApproachConfig()
-    return _load_or_make("approach-v1", "approach", approach_views, data, data_cfg, cfg, progress)
+    kind = "approach" if cfg.entry_share == 0.0 else f"approach-entry{cfg.entry_share:g}"
+    return _load_or_make("approach-v1", kind, approach_views, data, data_cfg, cfg, progress)
 
 
 def load_or_make_recovery(
