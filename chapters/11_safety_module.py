@@ -79,7 +79,7 @@ from e2e_lite.learning.data import (
     load_or_collect,
 )
 from e2e_lite.learning.heldout import AFFORDANCE_GOALS, affordance_errors
-from e2e_lite.learning.recovery import load_or_make_approach
+from e2e_lite.learning.recovery import ApproachConfig, load_or_make_approach
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
 from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.viz import save_figure
@@ -305,40 +305,65 @@ for name, ok, net, ghost in (
 # the head. **Approach views** (`recovery.approach_views`) re-render a quarter of the training
 # frames with the car moved along its lane to 0.5-50 m behind the next parked car and up to
 # 1.8 m sideways, labelled with their true affordances; a second head per seed is refit on the
-# training frames plus these views (its network drives exactly as before). Here, seed 0's two
-# heads on validation approach views (never trained on), car ahead by distance:
+# training frames plus these views (its network drives exactly as before).
+#
+# The module's collisions came somewhere these views do not look (the README traces five): just
+# after a lane change, the car still turned towards the lane it entered and a parked car 10-30 m
+# ahead in it, read 15-30 m too far. **Entry views** (`ApproachConfig(entry_share=0.5)`) put
+# half of the views there: the parked car is the next one in a lane beside the sample's, and the
+# car stands 0.5 m short of to 1.5 m past the marking, turned up to 0.15 rad towards that lane.
+# A third head per seed is refit on the training frames plus those views (as many views as the
+# approach views). Here, seed 0's three heads on validation views of both kinds (never trained
+# on; the entry views all entering), car ahead by distance:
 
 # %%
-views = load_or_make_approach(train, DataConfig.for_profile(profile, "train"))
-val_views = load_or_make_approach(val, DataConfig.for_profile(profile, "val"))
-print(f"approach views: {len(views):,} training, {len(val_views):,} validation (lanes with no "
-      "parked car further on give none)")  # fmt: skip
+train_cfg, val_cfg = (DataConfig.for_profile(profile, s) for s in ("train", "val"))
+ENTRY = ApproachConfig(entry_share=0.5)  # half of the views entering a lane
+views = load_or_make_approach(train, train_cfg)
+entry_views = load_or_make_approach(train, train_cfg, ENTRY)
+val_views = {
+    "approach views": load_or_make_approach(val, val_cfg),
+    "entry views": load_or_make_approach(val, val_cfg, ApproachConfig(entry_share=1.0)),
+}
+print(f"approach views: {len(views):,} training ({len(entry_views):,} with entry views), "
+      f"{len(val_views['approach views']):,} validation (lanes with no parked car further on "
+      "give none)")  # fmt: skip
 approached = [
     recipes.perceiving(policy.model, train, f"11_{key}_seed{k}_approach", views=views)
     for k, policy in enumerate(seeded)
 ]
-view_rows = np.arange(0, len(val_views), max(1, len(val_views) // 2000))
-true_views = val_views.arrays["affordances"][view_rows]
+entered = [
+    recipes.perceiving(policy.model, train, f"11_{key}_seed{k}_entry{ENTRY.entry_share:g}",
+                       views=entry_views)
+    for k, policy in enumerate(seeded)
+]  # fmt: skip
 gap_bins = tuple(itertools.pairwise(edges))  # section 1's distances
 off = AFFORDANCE_NAMES.index("center_offset_m")
 approach_error = {}
-print("| seed 0's head, ego gap MAE on approach views | " + " | ".join(
-    f"{lo:.0f}-{hi:.0f} m" for lo, hi in gap_bins) + " | offset RMSE |")  # fmt: skip
-print("|---|" + "---:|" * (len(gap_bins) + 1))
-for name, head in (
-    ("refit on the expert's frames", perceivers[0]),
-    ("with approach views", approached[0]),
-):
-    seen_views = perceive(TrajectoryAgent(head), val_views, view_rows)[0]
-    g = true_views[:, gap_i]
-    mae = [
-        float(np.mean(np.abs(seen_views[m, gap_i] - g[m]))) if m.any() else float("nan")
-        for m in ((g >= lo) & (g < hi) for lo, hi in gap_bins)
-    ]
-    rmse = float(np.sqrt(np.mean((seen_views[:, off] - true_views[:, off]) ** 2)))
-    approach_error[name] = {"gap_mae_m_by_bin": mae, "offset_rmse_m": rmse}
-    print(f"| {name} | " + " | ".join(f"{v:.1f} m" for v in mae) + f" | {rmse:.2f} m |")
+print("| seed 0's head | on | " + " | ".join(
+    f"ego gap MAE, {lo:.0f}-{hi:.0f} m" for lo, hi in gap_bins) + " | offset RMSE |")  # fmt: skip
+print("|---|---|" + "---:|" * (len(gap_bins) + 1))
+for kind, frames in val_views.items():
+    view_rows = np.arange(0, len(frames), max(1, len(frames) // 2000))
+    true_views = frames.arrays["affordances"][view_rows]
+    for name, head in (
+        ("refit on the expert's frames", perceivers[0]),
+        ("with approach views", approached[0]),
+        ("with entry views", entered[0]),
+    ):
+        seen_views = perceive(TrajectoryAgent(head), frames, view_rows)[0]
+        g = true_views[:, gap_i]
+        mae = [
+            float(np.mean(np.abs(seen_views[m, gap_i] - g[m]))) if m.any() else float("nan")
+            for m in ((g >= lo) & (g < hi) for lo, hi in gap_bins)
+        ]
+        rmse = float(np.sqrt(np.mean((seen_views[:, off] - true_views[:, off]) ** 2)))
+        approach_error.setdefault(kind, {})[name] = {"gap_mae_m_by_bin": mae, "offset_rmse_m": rmse}
+        print(
+            f"| {name} | {kind} | " + " | ".join(f"{v:.1f} m" for v in mae) + f" | {rmse:.2f} m |"
+        )
 calibrated_approach = [calibrate(p) for p in approached]
+calibrated_entry = [calibrate(p) for p in entered]
 
 # %% [markdown]
 # The fallback has the same weakness from the other side: a braking path to a lane centre is
@@ -389,7 +414,8 @@ calibrated_approach = [calibrate(p) for p in approached]
 # collisions); section 1's two changes, together, each alone, together with the true
 # geometry or the true heading, and together with the gyro's heading (alone, and with the true
 # gaps: what is left after it); then the gyro module with the sight speed, and with the camera's
-# heading weight fixed at 0.03 at every speed (`gyro_camera_weight`; section 5 says why), the
+# heading weight fixed at 0.03 at every speed (`gyro_camera_weight`; section 5 says why), alike
+# with the heads refit on entry views (section 1), the
 # sight speed alone with nothing checked (what slowing down does by itself), the gyro module
 # with and without the sight speed on a network told at least the median speed (compared with
 # that driver told the same, without the module); and the uncalibrated 59.5 m (what the
@@ -421,6 +447,10 @@ gyro = [dataclasses.replace(c, gyro_heading=True) for c in both]  # (the heading
 sight = [dataclasses.replace(c, sight_speed=True) for c in gyro]  # (no faster than it sees)
 STEADY = {"gyro_camera_weight": 0.03}  # the camera's weight in the heading, at every speed
 steady = [dataclasses.replace(c, **STEADY) for c in gyro]
+steady_entry = [  # (the same settings, thresholds calibrated for the entry heads)
+    dataclasses.replace(c, brake_along_path=True, gyro_heading=True, **STEADY)
+    for c in calibrated_entry
+]
 capped = [dataclasses.replace(c, check_proposals=False) for c in sight]  # (the cap, unchecked)
 floor = float(np.median(train.arrays["speed"]))  # the speed input's floor [m/s]
 told = {"speed_input_floor_mps": floor}  # (for the network; the tracker has the car's own)
@@ -453,6 +483,8 @@ variants = (
      "approachpath_gyro_sight", sight, {}, approached),
     ("perceived, approach views + brake along path + gyro heading, camera weight 0.03",
      "approachpath_gyro003", steady, {}, approached),
+    ("perceived, entry views + brake along path + gyro heading, camera weight 0.03",
+     f"entry{ENTRY.entry_share:g}path_gyro003", steady_entry, {}, entered),
     ("sight speed alone (nothing checked)", "sightcap", capped, {}, approached),
     ("perceived, approach views + brake along path + gyro heading, speed input >= median",
      "approachpath_gyro_told", gyro, {}, approached, told),
@@ -790,34 +822,48 @@ for name, (tag, _) in data_rows.items():
 
 # the networks of the two new data with the module: the gyro row's settings, with the true gaps
 # (what its perceived gaps cost), and the ground truth; each network's heads refit as section 1's
-module_rows = (  # (label, stored as, how it perceives, changes to the gyro row's settings)
-    ("approach views + brake along path + gyro heading", "approachpath_gyro", {}, {}),
+module_rows = (  # (label, stored as, how it perceives, changes to the gyro row's settings,
+    # the heads' views)
+    ("approach views + brake along path + gyro heading", "approachpath_gyro", {}, {}, "approach"),
     ("approach views + brake along path + gyro heading, true gaps", "approachpath_gyro_truegaps",
-     {"true_affordances": GAP_NAMES}, {}),
+     {"true_affordances": GAP_NAMES}, {}, "approach"),
     ("approach views + brake along path + gyro heading, camera weight 0.03",
-     "approachpath_gyro003", {}, STEADY),
-    ("ground truth", "truth", {"ground_truth": True}, {}),
+     "approachpath_gyro003", {}, STEADY, "approach"),
+    ("entry views + brake along path + gyro heading, camera weight 0.03",
+     f"entry{ENTRY.entry_share:g}path_gyro003", {}, STEADY, "entry"),
+    ("ground truth", "truth", {"ground_truth": True}, {}, "approach"),
 )  # fmt: skip
 deep = "data with deep braking bursts"
 new_data = [n for n, (tag, _) in data_rows.items() if tag != "course"]
 data_stats, data_heads, data_gyro = {}, {}, {}  # (each new data's heads and gyro settings)
 for name in new_data:
     tag, frames = data_rows[name][0], datasets[name]
-    data_heads[name] = heads = [
-        recipes.perceiving(m, frames, f"11_{course_key}_{tag}_seed{k}_approach", views=views)
-        for k, (m, _) in enumerate(trained[name])
-    ]
-    data_gyro[name] = gyro_cfgs = [
-        dataclasses.replace(calibrate(h, frames), brake_along_path=True, gyro_heading=True)
-        for h in heads
-    ]
-    for row, row_tag, perceives, changes in module_rows:
+    heads_of = {  # (each network's head refit with the approach views, and with the entry views)
+        "approach": [
+            recipes.perceiving(m, frames, f"11_{course_key}_{tag}_seed{k}_approach", views=views)
+            for k, (m, _) in enumerate(trained[name])
+        ],
+        "entry": [
+            recipes.perceiving(m, frames, f"11_{course_key}_{tag}_seed{k}_entry"
+                               f"{ENTRY.entry_share:g}", views=entry_views)
+            for k, (m, _) in enumerate(trained[name])
+        ],
+    }  # fmt: skip
+    gyro_of = {
+        which: [
+            dataclasses.replace(calibrate(h, frames), brake_along_path=True, gyro_heading=True)
+            for h in hs
+        ]
+        for which, hs in heads_of.items()
+    }
+    data_heads[name], data_gyro[name] = heads_of["approach"], gyro_of["approach"]
+    for row, row_tag, perceives, changes, which in module_rows:
         settings = [cfg] * n_seeds if perceives.get("ground_truth") else [
-            dataclasses.replace(c, **changes) for c in gyro_cfgs]  # fmt: skip
+            dataclasses.replace(c, **changes) for c in gyro_of[which]]  # fmt: skip
         row_name = f"{name} + safety module ({row})"
         data_results[row_name], data_stats[row_name], _ = drive_guarded(
             f"11_{course_key}_{tag}_{row_tag}", f"trained on {name}, with the module ({row})",
-            heads, settings, perceives,
+            heads_of[which], settings, perceives,
         )  # fmt: skip
 
 print(results_table(
@@ -832,7 +878,7 @@ for name, s in data_stats.items():
           f"false alarms {s['false_alarm_pct']:.1f} %; the last decision before each collision "
           f"driven by: {hits or 'nobody (no collision)'}")  # fmt: skip
 course, draw = data_results["the course's data"], data_results[new_data[0]]
-gyro_row, steady_row = module_rows[0][0], module_rows[2][0]
+gyro_row, steady_row, entry_row = (module_rows[i][0] for i in (0, 2, 3))
 data_verdicts = {
     "another draw vs the course's data": compare_rates(draw, course)["verdict"],
     "deep braking vs the course's data": compare_rates(data_results[deep], course)["verdict"],
@@ -848,15 +894,16 @@ pooled_without = pool_results([data_results[n] for n in nine])
 modules = {  # (short name: this section's row, section 2's row of the course's networks)
     "gyro module": (gyro_row, f"perceived, {gyro_row}"),
     "gyro module, camera weight 0.03": (steady_row, f"perceived, {steady_row}"),
+    "gyro module, camera weight 0.03, entry views": (entry_row, f"perceived, {entry_row}"),
     "ground-truth module": ("ground truth", "ground truth"),
 }
 guards_course = key == course_key  # (section 2 guarded the course's networks alike)
-pooled_guarded = {  # (the two gyro rows: each pooled over every network)
+pooled_guarded = {  # (the three perceived modules: each pooled over every network)
     row: pool_results(
         ([guarded[course_row][0]] if guards_course else [])
         + [data_results[f"{n} + safety module ({row})"] for n in new_data]
     )
-    for row, course_row in list(modules.values())[:2]
+    for row, course_row in list(modules.values())[:3]
 }
 for row, pooled in pooled_guarded.items():
     data_verdicts[f"all {len(nine) * n_seeds} networks, module ({row}) vs without"] = compare_rates(
@@ -897,19 +944,19 @@ module_of = {"no module": {n: data_results[n] for n in data_rows}} | {
 FLOOR = 0.05  # where a rate of 0 is drawn on the log scale [per 100 mi]
 fig = Figure(figsize=(12.5, 4.2), layout="constrained")
 ax, ax_probe = fig.subplots(1, 2, width_ratios=(2.2, 1))
-colours = ("tab:gray", "tab:orange", "tab:purple", "tab:green")
+colours = ("tab:gray", "tab:orange", "tab:purple", "tab:cyan", "tab:green")
 for j, (row, per_data) in enumerate(module_of.items()):
     for i, name in enumerate(data_rows):
         if name not in per_data:
             continue
         res = result_dict(per_data[name])
-        x = i + (j - 1.5) * 0.21
+        x = i + (j - (len(module_of) - 1) / 2) * 0.17
         rate = res["collisions_per_100mi"]
-        ax.bar(x, max(rate, FLOOR), 0.19, color=colours[j], alpha=0.55,
+        ax.bar(x, max(rate, FLOOR), 0.155, color=colours[j], alpha=0.55,
                label=row if i == len(data_rows) - 1 else None)  # fmt: skip
         # the pooled rate written at the bar's foot, below the zeros' dots
         ax.text(x, 0.015, f"{rate:.1f}", transform=ax.get_xaxis_transform(), ha="center",
-                va="bottom", fontsize=8)  # fmt: skip
+                va="bottom", fontsize=7)  # fmt: skip
         seeds = [max(s["collisions_per_100mi"], FLOOR) for s in res.get("seeds") or []]
         ax.plot([x] * len(seeds), seeds, "o", color=colours[j], ms=4, mec="k", mew=0.5)
 ax.set_yscale("log")
@@ -946,6 +993,10 @@ slow_data = {
         "with_gyro_module": {**result_dict(pooled_gyro), "events": None},
         "with_gyro_module_camera_weight_0.03": {
             **result_dict(pooled_guarded[steady_row]),
+            "events": None,
+        },
+        "with_gyro_module_camera_weight_0.03_entry_views": {
+            **result_dict(pooled_guarded[entry_row]),
             "events": None,
         },
     },
@@ -1099,6 +1150,8 @@ artifacts.write_metrics(
             "seed0_heads": approach_error,
             "gap_free_m": [c.gap_free_m for c in calibrated_approach],
             "gap_free_side_m": [c.gap_free_side_m for c in calibrated_approach],
+            "entry_gap_free_m": [c.gap_free_m for c in calibrated_entry],
+            "entry_gap_free_side_m": [c.gap_free_side_m for c in calibrated_entry],
         },
         "head_goals": head_goals,
         "results": {
@@ -1145,7 +1198,8 @@ artifacts.write_metrics(
 # * A fallback is a driver too, and it must be checked like one: braking back to the lane
 #   centre, half-way through a lane change, steers the car back towards the car it is passing.
 # * A head is judged where the module reads it, not on the expert's frames: the approach views
-#   show it parked cars at the distances the module brakes for. Replacing one perceived
+#   show it parked cars at the distances the module brakes for, and the entry views the poses
+#   its collisions came from (just into a lane, still turned). Replacing one perceived
 #   affordance at a time by the truth then says what is left to perceive (here, the heading).
 # * What a camera perceives poorly, another sensor may know: the car's own yaw rate carries the
 #   heading through the slow, turned states the head never learned, and the camera corrects its
