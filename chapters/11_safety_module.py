@@ -307,9 +307,9 @@ for name, ok, net, ghost in (
 # 1.8 m sideways, labelled with their true affordances; a second head per seed is refit on the
 # training frames plus these views (its network drives exactly as before).
 #
-# The module's collisions came somewhere these views do not look (the README traces five): just
-# after a lane change, the car still turned towards the lane it entered and a parked car 10-30 m
-# ahead in it, read 15-30 m too far. **Entry views** (`ApproachConfig(entry_share=0.5)`) put
+# The module's collisions came somewhere these views do not look (the README traces five of
+# them): just after a lane change, the car still turned towards the lane it entered and a parked
+# car 13-32 m ahead in it, read 15-30 m too far. **Entry views** (`ApproachConfig(entry_share=0.5)`) put
 # half of the views there: the parked car is the next one in a lane beside the sample's, and the
 # car stands 0.5 m short of to 1.5 m past the marking, turned up to 0.15 rad towards that lane.
 # A third head per seed is refit on the training frames plus those views (as many views as the
@@ -766,8 +766,9 @@ print("\n".join(lines))
 # The control is the course's data collected again with another seed: other draws of expert,
 # noise and start lanes, from the same distribution. It separates "slow frames" from "another
 # draw of the data". The networks trained on the deep-braking data are then driven with the
-# gyro module (alone, and with the true gaps: what its perceived gaps cost) and the ground-truth
-# module, and their seed 0 from slow starts.
+# gyro module (alone; with the true gaps, what its perceived gaps cost; with the camera weight
+# 0.03; and that with section 1's entry-view heads) and the ground-truth module, and their seed
+# 0 from slow starts.
 
 # %%
 base_cfg = DataConfig.for_profile(profile, "train")
