@@ -309,9 +309,10 @@ for name, ok, net, ghost in (
 #
 # The module's collisions came somewhere these views do not look (the README traces five of
 # them): just after a lane change, the car still turned towards the lane it entered and a parked
-# car 13-32 m ahead in it, read 15-30 m too far. **Entry views** (`ApproachConfig(entry_share=0.5)`) put
-# half of the views there: the parked car is the next one in a lane beside the sample's, and the
-# car stands 0.5 m short of to 1.5 m past the marking, turned up to 0.15 rad towards that lane.
+# car 13-32 m ahead in it, read 15-30 m too far. **Entry views**
+# (`ApproachConfig(entry_share=0.5)`) put half of the views there: the parked car is the next
+# one in a lane beside the sample's, and the car stands 0.5 m short of to 1.5 m past the
+# marking, turned up to 0.15 rad towards that lane.
 # A third head per seed is refit on the training frames plus those views (as many views as the
 # approach views). Here, seed 0's three heads on validation views of both kinds (never trained
 # on; the entry views all entering), car ahead by distance:
@@ -319,6 +320,7 @@ for name, ok, net, ghost in (
 # %%
 train_cfg, val_cfg = (DataConfig.for_profile(profile, s) for s in ("train", "val"))
 ENTRY = ApproachConfig(entry_share=0.5)  # half of the views entering a lane
+ENTRY_TAG = f"entry{ENTRY.entry_share:g}"  # (in the entry heads' and rows' storage names)
 views = load_or_make_approach(train, train_cfg)
 entry_views = load_or_make_approach(train, train_cfg, ENTRY)
 val_views = {
@@ -333,10 +335,9 @@ approached = [
     for k, policy in enumerate(seeded)
 ]
 entered = [
-    recipes.perceiving(policy.model, train, f"11_{key}_seed{k}_entry{ENTRY.entry_share:g}",
-                       views=entry_views)
+    recipes.perceiving(policy.model, train, f"11_{key}_seed{k}_{ENTRY_TAG}", views=entry_views)
     for k, policy in enumerate(seeded)
-]  # fmt: skip
+]
 gap_bins = tuple(itertools.pairwise(edges))  # section 1's distances
 off = AFFORDANCE_NAMES.index("center_offset_m")
 approach_error = {}
@@ -414,12 +415,11 @@ calibrated_entry = [calibrate(p) for p in entered]
 # collisions); section 1's two changes, together, each alone, together with the true
 # geometry or the true heading, and together with the gyro's heading (alone, and with the true
 # gaps: what is left after it); then the gyro module with the sight speed, and with the camera's
-# heading weight fixed at 0.03 at every speed (`gyro_camera_weight`; section 5 says why), alike
-# with the heads refit on entry views (section 1), the
-# sight speed alone with nothing checked (what slowing down does by itself), the gyro module
-# with and without the sight speed on a network told at least the median speed (compared with
-# that driver told the same, without the module); and the uncalibrated 59.5 m (what the
-# calibration does).
+# heading weight fixed at 0.03 at every speed (`gyro_camera_weight`; section 5 says why), alone
+# and with the heads refit on entry views (section 1); the sight speed alone with nothing checked
+# (what slowing down does by itself), the gyro module with and without the sight speed on a
+# network told at least the median speed (compared with that driver told the same, without the
+# module); and the uncalibrated 59.5 m (what the calibration does).
 #
 # Same validation tracks, same seeds and the same two shards of cars as chapter 10 (each shard
 # sends the module's counters home). Every training seed of the driver drives its share of the
@@ -484,7 +484,7 @@ variants = (
     ("perceived, approach views + brake along path + gyro heading, camera weight 0.03",
      "approachpath_gyro003", steady, {}, approached),
     ("perceived, entry views + brake along path + gyro heading, camera weight 0.03",
-     f"entry{ENTRY.entry_share:g}path_gyro003", steady_entry, {}, entered),
+     f"{ENTRY_TAG}path_gyro003", steady_entry, {}, entered),
     ("sight speed alone (nothing checked)", "sightcap", capped, {}, approached),
     ("perceived, approach views + brake along path + gyro heading, speed input >= median",
      "approachpath_gyro_told", gyro, {}, approached, told),
@@ -822,7 +822,8 @@ for name, (tag, _) in data_rows.items():
     ])  # fmt: skip
 
 # the networks of the two new data with the module: the gyro row's settings, with the true gaps
-# (what its perceived gaps cost), and the ground truth; each network's heads refit as section 1's
+# (what its perceived gaps cost), with the camera weight 0.03 (and that with the entry-view
+# heads), and the ground truth; each network's heads refit as section 1's
 module_rows = (  # (label, stored as, how it perceives, changes to the gyro row's settings,
     # the heads' views)
     ("approach views + brake along path + gyro heading", "approachpath_gyro", {}, {}, "approach"),
@@ -831,7 +832,7 @@ module_rows = (  # (label, stored as, how it perceives, changes to the gyro row'
     ("approach views + brake along path + gyro heading, camera weight 0.03",
      "approachpath_gyro003", {}, STEADY, "approach"),
     ("entry views + brake along path + gyro heading, camera weight 0.03",
-     f"entry{ENTRY.entry_share:g}path_gyro003", {}, STEADY, "entry"),
+     f"{ENTRY_TAG}path_gyro003", {}, STEADY, "entry"),
     ("ground truth", "truth", {"ground_truth": True}, {}, "approach"),
 )  # fmt: skip
 deep = "data with deep braking bursts"
@@ -845,8 +846,8 @@ for name in new_data:
             for k, (m, _) in enumerate(trained[name])
         ],
         "entry": [
-            recipes.perceiving(m, frames, f"11_{course_key}_{tag}_seed{k}_entry"
-                               f"{ENTRY.entry_share:g}", views=entry_views)
+            recipes.perceiving(m, frames, f"11_{course_key}_{tag}_seed{k}_{ENTRY_TAG}",
+                               views=entry_views)
             for k, (m, _) in enumerate(trained[name])
         ],
     }  # fmt: skip

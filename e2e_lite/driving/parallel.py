@@ -114,9 +114,9 @@ def shard_worker(inbox: Any, outbox: Any) -> None:
 class _Workers:
     """Shard processes kept alive between evaluations: an interpreter and the imports (about 1 s
     on a 2-core machine, most of it torch) are paid once per process instead of once per
-    evaluation. Messages of every worker go
-    to one queue as ``(k, message)``; an evaluation that fails or is interrupted ends them all
-    (the next one starts fresh), so no message of an old job can reach a new one."""
+    evaluation. Messages of every worker go to one queue as ``(k, message)``; an evaluation that
+    fails or is interrupted ends them all (the next one starts fresh), so no message of an old
+    job can reach a new one."""
 
     def __init__(self, n: int) -> None:
         self.messages: queue.Queue = queue.Queue()

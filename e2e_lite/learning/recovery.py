@@ -192,7 +192,7 @@ class ApproachConfig:
             axle 0.5 m short of to 1.5 m past the marking between the lanes, turned towards the
             lane it enters by up to ``entry_turn_rad`` more than the sample's heading error.
             That is where chapter 11's module misread the gap ahead (a car that has just changed
-            lanes, turned, with a parked car 10-30 m ahead in its new lane). Drawn from a
+            lanes, turned, with a parked car 13-32 m ahead in its new lane). Drawn from a
             generator of their own: ``entry_share=0`` gives the plain approach views, bit for bit.
         entry_turn_rad: the entering car's extra turn is uniform in 0-this [rad].
     """
