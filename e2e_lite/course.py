@@ -68,7 +68,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 25),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 12, 10),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 90),
-    11: ChapterInfo("the safety module on the affordances", 45, 275),
+    11: ChapterInfo("the safety module on the affordances", 36, 275),
 }
 
 
