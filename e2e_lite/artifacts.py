@@ -44,16 +44,17 @@ def _default_root() -> Path:
     return Path.cwd() / "outputs"
 
 
-def outputs_dir() -> Path:
+def outputs_dir(quick: bool | None = None) -> Path:
     """The artifacts folder (created if missing).
 
     ``$E2E_LITE_OUTPUTS`` if set; else ``outputs/`` beside ``pyproject.toml`` when the package runs
     from a source checkout (so ``python chapters/01_highway.py`` from any folder writes to the same
-    place); else ``./outputs``. Under the quick profile, its ``quick/`` subfolder.
+    place); else ``./outputs``. Under the quick profile (``quick``, by default as the script's
+    arguments and ``E2E_LITE_QUICK`` say), its ``quick/`` subfolder.
     """
     env = os.environ.get(OUTPUTS_ENV)
     root = Path(env) if env else _default_root()
-    if quick_requested():
+    if quick_requested() if quick is None else quick:
         root = root / "quick"
     root.mkdir(parents=True, exist_ok=True)
     return root

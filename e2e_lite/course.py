@@ -11,6 +11,11 @@ Shows which chapter runs and how long each took, stops at the first failure (the
 error is on screen above the message), and ends with a table of each chapter's headline figures,
 read from ``<outputs>/metrics/<chapter>.json`` (the ``"headline"`` entry each chapter writes).
 
+Each chapter's wall time is also kept in ``<outputs>/course_times.json`` (:class:`ChapterClock`),
+across runs: a chapter cut short (a closed lid, a lost session, a failure) keeps the seconds it
+had spent, and its next run adds to them, so a full course resumed with ``--from N`` over several
+sittings still ends with its true total ("The whole course in this outputs folder took ...").
+
 Each chapter starts with :func:`start_chapter`: it reads the chapter's flags (``--quick``,
 ``--help``; anything else stops with one line and exit code 2), picks the profile, checks that
 the outputs folder can be written, and says what the quick profile's numbers are.
@@ -25,13 +30,16 @@ import re
 import runpy
 import subprocess
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Sequence
+from datetime import datetime, timezone
 from pathlib import Path
-from typing import NamedTuple, NoReturn
+from types import TracebackType
+from typing import Any, NamedTuple, NoReturn
 
-from .artifacts import check_outputs_writable, read_metrics
+from .artifacts import check_outputs_writable, load_json, outputs_dir, read_metrics, save_json
 from .config import QUICK_ENV, Profile, active_profile, in_notebook, quick_requested
 
 _REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -172,6 +180,91 @@ def summary_table(rows: list[tuple[str, float, dict | None]]) -> str:
     return "\n".join(lines)
 
 
+TIMES_FILE = "course_times.json"
+
+
+def read_times(path: Path) -> dict[str, dict[str, Any]]:
+    """The ledger's entries by chapter (``{}`` when there is none or it is unreadable): each has
+    ``seconds`` (wall time [s], over every run that counted), ``complete`` (its last run ended
+    without error), ``runs`` (how many runs counted) and ``updated`` (UTC, ISO 8601)."""
+    try:
+        times = load_json(path)
+    except (OSError, ValueError):
+        return {}
+    return times if isinstance(times, dict) else {}
+
+
+class ChapterClock:
+    """Times one chapter into the ledger at ``path``, as a ``with`` block.
+
+    A chapter whose last run did not complete starts from the seconds that run had spent (its next
+    run reuses what the cut one stored, so only the two together are what it cost); a chapter
+    that had completed starts from zero (its entry is replaced). While the block runs, a thread
+    writes the elapsed time every ``heartbeat_s`` seconds, so a run killed without warning loses
+    at most that much. The block's end writes the total and marks the entry complete unless the
+    block raised or :meth:`failed` was called.
+    """
+
+    def __init__(self, path: Path, chapter: str, heartbeat_s: float = 10.0) -> None:
+        self.path, self.chapter, self.heartbeat_s = path, chapter, heartbeat_s
+        prior = read_times(path).get(chapter) or {}
+        resumed = prior.get("complete") is False
+        self.carried = float(prior.get("seconds", 0.0)) if resumed else 0.0
+        self.runs = int(prior.get("runs", 0)) + 1 if resumed else 1
+        self._ok = True
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._beat, daemon=True)
+        self._t0 = 0.0
+
+    def elapsed(self) -> float:
+        """Seconds spent on the chapter so far, carried-over runs included [s]."""
+        return self.carried + time.perf_counter() - self._t0
+
+    def failed(self) -> None:
+        """Mark this run as not complete (the chapter exited with an error code)."""
+        self._ok = False
+
+    def _write(self, complete: bool) -> None:
+        with self._lock:  # the heartbeat and the block's end write the same file
+            times = read_times(self.path)
+            times[self.chapter] = {
+                "seconds": round(self.elapsed(), 1),
+                "complete": complete,
+                "runs": self.runs,
+                "updated": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            }
+            save_json(self.path, times)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.heartbeat_s):
+            self._write(complete=False)
+
+    def __enter__(self) -> ChapterClock:
+        self._t0 = time.perf_counter()
+        self._write(complete=False)
+        self._thread.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._write(complete=self._ok and exc_type is None)
+
+
+def course_total(times: dict[str, dict[str, Any]], chapters: Sequence[str]) -> float | None:
+    """The whole course's recorded time [s]: the sum over ``chapters``, or ``None`` while any of
+    them has no complete entry."""
+    if not all((times.get(c) or {}).get("complete") for c in chapters):
+        return None
+    return sum(float(times[c]["seconds"]) for c in chapters)
+
+
 def run_in_process(path: Path, flags: list[str], env: dict[str, str]) -> int:
     """Run a chapter script in this interpreter (``runpy``, as ``__main__``, from the repository
     root, with ``flags`` as its arguments and ``env`` as the environment); returns its exit code
@@ -232,18 +325,28 @@ def main(argv: list[str] | None = None) -> int:
         env[QUICK_ENV] = "1"
     profile = "quick" if quick else "full"
     print(f"e2e-lite course: {len(chapters)} chapters, {profile} profile", flush=True)
+    ledger = outputs_dir(quick) / TIMES_FILE
     rows: list[tuple[str, float, dict | None]] = []
     t_course = time.perf_counter()
     for k, (_, path) in enumerate(chapters, 1):
         print(f"\n==> [{k}/{len(chapters)}] {path.stem}", flush=True)
         t0 = time.perf_counter()
         flags = ["--quick"] if quick else []
-        if in_process:
-            code = run_in_process(path, flags, env)
-        else:
-            code = subprocess.run(
-                [sys.executable, str(path), *flags], env=env, cwd=path.parent.parent
-            ).returncode
+        with ChapterClock(ledger, path.stem) as clock:
+            if clock.carried:
+                print(
+                    f"(resuming: its earlier run was cut after {clock.carried:.1f} s; "
+                    f"{ledger} adds them)",
+                    flush=True,
+                )
+            if in_process:
+                code = run_in_process(path, flags, env)
+            else:
+                code = subprocess.run(
+                    [sys.executable, str(path), *flags], env=env, cwd=path.parent.parent
+                ).returncode
+            if code != 0:
+                clock.failed()
         seconds = time.perf_counter() - t0
         if code != 0:
             print(
@@ -261,6 +364,14 @@ def main(argv: list[str] | None = None) -> int:
         f"({profile} profile).\n"
     )
     print(summary_table(rows))
+    everything = [p.stem for _, p in find_chapters(args.chapters)]
+    total = course_total(read_times(ledger), everything)
+    if total is not None:
+        print(
+            f"\nThe whole course in this outputs folder took {total:.0f} s ({total / 3600:.2f} h): "
+            f"each chapter's last complete run, with the time of the runs cut before it "
+            f"(per chapter in {ledger})."
+        )
     return 0
 
 
