@@ -7,11 +7,20 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
-from e2e_lite.course import find_chapters, select, summary_table
+from e2e_lite.course import (
+    TIMES_FILE,
+    ChapterClock,
+    course_total,
+    find_chapters,
+    read_times,
+    select,
+    summary_table,
+)
 from e2e_lite.experiments.ablation import DRIVERS, UNTRAINED
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -248,6 +257,52 @@ def test_course_runner_stops_at_a_failing_chapter(tmp_path, processes):
     assert proc.returncode == 1
     assert "boom: a broken chapter" in proc.stderr and "02_broken failed" in proc.stderr
     assert "should not run" not in proc.stdout
+    times = read_times(tmp_path / "outputs" / "quick" / TIMES_FILE)  # _env asks for quick
+    assert times["01_ok"]["complete"] and times["02_broken"]["complete"] is False
+    assert "03_never" not in times and "whole course" not in proc.stdout
+
+
+def test_a_chapter_cut_short_keeps_its_time_and_its_next_run_adds_to_it(tmp_path):
+    """The ledger of ``python -m e2e_lite.course``: a run killed without warning (no ``finally``
+    runs) leaves the seconds its heartbeat last wrote; the resumed run carries them; a chapter
+    that had completed starts again from zero; the total waits for every chapter."""
+    ledger = tmp_path / TIMES_FILE
+    killed = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import os, sys, time\n"
+            "from pathlib import Path\n"
+            "from e2e_lite.course import ChapterClock\n"
+            "with ChapterClock(Path(sys.argv[1]), '02_b', heartbeat_s=0.05):\n"
+            "    time.sleep(0.6)\n"
+            "    os._exit(9)\n",
+            str(ledger),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert killed.returncode == 9, killed.stderr
+    cut = read_times(ledger)["02_b"]
+    assert cut["complete"] is False and 0.4 <= cut["seconds"] <= 0.7 and cut["runs"] == 1
+    with ChapterClock(ledger, "01_a") as first:
+        assert first.carried == 0.0
+    assert course_total(read_times(ledger), ["01_a", "02_b"]) is None  # 02_b never completed
+    with ChapterClock(ledger, "02_b") as resumed:
+        assert resumed.carried == cut["seconds"]
+        time.sleep(0.2)
+    done = read_times(ledger)
+    assert done["02_b"]["complete"] and done["02_b"]["runs"] == 2
+    assert done["02_b"]["seconds"] >= cut["seconds"] + 0.2
+    total = course_total(done, ["01_a", "02_b"])
+    assert total == pytest.approx(done["01_a"]["seconds"] + done["02_b"]["seconds"])
+    with ChapterClock(ledger, "02_b") as again:  # completed before: replaced, not added to
+        assert again.carried == 0.0
+    assert read_times(ledger)["02_b"]["runs"] == 1
+    with pytest.raises(RuntimeError), ChapterClock(ledger, "01_a"):
+        raise RuntimeError("a chapter that raises")
+    assert read_times(ledger)["01_a"]["complete"] is False
 
 
 def test_selection_and_table():
