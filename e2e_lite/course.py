@@ -61,21 +61,23 @@ class ChapterInfo(NamedTuple):
     full_min: int
 
 
-# Times on the 2-core development machine: quick, each chapter alone from an empty outputs folder
-# (`python -m e2e_lite.course --quick --processes each`, imports included; inside the course's one
-# interpreter they are 5-12 s shorter); full, the README's measured runs with the earlier
-# chapters' artifacts reused
+# Times on 2 cores. Quick: the first development machine, each chapter alone from an empty outputs
+# folder (`python -m e2e_lite.course --quick --processes each`, imports included; inside the
+# course's one interpreter they are 5-12 s shorter). Full: chapters 01-10 as one run of `python -m
+# e2e_lite.course` from an empty outputs folder took them on the second machine (AMD EPYC, about
+# twice as fast as the first; code of 9f8f420, `course_times.json`), rounded up to a minute;
+# chapter 11 has not been run whole there, so its time is the first machine's sum of parts.
 CHAPTERS: dict[int, ChapterInfo] = {
-    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 2),
+    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
-    3: ChapterInfo("LQR tracking: following a trajectory with steering and acceleration", 4, 2),
-    4: ChapterInfo("the rule-based expert and the driving dataset", 13, 15),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", 16, 20),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", 11, 12),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 25, 45),
-    8: ChapterInfo("the affordance auxiliary loss", 16, 25),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", 12, 10),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 90),
+    3: ChapterInfo("LQR tracking: following a trajectory with steering and acceleration", 4, 1),
+    4: ChapterInfo("the rule-based expert and the driving dataset", 13, 2),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", 16, 10),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", 11, 3),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 25, 15),
+    8: ChapterInfo("the affordance auxiliary loss", 16, 7),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", 12, 16),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
     11: ChapterInfo("the safety module on the affordances", 36, 275),
 }
 
