@@ -327,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
         env[QUICK_ENV] = "1"
     profile = "quick" if quick else "full"
     print(f"e2e-lite course: {len(chapters)} chapters, {profile} profile", flush=True)
-    ledger = outputs_dir(quick) / TIMES_FILE
+    ledger = (outputs_dir(quick) / TIMES_FILE).resolve()  # (in-process chapters change the cwd)
     rows: list[tuple[str, float, dict | None]] = []
     t_course = time.perf_counter()
     for k, (_, path) in enumerate(chapters, 1):
