@@ -318,7 +318,8 @@ def main(argv: list[str] | None = None) -> int:
     quick = args.quick or quick_requested([])
     in_process = args.processes == "one" or (args.processes == "auto" and quick)
     try:
-        chapters = select(find_chapters(args.chapters), args.only, args.start)
+        found = find_chapters(args.chapters)
+        chapters = select(found, args.only, args.start)
     except (FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -332,7 +333,6 @@ def main(argv: list[str] | None = None) -> int:
     t_course = time.perf_counter()
     for k, (_, path) in enumerate(chapters, 1):
         print(f"\n==> [{k}/{len(chapters)}] {path.stem}", flush=True)
-        t0 = time.perf_counter()
         flags = ["--quick"] if quick else []
         with ChapterClock(ledger, path.stem) as clock:
             if clock.carried:
@@ -349,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
                 ).returncode
             if code != 0:
                 clock.failed()
-        seconds = time.perf_counter() - t0
+        seconds = clock.elapsed() - clock.carried  # (this run's own)
         if code != 0:
             print(
                 f"\n!! {path.stem} failed (exit code {code}) after {seconds:.1f} s; "
@@ -366,8 +366,7 @@ def main(argv: list[str] | None = None) -> int:
         f"({profile} profile).\n"
     )
     print(summary_table(rows))
-    everything = [p.stem for _, p in find_chapters(args.chapters)]
-    total = course_total(read_times(ledger), everything)
+    total = course_total(read_times(ledger), [p.stem for _, p in found])
     if total is not None:
         print(
             f"\nThe whole course in this outputs folder took {total:.0f} s ({total / 3600:.2f} h): "
