@@ -117,3 +117,11 @@ def test_seeded_names_keep_the_chapters_checkpoint_for_seed_zero():
     assert seeded_name("07_gmm", 0) == "07_gmm"
     assert seeded_name("07_gmm", 2) == "10_gmm_seed2"
     assert seeded_name("09_gmm_affordance_cvar", 1) == "10_gmm_affordance_cvar_seed1"
+
+
+def test_chapter_09s_open_sigma_controls_are_drivers_but_not_chapter_10_rows():
+    keys = [d.key for d in ablation.FINETUNE_CONTROLS]
+    assert keys == ["gmm_affordance_cvar_open", "gmm_affordance_control_open"]
+    assert all(k in ablation.BY_KEY for k in keys)
+    table_keys = {d.key for d in (*ablation.DRIVERS, *ablation.CONTROLS)}
+    assert not table_keys & set(keys)

@@ -175,6 +175,57 @@ def test_the_control_fine_tune_differs_from_cvar_only_in_the_reduction():
         finetune_settings(FULL, 3.0, reduction="median")
 
 
+@pytest.mark.parametrize("sigma", ["held", "open"])
+def test_the_fine_tunes_hold_sigma_at_1_or_train_it_both_alike(sigma):
+    """sigma="held": the one epoch runs inside the warm-up (every sigma 1, the log-sigma layer
+    frozen); "open": the learned sigmas train. CVaR and its control agree on it either way."""
+    from e2e_lite.config import FULL
+    from e2e_lite.learning.recipes import CVAR_SIGMA, finetune_settings
+
+    assert CVAR_SIGMA == "held"  # the course's choice (chapter 09, section 6)
+    cvar_obj, cvar_cfg = finetune_settings(FULL, 1.0, reduction="cvar", sigma=sigma)
+    mean_obj, mean_cfg = finetune_settings(FULL, 1.0, reduction="mean", sigma=sigma)
+    held = sigma == "held"
+    assert cvar_cfg == mean_cfg and cvar_cfg.epochs == 1
+    for obj in (cvar_obj, mean_obj):
+        assert obj.sigma_fixed(0) is held and not obj.sigma_fixed(None)
+        assert obj.frozen_prefixes(0) == (["head.log_sigma"] if held else [])
+    assert cvar_obj.base.name == mean_obj.name
+    other = finetune_settings(FULL, 1.0, reduction="mean", sigma="open" if held else "held")[0]
+    assert other.name != mean_obj.name  # held and open fine-tunes never share a checkpoint key
+    with pytest.raises(ValueError, match="sigma"):
+        finetune_settings(FULL, 1.0, sigma="learned")
+
+
+def test_the_open_sigma_fine_tunes_are_stored_apart(monkeypatch):
+    """gmm_affordance_cvar(sigma="open") trains 09_..._open checkpoints from the same parent, so
+    the course's held fine-tunes and chapter 09's open controls never overwrite each other."""
+    from e2e_lite.config import FULL
+    from e2e_lite.learning import recipes
+
+    calls = []
+    monkeypatch.setattr(recipes, "gmm_affordance", lambda *a, **k: None)
+    monkeypatch.setattr(
+        recipes,
+        "train_or_load",
+        lambda name, *a, **k: calls.append((name, k["init_from"], a[2].name)) or (None, None),
+    )
+    for sigma in ("held", "open"):
+        for reduction in ("cvar", "mean"):
+            recipes.gmm_affordance_cvar(
+                FULL, None, None, 1.0, seed=2, reduction=reduction, sigma=sigma
+            )
+    names = [c[0] for c in calls]
+    assert names == [
+        "10_gmm_affordance_cvar_seed2",
+        "10_gmm_affordance_control_seed2",
+        "10_gmm_affordance_cvar_open_seed2",
+        "10_gmm_affordance_control_open_seed2",
+    ]
+    assert {c[1] for c in calls} == {"10_gmm_affordance_seed2"}
+    assert len({c[2] for c in calls}) == 4
+
+
 def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples():
     """rank_by="followed_error": the tail is the samples with the largest ADE, whatever their
     loss; gradients reach those samples only."""

@@ -97,9 +97,12 @@ def _affordance(b: Build, **recipe: Any) -> Policy:
     return TrajectoryAgent(model)
 
 
-def _finetune(b: Build, reduction: str) -> Policy:
-    """Chapter 09's fine-tune of this seed's affordance network, reduced by ``reduction``."""
-    model = recipes.gmm_affordance_cvar(*b.data, b.weight(), reduction=reduction, **b.seeded)[0]
+def _finetune(b: Build, reduction: str, sigma: str = recipes.CVAR_SIGMA) -> Policy:
+    """Chapter 09's fine-tune of this seed's affordance network, reduced by ``reduction``, its
+    sigmas ``sigma`` (:func:`~e2e_lite.learning.recipes.finetune_settings`)."""
+    model = recipes.gmm_affordance_cvar(
+        *b.data, b.weight(), reduction=reduction, sigma=sigma, **b.seeded
+    )[0]
     return TrajectoryAgent(model)
 
 
@@ -193,13 +196,28 @@ CONTROLS = (
         build=lambda b: _finetune(b, "mean"),
     ),
 )
+#: Chapter 09's controls of the fine-tune itself (not in chapter 10's table): CVaR and its
+#: control with the mixture's sigmas open, as the paper's NLL trains them, where the course's
+#: fine-tunes hold them at 1 (:data:`~e2e_lite.learning.recipes.CVAR_SIGMA`).
+FINETUNE_CONTROLS = (
+    Driver(
+        "gmm_affordance_cvar_open",
+        "GMM + affordance + CVaR, sigma open",
+        build=lambda b: _finetune(b, "cvar", "open"),
+    ),
+    Driver(
+        "gmm_affordance_control_open",
+        "GMM + affordance, the fine-tune with the mean, sigma open",
+        build=lambda b: _finetune(b, "mean", "open"),
+    ),
+)
 #: The drivers with no training (one run each: they have no training seed).
 UNTRAINED = ("expert", "oracle")
 #: seed 000: "Our agent drives smoothly in an average speed of 48 mile per hour".
 PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
-BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS)}
+BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS, *FINETUNE_CONTROLS)}
 #: shards of a full-profile ablation evaluation (part of its settings: see ``evaluate``'s
 #: ``workers``; the chapters pass their profile's ``ablation_workers``).
 WORKERS = FULL.ablation_workers
