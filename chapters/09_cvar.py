@@ -115,8 +115,12 @@ print(
 # ## 2. The starting point and its tail
 #
 # The chapter-08 model (GMM + affordance; trained here if missing, with the `w` its grid chose).
-# For every validation sample its loss (trajectory NLL + `w` x affordance error, the quantity
-# trained on), then `CVaR_α` of those losses for α from 0 to 99 % (the paper's Fig. 5).
+# For every validation sample the loss the fine-tunes train, then `CVaR_α` of those losses for α
+# from 0 to 99 % (the paper's Fig. 5). That loss is the trajectory NLL with **every sigma held at
+# 1**, plus `w` x the affordance error. With unit sigmas a mode's NLL is half its squared error
+# (in target units) plus a constant, so a sample's loss says how far its best modes are from the
+# expert's trajectory. Section 6 shows what goes wrong when the fine-tune trains the learned
+# sigmas instead, as the paper's NLL does.
 
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
@@ -128,8 +132,10 @@ if m08 is not None:
 else:
     w, why = recipes.choose_affordance_weight(recipes.affordance_grid(profile, train, val))
     print(f"chapter 08 has not run: grid search here, chosen {why}")
-base, base_objective, _ = recipes.gmm_affordance(profile, train, val, w)
-base_losses, _ = evaluate_loss(base, base_objective, DrivingDataset(val))
+base, _, _ = recipes.gmm_affordance(profile, train, val, w)
+# the fine-tunes' own per-sample loss (their single epoch is epoch 0: sigma held at 1)
+tuned_objective, _ = recipes.finetune_settings(profile, w, reduction="mean")
+base_losses, _ = evaluate_loss(base, tuned_objective, DrivingDataset(val), epoch=0)
 alphas, base_curve = cvar_curve(base_losses)
 print(
     f"chapter-08 model, held-out loss: mean {base_curve[0]:.3f}, CVaR-90 {base_curve[90]:.3f}, "
@@ -143,16 +149,18 @@ print(
 # batch of 256, which samples are above the batch's 90 % quantile? Those are the samples CVaR
 # trains on. Compare their situations with random samples.
 #
-# *What* is ranked is a choice. The paper ranks by the loss trained on. For a GMM that loss is
-# mostly sigma terms: a sample whose mode is confidently wrong and a sample whose spread is
-# merely wide both rank high. The alternative (`CVaRObjective(rank_by="followed_error")`) ranks
-# by the error of the trajectory the car would follow. The table shows both tails.
+# *What* is ranked is a choice. The paper ranks by the loss trained on; with sigma held at 1 that
+# is the modes' squared error, softly minimised over the modes and weighted by their mixing
+# weights (plus the affordance term). The alternative (`CVaRObjective(rank_by="followed_error")`)
+# ranks by the error of the one trajectory the car would follow. The table shows both tails.
 
 # %%
 rng = np.random.default_rng(9)
 batch = recipes.CVAR_BATCH
 probe_rows = rng.permutation(len(train))[: min(len(train), batch * (8 if profile.quick else 24))]
-probe_losses, probe_metrics = evaluate_loss(base, base_objective, DrivingDataset(train, probe_rows))
+probe_losses, probe_metrics = evaluate_loss(
+    base, tuned_objective, DrivingDataset(train, probe_rows), epoch=0
+)
 
 
 def batch_tails(score: np.ndarray) -> np.ndarray:
@@ -203,8 +211,9 @@ print(f"saved {grid_png} (top row: the 8 worst samples; bottom row: 8 random one
 # ## 4. One epoch of CVaR-90
 #
 # From the chapter-08 weights, one epoch over the training set, batches of 256, each batch
-# reduced by `cvar_loss` at α = 0.9 (so each step learns from its 25-26 worst samples). Sigma
-# stays open. The fine-tune **continues the chapter-08 training's Adam state** (its moment
+# reduced by `cvar_loss` at α = 0.9 (so each step learns from its 25-26 worst samples). Every
+# sigma is held at 1 (`recipes.CVAR_SIGMA`; section 6 says why). The fine-tune **continues the
+# chapter-08 training's Adam state** (its moment
 # estimates, `train_or_load(..., carry_optimizer=True)`) at a tenth of its learning rate: a fresh
 # Adam's first steps move every weight by about the learning rate whatever its gradient, which
 # is a restart, not a fine-tune.
@@ -218,8 +227,8 @@ model, objective, hist = recipes.gmm_affordance_cvar(profile, train, val, w)
 control, control_objective, _ = recipes.gmm_affordance_cvar(
     profile, train, val, w, reduction="mean"
 )
-cvar_losses, cvar_metrics = evaluate_loss(model, objective, DrivingDataset(val))
-control_losses, _ = evaluate_loss(control, control_objective, DrivingDataset(val))
+cvar_losses, cvar_metrics = evaluate_loss(model, objective, DrivingDataset(val), epoch=0)
+control_losses, _ = evaluate_loss(control, control_objective, DrivingDataset(val), epoch=0)
 _, tuned_curve = cvar_curve(cvar_losses)
 _, control_curve = cvar_curve(control_losses)
 
@@ -294,13 +303,23 @@ for name, m in (("base", base), ("control", control), ("cvar", model)):
 # The three drivers (the chapter-08 model, its control fine-tune, its CVaR fine-tune), each
 # trained with chapter 10's seeds, on chapter 10's roads and miles: each seed drives its share of
 # the miles on roads of its own, and the counts are pooled. Chapter 10 reuses these evaluations.
+# Two more rows are the same two fine-tunes with the sigmas open (the paper's NLL); section 6
+# reads them.
 
 # %%
-keys = ("gmm_affordance", "gmm_affordance_control", "gmm_affordance_cvar")
+keys = (
+    "gmm_affordance",
+    "gmm_affordance_control",
+    "gmm_affordance_cvar",
+    "gmm_affordance_control_open",
+    "gmm_affordance_cvar_open",
+)
 names = {
     "gmm_affordance": "base",
     "gmm_affordance_control": "control",
     "gmm_affordance_cvar": "cvar",
+    "gmm_affordance_control_open": "control_open",
+    "gmm_affordance_cvar_open": "cvar_open",
 }
 seeded = ablation.build_seeded_drivers(profile, keys, train=train, val=val)
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
@@ -316,6 +335,15 @@ verdicts = {
     ),
     "cvar_vs_base": compare_rates(closed["gmm_affordance_cvar"], closed["gmm_affordance"]),
     "control_vs_base": compare_rates(closed["gmm_affordance_control"], closed["gmm_affordance"]),
+    "open_cvar_vs_open_control": compare_rates(
+        closed["gmm_affordance_cvar_open"], closed["gmm_affordance_control_open"]
+    ),
+    "cvar_vs_open_cvar": compare_rates(
+        closed["gmm_affordance_cvar"], closed["gmm_affordance_cvar_open"]
+    ),
+    "control_vs_open_control": compare_rates(
+        closed["gmm_affordance_control"], closed["gmm_affordance_control_open"]
+    ),
 }
 for what, test in verdicts.items():
     print(f"{what.replace('_', ' ')}: {test['verdict']}")
@@ -359,6 +387,85 @@ if matched:
     print(f"seeds {matched}, CVaR at matched speed vs its control: {matched_test['verdict']}")
 else:
     print("no seed's CVaR fine-tune drove within 10 % of its control's speed")
+
+# %% [markdown]
+# ## 6. Why the fine-tunes hold sigma at 1
+#
+# With the sigmas open, a sample's NLL is large when its error is large *relative to its sigma*,
+# and the cheapest way to lower the loss of the worst samples is to widen their sigmas. That also
+# weakens the pull on the means (each mean is pulled with weight 1 / sigma²). The mean fine-tune
+# has the opposite problem when the base was kept inside its sigma warm-up (chapter 07: the epoch
+# is kept by the driving error, and an early one often wins): its sigmas have never trained, and
+# its one epoch is spent shrinking them from 1. Either way the sigmas, not the reduction, can
+# decide which fine-tune drives better.
+#
+# For every training seed: the epoch its base was kept at and whether its sigmas were still held
+# then; on held-out frames, the followed mode's sideways sigma at 1.5 s and the followed
+# trajectory's average error (ADE); and each driver's collisions per 100 mi from section 5.
+
+# %%
+probe_val = np.linspace(0, len(val) - 1, min(len(val), 2000)).round().astype(int)
+
+
+def held_out(policy: TrajectoryAgent) -> dict[str, float]:
+    """The followed mode's sideways sigma at 1.5 s (median) and the followed trajectory's ADE
+    (mean) on ``probe_val`` [m]."""
+    agent, sigmas, points = TrajectoryAgent(policy.model), [], []
+    for rows_k in np.array_split(probe_val, max(1, len(probe_val) // 256)):
+        points.append(agent.trajectories_from(val.images[rows_k], val.speed[rows_k]))
+        top = agent.last["weights"].argmax(axis=1)  # the followed (heaviest) mode
+        sigmas.append(agent.last["sigmas"][np.arange(len(rows_k)), top, -1, 1])
+    error = np.linalg.norm(np.concatenate(points) - val.trajectory[probe_val], axis=-1)
+    return {
+        "sigma_y_1p5s_m": float(np.median(np.concatenate(sigmas))),
+        "ade_m": float(error.mean()),
+    }
+
+
+diagnosis = []
+for k in range(profile.ablation_seeds):
+    parent = recipes.gmm_affordance(
+        profile, train, val, w, name=recipes.seeded_name("08_gmm_affordance", k), seed=k,
+        keep_optimizer=True, progress=False,
+    )[2]  # fmt: skip
+    entry = {
+        "seed": k,
+        "base_epoch": parent.best_epoch + 1,
+        "base_sigmas": "held" if "head.log_sigma" in parent.best["frozen"] else "trained",
+    }
+    for key in keys:
+        rate = (result_dict(closed[key]).get("seeds") or [result_dict(closed[key])])[k]
+        entry[names[key]] = {
+            **held_out(seeded[key][k]),
+            "collisions_per_100mi": rate["collisions_per_100mi"],
+        }
+    diagnosis.append(entry)
+order = [names[key] for key in keys]
+print("per seed: " + " / ".join(order))
+print("| seed | base kept at epoch (its sigmas) | followed sigma sideways at 1.5 s [m] | "
+      "held-out ADE [m] | collisions per 100 mi |")  # fmt: skip
+print("|---|---|---|---|---|")
+for e in diagnosis:
+    cells = [
+        " / ".join(f"{e[n][field]:{fmt}}" for n in order)
+        for field, fmt in (("sigma_y_1p5s_m", ".2f"), ("ade_m", ".3f"), ("collisions_per_100mi", ".1f"))
+    ]  # fmt: skip
+    print(f"| {e['seed']} | {e['base_epoch']} ({e['base_sigmas']}) | " + " | ".join(cells) + " |")
+for e in diagnosis:
+    open_word = "fewer" if e["cvar_open"]["collisions_per_100mi"] < e["control_open"][
+        "collisions_per_100mi"] else "not fewer"  # fmt: skip
+    held_word = "fewer" if e["cvar"]["collisions_per_100mi"] < e["control"][
+        "collisions_per_100mi"] else "not fewer"  # fmt: skip
+    print(
+        f"seed {e['seed']} (base sigmas {e['base_sigmas']}): sigma open, CVaR had {open_word} "
+        f"collisions than its control; sigma held, {held_word}"
+    )
+
+# %% [markdown]
+# Read the table seed by seed. With the sigmas open, compare the CVaR fine-tune's sigma and ADE
+# with its base's and its control's, and see whether the sign of CVaR against its control follows
+# the base's sigma state rather than anything CVaR does. With the sigmas held, the two fine-tunes
+# differ in which samples they learn from, nothing else.
 
 # %%
 res = result_dict(closed["gmm_affordance_cvar"])
@@ -412,6 +519,7 @@ artifacts.write_metrics(
             "batch": recipes.CVAR_BATCH,
             "alpha": recipes.CVAR_ALPHA,
             "optimizer": "carried from the base training",
+            "sigma": recipes.CVAR_SIGMA,
         },
         **{
             names[k]: {f: v for f, v in result_dict(closed[k]).items() if f != "events"}
@@ -421,6 +529,7 @@ artifacts.write_metrics(
             k: {"p_value": v["p_value"], "verdict": v["verdict"]} for k, v in verdicts.items()
         },
         "matched_speed": matched_test,
+        "sigma_diagnosis": diagnosis,
         "table_md": table,
     },
     figures=(grid_png, curve_png, chart_png),
@@ -441,6 +550,9 @@ artifacts.write_metrics(
 #   that reaches the road.
 # * A rate per mile is read with the speed and the stalls: a driver that learns from a tail rich
 #   in braking and swerving can buy fewer collisions per hour by not driving.
+# * With a GMM, the fine-tune's sigmas are a second change beside the reduction. Open, CVaR can
+#   lower its tail by widening them, and the base's sigma state (trained, or still held by its
+#   warm-up) can decide the comparison; held at 1, the fine-tunes differ in the reduction alone.
 #
 # ## Exercises
 #
@@ -448,6 +560,8 @@ artifacts.write_metrics(
 # 2. Rank the tail by the followed trajectory's error (`CVaRObjective(..., rank_by=
 #    "followed_error")`, or `recipes.CVAR_RANK_BY`). Does section 3's table change the way you
 #    expected, and does the closed loop follow?
+#    Try it with the sigmas open too (`sigma="open"`): does ranking by the followed error stop
+#    CVaR from widening the sigmas?
 # 3. Two epochs of CVaR-90: does the mean loss keep rising? Does the closed-loop rate follow the
 #    CVaR-90 or the mean?
 # 4. The tail of section 3 is measured with the training loss. Do the same with the validation

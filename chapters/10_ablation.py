@@ -152,9 +152,9 @@ for before, after, what, paper_way in STEPS:
 # * **K = 1**: the GMM's loss, floor and schedule with a single mode. No choice between modes is
 #   left, so its gap to L2 is the negative log-likelihood's (learned sigmas weigh the samples),
 #   and its gap to the GMM row is the choice's.
-# * **the fine-tune with the mean**: the CVaR row's fine-tune (same parent, epoch, batches, rate
-#   and carried optimiser) reducing each batch by its mean: is the CVaR step CVaR's, or one more
-#   epoch's?
+# * **the fine-tune with the mean**: the CVaR row's fine-tune (same parent, epoch, batches, rate,
+#   carried optimiser and sigmas held at 1) reducing each batch by its mean: is the CVaR step
+#   CVaR's, or one more epoch's?
 # * **sigma held at 1**: the GMM recipe whose sigma warm-up lasts the whole training, so two
 #   modes are learned with a soft mixture of squared errors and no learned sigma weighs a sample
 #   (chapter 07, section 8 measures how the learned sigmas weigh the decisive frames).
@@ -308,7 +308,9 @@ print(f"open {index} in a browser")
 # * **CVaR**: a one-epoch fine-tune with a fresh optimiser broke the driver, but so did one more
 #   epoch of the mean loss. The fine-tune now continues the base training's Adam state, and its
 #   control (the same fine-tune reducing by the mean) is section 3b's: the CVaR step is judged
-#   against it, not only against its parent.
+#   against it, not only against its parent. Both fine-tunes hold every sigma at 1: with the
+#   sigmas open, CVaR widened those of its worst samples, and whether the base's sigmas had
+#   trained yet decided which fine-tune drove better (chapter 09, section 6).
 #
 # What our world lacks that the paper had: 10 times the data (48K samples vs 500K), a ResNet-34
 # instead of a PilotNet trunk, moving traffic, and many more epochs. What it adds: every number
