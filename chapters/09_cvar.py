@@ -249,7 +249,7 @@ ax.plot(100 * alphas, base_curve, label="chapter 08 (mean loss)", color="tab:blu
 ax.plot(100 * alphas, control_curve, label="+ 1 epoch, mean (control)", color="tab:gray", ls="--")
 ax.plot(100 * alphas, tuned_curve, label="+ 1 epoch CVaR-90", color="tab:red")
 ax.set_xlabel("alpha [%]")
-ax.set_ylabel("CVaR_alpha of the held-out loss")
+ax.set_ylabel("CVaR_alpha of the held-out loss (sigma at 1)")
 ax.set_title("the paper's Fig. 5 on held-out frames: base, control and CVaR")
 ax.legend()
 curve_png = save_figure(fig, artifacts.artifact_path("figures", "09_cvar_curve.png"))

@@ -63,10 +63,11 @@ class ChapterInfo(NamedTuple):
 
 # Times on 2 cores. Quick: the first development machine, each chapter alone from an empty outputs
 # folder (`python -m e2e_lite.course --quick --processes each`, imports included; inside the
-# course's one interpreter they are 5-12 s shorter). Full: chapters 01-10 as one run of `python -m
-# e2e_lite.course` from an empty outputs folder took them on the second machine (AMD EPYC, about
-# twice as fast as the first; code of 9f8f420, `course_times.json`), rounded up to a minute;
-# chapter 11 has not been run whole there, so its time is the first machine's sum of parts.
+# course's one interpreter they are 5-12 s shorter). Full: `python -m e2e_lite.course` from an
+# empty outputs folder on the second machine (AMD EPYC, about twice as fast as the first; code of
+# 9f8f420 for chapters 01-10 in one run, ffef143 for chapter 11 in four, `course_times.json`),
+# rounded up to a minute. Chapter 11's includes about 10 minutes of CPU shared with other work
+# and of work redone after its cuts.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -78,7 +79,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 7),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 12, 16),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 36, 275),
+    11: ChapterInfo("the safety module on the affordances", 36, 130),
 }
 
 
