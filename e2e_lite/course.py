@@ -68,9 +68,10 @@ class ChapterInfo(NamedTuple):
 # 9f8f420 for chapters 01-10 in one run, ffef143 for chapter 11 in four, `course_times.json`),
 # rounded up to a minute. Chapter 11's includes about 10 minutes of CPU shared with other work
 # and of work redone after its cuts. Chapter 09 since a5d8376 (two more fine-tunes per seed, the
-# sigma-open controls, and their rows): quick 13.2 s measured alone on the second machine; full
-# 16 min measured before them plus an estimate for them (6 fine-tunes of about 50 s and 6 drives
-# of 167 mi of about 45 s each there), 26 min.
+# sigma-open controls, and their rows; since 360b23b the CVaR/control pair again on new roads):
+# quick 13.2 s measured alone on the second machine before the new roads; full 16 min measured
+# before all of them plus an estimate for them (6 fine-tunes of about 50 s and 12 drives of 167 mi
+# of about 45 s each there), 31 min.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -80,7 +81,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     6: ChapterInfo("trajectory regression with an L2 loss and LQR", 11, 3),
     7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 25, 15),
     8: ChapterInfo("the affordance auxiliary loss", 16, 7),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 26),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 31),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
     11: ChapterInfo("the safety module on the affordances", 36, 130),
 }
