@@ -434,10 +434,10 @@ for what in ("cvar_vs_control_new_roads", "cvar_vs_control_both_roads"):
 probe_val = np.linspace(0, len(val) - 1, min(len(val), 2000)).round().astype(int)
 
 
-def held_out(policy: TrajectoryAgent) -> dict[str, float]:
+def held_out(agent: TrajectoryAgent) -> dict[str, float]:
     """The followed mode's sideways sigma at 1.5 s (median) and the followed trajectory's ADE
     (mean) on ``probe_val`` [m]."""
-    agent, sigmas, points = TrajectoryAgent(policy.model), [], []
+    sigmas, points = [], []
     for rows_k in np.array_split(probe_val, max(1, len(probe_val) // 256)):
         points.append(agent.trajectories_from(val.images[rows_k], val.speed[rows_k]))
         top = agent.last["weights"].argmax(axis=1)  # the followed (heaviest) mode
@@ -478,14 +478,19 @@ for e in diagnosis:
         for field, fmt in (("sigma_y_1p5s_m", ".2f"), ("ade_m", ".3f"), ("collisions_per_100mi", ".1f"))
     ]  # fmt: skip
     print(f"| {e['seed']} | {e['base_epoch']} ({e['base_sigmas']}) | " + " | ".join(cells) + " |")
+
+
+def fewer(entry: dict, a: str, b: str) -> str:
+    """Whether driver ``a`` of a diagnosis entry had fewer collisions per 100 mi than ``b``."""
+    rate = {n: entry[n]["collisions_per_100mi"] for n in (a, b)}
+    return "fewer" if rate[a] < rate[b] else "not fewer"
+
+
 for e in diagnosis:
-    open_word = "fewer" if e["cvar_open"]["collisions_per_100mi"] < e["control_open"][
-        "collisions_per_100mi"] else "not fewer"  # fmt: skip
-    held_word = "fewer" if e["cvar"]["collisions_per_100mi"] < e["control"][
-        "collisions_per_100mi"] else "not fewer"  # fmt: skip
     print(
-        f"seed {e['seed']} (base sigmas {e['base_sigmas']}): sigma open, CVaR had {open_word} "
-        f"collisions than its control; sigma held, {held_word}"
+        f"seed {e['seed']} (base sigmas {e['base_sigmas']}): sigma open, CVaR had "
+        f"{fewer(e, 'cvar_open', 'control_open')} collisions than its control; sigma held, "
+        f"{fewer(e, 'cvar', 'control')}"
     )
 
 # %% [markdown]
