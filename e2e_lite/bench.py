@@ -16,11 +16,14 @@ Names:
             and the real training loop, and their ratio (``loop_vs_bare``).
     network inference time per frame of the GMM fusion network by batch size, on one torch
             thread and on all of them.
-    closed-loop [--agent pilotnet|actuators|gmm]
+    closed-loop [--agent pilotnet|actuators|gmm]   (default pilotnet)
             simulated miles per wall-second with camera + CNN in the loop: B = 16 in one thread
             (chapters 05-09), B = 64 in one thread, two threads (20 miles each) and two processes
             (chapter 10; 100 miles, the workers' start counted), and that last one against the
             network alone (``loop_vs_network``).
+    placement [--agent ...]   (default gmm)
+            where the network runs while 64 cars drive: on the CPU in 2 worker processes and in
+            one per core, and with a GPU on it in this process (1 and 2 threads) and in 2 workers.
 """
 
 from __future__ import annotations
@@ -235,12 +238,9 @@ def bench_train(quick: bool) -> dict[str, float]:
     return out
 
 
-def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
-    """Closed-loop simulated miles per wall-second with camera + CNN in the loop (the chapter's
-    checkpoint when it exists, else an untrained network of the same shape): B = 16 worlds in one
-    thread (chapters 05-09's evaluations), and B = 64 (chapters 10-11) in one thread, in two
-    threads and in two worker processes (evaluate's ``workers=2``; also without the workers'
-    start, which an evaluation pays once)."""
+def learned_driver(agent: str, device: torch.device) -> tuple[object, str]:
+    """The chapter's driver ``agent`` (pilotnet, actuators or gmm) on ``device``: its checkpoint
+    when it exists, else an untrained network of the same shape; and where it came from."""
     name, cfg = {
         "pilotnet": ("05_pilotnet", recipes.PILOTNET_CFG),
         "actuators": ("05_actuators", recipes.ACTUATORS_CFG),
@@ -248,15 +248,25 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     }[agent]
     path = artifact_path("checkpoints", f"{name}.pt")
     if path.exists():
-        model, _ = load_checkpoint(path, cfg, device=pick_device())
+        model, _ = load_checkpoint(path, cfg, device=device)
         source = f"checkpoint {path.name}"
     else:
         torch.manual_seed(0)
-        model = prepare(build_model(cfg), pick_device()).eval()
+        model = prepare(build_model(cfg), device).eval()
         source = "untrained network (no checkpoint yet)"
     policy = {"steer": SteeringAgent, "actuators": ActuatorAgent, "gmm": TrajectoryAgent}[cfg.head](
         model
     )
+    return policy, source
+
+
+def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
+    """Closed-loop simulated miles per wall-second with camera + CNN in the loop (the chapter's
+    checkpoint when it exists, else an untrained network of the same shape): B = 16 worlds in one
+    thread (chapters 05-09's evaluations), and B = 64 (chapters 10-11) in one thread, in two
+    threads and in two worker processes (evaluate's ``workers=2``; also without the workers'
+    start, which an evaluation pays once)."""
+    policy, source = learned_driver(agent, pick_device())
     world_cfg = WorldConfig.for_profile(active_profile([]))
     print(f"closed loop with {agent}: {source}")
     out: dict[str, float] = {}
@@ -293,7 +303,7 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     # on the shards' threads, both in simulated miles per wall-second (the loop's miles per frame)
     workers = 2
     network_fps = workers * network_frames_per_s(
-        model,
+        policy.model,
         64 // workers,
         reps=10 if quick else 200,
         threads=max(1, torch.get_num_threads() // workers),
@@ -303,6 +313,32 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     out["network_miles_per_s"] = network_fps * miles_per_frame
     out["loop_miles_per_s"] = out["b64_2processes_sim_miles_per_wall_s"]
     out["loop_vs_network"] = out["loop_miles_per_s"] / out["network_miles_per_s"]
+    return out
+
+
+def bench_placement(quick: bool, agent: str = "gmm") -> dict[str, float]:
+    """Where the network runs while 64 cars drive (10 simulated miles each row; quick: 0.5): on
+    the CPU in 2 worker processes (the course's setting) and in one per core, and with a GPU
+    also on the GPU in this process (1 and 2 threads) and in 2 worker processes. Simulated miles
+    per wall-second with and without the workers' start, and collisions (they differ a little
+    between rows: the shard count changes the start lanes' draws, and GPU arithmetic differs
+    from the CPU's in the last bits)."""
+    world_cfg = WorldConfig.for_profile(active_profile([]))
+    ev = EvalConfig(miles=0.5 if quick else 10.0, n_worlds=64, n_tracks=16)
+    cores = os.cpu_count() or 1
+    rows = [("cpu", 2, "processes")] + ([("cpu", cores, "processes")] if cores > 2 else [])
+    if torch.cuda.is_available():
+        rows += [("cuda", 1, "threads"), ("cuda", 2, "threads"), ("cuda", 2, "processes")]
+    out: dict[str, float] = {"cores": cores}
+    for device, workers, parallel in rows:
+        policy, source = learned_driver(agent, torch.device(device))
+        res = evaluate(policy, world_cfg, ev, progress=False, workers=workers, parallel=parallel)
+        label = f"{device}_{workers}{parallel}"
+        startup = res.timing_s.get("startup", 0.0)
+        out[f"{label}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
+        out[f"{label}_after_startup_sim_miles_per_wall_s"] = res.miles / (res.wall_time_s - startup)
+        out[f"{label}_collisions"] = res.collisions
+    print(f"closed loop with {agent}: {source}")
     return out
 
 
@@ -356,6 +392,7 @@ BENCHMARKS: dict[str, Callable[..., dict[str, float]]] = {
     "train": bench_train,
     "closed-loop": bench_closed_loop,
     "network": bench_network,
+    "placement": bench_placement,
 }
 
 
@@ -370,12 +407,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--agent",
         choices=["pilotnet", "actuators", "gmm"],
-        default="pilotnet",
-        help="closed-loop: which learned driver",
+        default=None,
+        help="closed-loop (default pilotnet) and placement (default gmm): which learned driver",
     )
     args = parser.parse_args(argv)
-    if args.name == "closed-loop":
-        figures = bench_closed_loop(args.quick, args.agent)
+    if args.name in ("closed-loop", "placement"):
+        default = "pilotnet" if args.name == "closed-loop" else "gmm"
+        figures = BENCHMARKS[args.name](args.quick, args.agent or default)
     else:
         figures = BENCHMARKS[args.name](args.quick)
     print(f"benchmark {args.name} ({'quick' if args.quick else 'full'}) on {_machine()}")

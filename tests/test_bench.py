@@ -16,6 +16,7 @@ from e2e_lite import bench
         ["network", "--quick"],
         ["closed-loop", "--quick", "--agent", "actuators"],
         ["closed-loop", "--quick", "--agent", "gmm"],
+        ["placement", "--quick"],
     ],
 )
 def test_benchmark_command_prints_json(argv, capsys):
@@ -35,6 +36,9 @@ def test_benchmark_command_prints_json(argv, capsys):
         assert figures[ratio] == pytest.approx(
             figures["loop_samples_per_s"] / figures["bare_samples_per_s"]
         )
+    if argv[0] == "placement":  # the course's setting is always a row; with a GPU, three more
+        rows = {k.removesuffix("_collisions") for k in figures if k.endswith("_collisions")}
+        assert "cpu_2processes" in rows and all(figures[f"{r}_collisions"] >= 0 for r in rows)
     elif ratio == "loop_vs_network":
         assert figures[ratio] == pytest.approx(
             figures["loop_miles_per_s"] / figures["network_miles_per_s"]

@@ -322,12 +322,27 @@ def test_network_agents_fork_into_parallel_shards_reproducibly():
     assert torch.get_num_threads() == threads
     assert a.events == b.events and a.miles == b.miles and a.miles >= 0.2
     assert a.timing_s["frames"] >= a.sim_time_s / 0.1 - 1e-6 and a.timing_s["render"] > 0
-    # on the CPU the shards may run in worker processes (the default): the same drive
+    # the shards may run in worker processes (the default): the same drive
     assert processes_ok(agent)
     t = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="threads")
     p = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="processes")
     assert t.events == p.events == a.events and t.miles == p.miles
     assert torch.get_num_threads() == threads
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_a_network_on_the_gpu_drives_the_same_in_threads_and_processes():
+    """On a GPU machine the shards go to worker processes too (each loads the network onto the
+    device): the same events as two threads sharing it in this process."""
+    world_cfg = WorldConfig(road=RoadConfig(length_m=1_000.0), traffic=TrafficConfig(n_cars=(5, 5)))
+    torch.manual_seed(0)
+    model = prepare(build_model(ModelConfig(head="gmm", fusion_width=16)), torch.device("cuda"))
+    agent = TrajectoryAgent(model)
+    assert processes_ok(agent)
+    cfg = EvalConfig(miles=0.2, n_worlds=4, n_tracks=2)
+    t = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="threads")
+    p = evaluate(agent, world_cfg, cfg, progress=False, workers=2, parallel="processes")
+    assert t.events == p.events and t.miles == p.miles and t.miles >= 0.2
 
 
 def test_cruise_control_targets_the_road_speed_limit():

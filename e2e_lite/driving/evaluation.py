@@ -83,7 +83,7 @@ def evaluate(
     copies. The shards run in worker processes (interpreters of their own, ``python -m
     e2e_lite.driving.shard_worker``, the job pickled to them; started once and kept for the next
     evaluations, see :func:`close_shard_workers`) unless the policy's class cannot be unpickled
-    there or torch runs on CUDA (:func:`processes_ok`); then in threads (the network's forward
+    there (:func:`processes_ok`); then in threads (the network's forward
     pass releases the GIL, so one shard renders and steps physics while the other runs
     convolutions, but their Python still takes turns). What a policy reports with its actuations
     (``Actuation.info``) is added up over the decisions and shards into ``result.info``. Either way the torch threads

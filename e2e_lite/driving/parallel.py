@@ -26,14 +26,14 @@ from .rollout import drive_shard
 
 
 def processes_ok(policy: Policy) -> bool:
-    """Shards may run in worker processes when a fresh interpreter can unpickle the policy (its
-    class is not defined in a script run as ``__main__``) and torch has not started CUDA here (a
-    network on a GPU stays in this process, its shards in threads sharing the device). What a
-    policy's shards count comes home in their results (``Actuation.info``), so a policy never
-    needs to know where it runs."""
-    torch = sys.modules.get("torch")
-    cuda = torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized()
-    return type(policy).__module__ != "__main__" and not cuda
+    """Shards may run in worker processes when a fresh interpreter can unpickle the policy: its
+    class is not defined in a script run as ``__main__``. A network on a GPU goes too: each
+    worker is a fresh interpreter (never a fork of one that started CUDA) and loads the network
+    onto the device itself, which drove faster than threads sharing it in this process (the
+    README's GPU section, ``python -m e2e_lite.bench placement``). What a policy's shards count
+    comes home in their results (``Actuation.info``), so a policy never needs to know where it
+    runs."""
+    return type(policy).__module__ != "__main__"
 
 
 def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[ShardResult]:
