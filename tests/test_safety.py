@@ -445,6 +445,46 @@ class BlindToCars(StraightOn):
         return pts
 
 
+class Ghosts(StraightOn):
+    """StraightOn with an exact affordance head that sees a car 10 m ahead in its own lane on
+    every decision (``every=1``) or on every other one (``every=2``: a flickering false alarm)."""
+
+    def __init__(self, every: int) -> None:
+        super().__init__()
+        self.every, self.calls = every, 0
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        pts = super().trajectories(obs)
+        seen = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        if self.calls % self.every == 0:
+            seen[:, AFFORDANCE_NAMES.index("gap_ego_m")] = 10.0
+        self.calls += 1
+        self.last["affordances"] = seen
+        return pts
+
+
+def test_a_persistence_filter_ignores_flickering_alarms_and_acts_on_lasting_ones():
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(0, 0)))
+    cfg = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2)
+    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    twice = SafetyConfig(confirm_decisions=2)
+    n = {}
+    for every in (1, 2):
+        for confirm in (SafetyConfig(), twice):
+            res = evaluate(
+                SafeAgent(Ghosts(every), confirm, audit=False), world, cfg, progress=False
+            )
+            n[every, confirm.confirm_decisions] = SafetyStats.from_info(res.info).interventions
+            if every == 2 and confirm is twice:  # every alarm alone: the driver drives
+                assert res.events == alone.events and res.miles == alone.miles
+    assert n[2, 1] > 0 and n[2, 2] == 0  # flickering: heeded at once, ignored when confirmed
+    # lasting: heeded either way, from the second decision on when confirmed
+    assert 0 < n[1, 2] < n[1, 1]
+    assert "confirm_decisions" not in repr(SafetyConfig()) and "confirm_decisions=2" in repr(twice)
+    with pytest.raises(ValueError, match="confirm_decisions"):
+        SafetyConfig(confirm_decisions=0)
+
+
 def test_true_affordances_replace_only_the_named_predictions():
     from e2e_lite.experiments.ablation import fingerprint
 

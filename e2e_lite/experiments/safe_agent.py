@@ -203,6 +203,7 @@ class SafeAgent:
         self._kept = 0  # examples reported since the last reset
         self._driven: list[str] = []  # each car's last source
         self._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)  # each car's recent decisions
+        self._alarms = np.zeros(0, dtype=np.int64)  # each car's consecutive failed checks
         self._gyro: tuple[float, np.ndarray, np.ndarray] | None = None  # time, yaw, fused heading
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
@@ -213,6 +214,7 @@ class SafeAgent:
         self._kept = 0
         self._driven = [""] * n_worlds
         self._overrode = np.zeros((n_worlds, BEFORE_IMPACT), dtype=bool)
+        self._alarms = np.zeros(n_worlds, dtype=np.int64)
         self._gyro = None
 
     def fork(self, k: int) -> list[SafeAgent]:
@@ -224,6 +226,7 @@ class SafeAgent:
             twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
             twin._driven = []
             twin._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)
+            twin._alarms = np.zeros(0, dtype=np.int64)
             twin._gyro = None
             out.append(twin)
         return out
@@ -258,6 +261,10 @@ class SafeAgent:
                 seen[:, _HEADING] = self._fused_heading(obs, seen[:, _HEADING])
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
+        counting = len(self._alarms) == len(proposal)
+        fresh = np.broadcast_to(
+            np.asarray(False if obs.respawned is None else obs.respawned), len(proposal)
+        )
         for i in range(len(proposal)):
             if self.cfg.check_proposals:
                 c = choose(
@@ -265,6 +272,11 @@ class SafeAgent:
                 )
             else:  # the control: the heaviest mode (capped with sight_speed), unchecked
                 c = Choice(modes[i][int(np.argmax(weights[i]))], "network", [])
+            if counting:  # a persistence filter (confirm_decisions); a re-placed car starts at 0
+                before = 0 if fresh[i] else self._alarms[i]
+                self._alarms[i] = 0 if c.source == "network" else before + 1
+                if 0 < self._alarms[i] < self.cfg.confirm_decisions:
+                    c = Choice(modes[i][int(np.argmax(weights[i]))], "network", [])
             chosen[i] = c.points
             sources.append(c.source)
             if c.source != "network":

@@ -103,6 +103,9 @@ class SafetyConfig:
             "assured clear distance ahead"): a car first seen can be stopped for (chapter 11).
         check_proposals: ``False`` drives the heaviest mode unchecked (with ``sight_speed``:
             the speed cap alone, the control that says what slowing down does by itself).
+        confirm_decisions: intervene only once the heaviest mode has failed the check on this
+            many consecutive decisions of a car (1: at once); before that the network drives. A
+            persistence filter against a noisy head's one-off alarms, paid in reaction time.
     """
 
     reaction_s: float = 0.2
@@ -122,6 +125,7 @@ class SafetyConfig:
     gyro_camera_weight: float | None = field(default=None, repr=False)  # (shown when set)
     sight_speed: bool = field(default=False, repr=False)  # (shown when set)
     check_proposals: bool = field(default=True, repr=False)  # (shown when set)
+    confirm_decisions: int = field(default=1, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -138,6 +142,7 @@ class SafetyConfig:
                 check_range(o, name, getattr(self, name), 1.0, 1000.0)
         if self.gyro_camera_weight is not None:
             check_range(o, "gyro_camera_weight", self.gyro_camera_weight, 0.0, 1.0, lo_open=True)
+        check_range(o, "confirm_decisions", self.confirm_decisions, 1, 100, integer=True)
 
     def __repr__(self) -> str:
         # the fields added later shown only when set (stored results are keyed by this text)
