@@ -1225,6 +1225,9 @@ artifacts.write_metrics(
 # * Training seeds fail differently (one drifts onto the rail at cruise speed, another turns too
 #   little when slow): pool them, and read each seed's row before crediting the module. A module
 #   that helps only the networks whose failure its check can see is not yet a module that helps.
+# * A filter in time does not remove misperception: confirming each alarm over two decisions
+#   (the "alarms confirmed twice" row) drops real alarms with the false ones, because a head that
+#   reads a car too near reads it so on the next frame too.
 # * A perceived module has a floor of its own: its false alarms hand the car to its fallback, and
 #   the fallback's collisions (who drove last, section 2) stay when the network's are gone. It
 #   can lower the collisions of a driver above that floor (section 5's weaker networks) and
