@@ -71,7 +71,9 @@ class ChapterInfo(NamedTuple):
 # sigma-open controls, and their rows; since 360b23b the CVaR/control pair again on new roads):
 # quick 13.2 s measured alone on the second machine before the new roads; full 16 min measured
 # before all of them plus an estimate for them (6 fine-tunes of about 50 s and 12 drives of 167 mi
-# of about 45 s each there), 31 min.
+# of about 45 s each there), 31 min. Chapter 08 since e06262c (section 7: one more training at
+# w = 30, its head refit and 100 mi): 4.5 min more measured with the rest reused, 11 min. Chapter
+# 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest reused, 133.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -80,10 +82,10 @@ CHAPTERS: dict[int, ChapterInfo] = {
     5: ChapterInfo("the PilotNet baselines: camera to actuators", 16, 10),
     6: ChapterInfo("trajectory regression with an L2 loss and LQR", 11, 3),
     7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 25, 15),
-    8: ChapterInfo("the affordance auxiliary loss", 16, 7),
+    8: ChapterInfo("the affordance auxiliary loss", 16, 11),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 31),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 36, 130),
+    11: ChapterInfo("the safety module on the affordances", 36, 133),
 }
 
 
