@@ -435,12 +435,9 @@ chart_png = save_figure(chart, artifacts.artifact_path("figures", "08_collisions
 
 # %%
 HEAVY_W = 30.0
-heavy, _, heavy_hist = recipes.gmm_affordance(
-    profile, train, val, HEAVY_W, name=f"08_gmm_affordance_w{HEAVY_W:g}"
-)
-heavy_goals = goal_ratios(
-    head_affordances(recipes.perceiving(heavy, train, f"08_gmm_affordance_w{HEAVY_W:g}"))
-)
+heavy_name = f"08_gmm_affordance_w{HEAVY_W:g}"
+heavy, _, heavy_hist = recipes.gmm_affordance(profile, train, val, HEAVY_W, name=heavy_name)
+heavy_goals = goal_ratios(head_affordances(recipes.perceiving(heavy, train, heavy_name)))
 heavy_res = evaluate(TrajectoryAgent(heavy), world_cfg, ev, desc=f"w = {HEAVY_W:g}")
 print("| w | kept epoch | " + " | ".join(heavy_goals) + " | collisions per 100 mi | mph |")
 print("|---:|---:|" + "---:|" * (len(heavy_goals) + 2))

@@ -47,7 +47,7 @@ from .control.oracle import Oracle
 from .driving.evaluation import evaluate
 from .driving.rollout import EvalConfig
 from .learning import recipes
-from .learning.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
+from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
 from .learning.checkpoints import load_checkpoint
 from .learning.data import DataConfig, DrivingDataset, collect, synthetic_data
 from .learning.losses import Objective
@@ -238,7 +238,7 @@ def bench_train(quick: bool) -> dict[str, float]:
     return out
 
 
-def learned_driver(agent: str, device: torch.device) -> tuple[object, str]:
+def learned_driver(agent: str, device: torch.device) -> tuple[NetworkAgent, str]:
     """The chapter's driver ``agent`` (pilotnet, actuators or gmm) on ``device``: its checkpoint
     when it exists, else an untrained network of the same shape; and where it came from."""
     name, cfg = {
@@ -330,8 +330,9 @@ def bench_placement(quick: bool, agent: str = "gmm") -> dict[str, float]:
     if torch.cuda.is_available():
         rows += [("cuda", 1, "threads"), ("cuda", 2, "threads"), ("cuda", 2, "processes")]
     out: dict[str, float] = {"cores": cores}
+    drivers = {d: learned_driver(agent, torch.device(d)) for d in {d for d, _, _ in rows}}
     for device, workers, parallel in rows:
-        policy, source = learned_driver(agent, torch.device(device))
+        policy, source = drivers[device]
         res = evaluate(policy, world_cfg, ev, progress=False, workers=workers, parallel=parallel)
         label = f"{device}_{workers}{parallel}"
         startup = res.timing_s.get("startup", 0.0)

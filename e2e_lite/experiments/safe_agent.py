@@ -261,22 +261,28 @@ class SafeAgent:
                 seen[:, _HEADING] = self._fused_heading(obs, seen[:, _HEADING])
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
-        counting = len(self._alarms) == len(proposal)
+        # a persistence filter (confirm_decisions > 1); a re-placed car starts at 0
+        counting = self.cfg.confirm_decisions > 1 and len(self._alarms) == len(proposal)
         fresh = np.broadcast_to(
             np.asarray(False if obs.respawned is None else obs.respawned), len(proposal)
         )
+
+        def heaviest(i: int) -> Choice:
+            """Car i's heaviest mode, driven unchecked."""
+            return Choice(modes[i][int(np.argmax(weights[i]))], "network", [])
+
         for i in range(len(proposal)):
             if self.cfg.check_proposals:
                 c = choose(
                     modes[i], weights[i], seen[i], float(obs.speed[i]), obs.curvature[i], self.cfg
                 )
             else:  # the control: the heaviest mode (capped with sight_speed), unchecked
-                c = Choice(modes[i][int(np.argmax(weights[i]))], "network", [])
-            if counting:  # a persistence filter (confirm_decisions); a re-placed car starts at 0
+                c = heaviest(i)
+            if counting:
                 before = 0 if fresh[i] else self._alarms[i]
                 self._alarms[i] = 0 if c.source == "network" else before + 1
                 if 0 < self._alarms[i] < self.cfg.confirm_decisions:
-                    c = Choice(modes[i][int(np.argmax(weights[i]))], "network", [])
+                    c = heaviest(i)
             chosen[i] = c.points
             sources.append(c.source)
             if c.source != "network":
