@@ -485,6 +485,51 @@ def test_a_persistence_filter_ignores_flickering_alarms_and_acts_on_lasting_ones
         SafetyConfig(confirm_decisions=0)
 
 
+class Seer(StraightOn):
+    """A perception network's stand-in: exact affordances (``blind``: every gap at the cap), and
+    a trajectory that swerves 3 m left (never to be driven)."""
+
+    def __init__(self, blind: bool = False) -> None:
+        super().__init__()
+        self.blind = blind
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        pts = super().trajectories(obs) + np.array([0.0, 3.0])
+        seen = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        if self.blind:
+            seen[:, [AFFORDANCE_NAMES.index(g) for g in GAP_NAMES]] = 60.0
+        self.last = {"points": pts, "affordances": seen}
+        return pts
+
+
+def test_a_separate_perception_network_feeds_the_check_and_never_drives():
+    from e2e_lite.experiments.ablation import fingerprint
+    from e2e_lite.simulation.camera import CameraConfig
+
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    truth = evaluate(SafeAgent(StraightOn(), ground_truth=True, audit=False), world, cfg,
+                     progress=False)  # fmt: skip
+    # a driver blind to cars, checked on an exact seer's affordances: the ground-truth module
+    seeing = SafeAgent(BlindToCars(), seer=Seer(), audit=False)
+    seen = evaluate(seeing, world, cfg, progress=False)
+    assert seen.events == truth.events and seen.collisions < alone.collisions
+    assert SafetyStats.from_info(seen.info).interventions == (
+        SafetyStats.from_info(truth.info).interventions
+    )
+    # a seer blind to cars: never an intervention, the driver alone (not the seer's swerve)
+    blind = evaluate(SafeAgent(StraightOn(), seer=Seer(blind=True), audit=False), world, cfg,
+                     progress=False)  # fmt: skip
+    assert blind.events == alone.events and blind.collisions == alone.collisions >= 3
+    assert SafetyStats.from_info(blind.info).interventions == 0
+    assert fingerprint(seeing) != fingerprint(SafeAgent(BlindToCars(), audit=False))
+    other_camera = Seer()
+    other_camera.camera = CameraConfig(width_px=100)
+    with pytest.raises(ValueError, match="same frame"):
+        SafeAgent(StraightOn(), seer=other_camera)
+
+
 def test_true_affordances_replace_only_the_named_predictions():
     from e2e_lite.experiments.ablation import fingerprint
 

@@ -312,6 +312,8 @@ def fingerprint(policy: Policy) -> str:
         parts += [getattr(policy, a, None) for a in ("audit", "audit_every", "keep_examples")]
         if getattr(policy, "true_affordances", ()):  # (only when set: the other keys stay)
             parts.append(policy.true_affordances)
+        if getattr(policy, "seer", None) is not None:  # a separate perception network (likewise)
+            parts.append(("seer", fingerprint(policy.seer)))
     return settings_key(*parts)
 
 

@@ -169,6 +169,10 @@ class SafeAgent:
         true_affordances: names (of :data:`~e2e_lite.control.labels.AFFORDANCE_NAMES`) whose
             true values replace the network's in the perceived check, the others staying
             predicted: which affordances' errors matter (chapter 11's targeted runs).
+        seer: a second network agent (a :class:`~e2e_lite.learning.agents.TrajectoryAgent`
+            whose model has an affordance head) whose affordances the perceived check reads
+            instead of the driver's own head: a separate perception network for the module,
+            seeing the same frame (``None``: the driver's head). Its trajectories are ignored.
     """
 
     def __init__(
@@ -180,6 +184,7 @@ class SafeAgent:
         audit_every: int = 1,
         keep_examples: int = 6,
         true_affordances: Sequence[str] = (),
+        seer: Any = None,
     ) -> None:
         check_range("SafeAgent", "audit_every", audit_every, 1, integer=True)
         unknown = sorted(set(true_affordances) - set(AFFORDANCE_NAMES))
@@ -190,13 +195,18 @@ class SafeAgent:
             )
         self.true_affordances = tuple(n for n in AFFORDANCE_NAMES if n in set(true_affordances))
         self._true_columns = [AFFORDANCE_INDEX[n] for n in self.true_affordances]
-        model = getattr(agent, "model", None)
+        model = getattr(seer if seer is not None else agent, "model", None)
         if not ground_truth and model is not None and not model.cfg.affordance:
             raise ValueError(
-                "the perceived check needs predicted affordances: give an agent whose model has "
-                "an affordance head, or use ground_truth=True"
+                "the perceived check needs predicted affordances: give an agent (or a seer) "
+                "whose model has an affordance head, or use ground_truth=True"
             )
-        self.agent, self.cfg = agent, cfg or SafetyConfig()
+        if seer is not None and seer.camera != agent.camera:
+            raise ValueError(
+                f"SafeAgent: the seer's camera {seer.camera} is not the driver's {agent.camera}: "
+                "both networks read the same frame"
+            )
+        self.agent, self.seer, self.cfg = agent, seer, cfg or SafetyConfig()
         self.ground_truth, self.audit, self.keep_examples = ground_truth, audit, keep_examples
         self.audit_every = audit_every
         self._seen = 0  # interventions met by this copy (for audit_every)
@@ -220,10 +230,11 @@ class SafeAgent:
     def fork(self, k: int) -> list[SafeAgent]:
         """``k`` agents for parallel shards, sharing the model."""
         out = []
-        for inner in self.agent.fork(k):
+        seers = [None] * k if self.seer is None else self.seer.fork(k)
+        for inner, seer in zip(self.agent.fork(k), seers):
             twin = type(self).__new__(type(self))
             twin.__dict__.update(self.__dict__)
-            twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
+            twin.agent, twin.seer, twin._seen, twin._kept, twin.last = inner, seer, 0, 0, {}
             twin._driven = []
             twin._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)
             twin._alarms = np.zeros(0, dtype=np.int64)
@@ -250,6 +261,9 @@ class SafeAgent:
         truth = None
         if self.ground_truth or self.true_affordances:
             truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        if self.seer is not None and not self.ground_truth:
+            self.seer.trajectories(obs)  # the perception network, on the same frames
+            last = {**last, "affordances": self.seer.last["affordances"]}
         if not self.ground_truth and "affordances" not in last:
             raise ValueError("the agent predicted no affordances; use ground_truth=True")
         seen = truth if self.ground_truth else last["affordances"]
