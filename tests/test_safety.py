@@ -485,6 +485,15 @@ def test_a_persistence_filter_ignores_flickering_alarms_and_acts_on_lasting_ones
         SafetyConfig(confirm_decisions=0)
 
 
+class Exact(StraightOn):
+    """StraightOn with an exact affordance head."""
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        pts = super().trajectories(obs)
+        self.last["affordances"] = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        return pts
+
+
 class Seer(StraightOn):
     """A perception network's stand-in: exact affordances (``blind``: every gap at the cap), and
     a trajectory that swerves 3 m left (never to be driven)."""
@@ -524,6 +533,19 @@ def test_a_separate_perception_network_feeds_the_check_and_never_drives():
     assert blind.events == alone.events and blind.collisions == alone.collisions >= 3
     assert SafetyStats.from_info(blind.info).interventions == 0
     assert fingerprint(seeing) != fingerprint(SafeAgent(BlindToCars(), audit=False))
+    # the vote: the driver's own head must agree; blind to cars, it never does
+    vetoed = evaluate(SafeAgent(BlindToCars(), seer=Seer(), vote=SafetyConfig(), audit=False), world, cfg,
+                      progress=False)  # fmt: skip
+    assert vetoed.events == alone.events
+    assert SafetyStats.from_info(vetoed.info).interventions == 0
+    # an exact head agrees with an exact seer: the ground-truth module again
+    agreed = evaluate(SafeAgent(Exact(), seer=Seer(), vote=SafetyConfig(), audit=False), world, cfg,
+                      progress=False)  # fmt: skip
+    assert agreed.events == truth.events
+    with_vote = SafeAgent(Exact(), seer=Seer(), vote=SafetyConfig())
+    assert fingerprint(with_vote) != fingerprint(SafeAgent(Exact(), seer=Seer()))
+    with pytest.raises(ValueError, match="vote needs a seer"):
+        SafeAgent(Exact(), vote=SafetyConfig())
     other_camera = Seer()
     other_camera.camera = CameraConfig(width_px=100)
     with pytest.raises(ValueError, match="same frame"):

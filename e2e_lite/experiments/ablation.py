@@ -314,6 +314,8 @@ def fingerprint(policy: Policy) -> str:
             parts.append(policy.true_affordances)
         if getattr(policy, "seer", None) is not None:  # a separate perception network (likewise)
             parts.append(("seer", fingerprint(policy.seer)))
+        if getattr(policy, "vote", None) is not None:  # (likewise)
+            parts.append(("vote", repr(policy.vote)))
     return settings_key(*parts)
 
 

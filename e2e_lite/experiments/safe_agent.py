@@ -173,6 +173,12 @@ class SafeAgent:
             whose model has an affordance head) whose affordances the perceived check reads
             instead of the driver's own head: a separate perception network for the module,
             seeing the same frame (``None``: the driver's head). Its trajectories are ignored.
+        vote: with a ``seer``, intervene only when the driver's own head also rejects the
+            heaviest mode, checked with these settings (its own calibrated thresholds; a
+            two-out-of-two vote: two networks whose errors differ seldom raise the same false
+            alarm, and the price is the alarms only one of them raises). The check and the
+            fallback read the seer's affordances, the vote the driver's (with the seer's
+            heading when ``cfg.gyro_heading`` fuses it). ``None``: no vote.
     """
 
     def __init__(
@@ -185,6 +191,7 @@ class SafeAgent:
         keep_examples: int = 6,
         true_affordances: Sequence[str] = (),
         seer: Any = None,
+        vote: SafetyConfig | None = None,
     ) -> None:
         check_range("SafeAgent", "audit_every", audit_every, 1, integer=True)
         unknown = sorted(set(true_affordances) - set(AFFORDANCE_NAMES))
@@ -206,7 +213,10 @@ class SafeAgent:
                 f"SafeAgent: the seer's camera {seer.camera} is not the driver's {agent.camera}: "
                 "both networks read the same frame"
             )
+        if vote is not None and (seer is None or ground_truth):
+            raise ValueError("SafeAgent: vote needs a seer (and a perceived check)")
         self.agent, self.seer, self.cfg = agent, seer, cfg or SafetyConfig()
+        self.vote = vote
         self.ground_truth, self.audit, self.keep_examples = ground_truth, audit, keep_examples
         self.audit_every = audit_every
         self._seen = 0  # interventions met by this copy (for audit_every)
@@ -261,6 +271,7 @@ class SafeAgent:
         truth = None
         if self.ground_truth or self.true_affordances:
             truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
+        own = last.get("affordances")  # the driver's head (the vote's second opinion)
         if self.seer is not None and not self.ground_truth:
             self.seer.trajectories(obs)  # the perception network, on the same frames
             last = {**last, "affordances": self.seer.last["affordances"]}
@@ -273,6 +284,14 @@ class SafeAgent:
                 seen[:, self._true_columns] = truth[:, self._true_columns]
             if self.cfg.gyro_heading:
                 seen[:, _HEADING] = self._fused_heading(obs, seen[:, _HEADING])
+        if self.vote is not None:
+            if own is None:
+                raise ValueError("SafeAgent: vote needs the driver's own affordance head")
+            own = own.copy()
+            if self.true_affordances:
+                own[:, self._true_columns] = truth[:, self._true_columns]
+            if self.cfg.gyro_heading:
+                own[:, _HEADING] = seen[:, _HEADING]
         chosen = np.empty_like(proposal)
         sources, kinds, audits = [], [], []
         # a persistence filter (confirm_decisions > 1); a re-placed car starts at 0
@@ -292,6 +311,10 @@ class SafeAgent:
                 )
             else:  # the control: the heaviest mode (capped with sight_speed), unchecked
                 c = heaviest(i)
+            if self.vote is not None and c.source != "network":  # the driver's head must agree
+                top = heaviest(i)
+                if check(top.points, own[i], float(obs.speed[i]), obs.curvature[i], self.vote).ok:
+                    c = top
             if counting:
                 before = 0 if fresh[i] else self._alarms[i]
                 self._alarms[i] = 0 if c.source == "network" else before + 1
