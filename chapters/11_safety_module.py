@@ -462,7 +462,10 @@ for k in range(len(seeded)):
 # with the heads refit on entry views (section 1), and heeding an alarm only once it has lasted
 # two decisions (`confirm_decisions=2`, a persistence filter: half or more of the perceived
 # module's interventions are false alarms, and a head's noise flickers where a parked car
-# stays; the price is 0.1 s of reaction); the sight speed alone with nothing checked
+# stays; the price is 0.1 s of reaction), and reading a separate perception network (above),
+# alone and with a vote: the module intervenes only when the driver's own head rejects the
+# heaviest mode too (`SafeAgent(..., vote=settings)`, two out of two: two networks whose errors
+# differ seldom raise the same false alarm); the sight speed alone with nothing checked
 # (what slowing down does by itself), the gyro module with and without the sight speed on a
 # network told at least the median speed (compared with that driver told the same, without the
 # module); and the uncalibrated 59.5 m (what the calibration does).
@@ -499,6 +502,9 @@ seer_steady = [  # (the same settings, thresholds calibrated for the perception 
     for c in calibrated_seer
 ]
 seeing = [{"seer": TrajectoryAgent(h)} for h in seer_heads]  # (per seed)
+# ... and intervening only when the driver's own head (its approach head, its own thresholds)
+# rejects the heaviest mode too: a two-out-of-two vote
+voting = [{**how, "vote": c} for how, c in zip(seeing, steady)]
 steady_entry = [  # (the same settings, thresholds calibrated for the entry heads)
     dataclasses.replace(c, brake_along_path=True, gyro_heading=True, **STEADY)
     for c in calibrated_entry
@@ -541,6 +547,9 @@ variants = (
      "confirmed twice", "approachpath_gyro003_confirm2", confirmed, {}, approached),
     ("separate perception network (w = 30), approach views + brake along path + gyro heading, "
      "camera weight 0.03", "seer_approachpath_gyro003", seer_steady, seeing, approached),
+    ("separate perception network (w = 30) and the driver's head voting, approach views + brake "
+     "along path + gyro heading, camera weight 0.03", "seer_vote_approachpath_gyro003",
+     seer_steady, voting, approached),
     ("sight speed alone (nothing checked)", "sightcap", capped, {}, approached),
     ("perceived, approach views + brake along path + gyro heading, speed input >= median",
      "approachpath_gyro_told", gyro, {}, approached, told),
