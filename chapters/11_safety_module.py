@@ -1083,7 +1083,10 @@ slow_data = {
 # scenario: it puts each network where a braking module leaves it. Then compare the
 # ground-truth module's row with the perceived one, for each data. The first shows what the rule
 # can do for a driver that recovers from slow states. The second shows how much of that the
-# perceived affordances keep. The full-profile run measured this (README, "Results"):
+# perceived affordances keep. The first machine's full-profile run measured this (code of
+# f7b7683; README, "Data that shows slow speeds, and another draw of the course's data"). A run
+# on another machine trains other networks: it prints its own numbers above, and the README's
+# second-machine sections give that machine's.
 #
 # * The two draws of the course's data differ by a factor of 8 (49.4 and 6.0 per 100 mi), and
 #   per network from 2.4 to 119.4. So three seeds on one data draw cannot settle a comparison
@@ -1103,9 +1106,10 @@ slow_data = {
 # ### Which perceived affordance the module needs right
 #
 # On the deep-braking networks the rule works with the true affordances (2 collisions in 500 mi
-# against 23) and not with the perceived ones. The controls below put the truth back one group
-# at a time: the **heading**; the **offsets** (lane-centre offset, markings, road edges); both
-# (the **geometry**); the three **gaps**; and pairs of them. Each is driven with both fallbacks:
+# against 23 in the first machine's run, above) and not with the perceived ones. The controls
+# below put the truth back one group at a time: the **heading**; the **offsets** (lane-centre
+# offset, markings, road edges); both (the **geometry**); the three **gaps**; and pairs of them.
+# Each is driven with both fallbacks:
 # braking along the network's own path (the gyro module's) and braking into a lane (the rule's
 # own, which needs the side gaps). Two more rows trust the camera's heading a tenth, then 0.03,
 # at every speed (`gyro_camera_weight`), not only when slow: the gyro's prediction is nearly
@@ -1299,6 +1303,11 @@ artifacts.write_metrics(
 #   can lower the collisions of a driver above that floor (section 5's weaker networks) and
 #   cannot lower those of a driver already below it (chapter 10's best, guarded in section 2),
 #   while the ground-truth module, with few false alarms, lowers both.
+# * A better head is not a better module: a separate perception network whose head meets every
+#   goal of chapter 08 (the "separate perception network" row) leaves the module where the
+#   driver's own head left it. The goals average over the expert's frames; the module fails on
+#   the frames where it intervenes. And redundancy needs independent errors: a vote of two
+#   networks trained on the same frames removed real alarms with the false ones.
 # * A rule's ceiling needs all of its inputs right at once. Put the truth back one group at a
 #   time, with each fallback (section 5's last table): a fallback that reads more affordances
 #   has more to get wrong, and a sensor that fixes one group (the gyro's heading) leaves the

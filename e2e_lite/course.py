@@ -73,7 +73,10 @@ class ChapterInfo(NamedTuple):
 # before all of them plus an estimate for them (6 fine-tunes of about 50 s and 12 drives of 167 mi
 # of about 45 s each there), 31 min. Chapter 08 since e06262c (section 7: one more training at
 # w = 30, its head refit and 100 mi): 4.5 min more measured with the rest reused, 11 min. Chapter
-# 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest reused, 133.
+# 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest reused, 133;
+# since 0459e70 (a perception network per seed: two trainings of 2.2 and 1.6 min, three head
+# refits of about 0.5 min, two more rows driven in 4.1 and 3.2 min), 146; quick 20.9 -> 23.3 s
+# alone from an empty folder on the second machine, so 36 s scaled by that, 40.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -85,7 +88,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 11),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 31),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 36, 133),
+    11: ChapterInfo("the safety module on the affordances", 40, 146),
 }
 
 
