@@ -82,7 +82,7 @@ from e2e_lite.learning.heldout import AFFORDANCE_GOALS, affordance_errors
 from e2e_lite.learning.recovery import ApproachConfig, load_or_make_approach
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
 from e2e_lite.simulation.world import WorldConfig, make_world
-from e2e_lite.viz import save_figure
+from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 cfg = SafetyConfig()
@@ -626,6 +626,25 @@ for name, v in verdicts.items():
     print(f"with the module ({name}) vs without{' (told the same)' * (name in told_rows)}: {v}")
 told_vs_plain = compare_rates(without_told, without)["verdict"]
 print(f"without the module: speed input >= median vs the car's own: {told_vs_plain}")
+
+# %% [markdown]
+# The same rows at a glance: each row's pooled rate with its 95 % interval and each training
+# seed's as a grey dot, the driver without the module as the dashed line. A row whose interval
+# lies wholly left of the line lowers the collisions beyond chance; the rows above the line's
+# value but within its reach are the module's trades.
+
+# %%
+rows_png = save_figure(
+    collision_chart(
+        [("without the module", without)]
+        + [(textwrap.fill(n, 58), guarded[n][0]) for n, *_ in variants],
+        title=f"{label}: {ev.miles:g} mi per row, {n_seeds} training seeds pooled",
+        reference=[("without", result_dict(without)["collisions_per_100mi"])],
+        log=True,
+    ),
+    artifacts.artifact_path("figures", "11_rows.png"),
+)
+print(f"saved {rows_png}")
 
 # %% [markdown]
 # Whose collisions are they? For every collision with the module, who drove the decision just
@@ -1256,7 +1275,7 @@ artifacts.write_metrics(
         "table_md": table,
         "lines": lines,
     },
-    figures=(grid_png, data_png),
+    figures=(rows_png, grid_png, data_png),
 )
 
 # %% [markdown]
