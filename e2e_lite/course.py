@@ -71,7 +71,9 @@ class ChapterInfo(NamedTuple):
 # sigma-open controls, and their rows; since 360b23b the CVaR/control pair again on new roads):
 # quick 13.2 s measured alone on the second machine before the new roads; full 16 min measured
 # before all of them plus an estimate for them (6 fine-tunes of about 50 s and 12 drives of 167 mi
-# of about 45 s each there), 31 min. Chapter 08 since e06262c (section 7: one more training at
+# of about 45 s each there), 31 min; then measured, at a5acf9c: `course --only 9` on a folder
+# holding chapters 01-08's artifacts alone, 1,515.6 s, so 26 min (the metrics equal the earlier
+# run's, wall times aside). Chapter 08 since e06262c (section 7: one more training at
 # w = 30, its head refit and 100 mi): 4.5 min more measured with the rest reused, 11 min. Chapter
 # 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest reused, 133;
 # since 0459e70 (a perception network per seed: two trainings of 2.2 and 1.6 min, three head
@@ -86,7 +88,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     6: ChapterInfo("trajectory regression with an L2 loss and LQR", 11, 3),
     7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 25, 15),
     8: ChapterInfo("the affordance auxiliary loss", 16, 11),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 31),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 26),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
     11: ChapterInfo("the safety module on the affordances", 40, 146),
 }
