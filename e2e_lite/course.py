@@ -73,7 +73,8 @@ class ChapterInfo(NamedTuple):
 # before all of them plus an estimate for them (6 fine-tunes of about 50 s and 12 drives of 167 mi
 # of about 45 s each there), 31 min; then measured, at a5acf9c: `course --only 9` on a folder
 # holding chapters 01-08's artifacts alone, 1,515.6 s, so 26 min (the metrics equal the earlier
-# run's, wall times aside). Chapter 08 since e06262c (section 7: one more training at
+# run's, wall times aside). Chapter 10 likewise at 2aba32b on that folder after chapter 09:
+# 3,188.9 s, 54 min as before (its metrics equal too). Chapter 08 since e06262c (section 7: one more training at
 # w = 30, its head refit and 100 mi): 4.5 min more measured with the rest reused, 11 min. Chapter
 # 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest reused, 133;
 # since 0459e70 (a perception network per seed: two trainings of 2.2 and 1.6 min, three head
