@@ -56,7 +56,7 @@ from e2e_lite.learning.data import (
     affordances,
     load_or_collect,
 )
-from e2e_lite.learning.heldout import AFFORDANCE_GOALS, affordance_errors
+from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 from e2e_lite.learning.probes import PROBE_LAYERS, probe_affordances
 from e2e_lite.learning.training import evaluate_loss
 from e2e_lite.simulation.world import WorldConfig
@@ -227,17 +227,9 @@ for name, e in errors.items():
     print(f"  {name:22s} {m['mae']:8.3f} {c['mae']:10.3f} {m['rmse']:8.3f} {c['rmse']:10.3f}")
 learned = [n for n in AFFORDANCE_NAMES if mae[n] < 0.8 * mae_const[n]]
 print(f"clearly better than the mean (MAE < 80 % of it): {', '.join(learned) or 'none'}")
-goals = {
-    f"{name} {kind}": errors[name]["model"][kind] / errors[name]["mean_predictor"][kind]
-    for name, kind in AFFORDANCE_GOALS
-    if name in errors
-}
+goals = goal_ratios(errors)
 errors_joint = affordance_errors(pred_joint, true, a_mean)
-goals_joint = {
-    f"{name} {kind}": errors_joint[name]["model"][kind] / errors_joint[name]["mean_predictor"][kind]
-    for name, kind in AFFORDANCE_GOALS
-    if name in errors_joint
-}
+goals_joint = goal_ratios(errors_joint)
 for what, ratio in goals.items():
     print(f"{what}: {ratio:.2f} of the mean predictor's ({'met' if ratio <= 0.5 else 'not met'}: "
           f"the goal is at most half); the joint head of the kept epoch {goals_joint[what]:.2f}")  # fmt: skip
@@ -312,26 +304,21 @@ paper_model, paper_objective, _ = recipes.gmm_affordance(
 )
 
 
-def goal_ratios(predicted: np.ndarray) -> dict[str, float]:
-    """Each goal affordance's error as a share of the mean predictor's."""
-    e = affordance_errors(predicted, true, a_mean)
-    return {
-        f"{name} {kind}": e[name]["model"][kind] / e[name]["mean_predictor"][kind]
-        for name, kind in AFFORDANCE_GOALS
-        if name in e
-    }
+def head_goals(predicted: np.ndarray) -> dict[str, float]:
+    """Each goal affordance's error on the validation frames as a share of the mean predictor's."""
+    return goal_ratios(affordance_errors(predicted, true, a_mean))
 
 
 probe_train = DrivingDataset(train, np.arange(0, len(train), 2))  # half the training frames
 probe_val = DrivingDataset(val, rows)  # the scatter's frames
 probe_goals = {}
 for placement, net in (("fused (paper)", paper_model), ("trunk (course)", model)):
-    probe_goals[f"head on {placement}: the head"] = goal_ratios(head_affordances(net))
+    probe_goals[f"head on {placement}: the head"] = head_goals(head_affordances(net))
     if net is model:
         probe_goals[f"head on {placement}: the head, refit"] = goals
     for layer in PROBE_LAYERS:
         predicted_by_probe = probe_affordances(net, probe_train, probe_val, layer)
-        probe_goals[f"head on {placement}: probe on {layer}"] = goal_ratios(predicted_by_probe)
+        probe_goals[f"head on {placement}: probe on {layer}"] = head_goals(predicted_by_probe)
 print("error as a share of the mean predictor's (the goal: at most 0.5):")
 print(f"  {'':44s}" + "".join(f"{what:>26s}" for what in goals))
 for who, ratios in probe_goals.items():
@@ -437,7 +424,7 @@ chart_png = save_figure(chart, artifacts.artifact_path("figures", "08_collisions
 HEAVY_W = 30.0
 heavy_name = f"08_gmm_affordance_w{HEAVY_W:g}"
 heavy, _, heavy_hist = recipes.gmm_affordance(profile, train, val, HEAVY_W, name=heavy_name)
-heavy_goals = goal_ratios(head_affordances(recipes.perceiving(heavy, train, heavy_name)))
+heavy_goals = head_goals(head_affordances(recipes.perceiving(heavy, train, heavy_name)))
 heavy_res = evaluate(TrajectoryAgent(heavy), world_cfg, ev, desc=f"w = {HEAVY_W:g}")
 print("| w | kept epoch | " + " | ".join(heavy_goals) + " | collisions per 100 mi | mph |")
 print("|---:|---:|" + "---:|" * (len(heavy_goals) + 2))

@@ -78,7 +78,7 @@ from e2e_lite.learning.data import (
     NoiseConfig,
     load_or_collect,
 )
-from e2e_lite.learning.heldout import AFFORDANCE_GOALS, affordance_errors
+from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 from e2e_lite.learning.recovery import ApproachConfig, load_or_make_approach
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
 from e2e_lite.simulation.world import WorldConfig, make_world
@@ -152,20 +152,17 @@ print(
 
 
 # each seed's head against always answering the training mean (chapter 08's goals: at most half)
-def goal_ratios(seen: np.ndarray) -> dict[str, float]:
+def goals_of(seen: np.ndarray) -> dict[str, float]:
     """A head's errors on the validation ``rows`` over the mean predictor's (goal: <= 0.5)."""
-    e = affordance_errors(seen, a["affordances"][rows], train.stats["affordances_mean"])
-    return {
-        f"{n} {kind}": e[n]["model"][kind] / e[n]["mean_predictor"][kind]
-        for n, kind in AFFORDANCE_GOALS
-        if n in e
-    }
+    return goal_ratios(
+        affordance_errors(seen, a["affordances"][rows], train.stats["affordances_mean"])
+    )
 
 
 head_goals = []
 for k, perceiver in enumerate(perceivers):
     seen = predicted if k == 0 else perceive(TrajectoryAgent(perceiver), val, rows)[0]
-    head_goals.append(goal_ratios(seen))
+    head_goals.append(goals_of(seen))
     print(f"seed {k}'s head, error over the mean predictor's: " + ", ".join(
         f"{what} {ratio:.2f}" for what, ratio in head_goals[-1].items()
     ))  # fmt: skip
@@ -445,7 +442,7 @@ print("| seed | head | " + " | ".join(head_goals[0]) + " |")
 print("|---:|---|" + "---:|" * len(head_goals[0]))
 for k in range(len(seeded)):
     for name, head in (("the driver's", approached[k]), (f"w = {PERCEPTION_W:g}", seer_heads[k])):
-        g = goal_ratios(perceive(TrajectoryAgent(head), val, rows)[0])
+        g = goals_of(perceive(TrajectoryAgent(head), val, rows)[0])
         seer_goals.setdefault(name, []).append(g)
         print(f"| {k} | {name} | " + " | ".join(f"{v:.2f}" for v in g.values()) + " |")
 
@@ -497,18 +494,22 @@ sight = [dataclasses.replace(c, sight_speed=True) for c in gyro]  # (no faster t
 STEADY = {"gyro_camera_weight": 0.03}  # the camera's weight in the heading, at every speed
 steady = [dataclasses.replace(c, **STEADY) for c in gyro]
 confirmed = [dataclasses.replace(c, confirm_decisions=2) for c in steady]  # (alarms that last)
-seer_steady = [  # (the same settings, thresholds calibrated for the perception network)
-    dataclasses.replace(c, brake_along_path=True, gyro_heading=True, **STEADY)
-    for c in calibrated_seer
-]
+
+
+def steadied(thresholds: list[SafetyConfig]) -> list[SafetyConfig]:
+    """The camera-weight-0.03 row's settings on other calibrated thresholds (one per seed)."""
+    return [
+        dataclasses.replace(c, brake_along_path=True, gyro_heading=True, **STEADY)
+        for c in thresholds
+    ]
+
+
+seer_steady = steadied(calibrated_seer)  # (thresholds calibrated for the perception network)
 seeing = [{"seer": TrajectoryAgent(h)} for h in seer_heads]  # (per seed)
 # ... and intervening only when the driver's own head (its approach head, its own thresholds)
 # rejects the heaviest mode too: a two-out-of-two vote
 voting = [{**how, "vote": c} for how, c in zip(seeing, steady)]
-steady_entry = [  # (the same settings, thresholds calibrated for the entry heads)
-    dataclasses.replace(c, brake_along_path=True, gyro_heading=True, **STEADY)
-    for c in calibrated_entry
-]
+steady_entry = steadied(calibrated_entry)  # (thresholds calibrated for the entry heads)
 capped = [dataclasses.replace(c, check_proposals=False) for c in sight]  # (the cap, unchecked)
 floor = float(np.median(train.arrays["speed"]))  # the speed input's floor [m/s]
 told = {"speed_input_floor_mps": floor}  # (for the network; the tracker has the car's own)

@@ -66,20 +66,20 @@ class ChapterInfo(NamedTuple):
 # course's one interpreter they are 5-12 s shorter). Full: `python -m e2e_lite.course` from an
 # empty outputs folder on the second machine (AMD EPYC, about twice as fast as the first; code of
 # 9f8f420 for chapters 01-10 in one run, ffef143 for chapter 11 in four, `course_times.json`),
-# rounded up to a minute. Chapter 11's includes about 10 minutes of CPU shared with other work
-# and of work redone after its cuts. Chapter 09 since a5d8376 (two more fine-tunes per seed, the
+# rounded up to a minute. Chapter 11's includes about 10 minutes of CPU shared with other work and
+# of work redone after its cuts. Chapter 09 since a5d8376 (two more fine-tunes per seed, the
 # sigma-open controls, and their rows; since 360b23b the CVaR/control pair again on new roads):
 # quick 13.2 s measured alone on the second machine before the new roads; full 16 min measured
 # before all of them plus an estimate for them (6 fine-tunes of about 50 s and 12 drives of 167 mi
 # of about 45 s each there), 31 min; then measured, at a5acf9c: `course --only 9` on a folder
 # holding chapters 01-08's artifacts alone, 1,515.6 s, so 26 min (the metrics equal the earlier
-# run's, wall times aside). Chapter 10 likewise at 2aba32b on that folder after chapter 09:
-# 3,188.9 s, 54 min as before (its metrics equal too). Chapter 08 since e06262c (section 7: one more training at
-# w = 30, its head refit and 100 mi): 4.5 min more measured with the rest reused, 11 min. Chapter
-# 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest reused, 133;
-# since 0459e70 (a perception network per seed: two trainings of 2.2 and 1.6 min, three head
-# refits of about 0.5 min, two more rows driven in 4.1 and 3.2 min), 146; quick 20.9 -> 23.3 s
-# alone from an empty folder on the second machine, so 36 s scaled by that, 40.
+# run's, wall times aside). Chapter 10 likewise at 2aba32b on that folder after chapter 09: 3,188.9
+# s, 54 min as before (its metrics equal too). Chapter 08 since e06262c (section 7: one more
+# training at w = 30, its head refit and 100 mi): 4.5 min more measured with the rest reused, 11
+# min. Chapter 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest
+# reused, 133; since 0459e70 (a perception network per seed: two trainings of 2.2 and 1.6 min,
+# three head refits of about 0.5 min, two more rows driven in 4.1 and 3.2 min), 146; quick 20.9 ->
+# 23.3 s alone from an empty folder on the second machine, so 36 s scaled by that, 40.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),

@@ -282,6 +282,23 @@ def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset()
         affordance_errors(pred[:, :8], true[:, :8], mean[:8])
 
 
+def test_goal_ratios_are_each_goals_error_over_the_mean_predictors():
+    from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M
+    from e2e_lite.learning.heldout import affordance_errors, goal_ratios
+
+    true = np.zeros((4, 9))
+    gap = AFFORDANCE_NAMES.index("gap_ego_m")
+    true[:, AFFORDANCE_NAMES.index("center_offset_m")] = [1.0, -1.0, 1.0, -1.0]
+    true[:, AFFORDANCE_NAMES.index("heading_rad")] = [0.1, 0.1, -0.1, -0.1]
+    true[:, gap] = GAP_CAP_M  # no car ahead: the gap's goal has no frames
+    pred = true * 0.25
+    pred[:, gap] = GAP_CAP_M
+    ratios = goal_ratios(affordance_errors(pred, true, np.zeros(9)))
+    assert set(ratios) == {"center_offset_m rmse", "heading_rad rmse"}
+    assert ratios["center_offset_m rmse"] == pytest.approx(0.75)
+    assert ratios["heading_rad rmse"] == pytest.approx(0.75)
+
+
 def test_the_rockafellar_uryasev_form_is_at_least_cvar_and_equals_it_at_the_quantile():
     rng = np.random.default_rng(5)
     for trial in range(40):

@@ -296,9 +296,10 @@ class SafeAgent:
         sources, kinds, audits = [], [], []
         # a persistence filter (confirm_decisions > 1); a re-placed car starts at 0
         counting = self.cfg.confirm_decisions > 1 and len(self._alarms) == len(proposal)
-        fresh = np.broadcast_to(
-            np.asarray(False if obs.respawned is None else obs.respawned), len(proposal)
-        )
+        if counting:
+            fresh = np.broadcast_to(
+                np.asarray(False if obs.respawned is None else obs.respawned), len(proposal)
+            )
 
         def heaviest(i: int) -> Choice:
             """Car i's heaviest mode, driven unchecked."""

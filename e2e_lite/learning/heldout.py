@@ -1,7 +1,8 @@
 """Held-out measures of what the networks predict, beside their losses: how a mixture's modes
 split (:func:`mode_split`), which side the followed trajectory takes at an overtake start
 (:func:`side_shares`), and the affordance head's errors against the floor of always answering
-the training mean (:func:`affordance_errors`, with chapter 08's goals :data:`AFFORDANCE_GOALS`).
+the training mean (:func:`affordance_errors`, with chapter 08's goals :data:`AFFORDANCE_GOALS` and
+:func:`goal_ratios`).
 """
 
 from __future__ import annotations
@@ -112,3 +113,14 @@ def affordance_errors(
     if ahead.any():
         out["gap_ego_m_car_ahead"] = errors(pred[ahead, gap], true[ahead, gap], train_mean[gap])
     return out
+
+
+def goal_ratios(errors: dict[str, dict[str, Any]]) -> dict[str, float]:
+    """Each of :data:`AFFORDANCE_GOALS`' errors as a share of the mean predictor's (the goal: at
+    most 0.5), keyed ``"<name> <mae|rmse>"``, from :func:`affordance_errors`' answer (a goal
+    whose frames are absent, e.g. no car ahead, is left out)."""
+    return {
+        f"{name} {kind}": errors[name]["model"][kind] / errors[name]["mean_predictor"][kind]
+        for name, kind in AFFORDANCE_GOALS
+        if name in errors
+    }
