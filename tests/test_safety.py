@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from collections import Counter
 
@@ -79,6 +80,26 @@ def test_changing_into_a_blocked_lane_is_rejected_and_into_a_free_one_accepted()
     assert check(to_left, aff(gap_ego=40.0, gap_left=60.0), 25.0, 0.0).ok
     blocked = check(to_left, aff(gap_ego=40.0, gap_left=25.0), 25.0, 0.0)
     assert not blocked.ok and blocked.lane == "left"
+
+
+def test_with_side_sight_a_lane_read_free_is_entered_no_faster_than_stops_within_its_sight():
+    side = SafetyConfig(gap_free_m=52.0, gap_free_side_m=42.0, side_sight=True)
+    plain = dataclasses.replace(side, side_sight=False)
+    v_side = side.sight_speed_mps("left")
+    assert side.stopping_m(v_side) == pytest.approx(42.0) and v_side < side.sight_speed_mps()
+    seen = aff(gap_ego=60.0, gap_left=50.0)  # (beyond the side threshold: read as free)
+    fast, slow = straight(25.0, y_end=3.5), straight(v_side - 0.5, y_end=3.5)
+    assert check(fast, seen, 25.0, 0.0, plain).ok
+    too_fast = check(fast, seen, 25.0, 0.0, side)
+    assert not too_fast.ok and too_fast.lane == "left" and too_fast.kind == "cannot stop"
+    assert check(slow, seen, v_side - 0.5, 0.0, side).ok
+    # braking along the lane change passes once it ends slow enough
+    assert check(brake_along(fast, 25.0, side), seen, 25.0, 0.0, side).ok
+    # the ego lane is not capped, and a car seen in the side lane is checked as before
+    assert check(straight(25.0), seen, 25.0, 0.0, side).ok
+    blocked = check(slow, aff(gap_ego=60.0, gap_left=20.0), v_side - 0.5, 0.0, side)
+    assert not blocked.ok and blocked.kind == "collision course"
+    assert "side_sight=True" in repr(side) and "side_sight" not in repr(plain)
 
 
 def test_the_calibrated_gap_free_thresholds_are_each_lanes_noise_quantile_on_free_lanes_only():
@@ -483,6 +504,64 @@ def test_a_persistence_filter_ignores_flickering_alarms_and_acts_on_lasting_ones
     assert "confirm_decisions" not in repr(SafetyConfig()) and "confirm_decisions=2" in repr(twice)
     with pytest.raises(ValueError, match="confirm_decisions"):
         SafetyConfig(confirm_decisions=0)
+
+
+def test_a_hold_after_an_alarm_brakes_through_a_flickering_one():
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(0, 0)))
+    cfg = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2)
+    held = SafetyConfig(release_decisions=3)
+    stats = {}
+    for every in (1, 2):
+        for how in (SafetyConfig(), held):
+            res = evaluate(SafeAgent(Ghosts(every), how, audit=False), world, cfg, progress=False)
+            stats[every, how.release_decisions] = (res, SafetyStats.from_info(res.info))
+    # flickering: heeded every other decision, then held in between (braking on its own path)
+    flicker, flicker_held = stats[2, 1][1], stats[2, 3][1]
+    assert flicker.sources["network"] > 0 and "hold" not in flicker.sources
+    assert flicker_held.sources["hold"] == flicker_held.kinds["hold"] > 0
+    assert flicker_held.sources["network"] < flicker.sources["network"] / 10
+    assert stats[2, 3][0].mean_speed_mph < stats[2, 1][0].mean_speed_mph
+    # lasting: never a pass, so never a hold: the same drive
+    assert stats[1, 3][0].events == stats[1, 1][0].events
+    assert stats[1, 3][1].to_dict() == stats[1, 1][1].to_dict()
+    # no alarm, no hold: the driver alone
+    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    quiet = evaluate(SafeAgent(Exact(), held, audit=False), world, cfg, progress=False)
+    assert quiet.events == alone.events and quiet.miles == alone.miles
+    assert SafetyStats.from_info(quiet.info).interventions == 0
+    assert "release_decisions" not in repr(SafetyConfig()) and "release_decisions=3" in repr(held)
+    with pytest.raises(ValueError, match="release_decisions"):
+        SafetyConfig(release_decisions=0)
+
+
+def test_the_decisions_before_each_collision_are_traced_without_changing_the_drive():
+    from e2e_lite.experiments.ablation import fingerprint
+
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    plain = evaluate(SafeAgent(BlindToCars(), audit=False), world, cfg, progress=False)
+    traced_agent = SafeAgent(BlindToCars(), audit=False, trace_before_impact=5)
+    traced = evaluate(traced_agent, world, cfg, progress=False)
+    assert traced.events == plain.events and traced.collisions >= 3
+    traces = traced.info["traces"]
+    # one trace per collision (one on the very last decision may go unreported), 5 decisions
+    assert traced.collisions - cfg.n_worlds <= len(traces) <= traced.collisions
+    assert all(1 <= len(t) <= 5 for t in traces) and sum(len(t) == 5 for t in traces) > 0
+    speeds = sorted(e["speed_mps"] for e in traced.events)
+    for trace in traces:
+        times = [r["time_s"] for r in trace]
+        assert times == sorted(times) and len(set(times)) == len(times)
+        last = trace[-1]
+        # blind to cars: the perceived check passes; the rule on the truth sees the car
+        assert all(r["perceived"] == "ok" and r["source"] == "network" for r in trace)
+        assert last["rule_on_truth"] in ("cannot stop", "collision course")
+        gap = AFFORDANCE_NAMES.index("gap_ego_m")
+        assert last["seen"][gap] == 60.0 and last["true"][gap] < 20.0
+        assert min(speeds) - 1.0 <= last["speed_mps"]
+    assert "traces" not in plain.info
+    assert fingerprint(traced_agent) != fingerprint(SafeAgent(BlindToCars(), audit=False))
+    with pytest.raises(ValueError, match="trace_before_impact"):
+        SafeAgent(BlindToCars(), trace_before_impact=-1)
 
 
 class Exact(StraightOn):

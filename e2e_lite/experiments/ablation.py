@@ -316,6 +316,8 @@ def fingerprint(policy: Policy) -> str:
             parts.append(("seer", fingerprint(policy.seer)))
         if getattr(policy, "vote", None) is not None:  # (likewise)
             parts.append(("vote", repr(policy.vote)))
+        if getattr(policy, "trace_before_impact", 0):  # (likewise)
+            parts.append(("trace", policy.trace_before_impact))
     return settings_key(*parts)
 
 

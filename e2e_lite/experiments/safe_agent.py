@@ -26,7 +26,7 @@ from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H
 from ..simulation.world import SimConfig
-from .safety import Choice, SafetyConfig, cap_speed, check, choose
+from .safety import Choice, SafetyConfig, Verdict, brake_along, cap_speed, check, choose
 
 #: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
 COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
@@ -179,6 +179,12 @@ class SafeAgent:
             alarm, and the price is the alarms only one of them raises). The check and the
             fallback read the seer's affordances, the vote the driver's (with the seer's
             heading when ``cfg.gyro_heading`` fuses it). ``None``: no vote.
+        trace_before_impact: keep each car's last this many decisions and report them with
+            every collision (``info["traces"]``, one :func:`decision_record` list per collision,
+            oldest first; 0: none). Each record holds what the module perceived and the truth,
+            and the check's verdict on the heaviest mode with both: when the rule with the true
+            affordances first objected, and what the perceived module did from then on. Costs
+            the true affordances and a second check per car per decision.
     """
 
     def __init__(
@@ -192,8 +198,10 @@ class SafeAgent:
         true_affordances: Sequence[str] = (),
         seer: Any = None,
         vote: SafetyConfig | None = None,
+        trace_before_impact: int = 0,
     ) -> None:
         check_range("SafeAgent", "audit_every", audit_every, 1, integer=True)
+        check_range("SafeAgent", "trace_before_impact", trace_before_impact, 0, 1000, integer=True)
         unknown = sorted(set(true_affordances) - set(AFFORDANCE_NAMES))
         if unknown:
             raise ValueError(
@@ -219,11 +227,14 @@ class SafeAgent:
         self.vote = vote
         self.ground_truth, self.audit, self.keep_examples = ground_truth, audit, keep_examples
         self.audit_every = audit_every
+        self.trace_before_impact = trace_before_impact
+        self._traces: list[list[dict[str, Any]]] = []  # each car's last decisions (tracing)
         self._seen = 0  # interventions met by this copy (for audit_every)
         self._kept = 0  # examples reported since the last reset
         self._driven: list[str] = []  # each car's last source
         self._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)  # each car's recent decisions
         self._alarms = np.zeros(0, dtype=np.int64)  # each car's consecutive failed checks
+        self._passes = np.zeros(0, dtype=np.int64)  # each car's consecutive passes (holding)
         self._gyro: tuple[float, np.ndarray, np.ndarray] | None = None  # time, yaw, fused heading
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
@@ -235,6 +246,8 @@ class SafeAgent:
         self._driven = [""] * n_worlds
         self._overrode = np.zeros((n_worlds, BEFORE_IMPACT), dtype=bool)
         self._alarms = np.zeros(n_worlds, dtype=np.int64)
+        self._passes = np.full(n_worlds, self.cfg.release_decisions, dtype=np.int64)
+        self._traces = [[] for _ in range(n_worlds)]
         self._gyro = None
 
     def fork(self, k: int) -> list[SafeAgent]:
@@ -248,6 +261,8 @@ class SafeAgent:
             twin._driven = []
             twin._overrode = np.zeros((0, BEFORE_IMPACT), dtype=bool)
             twin._alarms = np.zeros(0, dtype=np.int64)
+            twin._passes = np.zeros(0, dtype=np.int64)
+            twin._traces = []
             twin._gyro = None
             out.append(twin)
         return out
@@ -261,6 +276,13 @@ class SafeAgent:
             at_impact.update(self._driven[i] for i in hit)
             before_impact.update(str(int(self._overrode[i].sum())) for i in hit)
             self._overrode[hit] = False  # the car starts afresh
+        tracing = self.trace_before_impact > 0 and len(self._traces) == len(obs.speed)
+        traces = []  # the decisions before each collision this decision reports
+        if tracing:
+            for i in np.flatnonzero(_flags(obs.collided, len(obs.speed))).tolist():
+                traces.append(self._traces[i])
+            for i in np.flatnonzero(_flags(obs.respawned, len(obs.speed))).tolist():
+                self._traces[i] = []  # (re-placed: a new episode)
         proposal = self.agent.trajectories(obs)
         last = self.agent.last
         modes = last.get("modes", proposal[:, None])
@@ -269,7 +291,7 @@ class SafeAgent:
             cap = self.cfg.sight_speed_mps()
             modes, proposal = cap_speed(modes, cap), cap_speed(proposal, cap)
         truth = None
-        if self.ground_truth or self.true_affordances:
+        if self.ground_truth or self.true_affordances or tracing:
             truth = affordances(obs.worlds, obs.s, obs.d, obs.heading_error)
         own = last.get("affordances")  # the driver's head (the vote's second opinion)
         if self.seer is not None and not self.ground_truth:
@@ -296,10 +318,12 @@ class SafeAgent:
         sources, kinds, audits = [], [], []
         # a persistence filter (confirm_decisions > 1); a re-placed car starts at 0
         counting = self.cfg.confirm_decisions > 1 and len(self._alarms) == len(proposal)
-        if counting:
-            fresh = np.broadcast_to(
-                np.asarray(False if obs.respawned is None else obs.respawned), len(proposal)
-            )
+        # a hold after each intervention (release_decisions > 1); a re-placed car starts free
+        release = self.cfg.release_decisions
+        holding = release > 1 and len(self._passes) == len(proposal)
+        fresh = np.broadcast_to(
+            np.asarray(False if obs.respawned is None else obs.respawned), len(proposal)
+        )
 
         def heaviest(i: int) -> Choice:
             """Car i's heaviest mode, driven unchecked."""
@@ -321,6 +345,15 @@ class SafeAgent:
                 self._alarms[i] = 0 if c.source == "network" else before + 1
                 if 0 < self._alarms[i] < self.cfg.confirm_decisions:
                     c = heaviest(i)
+            if holding:
+                passes = release if fresh[i] else self._passes[i]
+                self._passes[i] = min(release, passes + 1) if c.source == "network" else 0
+                if c.source == "network" and self._passes[i] < release:  # held: it brakes
+                    c = Choice(
+                        brake_along(c.points, float(obs.speed[i]), self.cfg),
+                        "hold",
+                        [Verdict(True, "held after an alarm", kind="hold")],
+                    )
             chosen[i] = c.points
             sources.append(c.source)
             if c.source != "network":
@@ -377,6 +410,14 @@ class SafeAgent:
             "before_impact": before_impact,
             "examples": examples,
         }
+        if tracing:
+            for i in range(len(proposal)):
+                top = modes[i][int(np.argmax(weights[i]))]
+                record = decision_record(
+                    obs, i, top, seen[i], truth[i], chosen[i], sources[i], self.cfg
+                )
+                self._traces[i] = (self._traces[i] + [record])[-self.trace_before_impact :]
+            info["traces"] = traces
         self.last = {"chosen": chosen, "sources": sources, "seen": seen}
         self._driven = sources
         if len(self._overrode) == len(sources):
@@ -397,6 +438,54 @@ class SafeAgent:
             fused = np.where(obs.respawned, camera, step)
         self._gyro = (obs.time_s, yaw, fused)
         return fused
+
+
+def _flags(values: np.ndarray | None, n: int) -> np.ndarray:
+    """``values`` as ``(n,)`` booleans (``None``: all False)."""
+    return np.broadcast_to(np.asarray(False if values is None else values, dtype=bool), n)
+
+
+def decision_record(
+    obs: Observation,
+    i: int,
+    heaviest: np.ndarray,
+    seen: np.ndarray,
+    truth: np.ndarray,
+    chosen: np.ndarray,
+    source: str,
+    cfg: SafetyConfig,
+) -> dict[str, Any]:
+    """One decision of car ``i``, JSON-able (:class:`SafeAgent`'s ``trace_before_impact``).
+
+    Keys: ``time_s`` [s], ``speed_mps`` [m/s], ``lane``; ``seen`` and ``true``, the 9 affordances
+    (:data:`~e2e_lite.control.labels.AFFORDANCE_NAMES` order; perceived after any gyro fusion);
+    ``perceived`` and ``rule_on_truth``: the check's verdict on the heaviest mode with each
+    (``"ok"`` or the kind: ``"cannot stop"``, ``"collision course"``, ``"road edge"``), and
+    ``truth_lane``, the lane the rule on the truth objected about (``"ego"``, ``"left"``,
+    ``"right"``; for a road edge its side; ``""`` when it did not);
+    ``source``: what was driven; ``heaviest_end`` and ``chosen_end``: the 1.5 s points [m].
+    """
+    speed, kappa = float(obs.speed[i]), float(obs.curvature[i])
+
+    def verdict(aff: np.ndarray) -> tuple[str, str]:
+        v = check(heaviest, aff, speed, kappa, cfg)
+        return ("ok", "") if v.ok else (v.kind, v.lane)
+
+    (perceived, _), (on_truth, truth_lane) = verdict(seen), verdict(truth)
+
+    return {
+        "time_s": round(float(obs.time_s), 2),
+        "speed_mps": round(speed, 2),
+        "lane": int(obs.lane[i]),
+        "seen": [round(float(a), 3) for a in seen],
+        "true": [round(float(a), 3) for a in truth],
+        "perceived": perceived,
+        "rule_on_truth": on_truth,
+        "truth_lane": truth_lane,
+        "source": source,
+        "heaviest_end": [round(float(a), 2) for a in heaviest[-1]],
+        "chosen_end": [round(float(a), 2) for a in chosen[-1]],
+    }
 
 
 def _expert_labels(obs: Observation, idx: list[int], sim: SimConfig | None = None) -> np.ndarray:

@@ -106,6 +106,17 @@ class SafetyConfig:
         confirm_decisions: intervene only once the heaviest mode has failed the check on this
             many consecutive decisions of a car (1: at once); before that the network drives. A
             persistence filter against a noisy head's one-off alarms, paid in reaction time.
+        side_sight: a proposal that enters a left or right lane read as free must do so no faster
+            than stops within that lane's threshold (:meth:`sight_speed_mps`): a calibrated head
+            sees the side lanes less far than the rule needs at cruise speed (a car 42-55 m
+            ahead in the lane entered is neither seen nor avoidable by braking; chapter 11).
+        release_decisions: after an intervention, give the car back to the network only once its
+            heaviest mode has passed the check on this many consecutive decisions (1: at the
+            first pass); until then drive that passing mode's path braking (:func:`brake_along`,
+            the source ``"hold"``). The opposite of ``confirm_decisions``: on perception a real
+            hazard's alarm flickers (a car read at 44 m, then at 55, then at 40), and each pass
+            hands the car back at cruise speed, so the brake is applied in bursts and the car
+            arrives at 18-20 m/s (chapter 11). Paid in braking after false alarms.
     """
 
     reaction_s: float = 0.2
@@ -126,6 +137,8 @@ class SafetyConfig:
     sight_speed: bool = field(default=False, repr=False)  # (shown when set)
     check_proposals: bool = field(default=True, repr=False)  # (shown when set)
     confirm_decisions: int = field(default=1, repr=False)  # (shown when set)
+    release_decisions: int = field(default=1, repr=False)  # (shown when set)
+    side_sight: bool = field(default=False, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -143,6 +156,7 @@ class SafetyConfig:
         if self.gyro_camera_weight is not None:
             check_range(o, "gyro_camera_weight", self.gyro_camera_weight, 0.0, 1.0, lo_open=True)
         check_range(o, "confirm_decisions", self.confirm_decisions, 1, 100, integer=True)
+        check_range(o, "release_decisions", self.release_decisions, 1, 100, integer=True)
 
     def __repr__(self) -> str:
         # the fields added later shown only when set (stored results are keyed by this text)
@@ -163,10 +177,10 @@ class SafetyConfig:
         v = max(0.0, speed_mps)
         return v * self.reaction_s + v * v / (2.0 * self.brake_mps2) + self.margin_m
 
-    def sight_speed_mps(self) -> float:
-        """The fastest speed that stops within sight [m/s]: :meth:`stopping_m` ``(v)`` equals the
-        ego lane's threshold :meth:`free_from_m` (where a parked car is first seen)."""
-        room = max(0.0, self.free_from_m("ego") - self.margin_m)
+    def sight_speed_mps(self, lane: str = "ego") -> float:
+        """The fastest speed that stops within sight [m/s]: :meth:`stopping_m` ``(v)`` equals
+        ``lane``'s threshold :meth:`free_from_m` (where a parked car is first seen)."""
+        room = max(0.0, self.free_from_m(lane) - self.margin_m)
         rho, beta = self.reaction_s, self.brake_mps2
         return float(beta * (np.sqrt(rho * rho + 2.0 * room / beta) - rho))
 
@@ -246,6 +260,17 @@ def check(
             continue
         gap = float(a[_A[gap_name]])
         if gap >= cfg.free_from_m(lane):
+            # a side lane read free is free only as far as the head sees in it: enter it no
+            # faster than stops within that sight (side_sight)
+            if cfg.side_sight and lane != "ego" and v_end > cfg.sight_speed_mps(lane) + 1e-9:
+                return Verdict(
+                    False,
+                    f"enters the {lane} lane at {v_end:.1f} m/s, faster than stops within the "
+                    f"{cfg.free_from_m(lane):.0f} m it sees there",
+                    lane,
+                    "cannot stop",
+                    N_POINTS * POINT_DT_S,
+                )
             continue
         # 4a. the front bumper reaches the parked car while the body is in its lane
         front = x  # progress of the front bumper [m] (the rear axle's, the body is rigid)
