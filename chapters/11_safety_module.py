@@ -494,6 +494,8 @@ sight = [dataclasses.replace(c, sight_speed=True) for c in gyro]  # (no faster t
 STEADY = {"gyro_camera_weight": 0.03}  # the camera's weight in the heading, at every speed
 steady = [dataclasses.replace(c, **STEADY) for c in gyro]
 confirmed = [dataclasses.replace(c, confirm_decisions=2) for c in steady]  # (alarms that last)
+held = [dataclasses.replace(c, release_decisions=5) for c in steady]  # (a hold after alarms)
+TRACED = {"trace_before_impact": 40}  # (the 4 s before each collision, recorded)
 
 
 def steadied(thresholds: list[SafetyConfig]) -> list[SafetyConfig]:
@@ -541,11 +543,13 @@ variants = (
     ("perceived, approach views + brake along path + gyro heading + sight speed",
      "approachpath_gyro_sight", sight, {}, approached),
     ("perceived, approach views + brake along path + gyro heading, camera weight 0.03",
-     "approachpath_gyro003", steady, {}, approached),
+     "approachpath_gyro003", steady, TRACED, approached),
     ("perceived, entry views + brake along path + gyro heading, camera weight 0.03",
      f"{ENTRY_TAG}path_gyro003", steady_entry, {}, entered),
     ("perceived, approach views + brake along path + gyro heading, camera weight 0.03, alarms "
      "confirmed twice", "approachpath_gyro003_confirm2", confirmed, {}, approached),
+    ("perceived, approach views + brake along path + gyro heading, camera weight 0.03, held "
+     "after each alarm", "approachpath_gyro003_hold5", held, TRACED, approached),
     ("separate perception network (w = 30), approach views + brake along path + gyro heading, "
      "camera weight 0.03", "seer_approachpath_gyro003", seer_steady, seeing, approached),
     ("separate perception network (w = 30) and the driver's head voting, approach views + brake "
@@ -561,12 +565,16 @@ variants = (
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
 
 
+traces = {}  # row label: the decisions before each of its collisions (TRACED rows)
+
+
 def drive_guarded(file: str, label: str, heads, settings, perceives, agent_kw=None) -> tuple:
     """Each training seed's network ``heads[k]`` driven with the module ``settings[k]`` on seed
     k's roads (stored as ``<file>_seed<k>``; ``perceives``: how the module perceives, one dict
     or one per seed; ``agent_kw``: the network's settings): the pooled result, what the module
     reported added up over the seeds, and seed 0's examples."""
     per_seed, counts, first = [], SafetyStats(), []
+    traces[label] = []  # (the decisions before each collision, when the row records them)
     for k, (perceiver, run, seed_cfg) in enumerate(zip(heads, runs, settings)):
         driver = TrajectoryAgent(perceiver, **(agent_kw or {}))
         how = perceives[k] if isinstance(perceives, list) else perceives
@@ -579,6 +587,7 @@ def drive_guarded(file: str, label: str, heads, settings, perceives, agent_kw=No
         info = result_info(res)  # what the module reported with its decisions, added up
         counts.add(info)
         first = first or info["examples"]  # the examples of section 3 come from seed 0
+        traces[label] += info.get("traces", [])
     return pool_results(per_seed), counts.to_dict(), first
 
 
@@ -754,6 +763,117 @@ print(f"{result_dict(r)['collisions']} collisions in {result_dict(r)['miles']:.1
       f"in the 3 s before each: " + (", ".join(f"{n} ({c}x)" for n, c in before) or "none") +
       f"; an average 3 s holds {per_window:.1f}")  # fmt: skip
 before_impact = {"overrides_in_3s": dict(recent.before_impact), "average_3s": per_window}
+
+# %% [markdown]
+# ### The last four seconds before each collision
+#
+# The best perceived row and its control below it were driven with
+# `SafeAgent(trace_before_impact=40)`: each car keeps its last 40 decisions (4 s) and reports
+# them with every collision. A decision's record holds what the module perceived, the truth,
+# the rule's verdict on the network's heaviest mode with each, and what was driven. From the
+# decision where the rule **on the truth** begins to object (and objects on every decision up
+# to the impact), the car was in danger; what did the perceived module do from then on? It
+# intervened on some of those decisions and let the network drive the others: there the
+# perceived check passed, and the record says which reading was wrong (the gap of the lane the
+# truth objected about read at least 10 m longer than it was, or a road edge not seen, or
+# neither: the path placed in another lane than it was).
+
+# %%
+DT_S = 0.1  # one decision [s]
+LANES = ("ego", "left", "right")
+
+
+def danger_summary(trace_list: list) -> dict:
+    """Per collision: how long before it the rule on the truth objected without a break, the
+    speed then and at the last decision [m/s], and the share of those decisions the module
+    overrode; with the reasons of the decisions it let through (a JSON-able summary)."""
+    per, missed = [], Counter()
+    for trace in trace_list:
+        first = len(trace)
+        while first > 0 and trace[first - 1]["rule_on_truth"] != "ok":
+            first -= 1
+        danger = trace[first:]
+        if not danger:
+            per.append(None)
+            continue
+        for r in danger:
+            if r["perceived"] != "ok":
+                continue
+            if r["rule_on_truth"] == "road edge":
+                missed["road edge not seen"] += 1
+                continue
+            lane = AFFORDANCE_NAMES.index(f"gap_{r['truth_lane']}_m")  # (a parked car's lane)
+            far = r["seen"][lane] >= r["true"][lane] + 10.0
+            missed["gap read 10+ m long" if far else "the path placed in another lane"] += 1
+        per.append({
+            "lead_s": round(DT_S * len(danger), 1),
+            "speed_then_mps": danger[0]["speed_mps"],
+            "speed_last_mps": danger[-1]["speed_mps"],
+            "overridden": sum(r["source"] != "network" for r in danger) / len(danger),
+        })  # fmt: skip
+    seen = [p for p in per if p]
+    med = {k: float(np.median([p[k] for p in seen])) if seen else None for k in
+           ("lead_s", "speed_then_mps", "speed_last_mps", "overridden")}  # fmt: skip
+    return {"collisions_traced": len(per), "with_truth_objecting": len(seen), "median": med,
+            "let_through": dict(missed), "collisions": per}  # fmt: skip
+
+
+traced_rows = [name for name, _, _, how, *_ in variants if how is TRACED]
+before_collision = {
+    name: danger_summary(traces[f"with the module ({name})"]) for name in traced_rows
+}
+print(
+    "| row | collisions traced | truth objecting | for (median) | speed then | overridden "
+    "| speed at the last decision | let through: gap long / road edge / another lane |"
+)
+print("|---|---:|---:|---:|---:|---:|---:|---|")
+for name, b in before_collision.items():
+    m, lt = b["median"], b["let_through"]
+    if not b["with_truth_objecting"]:
+        print(f"| {name} | {b['collisions_traced']} | 0 | | | | | |")
+        continue
+    print(f"| {name} | {b['collisions_traced']} | {b['with_truth_objecting']} | {m['lead_s']:.1f} s "
+          f"| {m['speed_then_mps']:.1f} m/s | {100 * m['overridden']:.0f} % "
+          f"| {m['speed_last_mps']:.1f} m/s | {lt.get('gap read 10+ m long', 0)} / "
+          f"{lt.get('road edge not seen', 0)} / {lt.get('the path placed in another lane', 0)} |")  # fmt: skip
+
+# %% [markdown]
+# Four of the best perceived row's collisions, decision by decision: the true and the perceived
+# gap of the lane the rule on the truth objected about (the ego lane's before it objected), the
+# speed, and the decisions the module overrode (red) while the truth objected (grey).
+
+# %%
+best_traces = traces[f"with the module ({traced_rows[0]})"][:4]
+if best_traces:
+    fig = Figure(figsize=(11, 6), layout="constrained")
+    axes = np.array(fig.subplots(2, 2, squeeze=False)).ravel()
+    for ax, trace in zip(axes, best_traces):
+        t = DT_S * (np.arange(len(trace)) - len(trace))  # [s] before the impact
+        lanes = [  # the lane the truth objected about (a parked car), else the ego lane's
+            AFFORDANCE_NAMES.index(
+                f"gap_{r['truth_lane'] if r['truth_lane'] in LANES else 'ego'}_m"
+            )
+            for r in trace
+        ]
+        ax.plot(t, [r["true"][j] for r, j in zip(trace, lanes)], color="k", label="true gap")
+        ax.plot(t, [r["seen"][j] for r, j in zip(trace, lanes)], color="tab:blue",
+                label="perceived gap")  # fmt: skip
+        ax.plot(t, [r["speed_mps"] for r in trace], color="tab:green", label="speed [m/s]")
+        for tk, r in zip(t, trace):
+            if r["rule_on_truth"] != "ok":
+                ax.axvspan(tk - DT_S / 2, tk + DT_S / 2, color="0.85", lw=0)
+            if r["source"] != "network":
+                ax.plot(tk, 1.5, "|", color="tab:red", ms=8)
+        ax.set(xlabel="time before the impact [s]", ylabel="gap [m] / speed [m/s]", ylim=(0, 75))
+    axes[0].legend(fontsize=8, loc="upper left")
+    for ax in axes[len(best_traces) :]:
+        ax.set_axis_off()
+    fig.suptitle(f"{traced_rows[0]}: the last {DT_S * 40:g} s before four collisions", fontsize=10)
+    traces_png = save_figure(fig, artifacts.artifact_path("figures", "11_before_impact.png"))
+    print(f"saved {traces_png}")
+else:
+    traces_png = None
+    print("no collision was traced")
 
 # %% [markdown]
 # ## 3. Interventions, frame by frame
@@ -1269,6 +1389,7 @@ artifacts.write_metrics(
         },
         "module": stats,
         "before_impact": before_impact,
+        "before_collision": before_collision,
         "verdicts": verdicts,
         "speed_input_floor_mps": floor,
         "told_vs_plain": told_vs_plain,
@@ -1276,7 +1397,7 @@ artifacts.write_metrics(
         "table_md": table,
         "lines": lines,
     },
-    figures=(rows_png, grid_png, data_png),
+    figures=(rows_png, traces_png, grid_png, data_png),
 )
 
 # %% [markdown]
