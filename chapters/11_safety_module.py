@@ -1412,6 +1412,11 @@ artifacts.write_metrics(
 #   head: calibrate it on training frames, per lane, where the head's noise lies.
 # * A module that overrides in bursts and hands back can cause the collision the network then
 #   drives into: count the overrides before each collision, not only who drove last.
+# * Trace the seconds before each collision: on this driver the rule on the truth objects only
+#   about 2 s before the impact, when the network turns into a lane with a parked car closer
+#   than the stopping distance, and the perceived module reads that lane's gap too long or
+#   places the path in another lane. Holding the brake through the flicker slows the impacts
+#   but not their number: the car is handed back at speeds the network drives worst.
 # * Caution has a price, measured here in interventions, false alarms and miles per hour.
 # * An intervention changes the states the network drives from: a module that brakes hands the
 #   car back at speeds the expert's data rarely shows (chapter 04). Who drove the last decision

@@ -79,7 +79,9 @@ class ChapterInfo(NamedTuple):
 # min. Chapter 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest
 # reused, 133; since 0459e70 (a perception network per seed: two trainings of 2.2 and 1.6 min,
 # three head refits of about 0.5 min, two more rows driven in 4.1 and 3.2 min), 146; quick 20.9 ->
-# 23.3 s alone from an empty folder on the second machine, so 36 s scaled by that, 40.
+# 23.3 s alone from an empty folder on the second machine, so 36 s scaled by that, 40. Since 5289a26
+# (a 22nd row, the hold, 3.7 min; the best perceived row traced, 2.4 min instead of about 1.5):
+# 151; quick 24.1 s alone from an empty folder on the second machine, 36 s scaled by 24.1 / 20.9, 42.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -91,7 +93,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 11),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 26),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 40, 146),
+    11: ChapterInfo("the safety module on the affordances", 42, 151),
 }
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 from collections import Counter
 
@@ -80,26 +79,6 @@ def test_changing_into_a_blocked_lane_is_rejected_and_into_a_free_one_accepted()
     assert check(to_left, aff(gap_ego=40.0, gap_left=60.0), 25.0, 0.0).ok
     blocked = check(to_left, aff(gap_ego=40.0, gap_left=25.0), 25.0, 0.0)
     assert not blocked.ok and blocked.lane == "left"
-
-
-def test_with_side_sight_a_lane_read_free_is_entered_no_faster_than_stops_within_its_sight():
-    side = SafetyConfig(gap_free_m=52.0, gap_free_side_m=42.0, side_sight=True)
-    plain = dataclasses.replace(side, side_sight=False)
-    v_side = side.sight_speed_mps("left")
-    assert side.stopping_m(v_side) == pytest.approx(42.0) and v_side < side.sight_speed_mps()
-    seen = aff(gap_ego=60.0, gap_left=50.0)  # (beyond the side threshold: read as free)
-    fast, slow = straight(25.0, y_end=3.5), straight(v_side - 0.5, y_end=3.5)
-    assert check(fast, seen, 25.0, 0.0, plain).ok
-    too_fast = check(fast, seen, 25.0, 0.0, side)
-    assert not too_fast.ok and too_fast.lane == "left" and too_fast.kind == "cannot stop"
-    assert check(slow, seen, v_side - 0.5, 0.0, side).ok
-    # braking along the lane change passes once it ends slow enough
-    assert check(brake_along(fast, 25.0, side), seen, 25.0, 0.0, side).ok
-    # the ego lane is not capped, and a car seen in the side lane is checked as before
-    assert check(straight(25.0), seen, 25.0, 0.0, side).ok
-    blocked = check(slow, aff(gap_ego=60.0, gap_left=20.0), v_side - 0.5, 0.0, side)
-    assert not blocked.ok and blocked.kind == "collision course"
-    assert "side_sight=True" in repr(side) and "side_sight" not in repr(plain)
 
 
 def test_the_calibrated_gap_free_thresholds_are_each_lanes_noise_quantile_on_free_lanes_only():

@@ -106,10 +106,6 @@ class SafetyConfig:
         confirm_decisions: intervene only once the heaviest mode has failed the check on this
             many consecutive decisions of a car (1: at once); before that the network drives. A
             persistence filter against a noisy head's one-off alarms, paid in reaction time.
-        side_sight: a proposal that enters a left or right lane read as free must do so no faster
-            than stops within that lane's threshold (:meth:`sight_speed_mps`): a calibrated head
-            sees the side lanes less far than the rule needs at cruise speed (a car 42-55 m
-            ahead in the lane entered is neither seen nor avoidable by braking; chapter 11).
         release_decisions: after an intervention, give the car back to the network only once its
             heaviest mode has passed the check on this many consecutive decisions (1: at the
             first pass); until then drive that passing mode's path braking (:func:`brake_along`,
@@ -138,7 +134,6 @@ class SafetyConfig:
     check_proposals: bool = field(default=True, repr=False)  # (shown when set)
     confirm_decisions: int = field(default=1, repr=False)  # (shown when set)
     release_decisions: int = field(default=1, repr=False)  # (shown when set)
-    side_sight: bool = field(default=False, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -177,10 +172,10 @@ class SafetyConfig:
         v = max(0.0, speed_mps)
         return v * self.reaction_s + v * v / (2.0 * self.brake_mps2) + self.margin_m
 
-    def sight_speed_mps(self, lane: str = "ego") -> float:
-        """The fastest speed that stops within sight [m/s]: :meth:`stopping_m` ``(v)`` equals
-        ``lane``'s threshold :meth:`free_from_m` (where a parked car is first seen)."""
-        room = max(0.0, self.free_from_m(lane) - self.margin_m)
+    def sight_speed_mps(self) -> float:
+        """The fastest speed that stops within sight [m/s]: :meth:`stopping_m` ``(v)`` equals the
+        ego lane's threshold :meth:`free_from_m` (where a parked car is first seen)."""
+        room = max(0.0, self.free_from_m("ego") - self.margin_m)
         rho, beta = self.reaction_s, self.brake_mps2
         return float(beta * (np.sqrt(rho * rho + 2.0 * room / beta) - rho))
 
@@ -260,17 +255,6 @@ def check(
             continue
         gap = float(a[_A[gap_name]])
         if gap >= cfg.free_from_m(lane):
-            # a side lane read free is free only as far as the head sees in it: enter it no
-            # faster than stops within that sight (side_sight)
-            if cfg.side_sight and lane != "ego" and v_end > cfg.sight_speed_mps(lane) + 1e-9:
-                return Verdict(
-                    False,
-                    f"enters the {lane} lane at {v_end:.1f} m/s, faster than stops within the "
-                    f"{cfg.free_from_m(lane):.0f} m it sees there",
-                    lane,
-                    "cannot stop",
-                    N_POINTS * POINT_DT_S,
-                )
             continue
         # 4a. the front bumper reaches the parked car while the body is in its lane
         front = x  # progress of the front bumper [m] (the rear axle's, the body is rigid)
