@@ -796,20 +796,20 @@ def danger_summary(trace_list: list) -> dict:
         if not danger:
             per.append(None)
             continue
-        for r in danger:
-            if r["perceived"] != "ok":
+        for rec in danger:
+            if rec["perceived"] != "ok":
                 continue
-            if r["rule_on_truth"] == "road edge":
+            if rec["rule_on_truth"] == "road edge":
                 missed["road edge not seen"] += 1
                 continue
-            lane = AFFORDANCE_NAMES.index(f"gap_{r['truth_lane']}_m")  # (a parked car's lane)
-            far = r["seen"][lane] >= r["true"][lane] + 10.0
+            lane = AFFORDANCE_NAMES.index(f"gap_{rec['truth_lane']}_m")  # (a parked car's lane)
+            far = rec["seen"][lane] >= rec["true"][lane] + 10.0
             missed["gap read 10+ m long" if far else "the path placed in another lane"] += 1
         per.append({
             "lead_s": round(DT_S * len(danger), 1),
             "speed_then_mps": danger[0]["speed_mps"],
             "speed_last_mps": danger[-1]["speed_mps"],
-            "overridden": sum(r["source"] != "network" for r in danger) / len(danger),
+            "overridden": sum(rec["source"] != "network" for rec in danger) / len(danger),
         })  # fmt: skip
     seen = [p for p in per if p]
     med = {k: float(np.median([p[k] for p in seen])) if seen else None for k in
@@ -851,18 +851,18 @@ if best_traces:
         t = DT_S * (np.arange(len(trace)) - len(trace))  # [s] before the impact
         lanes = [  # the lane the truth objected about (a parked car), else the ego lane's
             AFFORDANCE_NAMES.index(
-                f"gap_{r['truth_lane'] if r['truth_lane'] in LANES else 'ego'}_m"
+                f"gap_{rec['truth_lane'] if rec['truth_lane'] in LANES else 'ego'}_m"
             )
-            for r in trace
+            for rec in trace
         ]
-        ax.plot(t, [r["true"][j] for r, j in zip(trace, lanes)], color="k", label="true gap")
-        ax.plot(t, [r["seen"][j] for r, j in zip(trace, lanes)], color="tab:blue",
+        ax.plot(t, [rec["true"][j] for rec, j in zip(trace, lanes)], color="k", label="true gap")
+        ax.plot(t, [rec["seen"][j] for rec, j in zip(trace, lanes)], color="tab:blue",
                 label="perceived gap")  # fmt: skip
-        ax.plot(t, [r["speed_mps"] for r in trace], color="tab:green", label="speed [m/s]")
-        for tk, r in zip(t, trace):
-            if r["rule_on_truth"] != "ok":
+        ax.plot(t, [rec["speed_mps"] for rec in trace], color="tab:green", label="speed [m/s]")
+        for tk, rec in zip(t, trace):
+            if rec["rule_on_truth"] != "ok":
                 ax.axvspan(tk - DT_S / 2, tk + DT_S / 2, color="0.85", lw=0)
-            if r["source"] != "network":
+            if rec["source"] != "network":
                 ax.plot(tk, 1.5, "|", color="tab:red", ms=8)
         ax.set(xlabel="time before the impact [s]", ylabel="gap [m] / speed [m/s]", ylim=(0, 75))
     axes[0].legend(fontsize=8, loc="upper left")
