@@ -27,6 +27,7 @@ from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H
 from ..simulation.world import SimConfig
 from .safety import Choice, SafetyConfig, Verdict, brake_along, cap_speed, check, choose
+from .traces import decision_record
 
 #: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
 COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
@@ -443,49 +444,6 @@ class SafeAgent:
 def _flags(values: np.ndarray | None, n: int) -> np.ndarray:
     """``values`` as ``(n,)`` booleans (``None``: all False)."""
     return np.broadcast_to(np.asarray(False if values is None else values, dtype=bool), n)
-
-
-def decision_record(
-    obs: Observation,
-    i: int,
-    heaviest: np.ndarray,
-    seen: np.ndarray,
-    truth: np.ndarray,
-    chosen: np.ndarray,
-    source: str,
-    cfg: SafetyConfig,
-) -> dict[str, Any]:
-    """One decision of car ``i``, JSON-able (:class:`SafeAgent`'s ``trace_before_impact``).
-
-    Keys: ``time_s`` [s], ``speed_mps`` [m/s], ``lane``; ``seen`` and ``true``, the 9 affordances
-    (:data:`~e2e_lite.control.labels.AFFORDANCE_NAMES` order; perceived after any gyro fusion);
-    ``perceived`` and ``rule_on_truth``: the check's verdict on the heaviest mode with each
-    (``"ok"`` or the kind: ``"cannot stop"``, ``"collision course"``, ``"road edge"``), and
-    ``truth_lane``, the lane the rule on the truth objected about (``"ego"``, ``"left"``,
-    ``"right"``; for a road edge its side; ``""`` when it did not);
-    ``source``: what was driven; ``heaviest_end`` and ``chosen_end``: the 1.5 s points [m].
-    """
-    speed, kappa = float(obs.speed[i]), float(obs.curvature[i])
-
-    def verdict(aff: np.ndarray) -> tuple[str, str]:
-        v = check(heaviest, aff, speed, kappa, cfg)
-        return ("ok", "") if v.ok else (v.kind, v.lane)
-
-    (perceived, _), (on_truth, truth_lane) = verdict(seen), verdict(truth)
-
-    return {
-        "time_s": round(float(obs.time_s), 2),
-        "speed_mps": round(speed, 2),
-        "lane": int(obs.lane[i]),
-        "seen": [round(float(a), 3) for a in seen],
-        "true": [round(float(a), 3) for a in truth],
-        "perceived": perceived,
-        "rule_on_truth": on_truth,
-        "truth_lane": truth_lane,
-        "source": source,
-        "heaviest_end": [round(float(a), 2) for a in heaviest[-1]],
-        "chosen_end": [round(float(a), 2) for a in chosen[-1]],
-    }
 
 
 def _expert_labels(obs: Observation, idx: list[int], sim: SimConfig | None = None) -> np.ndarray:
