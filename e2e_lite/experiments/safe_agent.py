@@ -11,7 +11,7 @@ track's id, the pose, the modes and what was driven; rebuild the view with
 from __future__ import annotations
 
 import dataclasses
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -229,7 +229,7 @@ class SafeAgent:
         self.ground_truth, self.audit, self.keep_examples = ground_truth, audit, keep_examples
         self.audit_every = audit_every
         self.trace_before_impact = trace_before_impact
-        self._traces: list[list[dict[str, Any]]] = []  # each car's last decisions (tracing)
+        self._traces: list[deque] = []  # each car's last decisions (tracing)
         self._seen = 0  # interventions met by this copy (for audit_every)
         self._kept = 0  # examples reported since the last reset
         self._driven: list[str] = []  # each car's last source
@@ -248,7 +248,7 @@ class SafeAgent:
         self._overrode = np.zeros((n_worlds, BEFORE_IMPACT), dtype=bool)
         self._alarms = np.zeros(n_worlds, dtype=np.int64)
         self._passes = np.full(n_worlds, self.cfg.release_decisions, dtype=np.int64)
-        self._traces = [[] for _ in range(n_worlds)]
+        self._traces = [deque(maxlen=self.trace_before_impact) for _ in range(n_worlds)]
         self._gyro = None
 
     def fork(self, k: int) -> list[SafeAgent]:
@@ -278,12 +278,13 @@ class SafeAgent:
             before_impact.update(str(int(self._overrode[i].sum())) for i in hit)
             self._overrode[hit] = False  # the car starts afresh
         tracing = self.trace_before_impact > 0 and len(self._traces) == len(obs.speed)
+        fresh = _flags(obs.respawned, len(obs.speed))  # re-placed cars: a new episode
         traces = []  # the decisions before each collision this decision reports
         if tracing:
             for i in np.flatnonzero(_flags(obs.collided, len(obs.speed))).tolist():
-                traces.append(self._traces[i])
-            for i in np.flatnonzero(_flags(obs.respawned, len(obs.speed))).tolist():
-                self._traces[i] = []  # (re-placed: a new episode)
+                traces.append(list(self._traces[i]))
+            for i in np.flatnonzero(fresh).tolist():
+                self._traces[i].clear()
         proposal = self.agent.trajectories(obs)
         last = self.agent.last
         modes = last.get("modes", proposal[:, None])
@@ -316,15 +317,12 @@ class SafeAgent:
             if self.cfg.gyro_heading:
                 own[:, _HEADING] = seen[:, _HEADING]
         chosen = np.empty_like(proposal)
-        sources, kinds, audits = [], [], []
+        sources, kinds, audits, perceived = [], [], [], []
         # a persistence filter (confirm_decisions > 1); a re-placed car starts at 0
         counting = self.cfg.confirm_decisions > 1 and len(self._alarms) == len(proposal)
         # a hold after each intervention (release_decisions > 1); a re-placed car starts free
         release = self.cfg.release_decisions
         holding = release > 1 and len(self._passes) == len(proposal)
-        fresh = np.broadcast_to(
-            np.asarray(False if obs.respawned is None else obs.respawned), len(proposal)
-        )
 
         def heaviest(i: int) -> Choice:
             """Car i's heaviest mode, driven unchecked."""
@@ -337,6 +335,8 @@ class SafeAgent:
                 )
             else:  # the control: the heaviest mode (capped with sight_speed), unchecked
                 c = heaviest(i)
+            if tracing:  # the check's verdict on the heaviest mode (None: not checked)
+                perceived.append(c.verdicts[0] if c.verdicts else None)
             if self.vote is not None and c.source != "network":  # the driver's head must agree
                 top = heaviest(i)
                 if check(top.points, own[i], float(obs.speed[i]), obs.curvature[i], self.vote).ok:
@@ -413,11 +413,12 @@ class SafeAgent:
         }
         if tracing:
             for i in range(len(proposal)):
-                top = modes[i][int(np.argmax(weights[i]))]
-                record = decision_record(
-                    obs, i, top, seen[i], truth[i], chosen[i], sources[i], self.cfg
-                )
-                self._traces[i] = (self._traces[i] + [record])[-self.trace_before_impact :]
+                self._traces[i].append(
+                    decision_record(
+                        obs, i, heaviest(i).points, seen[i], perceived[i], truth[i], chosen[i],
+                        sources[i], self.cfg,
+                    )
+                )  # fmt: skip
             info["traces"] = traces
         self.last = {"chosen": chosen, "sources": sources, "seen": seen}
         self._driven = sources

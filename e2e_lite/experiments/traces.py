@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from ..simulation.policy import Observation
-from .safety import SafetyConfig, check
+from .safety import SafetyConfig, Verdict, check
 
 
 def decision_record(
@@ -16,6 +16,7 @@ def decision_record(
     i: int,
     heaviest: np.ndarray,
     seen: np.ndarray,
+    seen_verdict: Verdict | None,
     truth: np.ndarray,
     chosen: np.ndarray,
     source: str,
@@ -26,18 +27,19 @@ def decision_record(
     Keys: ``time_s`` [s], ``speed_mps`` [m/s], ``lane``; ``seen`` and ``true``, the 9 affordances
     (:data:`~e2e_lite.control.labels.AFFORDANCE_NAMES` order; perceived after any gyro fusion);
     ``perceived`` and ``rule_on_truth``: the check's verdict on the heaviest mode with each
-    (``"ok"`` or the kind: ``"cannot stop"``, ``"collision course"``, ``"road edge"``), and
+    (``seen_verdict``, the one the module already made, or checked here when ``None``; ``"ok"``
+    or the kind: ``"cannot stop"``, ``"collision course"``, ``"road edge"``), and
     ``truth_lane``, the lane the rule on the truth objected about (``"ego"``, ``"left"``,
     ``"right"``; for a road edge its side; ``""`` when it did not);
     ``source``: what was driven; ``heaviest_end`` and ``chosen_end``: the 1.5 s points [m].
     """
     speed, kappa = float(obs.speed[i]), float(obs.curvature[i])
 
-    def verdict(aff: np.ndarray) -> tuple[str, str]:
-        v = check(heaviest, aff, speed, kappa, cfg)
+    def verdict(aff: np.ndarray, v: Verdict | None = None) -> tuple[str, str]:
+        v = v or check(heaviest, aff, speed, kappa, cfg)
         return ("ok", "") if v.ok else (v.kind, v.lane)
 
-    (perceived, _), (on_truth, truth_lane) = verdict(seen), verdict(truth)
+    (perceived, _), (on_truth, truth_lane) = verdict(seen, seen_verdict), verdict(truth)
 
     return {
         "time_s": round(float(obs.time_s), 2),
