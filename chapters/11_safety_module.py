@@ -565,16 +565,13 @@ variants = (
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
 
 
-traces = {}  # row label: the decisions before each of its collisions (TRACED rows)
-
-
 def drive_guarded(file: str, label: str, heads, settings, perceives, agent_kw=None) -> tuple:
     """Each training seed's network ``heads[k]`` driven with the module ``settings[k]`` on seed
     k's roads (stored as ``<file>_seed<k>``; ``perceives``: how the module perceives, one dict
     or one per seed; ``agent_kw``: the network's settings): the pooled result, what the module
-    reported added up over the seeds, and seed 0's examples."""
-    per_seed, counts, first = [], SafetyStats(), []
-    traces[label] = []  # (the decisions before each collision, when the row records them)
+    reported added up over the seeds, seed 0's examples, and the decisions before each collision
+    (when ``perceives`` traces them)."""
+    per_seed, counts, first, traced = [], SafetyStats(), [], []
     for k, (perceiver, run, seed_cfg) in enumerate(zip(heads, runs, settings)):
         driver = TrajectoryAgent(perceiver, **(agent_kw or {}))
         how = perceives[k] if isinstance(perceives, list) else perceives
@@ -587,12 +584,13 @@ def drive_guarded(file: str, label: str, heads, settings, perceives, agent_kw=No
         info = result_info(res)  # what the module reported with its decisions, added up
         counts.add(info)
         first = first or info["examples"]  # the examples of section 3 come from seed 0
-        traces[label] += info.get("traces", [])
-    return pool_results(per_seed), counts.to_dict(), first
+        traced += info.get("traces", [])
+    return pool_results(per_seed), counts.to_dict(), first, traced
 
 
+traces = {}  # row name: the decisions before each of its collisions (TRACED rows)
 for name, tag, settings, perceives, heads, *agent_kw in variants:
-    pooled, stats[name], first = drive_guarded(
+    pooled, stats[name], first, traces[name] = drive_guarded(
         f"11_{key}_{tag}", f"with the module ({name})", heads, settings, perceives, *agent_kw
     )
     guarded[name] = (pooled, first)
@@ -780,7 +778,13 @@ before_impact = {"overrides_in_3s": dict(recent.before_impact), "average_3s": pe
 
 # %%
 DT_S = 0.1  # one decision [s]
-LANES = ("ego", "left", "right")
+
+
+def objected_gap(rec: dict) -> int:
+    """The affordance index of the gap the rule on the truth objected about in a decision's
+    record: its lane's when a parked car was the reason, else the ego lane's."""
+    car = rec["rule_on_truth"] in ("cannot stop", "collision course")
+    return AFFORDANCE_NAMES.index(f"gap_{rec['truth_lane'] if car else 'ego'}_m")
 
 
 def danger_summary(trace_list: list) -> dict:
@@ -802,7 +806,7 @@ def danger_summary(trace_list: list) -> dict:
             if rec["rule_on_truth"] == "road edge":
                 missed["road edge not seen"] += 1
                 continue
-            lane = AFFORDANCE_NAMES.index(f"gap_{rec['truth_lane']}_m")  # (a parked car's lane)
+            lane = objected_gap(rec)
             far = rec["seen"][lane] >= rec["true"][lane] + 10.0
             missed["gap read 10+ m long" if far else "the path placed in another lane"] += 1
         per.append({
@@ -819,9 +823,7 @@ def danger_summary(trace_list: list) -> dict:
 
 
 traced_rows = [name for name, _, _, how, *_ in variants if how is TRACED]
-before_collision = {
-    name: danger_summary(traces[f"with the module ({name})"]) for name in traced_rows
-}
+before_collision = {name: danger_summary(traces[name]) for name in traced_rows}
 print(
     "| row | collisions traced | truth objecting | for (median) | speed then | overridden "
     "| speed at the last decision | let through: gap long / road edge / another lane |"
@@ -843,18 +845,13 @@ for name, b in before_collision.items():
 # speed, and the decisions the module overrode (red) while the truth objected (grey).
 
 # %%
-best_traces = traces[f"with the module ({traced_rows[0]})"][:4]
+best_traces = traces[traced_rows[0]][:4]
 if best_traces:
     fig = Figure(figsize=(11, 6), layout="constrained")
     axes = np.array(fig.subplots(2, 2, squeeze=False)).ravel()
     for ax, trace in zip(axes, best_traces):
         t = DT_S * (np.arange(len(trace)) - len(trace))  # [s] before the impact
-        lanes = [  # the lane the truth objected about (a parked car), else the ego lane's
-            AFFORDANCE_NAMES.index(
-                f"gap_{rec['truth_lane'] if rec['truth_lane'] in LANES else 'ego'}_m"
-            )
-            for rec in trace
-        ]
+        lanes = [objected_gap(rec) for rec in trace]
         ax.plot(t, [rec["true"][j] for rec, j in zip(trace, lanes)], color="k", label="true gap")
         ax.plot(t, [rec["seen"][j] for rec, j in zip(trace, lanes)], color="tab:blue",
                 label="perceived gap")  # fmt: skip
@@ -868,7 +865,8 @@ if best_traces:
     axes[0].legend(fontsize=8, loc="upper left")
     for ax in axes[len(best_traces) :]:
         ax.set_axis_off()
-    fig.suptitle(f"{traced_rows[0]}: the last {DT_S * 40:g} s before four collisions", fontsize=10)
+    window_s = DT_S * TRACED["trace_before_impact"]
+    fig.suptitle(f"{traced_rows[0]}: the last {window_s:g} s before four collisions", fontsize=10)
     traces_png = save_figure(fig, artifacts.artifact_path("figures", "11_before_impact.png"))
     print(f"saved {traces_png}")
 else:
@@ -1072,7 +1070,7 @@ for name in new_data:
         settings = [cfg] * n_seeds if perceives.get("ground_truth") else [
             dataclasses.replace(c, **changes) for c in gyro_of[which]]  # fmt: skip
         row_name = f"{name} + safety module ({row})"
-        data_results[row_name], data_stats[row_name], _ = drive_guarded(
+        data_results[row_name], data_stats[row_name], *_ = drive_guarded(
             f"11_{course_key}_{tag}_{row_tag}", f"trained on {name}, with the module ({row})",
             heads_of[which], settings, perceives,
         )  # fmt: skip
@@ -1292,7 +1290,7 @@ for (true_set, fallback), row in decompose.items():
     row_tag, settings, true_names = row
     perceives = {"ground_truth": True} if true_names == "truth" else (
         {"true_affordances": true_names} if true_names else {})  # fmt: skip
-    decomposed[true_set, fallback], _, _ = drive_guarded(
+    decomposed[true_set, fallback], *_ = drive_guarded(
         f"11_{course_key}_{data_rows[deep][0]}_{row_tag}",
         f"trained on {deep}, with the module ({fallback}, true: {true_set})",
         data_heads[deep], settings, perceives,
