@@ -284,3 +284,31 @@ def test_entry_views_stand_the_car_across_a_marking_turned_into_the_lane_of_the_
         data, cfg, dataclasses.replace(approach, entry_share=0.0), progress=False
     )
     assert np.allclose(plain.d, data.d[plain.info["source_rows"]])
+
+
+def test_side_views_keep_the_car_in_its_lane_at_the_drawn_gap_behind_a_car_beside_it():
+    from e2e_lite.learning.recovery import ApproachConfig, approach_views
+
+    cfg = small_cfg(n_samples=192)
+    data = collect(cfg, progress=False)
+    approach = ApproachConfig(
+        fraction=1.0, shift_m=0.0, rotation_rad=0.0, side_share=1.0, side_gap_m=(30.0, 30.5)
+    )
+    views = approach_views(data, cfg, approach, progress=False)
+    rows = views.info["source_rows"]
+    assert len(views) > 20 and np.all(views.noise)
+    assert np.array_equal(views.d, data.d[rows])  # it keeps its lane (no shift drawn here)
+    ego, left, right = (
+        views.affordances[:, AFFORDANCE_NAMES.index(n)] for n in ("gap_ego_m", "gap_left_m", "gap_right_m")
+    )  # fmt: skip
+    # the car beside it stands at the drawn gap, on the left or on the right
+    at_left, at_right = ((g > 29.9) & (g < 30.6) for g in (left, right))
+    assert np.all(at_left | at_right), (left, right)
+    assert at_left.any() and at_right.any()  # both sides drawn
+    assert not np.all((ego > 29.9) & (ego < 30.6))  # not a plain approach view
+    # without the option the views are the plain ones, bit for bit
+    plain = approach_views(data, cfg, ApproachConfig(fraction=1.0), progress=False)
+    again = approach_views(
+        data, cfg, ApproachConfig(fraction=1.0, side_gap_m=(30.0, 30.5)), progress=False
+    )
+    assert np.array_equal(plain.images, again.images)

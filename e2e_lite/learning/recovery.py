@@ -195,9 +195,26 @@ class ApproachConfig:
             lanes, turned, with a parked car 13-32 m ahead in its new lane). Drawn from a
             generator of their own: ``entry_share=0`` gives the plain approach views, bit for bit.
         entry_turn_rad: the entering car's extra turn is uniform in 0-this [rad].
+        side_share: share of the other views that look at a parked car in a lane **beside** the
+            car's instead: the car keeps its lane (and its shift and turn) and stands
+            ``side_gap_m`` behind the next parked car in the lane on its left or right (the other
+            side at the road's edge). The head learns the side lanes' gaps from the expert's
+            frames alone, where a parked car 40-60 m ahead in a neighbouring lane is rare (about
+            5 % of side-lane readings), and reads free side lanes less sharply than its own:
+            chapter 11's module calibrated the side lanes' "nothing seen" at about 42 m, under
+            the 55 m its rule needs at cruise speed. Drawn from a generator of their own:
+            ``side_share=0`` leaves the other views as they were, bit for bit.
+        side_gap_m: (min, max) of the uniform distance to the side lane's parked car [m]; past
+            the gap cap (60 m) the label reads "nothing seen" while the car is still drawn,
+            which is what the cap's edge looks like.
     """
 
-    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("entry_share", "entry_turn_rad")
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = (
+        "entry_share",
+        "entry_turn_rad",
+        "side_share",
+        "side_gap_m",
+    )
 
     fraction: float = 0.25
     gap_m: tuple[float, float] = (0.5, 50.0)
@@ -206,6 +223,8 @@ class ApproachConfig:
     seed: int = 0
     entry_share: float = 0.0
     entry_turn_rad: float = 0.15
+    side_share: float = 0.0
+    side_gap_m: tuple[float, float] = (20.0, 75.0)
 
     def __post_init__(self) -> None:
         o = "ApproachConfig"
@@ -216,6 +235,8 @@ class ApproachConfig:
         check_range(o, "seed", self.seed, 0, integer=True)
         check_range(o, "entry_share", self.entry_share, 0.0, 1.0)
         check_range(o, "entry_turn_rad", self.entry_turn_rad, 0.0, 0.5)
+        check_range(o, "side_share", self.side_share, 0.0, 1.0)
+        check_pair(o, "side_gap_m", self.side_gap_m, lo=0.0)
 
 
 def approach_views(
@@ -236,6 +257,10 @@ def approach_views(
     side = entry.choice([-1, 1], len(rows))  # +1: into the lane on the left
     past = entry.uniform(-0.5, 1.5, len(rows))  # rear axle past the marking [m]
     towards = entry.uniform(0.0, cfg.entry_turn_rad, len(rows))
+    beside = np.random.default_rng([cfg.seed, 43])  # the side views' own draws
+    looking = (beside.random(len(rows)) < cfg.side_share) & ~entering
+    side_of = beside.choice([-1, 1], len(rows))
+    gap = np.where(looking, beside.uniform(*cfg.side_gap_m, len(rows)), gap)
     worlds = _world_cache(data_cfg)
     s_new = np.full(len(rows), np.nan)
     for j, (w, r) in enumerate(zip(worlds(data.track[rows]), rows.tolist())):  # (no rendering)
@@ -247,6 +272,10 @@ def approach_views(
             d_new[j] = marking + side[j] * past[j]
             he_new[j] = float(data.affordances[r, 0]) + side[j] * towards[j]
             lane += int(side[j])
+        elif looking[j]:
+            if not 0 <= lane + side_of[j] < track.n_lanes:
+                side_of[j] = -side_of[j]
+            lane += int(side_of[j])  # the lane whose car it looks at; the car stays where it is
         rear = cars.s - cars.length_m / 2.0  # (a jittered car's box reaches a few cm further)
         ahead = np.flatnonzero((cars.lane == lane) & (rear > float(data.s[r])))
         front = w.vehicle.length_m - w.vehicle.rear_overhang_m  # rear axle to front bumper
@@ -299,9 +328,12 @@ def load_or_make_approach(
     progress: bool = True,
 ) -> DrivingData:
     """The approach views of ``data`` from disk if made by these settings, else render and save
-    (views with entering cars in a file of their own: ``...-approach-entry<share>.npz``)."""
+    (views with entering or side cars in a file of their own: ``...-approach-entry<share>.npz``,
+    ``...-approach-side<share>.npz``)."""
     cfg = cfg or ApproachConfig()
-    kind = "approach" if cfg.entry_share == 0.0 else f"approach-entry{cfg.entry_share:g}"
+    kind = "approach"
+    kind += f"-entry{cfg.entry_share:g}" if cfg.entry_share else ""
+    kind += f"-side{cfg.side_share:g}" if cfg.side_share else ""
     return _load_or_make("approach-v1", kind, approach_views, data, data_cfg, cfg, progress)
 
 
