@@ -15,6 +15,7 @@ from e2e_lite.control.labels import GAP_NAMES
 from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.driving.metrics import add_info
+from e2e_lite.experiments.calibration import calibrate_gap_free
 from e2e_lite.experiments.safe_agent import (
     GYRO_FULL_SPEED_MPS,
     GYRO_MIN_CAMERA_WEIGHT,
@@ -26,7 +27,6 @@ from e2e_lite.experiments.safety import (
     SafetyConfig,
     brake_along,
     brake_to_lane,
-    calibrate_gap_free,
     cap_speed,
     check,
     choose,
@@ -157,6 +157,20 @@ def test_fallback_order_heaviest_passing_mode_then_keep_lane_braking():
     # a brake that only "cannot stop" is driven: it already brakes as hard as the rule assumes
     c = choose(np.stack([unsafe]), np.array([1.0]), aff(gap_ego=50.0), 25.0, 0.0, checked)
     assert c.source == "fallback" and c.verdicts[-1].kind == "cannot stop"
+
+
+def test_modes_only_re_ranks_the_modes_and_never_brakes():
+    safe, unsafe, worse = straight(25.0, y_end=3.5), straight(25.0), straight(25.0, y_end=-0.2)
+    a = aff(gap_ego=30.0, gap_left=60.0)
+    only = SafetyConfig(modes_only=True, brake_along_path=True)  # (no fallback of any kind)
+    c = choose(np.stack([unsafe, safe]), np.array([0.7, 0.3]), a, 25.0, 0.0, only)
+    assert c.source == "other mode" and np.array_equal(c.points, safe)  # as without the option
+    # no mode passes: the heaviest, as proposed (its verdicts kept: the alarm rang)
+    c = choose(np.stack([worse, unsafe]), np.array([0.4, 0.6]), a, 25.0, 0.0, only)
+    assert c.source == "network" and np.array_equal(c.points, unsafe)
+    assert [v.ok for v in c.verdicts] == [False, False]
+    braked = choose(np.stack([worse, unsafe]), np.array([0.4, 0.6]), a, 25.0, 0.0)
+    assert braked.source == "fallback" and braked.points[-1, 0] < unsafe[-1, 0] - 5.0
 
 
 def test_half_way_through_a_lane_change_the_fallback_brakes_on_into_the_lane_being_entered():

@@ -42,7 +42,7 @@ The driver that applies the rule to a trajectory network is :class:`~e2e_lite.ex
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -50,7 +50,6 @@ from ..config import check_range
 from ..control.labels import (
     AFFORDANCE_INDEX,
     GAP_CAP_M,
-    GAP_NAMES,
     N_POINTS,
     POINT_DT_S,
     along_path,
@@ -113,6 +112,10 @@ class SafetyConfig:
             hazard's alarm flickers (a car read at 44 m, then at 55, then at 40), and each pass
             hands the car back at cruise speed, so the brake is applied in bursts and the car
             arrives at 18-20 m/s (chapter 11). Paid in braking after false alarms.
+        modes_only: the module only re-ranks the network's modes: the first that passes, else
+            the heaviest, driven as proposed (no braking fallback; the source stays "network").
+            The control that separates what the module's braking costs (the slow states it
+            leaves the car in) from what its perception costs (chapter 11).
     """
 
     reaction_s: float = 0.2
@@ -134,6 +137,7 @@ class SafetyConfig:
     check_proposals: bool = field(default=True, repr=False)  # (shown when set)
     confirm_decisions: int = field(default=1, repr=False)  # (shown when set)
     release_decisions: int = field(default=1, repr=False)  # (shown when set)
+    modes_only: bool = field(default=False, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -287,63 +291,6 @@ def check(
     return Verdict(True)
 
 
-#: The share of training frames with nothing within the cap on which a calibrated
-#: ``gap_free_m`` may still see a car (:func:`calibrate_gap_free`).
-GHOST_SHARE = 0.01
-_GAPS = [_A[n] for n in GAP_NAMES]
-
-
-def calibrate_gap_free(
-    cfg: SafetyConfig, predicted: np.ndarray, true: np.ndarray, ghost_share: float = GHOST_SHARE
-) -> SafetyConfig:
-    """``cfg`` with the "nothing seen" thresholds set for a perception whose gaps are noisy at
-    the cap: ``gap_free_m`` for the ego lane, ``gap_free_side_m`` for the left and right lanes.
-
-    A free lane's true gap is exactly :data:`~e2e_lite.control.labels.GAP_CAP_M`; a learned head
-    answers around it (chapter 11 prints how widely), so a threshold just under the cap sees a
-    parked car on the free frames whose answer falls under it, and "cannot stop" brakes for it.
-    Each calibrated threshold is the ``ghost_share`` quantile of the predicted gaps on frames
-    whose true gap is at the cap (the ego lane's alone; the left and right lanes' pooled): with
-    it, at most that share of those frames sees a car that is not there. The price: a car
-    between the threshold and the cap counts as not seen until it comes nearer (at 25 m/s,
-    2.5 m per decision). The lanes are calibrated apart because a head may see its own lane
-    more sharply than its neighbours (a pooled quantile would then blind the ego lane to the
-    cars the network overtakes).
-
-    Args:
-        cfg: the settings to start from; its ``gap_free_m`` bounds both thresholds.
-        predicted, true: (N, 9) affordances of the same frames, predicted and true (training
-            frames: the thresholds must not be chosen on the evaluation's tracks).
-        ghost_share: the share of free frames allowed to see a car, in (0, 1).
-
-    Returns:
-        The settings with each threshold ``min(cfg.gap_free_m, quantile)`` (at least 1 m); a
-        threshold whose lanes are never free in the frames is left as it was.
-    """
-    p, t = np.asarray(predicted, np.float64), np.asarray(true, np.float64)
-    if p.shape != t.shape or p.ndim != 2 or p.shape[1] != len(_A):
-        raise ValueError(
-            f"calibrate_gap_free needs (N, {len(_A)}) predictions and truths; got {p.shape}, "
-            f"{t.shape}"
-        )
-    if not 0.0 < ghost_share < 1.0:
-        raise ValueError(f"calibrate_gap_free: ghost_share={ghost_share} must lie in (0, 1)")
-
-    def threshold(columns: list[int], current: float | None) -> float | None:
-        free = t[:, columns] >= GAP_CAP_M
-        if not free.any():
-            return current
-        quantile = float(np.quantile(p[:, columns][free], ghost_share))
-        return max(1.0, min(cfg.gap_free_m, quantile))
-
-    ego, side = _GAPS[:1], _GAPS[1:]
-    return replace(
-        cfg,
-        gap_free_m=threshold(ego, cfg.gap_free_m),
-        gap_free_side_m=threshold(side, cfg.gap_free_side_m),
-    )
-
-
 def lane_width(aff: np.ndarray) -> float:
     """The ego lane's width from its two marking distances [m] (at least 2 m)."""
     return max(2.0, float(aff[_A["left_marking_m"]] + aff[_A["right_marking_m"]]))
@@ -438,7 +385,8 @@ def choose(
     else (with ``cfg.fallback_lanes``) the first braking trajectory that passes among
     :func:`brake_to_lane` to the current lane and its two neighbours, ordered by how near each
     lane's centre is to where the heaviest mode ends (:func:`end_lateral`; on a tie the current
-    lane), else :func:`keep_lane_brake`.
+    lane), else :func:`keep_lane_brake`. With ``cfg.modes_only`` the order stops after the modes:
+    none passing, the heaviest is driven.
 
     With ``cfg.check_fallback`` the braking trajectory is checked too. It is driven when it
     passes or only "cannot stop" (it already brakes as hard as the rule assumes: nothing stops
@@ -467,6 +415,8 @@ def choose(
         verdicts.append(verdict)
         if verdict.ok:
             return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
+    if cfg.modes_only:  # nothing passes: the network's own choice, unbraked
+        return Choice(modes[order[0]], "network", verdicts)
     if cfg.brake_along_path and verdicts[0].kind in ("collision course", "cannot stop"):
         heaviest = brake_along(modes[order[0]], speed_mps, cfg)
         for k in order.tolist():
