@@ -82,6 +82,9 @@ class ChapterInfo(NamedTuple):
 # 23.3 s alone from an empty folder on the second machine, so 36 s scaled by that, 40. Since 5289a26
 # (a 22nd row, the hold, 3.7 min; the best perceived row traced, 2.4 min instead of about 1.5):
 # 151; quick 24.1 s alone from an empty folder on the second machine, 36 s scaled by 24.1 / 20.9, 42.
+# Since cecbdd6 (side views, a fourth head refit per seed, three more rows): 8.7 min with every
+# other row read back, against about 2 min reading all back, 158; quick 25.4 s from an empty
+# folder, 36 s scaled by 25.4 / 20.9, 44.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -93,7 +96,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 11),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 26),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 42, 151),
+    11: ChapterInfo("the safety module on the affordances", 44, 158),
 }
 
 
