@@ -871,7 +871,7 @@ def danger_summary(trace_list: list) -> dict:
     """Per collision: how long before it the rule on the truth objected without a break, the
     speed then and at the last decision [m/s], and the share of those decisions the module
     overrode; with the reasons of the decisions it let through (a JSON-able summary)."""
-    per, missed = [], Counter()
+    per, missed, long_lanes, long_gaps = [], Counter(), Counter(), []
     for trace in trace_list:
         first = len(trace)
         while first > 0 and trace[first - 1]["rule_on_truth"] != "ok":
@@ -889,6 +889,9 @@ def danger_summary(trace_list: list) -> dict:
             lane = objected_gap(rec)
             far = rec["seen"][lane] >= rec["true"][lane] + 10.0
             missed["gap read 10+ m long" if far else "the path placed in another lane"] += 1
+            if far:  # which lane's gap, and how far off
+                long_lanes[rec["truth_lane"]] += 1
+                long_gaps.append((rec["true"][lane], rec["seen"][lane]))
         per.append({
             "lead_s": round(DT_S * len(danger), 1),
             "speed_then_mps": danger[0]["speed_mps"],
@@ -898,8 +901,10 @@ def danger_summary(trace_list: list) -> dict:
     seen = [p for p in per if p]
     med = {k: float(np.median([p[k] for p in seen])) if seen else None for k in
            ("lead_s", "speed_then_mps", "speed_last_mps", "overridden")}  # fmt: skip
+    true_read = np.median(long_gaps, axis=0).tolist() if long_gaps else None
     return {"collisions_traced": len(per), "with_truth_objecting": len(seen), "median": med,
-            "let_through": dict(missed), "collisions": per}  # fmt: skip
+            "let_through": dict(missed), "gap_long_by_lane": dict(long_lanes),
+            "gap_long_true_read_median_m": true_read, "collisions": per}  # fmt: skip
 
 
 traced_rows = [name for name, _, _, how, *_ in variants if how is TRACED]
@@ -918,6 +923,11 @@ for name, b in before_collision.items():
           f"| {m['speed_then_mps']:.1f} m/s | {100 * m['overridden']:.0f} % "
           f"| {m['speed_last_mps']:.1f} m/s | {lt.get('gap read 10+ m long', 0)} / "
           f"{lt.get('road edge not seen', 0)} / {lt.get('the path placed in another lane', 0)} |")  # fmt: skip
+print("\nThe gaps read 10+ m long, by the lane whose gap it was, and the median true and read gap:")
+for name, b in before_collision.items():
+    by_lane, tr = b["gap_long_by_lane"], b["gap_long_true_read_median_m"]
+    print(f"{name}: " + ", ".join(f"{lane} {by_lane.get(lane, 0)}" for lane in ("ego", "left", "right"))
+          + ("" if tr is None else f"; true {tr[0]:.1f} m, read {tr[1]:.1f} m (medians)"))  # fmt: skip
 
 # %% [markdown]
 # Four of the best perceived row's collisions, decision by decision: the true and the perceived
