@@ -1514,7 +1514,8 @@ artifacts.write_metrics(
 #   modes and never brakes drives 12 collisions on the truth (21 without, 1 with the brake) and
 #   25 on perception, all at cruise speed, with no slow states; views of the lanes beside do not
 #   let the head see them further. The perceived module's floor is what the head reads at
-#   cruise speed (of the lanes beside most of all, the traces say), not its brake alone.
+#   cruise speed (the gap of the lane in danger, most often the ego lane's as the network leaves
+#   it too late, and the lane geometry), not its brake alone.
 # * Caution has a price, measured here in interventions, false alarms and miles per hour.
 # * An intervention changes the states the network drives from: a module that brakes hands the
 #   car back at speeds the expert's data rarely shows (chapter 04). Who drove the last decision
