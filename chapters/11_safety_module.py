@@ -871,16 +871,30 @@ def objected_gap(rec: dict) -> int:
     return AFFORDANCE_NAMES.index(f"gap_{rec['truth_lane'] if car else 'ego'}_m")
 
 
+def danger_window(trace: list) -> list:
+    """The decisions of a trace from the one where the rule on the truth began to object (and
+    objected on every decision after it) to the impact."""
+    first = len(trace)
+    while first > 0 and trace[first - 1]["rule_on_truth"] != "ok":
+        first -= 1
+    return trace[first:]
+
+
+def read_long(rec: dict) -> bool:
+    """A decision the perceived check let through although the truth objected about a parked
+    car, reading that car's lane's gap at least 10 m longer than it was."""
+    car = rec["rule_on_truth"] in ("cannot stop", "collision course")
+    lane = objected_gap(rec)
+    return car and rec["perceived"] == "ok" and rec["seen"][lane] >= rec["true"][lane] + 10.0
+
+
 def danger_summary(trace_list: list) -> dict:
     """Per collision: how long before it the rule on the truth objected without a break, the
     speed then and at the last decision [m/s], and the share of those decisions the module
     overrode; with the reasons of the decisions it let through (a JSON-able summary)."""
     per, missed, long_lanes, long_gaps = [], Counter(), Counter(), []
     for trace in trace_list:
-        first = len(trace)
-        while first > 0 and trace[first - 1]["rule_on_truth"] != "ok":
-            first -= 1
-        danger = trace[first:]
+        danger = danger_window(trace)
         if not danger:
             per.append(None)
             continue
@@ -890,8 +904,7 @@ def danger_summary(trace_list: list) -> dict:
             if rec["rule_on_truth"] == "road edge":
                 missed["road edge not seen"] += 1
                 continue
-            lane = objected_gap(rec)
-            far = rec["seen"][lane] >= rec["true"][lane] + 10.0
+            lane, far = objected_gap(rec), read_long(rec)
             missed["gap read 10+ m long" if far else "the path placed in another lane"] += 1
             if far:  # which lane's gap, and how far off
                 long_lanes[rec["truth_lane"]] += 1
@@ -932,6 +945,41 @@ for name, b in before_collision.items():
     by_lane, tr = b["gap_long_by_lane"], b["gap_long_true_read_median_m"]
     print(f"{name}: " + ", ".join(f"{lane} {by_lane.get(lane, 0)}" for lane in ("ego", "left", "right"))
           + ("" if tr is None else f"; true {tr[0]:.1f} m, read {tr[1]:.1f} m (medians)"))  # fmt: skip
+
+# %% [markdown]
+# What the network's camera saw at those decisions: for each of the first collisions of the
+# best perceived row, its most misread decision in danger, re-rendered from the recorded pose
+# with the network's own camera (66 x 200, enlarged), the true and the read gap in the caption.
+
+# %%
+seen_by = Camera(TrajectoryAgent(approached[0]).camera)  # the camera the network reads
+frames = []
+for trace in traces[traced_rows[0]]:
+    misread = [rec for rec in danger_window(trace) if read_long(rec) and "pose" in rec]
+    if misread:  # (a trace stored before the records had poses has none: drive the row again)
+        rec = max(misread, key=lambda r: r["seen"][objected_gap(r)] - r["true"][objected_gap(r)])
+        frames.append(rec)
+frames = frames[:6]
+if frames:
+    fig = Figure(figsize=(11, 1.3 * ((len(frames) + 1) // 2) + 0.5), layout="constrained")
+    axes = np.array(fig.subplots((len(frames) + 1) // 2, 2, squeeze=False)).ravel()
+    for ax, rec in zip(axes, frames):
+        w = make_world(world_cfg, *rec["track_id"])
+        ax.imshow(seen_by.render(w.track, w.cars, tuple(rec["pose"]), rec["s"]))
+        j = objected_gap(rec)
+        ax.set_title(
+            f"{rec['truth_lane']} lane: true gap {rec['true'][j]:.0f} m, read {rec['seen'][j]:.0f} m; "
+            f"heading {rec['true'][AFFORDANCE_NAMES.index('heading_rad')]:+.2f} rad, "
+            f"{rec['speed_mps']:.0f} m/s",
+            fontsize=8, loc="left",
+        )  # fmt: skip
+    for ax in axes:
+        ax.set_axis_off()
+    misread_png = save_figure(fig, artifacts.artifact_path("figures", "11_misread.png"))
+    print(f"saved {misread_png}")
+else:
+    misread_png = None
+    print("no misread decision with a recorded pose")
 
 # %% [markdown]
 # Four of the best perceived row's collisions, decision by decision: the true and the perceived
@@ -1490,7 +1538,7 @@ artifacts.write_metrics(
         "table_md": table,
         "lines": lines,
     },
-    figures=(rows_png, traces_png, grid_png, data_png),
+    figures=(rows_png, traces_png, misread_png, grid_png, data_png),
 )
 
 # %% [markdown]

@@ -35,7 +35,7 @@ from e2e_lite.experiments.safety import (
 )
 from e2e_lite.learning.data import AFFORDANCE_NAMES, affordances
 from e2e_lite.simulation.geometry import RoadConfig
-from e2e_lite.simulation.world import TrafficConfig, WorldConfig
+from e2e_lite.simulation.world import TrafficConfig, WorldConfig, make_world
 
 T = 0.3 * np.arange(1, 6)
 
@@ -551,6 +551,10 @@ def test_the_decisions_before_each_collision_are_traced_without_changing_the_dri
         gap = AFFORDANCE_NAMES.index("gap_ego_m")
         assert last["seen"][gap] == 60.0 and last["true"][gap] < 20.0
         assert min(speeds) - 1.0 <= last["speed_mps"]
+        # where the car was: its own world again, the same road position
+        w = make_world(world, *last["track_id"])
+        x, y, _ = last["pose"]
+        assert abs(float(w.track.to_frenet(x, y)[0]) - last["s"]) < 0.1
     assert "traces" not in plain.info
     assert fingerprint(traced_agent) != fingerprint(SafeAgent(BlindToCars(), audit=False))
     with pytest.raises(ValueError, match="trace_before_impact"):

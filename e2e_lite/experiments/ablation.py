@@ -40,6 +40,7 @@ from ..learning.checkpoints import weights_digest
 from ..learning.data import DataConfig, DrivingData, load_or_collect
 from ..simulation.policy import Policy
 from ..simulation.world import WorldConfig
+from .traces import RECORD_VERSION
 
 
 @dataclass
@@ -317,7 +318,7 @@ def fingerprint(policy: Policy) -> str:
         if getattr(policy, "vote", None) is not None:  # (likewise)
             parts.append(("vote", repr(policy.vote)))
         if getattr(policy, "trace_before_impact", 0):  # (likewise)
-            parts.append(("trace", policy.trace_before_impact))
+            parts.append(("trace", policy.trace_before_impact, RECORD_VERSION))
     return settings_key(*parts)
 
 

@@ -10,6 +10,10 @@ import numpy as np
 from ..simulation.policy import Observation
 from .safety import SafetyConfig, Verdict, check
 
+#: The records' format (in a traced evaluation's stored key, so a stored trace has every key
+#: :func:`decision_record` writes). 2: the car's pose, ``s`` and track, to re-render the frame.
+RECORD_VERSION = 2
+
 
 def decision_record(
     obs: Observation,
@@ -31,7 +35,9 @@ def decision_record(
     or the kind: ``"cannot stop"``, ``"collision course"``, ``"road edge"``), and
     ``truth_lane``, the lane the rule on the truth objected about (``"ego"``, ``"left"``,
     ``"right"``; for a road edge its side; ``""`` when it did not);
-    ``source``: what was driven; ``heaviest_end`` and ``chosen_end``: the 1.5 s points [m].
+    ``source``: what was driven; ``heaviest_end`` and ``chosen_end``: the 1.5 s points [m];
+    ``track_id``, ``pose`` (rear axle ``x, y, heading`` [m, m, rad]) and ``s`` [m]: where the car
+    was, to re-render what its camera saw (``make_world(world_cfg, *track_id)``).
     """
     speed, kappa = float(obs.speed[i]), float(obs.curvature[i])
 
@@ -53,4 +59,7 @@ def decision_record(
         "source": source,
         "heaviest_end": [round(float(a), 2) for a in heaviest[-1]],
         "chosen_end": [round(float(a), 2) for a in chosen[-1]],
+        "track_id": list(obs.worlds[i].track.track_id),
+        "pose": [float(a) for a in obs.state[i, :3]],
+        "s": float(obs.s[i]),
     }
