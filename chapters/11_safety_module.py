@@ -948,8 +948,9 @@ for name, b in before_collision.items():
 
 # %% [markdown]
 # What the network's camera saw at those decisions: for each of the first collisions of the
-# best perceived row, its most misread decision in danger, re-rendered from the recorded pose
-# with the network's own camera (66 x 200, enlarged), the true and the read gap in the caption.
+# best perceived row, the first decision in danger whose gap it read 10+ m long, re-rendered
+# from the recorded pose with the network's own camera (66 x 200, enlarged), the true and the
+# read gap in the caption. (A regression head is not bound by the 60 m cap it was trained to.)
 
 # %%
 seen_by = Camera(TrajectoryAgent(approached[0]).camera)  # the camera the network reads
@@ -957,11 +958,10 @@ frames = []
 for trace in traces[traced_rows[0]]:
     misread = [rec for rec in danger_window(trace) if read_long(rec) and "pose" in rec]
     if misread:  # (a trace stored before the records had poses has none: drive the row again)
-        rec = max(misread, key=lambda r: r["seen"][objected_gap(r)] - r["true"][objected_gap(r)])
-        frames.append(rec)
+        frames.append(misread[0])  # (the first: where the miss began)
 frames = frames[:6]
 if frames:
-    fig = Figure(figsize=(11, 1.3 * ((len(frames) + 1) // 2) + 0.5), layout="constrained")
+    fig = Figure(figsize=(10, 1.95 * ((len(frames) + 1) // 2)), layout="constrained")
     axes = np.array(fig.subplots((len(frames) + 1) // 2, 2, squeeze=False)).ravel()
     for ax, rec in zip(axes, frames):
         w = make_world(world_cfg, *rec["track_id"])
