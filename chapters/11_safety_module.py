@@ -871,6 +871,9 @@ def objected_gap(rec: dict) -> int:
     return AFFORDANCE_NAMES.index(f"gap_{rec['truth_lane'] if car else 'ego'}_m")
 
 
+HEAD_I = AFFORDANCE_NAMES.index("heading_rad")
+
+
 def danger_window(trace: list) -> list:
     """The decisions of a trace from the one where the rule on the truth began to object (and
     objected on every decision after it) to the impact."""
@@ -906,9 +909,9 @@ def danger_summary(trace_list: list) -> dict:
                 continue
             lane, far = objected_gap(rec), read_long(rec)
             missed["gap read 10+ m long" if far else "the path placed in another lane"] += 1
-            if far:  # which lane's gap, and how far off
+            if far:  # which lane's gap, how far off, and how far the car was turned
                 long_lanes[rec["truth_lane"]] += 1
-                long_gaps.append((rec["true"][lane], rec["seen"][lane]))
+                long_gaps.append((rec["true"][lane], rec["seen"][lane], abs(rec["true"][HEAD_I])))
         per.append({
             "lead_s": round(DT_S * len(danger), 1),
             "speed_then_mps": danger[0]["speed_mps"],
@@ -919,9 +922,13 @@ def danger_summary(trace_list: list) -> dict:
     med = {k: float(np.median([p[k] for p in seen])) if seen else None for k in
            ("lead_s", "speed_then_mps", "speed_last_mps", "overridden")}  # fmt: skip
     true_read = np.median(long_gaps, axis=0).tolist() if long_gaps else None
+    turned = [abs(rec["true"][HEAD_I]) for trace in trace_list for rec in trace]
     return {"collisions_traced": len(per), "with_truth_objecting": len(seen), "median": med,
             "let_through": dict(missed), "gap_long_by_lane": dict(long_lanes),
-            "gap_long_true_read_median_m": true_read, "collisions": per}  # fmt: skip
+            "gap_long_true_read_median_m": true_read and true_read[:2],
+            "gap_long_heading_median_rad": true_read and true_read[2],
+            "heading_median_rad": float(np.median(turned)) if turned else None,
+            "collisions": per}  # fmt: skip
 
 
 traced_rows = [name for name, _, _, how, *_ in variants if how is TRACED]
@@ -944,7 +951,9 @@ print("\nThe gaps read 10+ m long, by the lane whose gap it was, and the median 
 for name, b in before_collision.items():
     by_lane, tr = b["gap_long_by_lane"], b["gap_long_true_read_median_m"]
     print(f"{name}: " + ", ".join(f"{lane} {by_lane.get(lane, 0)}" for lane in ("ego", "left", "right"))
-          + ("" if tr is None else f"; true {tr[0]:.1f} m, read {tr[1]:.1f} m (medians)"))  # fmt: skip
+          + ("" if tr is None else f"; true {tr[0]:.1f} m, read {tr[1]:.1f} m (medians); the car "
+             f"turned {b['gap_long_heading_median_rad']:.3f} rad from the road (median; "
+             f"{b['heading_median_rad']:.3f} over every traced decision)"))  # fmt: skip
 
 # %% [markdown]
 # What the network's camera saw at those decisions: for each of the first collisions of the
