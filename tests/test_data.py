@@ -312,3 +312,19 @@ def test_side_views_keep_the_car_in_its_lane_at_the_drawn_gap_behind_a_car_besid
         data, cfg, ApproachConfig(fraction=1.0, side_gap_m=(30.0, 30.5)), progress=False
     )
     assert np.array_equal(plain.images, again.images)
+
+
+def test_approach_views_of_other_settings_are_stored_in_files_of_their_own(tmp_path, monkeypatch):
+    from e2e_lite.learning.recovery import ApproachConfig, load_or_make_approach
+
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
+    cfg = small_cfg(n_samples=64)
+    data = collect(cfg, progress=False)
+    settings = (ApproachConfig(), ApproachConfig(rotation_rad=0.12), ApproachConfig(side_share=1.0))
+    made = [load_or_make_approach(data, cfg, c, progress=False) for c in settings]
+    names = sorted(p.name for p in (tmp_path / "data").glob("*approach*.npz"))
+    assert len(names) == 3, names  # none overwrote another
+    assert any(n.endswith("-approach.npz") for n in names)  # the course's names kept
+    assert any(n.endswith("-approach-side1.npz") for n in names)
+    again = load_or_make_approach(data, cfg, settings[1], progress=False)  # read back, not redrawn
+    assert np.array_equal(again.images, made[1].images)

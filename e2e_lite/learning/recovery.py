@@ -329,11 +329,15 @@ def load_or_make_approach(
 ) -> DrivingData:
     """The approach views of ``data`` from disk if made by these settings, else render and save
     (views with entering or side cars in a file of their own: ``...-approach-entry<share>.npz``,
-    ``...-approach-side<share>.npz``)."""
+    ``...-approach-side<share>.npz``; any other setting changed adds a digest of the settings to
+    the name, so two settings never take turns overwriting one file)."""
     cfg = cfg or ApproachConfig()
     kind = "approach"
     kind += f"-entry{cfg.entry_share:g}" if cfg.entry_share else ""
     kind += f"-side{cfg.side_share:g}" if cfg.side_share else ""
+    named = ApproachConfig(entry_share=cfg.entry_share, side_share=cfg.side_share)
+    if cfg != named:
+        kind += "-" + settings_key("approach-file", cfg, length=8)
     return _load_or_make("approach-v1", kind, approach_views, data, data_cfg, cfg, progress)
 
 
