@@ -35,7 +35,8 @@ change brakes on into the lane it is entering, not back towards the car it is le
 otherwise :func:`keep_lane_brake`, back to the centre of the current lane (the last resort,
 unchecked). With ``SafetyConfig.brake_along_path``, a mode rejected for a parked car is instead
 braked along its own path (:func:`brake_along`): on perception, the lane fallback's path is made
-of the very affordances that are wrong (chapter 11).
+of the very affordances that are wrong (chapter 11). With ``SafetyConfig.modes_only`` there is
+no fallback: none of the modes passing, the heaviest is driven as proposed (a control).
 
 The driver that applies the rule to a trajectory network is :class:`~e2e_lite.experiments.safe_agent.SafeAgent`.
 """
