@@ -457,7 +457,7 @@ for k in range(len(seeded)):
 # stop from cruise speed, and counts as not seen. In section 2's traces about four in ten of the
 # gaps the module misread while the car was in danger were a side lane's (the rest the ego
 # lane's). The expert's frames show a car 40-60 m ahead beside the car in about one side-lane
-# reading in twenty. **Side views** (`ApproachConfig(side_share=1.0)`) re-render a
+# reading in sixteen (printed below). **Side views** (`ApproachConfig(side_share=1.0)`) re-render a
 # quarter of the training frames with the car kept in its lane and placed 20-75 m behind the
 # next parked car in the lane on its left or right (past 60 m the label says "nothing seen"
 # while the car is drawn: the cap's edge). A fourth head per seed is refit on the training frames

@@ -200,7 +200,7 @@ class ApproachConfig:
             ``side_gap_m`` behind the next parked car in the lane on its left or right (the other
             side at the road's edge). The head learns the side lanes' gaps from the expert's
             frames alone, where a parked car 40-60 m ahead in a neighbouring lane is rare (about
-            5 % of side-lane readings), and reads free side lanes less sharply than its own:
+            6 % of side-lane readings, chapter 11), and reads free side lanes less sharply than its own:
             chapter 11's module calibrated the side lanes' "nothing seen" at about 42 m, under
             the 55 m its rule needs at cruise speed. Drawn from a generator of their own:
             ``side_share=0`` leaves the other views as they were, bit for bit.
