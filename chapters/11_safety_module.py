@@ -647,7 +647,7 @@ def drive_guarded(file: str, label: str, heads, settings, perceives, agent_kw=No
     k's roads (stored as ``<file>_seed<k>``; ``perceives``: how the module perceives, one dict
     or one per seed; ``agent_kw``: the network's settings): the pooled result, what the module
     reported added up over the seeds, seed 0's examples, and the decisions before each collision
-    (when ``perceives`` traces them)."""
+    (when ``perceives`` traces them), one list per seed."""
     per_seed, counts, first, traced = [], SafetyStats(), [], []
     for k, (perceiver, run, seed_cfg) in enumerate(zip(heads, runs, settings)):
         driver = TrajectoryAgent(perceiver, **(agent_kw or {}))
@@ -661,15 +661,17 @@ def drive_guarded(file: str, label: str, heads, settings, perceives, agent_kw=No
         info = result_info(res)  # what the module reported with its decisions, added up
         counts.add(info)
         first = first or info["examples"]  # the examples of section 3 come from seed 0
-        traced += info.get("traces", [])
+        traced.append(info.get("traces", []))
     return pool_results(per_seed), counts.to_dict(), first, traced
 
 
 traces = {}  # row name: the decisions before each of its collisions (TRACED rows)
+seed_traces = {}  # the same, one list per training seed
 for name, tag, settings, perceives, heads, *agent_kw in variants:
-    pooled, stats[name], first, traces[name] = drive_guarded(
+    pooled, stats[name], first, seed_traces[name] = drive_guarded(
         f"11_{key}_{tag}", f"with the module ({name})", heads, settings, perceives, *agent_kw
     )
+    traces[name] = [trace for per_seed in seed_traces[name] for trace in per_seed]
     guarded[name] = (pooled, first)
 
 label = ablation.BY_KEY[key].label
@@ -993,6 +995,55 @@ if frames:
     print(f"saved {misread_png}")
 else:
     misread_png = None
+    print("no misread decision with a recorded pose")
+
+# %% [markdown]
+# Would a better head have read those frames? Every decision of the best perceived row whose gap
+# was read 10+ m long, re-rendered and read by each training seed's other heads (the same seed's
+# driver refit with side views, and its separate perception network):
+
+# %%
+misread_by = {}
+pending = [
+    (k, rec)
+    for k, per_seed in enumerate(seed_traces[traced_rows[0]])
+    for trace in per_seed
+    for rec in danger_window(trace)
+    if read_long(rec) and "pose" in rec
+]
+if pending:
+    lanes_j = np.array([objected_gap(rec) for _, rec in pending])
+    true_gap = np.array([rec["true"][j] for (_, rec), j in zip(pending, lanes_j)])
+    seed_of = np.array([k for k, _ in pending])
+    images = np.stack([
+        seen_by.render(w.track, w.cars, tuple(rec["pose"]), rec["s"])
+        for w, (_, rec) in zip((make_world(world_cfg, *rec["track_id"]) for _, rec in pending),
+                               pending)
+    ])  # fmt: skip
+    speeds = np.array([rec["speed_mps"] for _, rec in pending])
+    print(f"{len(pending)} decisions, true gap {np.median(true_gap):.1f} m (median)")
+    print("| head | read (median) | read 10+ m long | within 5 m |")
+    print("|---|---:|---:|---:|")
+    for name, heads in (
+        ("the driver's, approach views (the module's)", approached),
+        ("the driver's, approach + side views", sided),
+        (f"perception network (w = {PERCEPTION_W:g}), approach views", seer_heads),
+    ):
+        read = np.empty(len(pending))
+        for k in np.unique(seed_of).tolist():
+            m = seed_of == k
+            reader = TrajectoryAgent(heads[k])
+            reader.trajectories_from(images[m], speeds[m])
+            read[m] = reader.last["affordances"][np.arange(m.sum()), lanes_j[m]]
+        misread_by[name] = {
+            "read_median_m": float(np.median(read)),
+            "long_share": float(np.mean(read >= true_gap + 10.0)),
+            "within_5m_share": float(np.mean(np.abs(read - true_gap) <= 5.0)),
+        }
+        r = misread_by[name]
+        print(f"| {name} | {r['read_median_m']:.1f} m | {100 * r['long_share']:.0f} % | "
+              f"{100 * r['within_5m_share']:.0f} % |")  # fmt: skip
+else:
     print("no misread decision with a recorded pose")
 
 # %% [markdown]
@@ -1551,6 +1602,7 @@ artifacts.write_metrics(
         "module": stats,
         "before_impact": before_impact,
         "before_collision": before_collision,
+        "misread_by_head": misread_by,
         "verdicts": verdicts,
         "speed_input_floor_mps": floor,
         "told_vs_plain": told_vs_plain,
