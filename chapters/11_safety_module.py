@@ -467,6 +467,7 @@ for k in range(len(seeded)):
 # %%
 SIDE = ApproachConfig(side_share=1.0)  # every view: a parked car 20-75 m ahead in a lane beside
 side_views = concat(views, load_or_make_approach(train, train_cfg, SIDE))
+print(f"side views: {len(side_views) - len(views):,}, added to the {len(views):,} approach views")
 sided = [
     recipes.perceiving(policy.model, train, f"11_{key}_seed{k}_approach_side", views=side_views)
     for k, policy in enumerate(seeded)
