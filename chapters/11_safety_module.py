@@ -857,7 +857,8 @@ before_impact = {"overrides_in_3s": dict(recent.before_impact), "average_3s": pe
 # The best perceived row and its control below it were driven with
 # `SafeAgent(trace_before_impact=40)`: each car keeps its last 40 decisions (4 s) and reports
 # them with every collision. A decision's record holds what the module perceived, the truth,
-# the rule's verdict on the network's heaviest mode with each, and what was driven. From the
+# the rule's verdict on the network's heaviest mode with each, what was driven, and where the
+# car was (its track and pose: enough to re-render what its camera saw). From the
 # decision where the rule **on the truth** begins to object (and objects on every decision up
 # to the impact), the car was in danger; what did the perceived module do from then on? It
 # intervened on some of those decisions and let the network drive the others: there the
