@@ -789,6 +789,28 @@ by_speed = print_by_speed(
     "driver", "rail under 10 m/s", "rail_under_10",
     lambda impact: sum(v < 10.0 and k == "rail" for v, k in impact),
 )  # fmt: skip
+SHARP = 0.002  # [1/m]: a curve of radius under 500 m
+
+
+def on_sharp_curves(res) -> tuple[int, int]:
+    """How many of a result's car collisions came where the road's curvature exceeded SHARP, of
+    how many car collisions (the road rebuilt from each event's track)."""
+    cars = [e for e in result_events(res) if e["kind"] == "car"]
+    sharp = sum(
+        abs(float(make_world(world_cfg, *e["track"]).track.curvature(e["s_m"]))) > SHARP
+        for e in cars
+    )
+    return sharp, len(cars)
+
+
+sharp_share = float(np.mean(np.abs(val.arrays["curvature"]) > SHARP))
+curves = {"without": on_sharp_curves(without)} | {
+    n: on_sharp_curves(guarded[n][0])
+    for n in ("ground truth, modes only", next(v[0] for v in variants if v[3] is TRACED))
+}
+print(f"car collisions on curves sharper than {SHARP} 1/m (radius under {1 / SHARP:.0f} m; "
+      f"{100 * sharp_share:.1f} % of the validation frames): " + "; ".join(
+          f"{n} {k} of {m}" for n, (k, m) in curves.items()))  # fmt: skip
 for name, *_ in variants:
     kinds = stats[name]["kinds"]
     total = max(1, sum(kinds.values()))
@@ -1604,6 +1626,11 @@ artifacts.write_metrics(
         "gap_by_distance": by_distance,
         "false_alarm_reasons": false_alarm_reasons,
         "collisions_by_speed": by_speed,
+        "car_collisions_on_sharp_curves": {
+            "curvature_over": SHARP,
+            "validation_share": sharp_share,
+            **{n: {"on_sharp_curves": k, "car_collisions": m} for n, (k, m) in curves.items()},
+        },
         "slow_start": {
             k: (v if isinstance(v, str) else {**v, "events": None}) for k, v in slow_start.items()
         },
