@@ -811,6 +811,14 @@ curves = {"without": on_sharp_curves(without)} | {
 print(f"car collisions on curves sharper than {SHARP} 1/m (radius under {1 / SHARP:.0f} m; "
       f"{100 * sharp_share:.1f} % of the validation frames): " + "; ".join(
           f"{n} {k} of {m}" for n, (k, m) in curves.items()))  # fmt: skip
+
+# %% [markdown]
+# In the full-profile run (README) 18 of the driver's 20 car collisions without the module came
+# on curves sharper than 0.002 1/m, which make 8.4 % of the validation frames, and 20 of the best
+# perceived row's 24: the collisions the module has to prevent are on sharp curves, where a
+# parked car in the car's own lane stands off the image's centre (the traced frames below).
+
+# %%
 for name, *_ in variants:
     kinds = stats[name]["kinds"]
     total = max(1, sum(kinds.values()))
