@@ -1678,7 +1678,8 @@ artifacts.write_metrics(
 #   25 on perception, all at cruise speed, with no slow states; views of the lanes beside do not
 #   let the head see them further. The perceived module's floor is what the head reads at
 #   cruise speed (the gap of the lane in danger, most often the ego lane's as the network leaves
-#   it too late, and the lane geometry), not its brake alone.
+#   it too late, and the lane geometry), not its brake alone; and nearly all of this driver's
+#   collisions come on sharp curves, where the head misreads most.
 # * Caution has a price, measured here in interventions, false alarms and miles per hour.
 # * An intervention changes the states the network drives from: a module that brakes hands the
 #   car back at speeds the expert's data rarely shows (chapter 04). Who drove the last decision
