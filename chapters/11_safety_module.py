@@ -815,8 +815,8 @@ print(f"car collisions on curves sharper than {SHARP} 1/m (radius under {1 / SHA
 # %% [markdown]
 # In the full-profile run (README) 18 of the driver's 20 car collisions without the module came
 # on curves sharper than 0.002 1/m, which make 8.4 % of the validation frames, and 20 of the best
-# perceived row's 24: the collisions the module has to prevent are on sharp curves, where a
-# parked car in the car's own lane stands off the image's centre (the traced frames below).
+# perceived row's 24: the collisions the module has to prevent are on sharp curves (the traced
+# frames below).
 
 # %%
 for name, *_ in variants:
@@ -1087,8 +1087,8 @@ else:
 #
 # In the full-profile run (README) the car was turned 0.07 rad from the road at the median
 # misread decision, twice the median over every traced decision; most of the six frames are on
-# curves, where a parked car in the car's own lane stands off the image's centre. The approach
-# views turn the car by at most 0.06 rad (exercise 9 asks what wider turns do).
+# curves. The approach views turn the car by at most 0.06 rad (exercise 9 asks what wider turns
+# do).
 
 # %% [markdown]
 # Four of the best perceived row's collisions, decision by decision: the true and the perceived
