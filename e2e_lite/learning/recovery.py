@@ -200,9 +200,9 @@ class ApproachConfig:
             ``side_gap_m`` behind the next parked car in the lane on its left or right (the other
             side at the road's edge). The head learns the side lanes' gaps from the expert's
             frames alone, where a parked car 40-60 m ahead in a neighbouring lane is rare (about
-            6 % of side-lane readings, chapter 11), and reads free side lanes less sharply than its own:
-            chapter 11's module calibrated the side lanes' "nothing seen" at about 42 m, under
-            the 55 m its rule needs at cruise speed. Drawn from a generator of their own:
+            6 % of side-lane readings, chapter 11), and reads free side lanes less sharply than
+            its own: chapter 11's module calibrated the side lanes' "nothing seen" at about 42 m,
+            under the 55 m its rule needs at cruise speed. Drawn from a generator of their own:
             ``side_share=0`` leaves the other views as they were, bit for bit.
         side_gap_m: (min, max) of the uniform distance to the side lane's parked car [m]; past
             the gap cap (60 m) the label reads "nothing seen" while the car is still drawn,
@@ -265,17 +265,15 @@ def approach_views(
     s_new = np.full(len(rows), np.nan)
     for j, (w, r) in enumerate(zip(worlds(data.track[rows]), rows.tolist())):  # (no rendering)
         cars, lane, track = w.cars, int(data.lane[r]), w.track
+        # the lane beside whose car it enters (or looks at: the car stays where it is)
+        toward = int(side[j]) if entering[j] else int(side_of[j]) if looking[j] else 0
+        if not 0 <= lane + toward < track.n_lanes:
+            toward = -toward  # (the other side at the road's edge)
         if entering[j]:
-            if not 0 <= lane + side[j] < track.n_lanes:
-                side[j] = -side[j]
-            marking = float(track.lane_center(lane)) + side[j] * track.lane_width / 2.0
-            d_new[j] = marking + side[j] * past[j]
-            he_new[j] = float(data.affordances[r, 0]) + side[j] * towards[j]
-            lane += int(side[j])
-        elif looking[j]:
-            if not 0 <= lane + side_of[j] < track.n_lanes:
-                side_of[j] = -side_of[j]
-            lane += int(side_of[j])  # the lane whose car it looks at; the car stays where it is
+            marking = float(track.lane_center(lane)) + toward * track.lane_width / 2.0
+            d_new[j] = marking + toward * past[j]
+            he_new[j] = float(data.affordances[r, 0]) + toward * towards[j]
+        lane += toward
         rear = cars.s - cars.length_m / 2.0  # (a jittered car's box reaches a few cm further)
         ahead = np.flatnonzero((cars.lane == lane) & (rear > float(data.s[r])))
         front = w.vehicle.length_m - w.vehicle.rear_overhang_m  # rear axle to front bumper
