@@ -46,6 +46,7 @@ from e2e_lite.course import start_chapter
 profile = start_chapter(11)  # flags, profile, outputs folder: checked before any work
 
 import dataclasses
+import functools
 import itertools
 import textwrap
 from collections import Counter
@@ -83,7 +84,7 @@ from e2e_lite.learning.dataset import concat
 from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 from e2e_lite.learning.recovery import ApproachConfig, load_or_make_approach
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.simulation.world import WorldConfig, make_world
+from e2e_lite.simulation.world import World, WorldConfig, make_world
 from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -440,11 +441,21 @@ seer_heads = [
 ]
 calibrated_seer = [calibrate(h) for h in seer_heads]
 seer_goals = {}
+val_reads: dict[int, np.ndarray] = {}  # each head's affordances on the validation rows
+
+
+def read_val(head) -> np.ndarray:
+    """``head``'s affordances (N, 9) on the validation ``rows``, each head read once."""
+    if id(head) not in val_reads:
+        val_reads[id(head)] = perceive(TrajectoryAgent(head), val, rows)[0]
+    return val_reads[id(head)]
+
+
 print("| seed | head | " + " | ".join(head_goals[0]) + " |")
 print("|---:|---|" + "---:|" * len(head_goals[0]))
 for k in range(len(seeded)):
     for name, head in (("the driver's", approached[k]), (f"w = {PERCEPTION_W:g}", seer_heads[k])):
-        g = goals_of(perceive(TrajectoryAgent(head), val, rows)[0])
+        g = goals_of(read_val(head))
         seer_goals.setdefault(name, []).append(g)
         print(f"| {k} | {name} | " + " | ".join(f"{v:.2f}" for v in g.values()) + " |")
 
@@ -489,7 +500,7 @@ for name, heads, cals in (
     ("the driver's, approach + side views", sided, calibrated_side),
     (f"perception network (w = {PERCEPTION_W:g}), approach views", seer_heads, calibrated_seer),
 ):
-    seen_side = perceive(TrajectoryAgent(heads[0]), val, rows)[0][:, side_cols]
+    seen_side = read_val(heads[0])[:, side_cols]
     cells = []
     for lo, hi in SIDE_BINS:
         m = (true_side >= lo) & (true_side < hi)
@@ -792,14 +803,21 @@ by_speed = print_by_speed(
 SHARP = 0.002  # [1/m]: a curve of radius under 500 m
 
 
+@functools.cache
+def _world(track_id: tuple) -> World:
+    return make_world(world_cfg, *track_id)
+
+
+def world_of(track_id: list) -> World:
+    """The world of a stored track id (an event's or a trace record's), each built once."""
+    return _world(tuple(track_id))
+
+
 def on_sharp_curves(res) -> tuple[int, int]:
     """How many of a result's car collisions came where the road's curvature exceeded SHARP, of
     how many car collisions (the road rebuilt from each event's track)."""
     cars = [e for e in result_events(res) if e["kind"] == "car"]
-    sharp = sum(
-        abs(float(make_world(world_cfg, *e["track"]).track.curvature(e["s_m"]))) > SHARP
-        for e in cars
-    )
+    sharp = sum(abs(float(world_of(e["track"]).track.curvature(e["s_m"]))) > SHARP for e in cars)
     return sharp, len(cars)
 
 
@@ -903,11 +921,15 @@ before_impact = {"overrides_in_3s": dict(recent.before_impact), "average_3s": pe
 DT_S = 0.1  # one decision [s]
 
 
+def for_a_car(rec: dict) -> bool:
+    """Did the rule on the truth object about a parked car in this decision's record?"""
+    return rec["rule_on_truth"] in ("cannot stop", "collision course")
+
+
 def objected_gap(rec: dict) -> int:
     """The affordance index of the gap the rule on the truth objected about in a decision's
     record: its lane's when a parked car was the reason, else the ego lane's."""
-    car = rec["rule_on_truth"] in ("cannot stop", "collision course")
-    return AFFORDANCE_NAMES.index(f"gap_{rec['truth_lane'] if car else 'ego'}_m")
+    return AFFORDANCE_NAMES.index(f"gap_{rec['truth_lane'] if for_a_car(rec) else 'ego'}_m")
 
 
 HEAD_I = AFFORDANCE_NAMES.index("heading_rad")
@@ -925,9 +947,12 @@ def danger_window(trace: list) -> list:
 def read_long(rec: dict) -> bool:
     """A decision the perceived check let through although the truth objected about a parked
     car, reading that car's lane's gap at least 10 m longer than it was."""
-    car = rec["rule_on_truth"] in ("cannot stop", "collision course")
     lane = objected_gap(rec)
-    return car and rec["perceived"] == "ok" and rec["seen"][lane] >= rec["true"][lane] + 10.0
+    return (
+        for_a_car(rec)
+        and rec["perceived"] == "ok"
+        and rec["seen"][lane] >= rec["true"][lane] + 10.0
+    )
 
 
 def danger_summary(trace_list: list) -> dict:
@@ -1002,23 +1027,36 @@ for name, b in before_collision.items():
 
 # %%
 seen_by = Camera(TrajectoryAgent(approached[0]).camera)  # the camera the network reads
-frames = []
-for trace in traces[traced_rows[0]]:
-    misread = [rec for rec in danger_window(trace) if read_long(rec) and "pose" in rec]
-    if misread:  # (a trace stored before the records had poses has none: drive the row again)
-        frames.append(misread[0])  # (the first: where the miss began)
-frames = frames[:6]
+# every misread decision in danger of the best row: (training seed, collision, record); a trace
+# stored before the records had poses has none (drive the row again to see them)
+misread = [
+    (k, n, rec)
+    for k, per_seed in enumerate(seed_traces[traced_rows[0]])
+    for n, trace in enumerate(per_seed)
+    for rec in danger_window(trace)
+    if read_long(rec) and "pose" in rec
+]
+
+
+def camera_at(rec: dict) -> np.ndarray:
+    """What the network's camera saw at a trace record's pose."""
+    w = world_of(rec["track_id"])
+    return seen_by.render(w.track, w.cars, tuple(rec["pose"]), rec["s"])
+
+
+misread_images = np.stack([camera_at(rec) for *_, rec in misread]) if misread else None
+# the first misread decision of each collision (where the miss began), for six collisions
+frames = [j for j, m in enumerate(misread) if j == 0 or misread[j - 1][:2] != m[:2]][:6]
 if frames:
     fig = Figure(figsize=(10, 1.95 * ((len(frames) + 1) // 2)), layout="constrained")
     axes = np.array(fig.subplots((len(frames) + 1) // 2, 2, squeeze=False)).ravel()
-    for ax, rec in zip(axes, frames):
-        w = make_world(world_cfg, *rec["track_id"])
-        ax.imshow(seen_by.render(w.track, w.cars, tuple(rec["pose"]), rec["s"]))
-        j = objected_gap(rec)
+    for ax, j in zip(axes, frames):
+        rec = misread[j][2]
+        ax.imshow(misread_images[j])
+        g = objected_gap(rec)
         ax.set_title(
-            f"{rec['truth_lane']} lane: true gap {rec['true'][j]:.0f} m, read {rec['seen'][j]:.0f} m; "
-            f"heading {rec['true'][AFFORDANCE_NAMES.index('heading_rad')]:+.2f} rad, "
-            f"{rec['speed_mps']:.0f} m/s",
+            f"{rec['truth_lane']} lane: true gap {rec['true'][g]:.0f} m, read {rec['seen'][g]:.0f} m; "
+            f"heading {rec['true'][HEAD_I]:+.2f} rad, {rec['speed_mps']:.0f} m/s",
             fontsize=8, loc="left",
         )  # fmt: skip
     for ax in axes:
@@ -1036,24 +1074,12 @@ else:
 
 # %%
 misread_by = {}
-pending = [
-    (k, rec)
-    for k, per_seed in enumerate(seed_traces[traced_rows[0]])
-    for trace in per_seed
-    for rec in danger_window(trace)
-    if read_long(rec) and "pose" in rec
-]
-if pending:
-    lanes_j = np.array([objected_gap(rec) for _, rec in pending])
-    true_gap = np.array([rec["true"][j] for (_, rec), j in zip(pending, lanes_j)])
-    seed_of = np.array([k for k, _ in pending])
-    images = np.stack([
-        seen_by.render(w.track, w.cars, tuple(rec["pose"]), rec["s"])
-        for w, (_, rec) in zip((make_world(world_cfg, *rec["track_id"]) for _, rec in pending),
-                               pending)
-    ])  # fmt: skip
-    speeds = np.array([rec["speed_mps"] for _, rec in pending])
-    print(f"{len(pending)} decisions, true gap {np.median(true_gap):.1f} m (median)")
+if misread:
+    lanes_j = np.array([objected_gap(rec) for *_, rec in misread])
+    true_gap = np.array([rec["true"][j] for (*_, rec), j in zip(misread, lanes_j)])
+    seed_of = np.array([k for k, *_ in misread])
+    speeds = np.array([rec["speed_mps"] for *_, rec in misread])
+    print(f"{len(misread)} decisions, true gap {np.median(true_gap):.1f} m (median)")
     print("| head | read (median) | read 10+ m long | within 5 m |")
     print("|---|---:|---:|---:|")
     for name, heads in (
@@ -1061,11 +1087,11 @@ if pending:
         ("the driver's, approach + side views", sided),
         (f"perception network (w = {PERCEPTION_W:g}), approach views", seer_heads),
     ):
-        read = np.empty(len(pending))
+        read = np.empty(len(misread))
         for k in np.unique(seed_of).tolist():
             m = seed_of == k
             reader = TrajectoryAgent(heads[k])
-            reader.trajectories_from(images[m], speeds[m])
+            reader.trajectories_from(misread_images[m], speeds[m])
             read[m] = reader.last["affordances"][np.arange(m.sum()), lanes_j[m]]
         misread_by[name] = {
             "read_median_m": float(np.median(read)),
