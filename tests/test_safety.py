@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from e2e_lite.control.labels import GAP_NAMES
 from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
-from e2e_lite.driving.metrics import add_info
+from e2e_lite.driving.metrics import EvalResult, add_info
 from e2e_lite.experiments.calibration import calibrate_gap_free
 from e2e_lite.experiments.safe_agent import (
     GYRO_FULL_SPEED_MPS,
@@ -477,20 +477,32 @@ class Ghosts(StraightOn):
         return pts
 
 
+#: an empty straight road, driven by :class:`Ghosts` under the module (the filter and hold tests)
+GHOST_WORLD = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(0, 0)))
+GHOST_RUN = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2)
+
+
+def drive_ghosts(settings: SafetyConfig) -> dict[int, EvalResult]:
+    """The module with ``settings`` over a lasting ghost (key 1) and a flickering one (key 2)."""
+    return {
+        every: evaluate(
+            SafeAgent(Ghosts(every), settings, audit=False), GHOST_WORLD, GHOST_RUN, progress=False
+        )
+        for every in (1, 2)
+    }
+
+
 def test_a_persistence_filter_ignores_flickering_alarms_and_acts_on_lasting_ones():
-    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(0, 0)))
-    cfg = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2)
-    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    alone = evaluate(StraightOn(), GHOST_WORLD, GHOST_RUN, progress=False)
     twice = SafetyConfig(confirm_decisions=2)
-    n = {}
-    for every in (1, 2):
-        for confirm in (SafetyConfig(), twice):
-            res = evaluate(
-                SafeAgent(Ghosts(every), confirm, audit=False), world, cfg, progress=False
-            )
-            n[every, confirm.confirm_decisions] = SafetyStats.from_info(res.info).interventions
-            if every == 2 and confirm is twice:  # every alarm alone: the driver drives
-                assert res.events == alone.events and res.miles == alone.miles
+    runs = {how.confirm_decisions: drive_ghosts(how) for how in (SafetyConfig(), twice)}
+    n = {
+        (every, confirm): SafetyStats.from_info(res.info).interventions
+        for confirm, by_ghost in runs.items()
+        for every, res in by_ghost.items()
+    }
+    # every alarm alone: the driver drives
+    assert runs[2][2].events == alone.events and runs[2][2].miles == alone.miles
     assert n[2, 1] > 0 and n[2, 2] == 0  # flickering: heeded at once, ignored when confirmed
     # lasting: heeded either way, from the second decision on when confirmed
     assert 0 < n[1, 2] < n[1, 1]
@@ -500,14 +512,12 @@ def test_a_persistence_filter_ignores_flickering_alarms_and_acts_on_lasting_ones
 
 
 def test_a_hold_after_an_alarm_brakes_through_a_flickering_one():
-    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(0, 0)))
-    cfg = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2)
     held = SafetyConfig(release_decisions=3)
-    stats = {}
-    for every in (1, 2):
-        for how in (SafetyConfig(), held):
-            res = evaluate(SafeAgent(Ghosts(every), how, audit=False), world, cfg, progress=False)
-            stats[every, how.release_decisions] = (res, SafetyStats.from_info(res.info))
+    stats = {
+        (every, how.release_decisions): (res, SafetyStats.from_info(res.info))
+        for how in (SafetyConfig(), held)
+        for every, res in drive_ghosts(how).items()
+    }
     # flickering: heeded every other decision, then held in between (braking on its own path)
     flicker, flicker_held = stats[2, 1][1], stats[2, 3][1]
     assert flicker.sources["network"] > 0 and "hold" not in flicker.sources
@@ -518,8 +528,8 @@ def test_a_hold_after_an_alarm_brakes_through_a_flickering_one():
     assert stats[1, 3][0].events == stats[1, 1][0].events
     assert stats[1, 3][1].to_dict() == stats[1, 1][1].to_dict()
     # no alarm, no hold: the driver alone
-    alone = evaluate(StraightOn(), world, cfg, progress=False)
-    quiet = evaluate(SafeAgent(Exact(), held, audit=False), world, cfg, progress=False)
+    alone = evaluate(StraightOn(), GHOST_WORLD, GHOST_RUN, progress=False)
+    quiet = evaluate(SafeAgent(Exact(), held, audit=False), GHOST_WORLD, GHOST_RUN, progress=False)
     assert quiet.events == alone.events and quiet.miles == alone.miles
     assert SafetyStats.from_info(quiet.info).interventions == 0
     assert "release_decisions" not in repr(SafetyConfig()) and "release_decisions=3" in repr(held)
