@@ -81,6 +81,7 @@ from e2e_lite.learning.data import (
     load_or_collect,
 )
 from e2e_lite.learning.dataset import concat
+from e2e_lite.learning.freespace import free_profile, load_or_label
 from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 from e2e_lite.learning.recovery import ApproachConfig, load_or_make_approach
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
@@ -657,12 +658,13 @@ runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
 def drive_guarded(file: str, label: str, heads, settings, perceives, agent_kw=None) -> tuple:
     """Each training seed's network ``heads[k]`` driven with the module ``settings[k]`` on seed
     k's roads (stored as ``<file>_seed<k>``; ``perceives``: how the module perceives, one dict
-    or one per seed; ``agent_kw``: the network's settings): the pooled result, what the module
+    or one per seed; ``agent_kw``: the network's settings, likewise): the pooled result, what the module
     reported added up over the seeds, seed 0's examples, and the decisions before each collision
     (when ``perceives`` traces them), one list per seed."""
     per_seed, counts, first, traced = [], SafetyStats(), [], []
     for k, (perceiver, run, seed_cfg) in enumerate(zip(heads, runs, settings)):
-        driver = TrajectoryAgent(perceiver, **(agent_kw or {}))
+        kw = agent_kw[k] if isinstance(agent_kw, list) else agent_kw
+        driver = TrajectoryAgent(perceiver, **(kw or {}))
         how = perceives[k] if isinstance(perceives, list) else perceives
         res = ablation.evaluate_stored(
             f"{file}_seed{k}", f"{label}, seed {k}",
@@ -1151,6 +1153,150 @@ else:
     print("no collision was traced")
 
 # %% [markdown]
+# ### Parked cars in the car's frame: the free-space profile
+#
+# The misread frames share a question: a lane gap asks the camera which lane a parked car stands
+# in, an inference that depends on the road's curve, the car's heading and its offset, and the
+# misreads come with the car turned on sharp curves. A **free-space profile** asks for what the
+# camera sees (`learning.freespace`): for 15 strips of the car's own frame, 1 m wide, centred at
+# `y = -7 ... 7` m, the distance from the front bumper to the nearest parked car's body in that
+# strip (60 m: nothing seen; cars wholly behind the rear bumper left out). The labels come from
+# the world at each frame's pose, for the training frames and the approach views. A small head
+# (`ProfileHead`, 1152-256-256-15) reads the driver's own frozen trunk, which keeps the image's
+# 18 columns (so a strip's bearing is in it), in the same forward pass as the trajectory
+# (`TrajectoryAgent(..., profile_head=)`); it is fitted on all but every fifth training track,
+# and each strip's "nothing seen" threshold is the 2 % quantile of its reads on that strip's
+# free frames of the held-out tracks (on its own frames a head reads free strips closer to the
+# cap than on roads it has not seen).
+#
+# The rule on it (`experiments.freespace_rule`, `check(..., profile=)`) moves the body along the
+# proposal, from the rear axle to the front bumper, `+-0.9` m wide, through the strips it
+# overlaps by more than 0.2 m: **collision course** if the front comes within the 2 m margin of
+# a car read there within the 1.5 s, **cannot stop** if braking from the last point (reaction
+# and `v^2 / 2 beta`, extrapolated along the path's last direction and the road's curvature)
+# meets one. The road edges stay with the lane rule's perceived edges; a proposal rejected for a
+# parked car is braked along its own path. Seed 0's head on the validation frames, strip by
+# strip, by the true distance:
+
+# %%
+profile_heads = [
+    recipes.free_space(h, train, views, train_cfg, f"11_{key}_seed{k}_approach")
+    for k, h in enumerate(approached)
+]
+val_profile = load_or_label(val, val_cfg)[rows]  # (the validation rows of section 1)
+profile_reader = TrajectoryAgent(approached[0], profile_head=profile_heads[0])
+profile_read = []
+for i in range(0, len(rows), 256):
+    batch = rows[i : i + 256]
+    profile_reader.trajectories_from(a["images"][batch], a["speed"][batch])
+    profile_read.append(profile_reader.last["profile"])
+profile_read = np.concatenate(profile_read)
+profile_error = {}
+print("| true distance | strips | MAE | median read |")
+print("|---|---:|---:|---:|")
+for lo, hi in ((0, 10), (10, 20), (20, 30), (30, 40), (40, GAP_CAP_M)):
+    m = (val_profile >= lo) & (val_profile < hi)
+    if m.any():
+        e = {"strips": int(m.sum()), "mae_m": float(np.mean(np.abs(profile_read - val_profile)[m])),
+             "median_read_m": float(np.median(profile_read[m]))}  # fmt: skip
+        profile_error[f"{lo}-{hi:g} m"] = e
+        print(
+            f"| {lo}-{hi:g} m | {e['strips']:,} | {e['mae_m']:.1f} m | {e['median_read_m']:.1f} m |"
+        )
+free_strips = val_profile >= GAP_CAP_M
+free_seen = profile_read < profile_heads[0].free_m.numpy()
+profile_error["free strips read as a car"] = float(np.mean(free_seen[free_strips]))
+print(f"free strips read as a car (under the strip's threshold): "
+      f"{100 * profile_error['free strips read as a car']:.1f} %")  # fmt: skip
+profile_free_m = [h.free_m.numpy().round(1).tolist() for h in profile_heads]
+print("thresholds per training seed: " + "; ".join(
+    f"seed {k} {min(f):.1f}-{max(f):.1f} m" for k, f in enumerate(profile_free_m)))  # fmt: skip
+
+# %% [markdown]
+# Strips within 10 m of the bumper to the side lie outside the camera's 50 degree field of view:
+# the head reads them free, and the profile cannot see a car beside the car.
+#
+# Offline first: the misread decisions of the best lane row above (the perceived check let the
+# network's heaviest mode through, a gap read 10+ m long, while the rule on the truth
+# objected), re-rendered and read again by the same seed's driver with its profile head. Does the
+# profile rule reject the heaviest mode there? And with the true profile (rebuilt from the
+# world at the recorded pose)?
+
+# %%
+profile_offline = {}
+if misread:
+    rejected = {"perceived profile": 0, "true profile": 0}
+    for k in np.unique(seed_of).tolist():
+        m = np.flatnonzero(seed_of == k)
+        reader = TrajectoryAgent(approached[k], profile_head=profile_heads[k])
+        modes = reader.trajectories_from(misread_images[m], speeds[m])  # the heaviest modes
+        for j, i in enumerate(m.tolist()):
+            rec = misread[i][2]
+            w = world_of(rec["track_id"])
+            kappa = float(w.track.curvature(rec["s"]))
+            d = float(w.track.lane_center(rec["lane"])) + rec["true"][off]
+            truth = free_profile(w, rec["s"], d, rec["true"][HEAD_I])
+            aff = np.asarray(rec["seen"])
+            for name, prof in (
+                ("perceived profile", (reader.last["profile"][j], reader.last["profile_free_m"])),
+                ("true profile", (truth, np.full(len(truth), GAP_CAP_M - 0.5))),
+            ):
+                ok = check(modes[j], aff, rec["speed_mps"], kappa, cfg, profile=prof).ok
+                rejected[name] += int(not ok)
+    profile_offline = {"misread_decisions": len(misread), **rejected}
+    print(f"of {len(misread)} misread decisions the profile rule rejects the heaviest mode in "
+          f"{rejected['perceived profile']} (perceived), {rejected['true profile']} (true)")  # fmt: skip
+else:
+    print("no misread decision with a recorded pose")
+
+# %% [markdown]
+# In closed loop, with the best lane row's settings otherwise (the approach views' heads for the
+# heading and the road edges, the gyro heading at camera weight 0.03, braking along the path):
+# the perceived profile, and its control, the same rule on the true profile (computed from the
+# world at every decision, 59.5 m for "nothing seen"; heading and edges still perceived), which
+# separates what the head reads from what the rule and its fallback do.
+
+# %%
+profile_rows = (
+    ("free-space profile (perceived), approach views + brake along path + gyro heading, camera "
+     "weight 0.03", "profile_gyro003", steady, {"profile": "perceived"}, approached,
+     [{"profile_head": h} for h in profile_heads]),
+    ("free-space profile (true), approach views + brake along path + gyro heading, camera weight "
+     "0.03", "profiletrue_gyro003", steady, {"profile": "true"}, approached),
+)  # fmt: skip
+for name, tag, settings, perceives, heads, *agent_kw in profile_rows:
+    pooled, stats[name], first, _ = drive_guarded(
+        f"11_{key}_{tag}", f"with the module ({name})", heads, settings, perceives, *agent_kw
+    )
+    guarded[name] = (pooled, first)
+    verdicts[name] = compare_rates(pooled, without)["verdict"]
+profile_names = [name for name, *_ in profile_rows]
+print(results_table([(f"{label} + safety module ({n})", guarded[n][0]) for n in profile_names],
+                    extra=[("per seed, per 100 mi", [ablation.per_seed(guarded[n][0])
+                                                     for n in profile_names])]))  # fmt: skip
+for name in profile_names:
+    s = stats[name]
+    print(f"{name}: interventions {s['intervention_pct']:.1f} % of decisions, false alarms "
+          f"{s['false_alarm_pct']:.1f} %; vs without: {verdicts[name]}")  # fmt: skip
+best_lane_row = traced_rows[0]  # (the best row on lane gaps)
+by_speed |= print_by_speed(
+    {"without": without, best_lane_row: guarded[best_lane_row][0]}
+    | {n: guarded[n][0] for n in profile_names},
+    "driver", "rail", "rail", lambda impact: sum(k == "rail" for _, k in impact),
+)  # fmt: skip
+
+# %% [markdown]
+# What the full-profile run found (README): the profile takes every cruise-speed collision out of
+# the perceived module's count, and does not lower the count. The best lane row drives 24
+# collisions (9 / 54 / 9 in 1,000 stored miles by speed under 10 / 10-20 / 20+ m/s); the perceived
+# profile 24, none at 20+ m/s; its control on the true profile 11. About half of what is left is
+# the head's reading (MAE 5-7 m at 10-40 m, and 2 % of free strips read as a car), the other half
+# the rule and its fallback: braking along the path from the first objection, 40-50 m short of
+# the car at 24 m/s, ends in it at 9-16 m/s, because the driver's heaviest mode promises a lane
+# change (the rule on the truth waits for it, "cannot stop" applies only to the lane the path
+# ends in) that the car then does not complete.
+
+# %% [markdown]
 # ## 3. Interventions, frame by frame
 #
 # What the network proposed (one colour per mode, its weight in the caption), why the module
@@ -1623,7 +1769,7 @@ artifacts.write_metrics(
             ],
             **{
                 f"with ({n}) collisions/100mi": result_dict(guarded[n][0])["collisions_per_100mi"]
-                for n, *_ in variants
+                for n in [v[0] for v in variants] + profile_names
             },
             **{
                 f"trained on {n}, collisions/100mi": result_dict(r)["collisions_per_100mi"]
@@ -1654,7 +1800,15 @@ artifacts.write_metrics(
         "results": {
             "without": {**result_dict(without), "events": None},
             "without, speed input >= median": {**result_dict(without_told), "events": None},
-            **{n: {**result_dict(guarded[n][0]), "events": None} for n, *_ in variants},
+            **{
+                n: {**result_dict(guarded[n][0]), "events": None}
+                for n in [v[0] for v in variants] + profile_names
+            },
+        },
+        "free_space": {
+            "seed0_by_true_distance": profile_error,
+            "free_m": profile_free_m,
+            "misread_offline": profile_offline,
         },
         "seeds": len(seeded),
         "gap_by_distance": by_distance,
@@ -1706,6 +1860,12 @@ artifacts.write_metrics(
 #   cruise speed (the gap of the lane in danger, most often the ego lane's as the network leaves
 #   it too late, and the lane geometry), not its brake alone; and nearly all of this driver's
 #   collisions come on sharp curves, where the head misreads most.
+# * Ask the camera for what it sees: a lane gap needs the camera to place a car in a lane, which
+#   fails with the car turned on a curve. A free-space profile in the car's own frame, read from
+#   the same trunk, catches most of the decisions the lane gaps let through and removes the
+#   cruise-speed collisions, and its true-profile control says how much of what is left is the
+#   head's reading and how much the rule and its brake, which arrive late when the driver's mode
+#   promises a lane change it does not complete.
 # * Caution has a price, measured here in interventions, false alarms and miles per hour.
 # * An intervention changes the states the network drives from: a module that brakes hands the
 #   car back at speeds the expert's data rarely shows (chapter 04). Who drove the last decision

@@ -786,3 +786,53 @@ def test_capping_a_batch_equals_np_interp_on_each_path_to_the_bit(seed, cap):
         want = np.stack([np.interp(covered, along, poly[:, c]) for c in (0, 1)], axis=1)
         moved = np.any(np.abs(covered - along[1:]) > 1e-9)
         np.testing.assert_array_equal(got, want if moved else path)
+
+
+class ProfileReader(BlindToCars):
+    """BlindToCars (no lane gap ever short) with a free-space "head": the exact profile, or
+    (``blind``) every strip at the cap."""
+
+    profile_head = "exact"
+
+    def __init__(self, blind: bool = False) -> None:
+        super().__init__()
+        self.blind = blind
+
+    def trajectories(self, obs: Observation) -> np.ndarray:
+        from e2e_lite.learning.freespace import N_STRIPS, free_profiles
+
+        pts = super().trajectories(obs)
+        exact = free_profiles(obs.worlds, obs.s, obs.d, obs.heading_error)
+        self.last["profile"] = np.full_like(exact, 60.0) if self.blind else exact
+        self.last["profile_free_m"] = np.full(N_STRIPS, 59.5)
+        return pts
+
+
+def test_the_module_can_read_parked_cars_from_a_free_space_profile():
+    from e2e_lite.experiments.ablation import fingerprint
+
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    alone = evaluate(StraightOn(), world, cfg, progress=False)
+    true = evaluate(SafeAgent(StraightOn(), ground_truth=True, audit=False, profile="true"), world,
+                    cfg, progress=False)  # fmt: skip
+    assert alone.collisions >= 3 and true.collisions < alone.collisions / 2
+    assert SafetyStats.from_info(true.info).kinds  # it intervened for the cars it saw
+    # an exact profile read by the driver drives as the true one; the lane gaps play no part
+    # (the driver's own gaps see nothing)
+    read = evaluate(SafeAgent(ProfileReader(), audit=False, profile="perceived"), world, cfg,
+                    progress=False)  # fmt: skip
+    assert read.events == true.events
+    # a profile blind to cars: no intervention, the driver alone
+    blind = evaluate(SafeAgent(ProfileReader(blind=True), audit=False, profile="perceived"),
+                     world, cfg, progress=False)  # fmt: skip
+    assert blind.events == alone.events
+    assert SafetyStats.from_info(blind.info).interventions == 0
+    plain = SafeAgent(StraightOn(), ground_truth=True, audit=False)
+    assert fingerprint(plain) != fingerprint(
+        SafeAgent(StraightOn(), ground_truth=True, audit=False, profile="true")
+    )
+    with pytest.raises(ValueError, match="profile_head"):
+        SafeAgent(StraightOn(), ground_truth=True, profile="perceived")
+    with pytest.raises(ValueError, match="profile="):
+        SafeAgent(StraightOn(), ground_truth=True, profile="lidar")

@@ -301,6 +301,8 @@ def fingerprint(policy: Policy) -> str:
         if policy.speed_input_floor_mps is not None:  # (likewise)
             parts.append(("speed_input_floor_mps", policy.speed_input_floor_mps))
         parts += [repr(policy.camera), str(policy.device)]
+        if getattr(policy, "profile_head", None) is not None:  # (only when set, likewise)
+            parts.append(("profile_head", weights_digest(policy.profile_head)))
     for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
         if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
             parts.append(repr(getattr(policy, attr)))
@@ -317,6 +319,8 @@ def fingerprint(policy: Policy) -> str:
             parts.append(("seer", fingerprint(policy.seer)))
         if getattr(policy, "vote", None) is not None:  # (likewise)
             parts.append(("vote", repr(policy.vote)))
+        if getattr(policy, "profile", None) is not None:  # (likewise)
+            parts.append(("profile", policy.profile))
         if getattr(policy, "trace_before_impact", 0):  # (likewise)
             parts.append(("trace", policy.trace_before_impact, RECORD_VERSION))
     return settings_key(*parts)

@@ -22,6 +22,7 @@ from ..config import check_range
 from ..control.expert import Expert
 from ..control.labels import AFFORDANCE_INDEX, AFFORDANCE_NAMES
 from ..learning.data import affordances
+from ..learning.freespace import N_STRIPS, PROFILE_CAP_M, free_profiles
 from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H
@@ -29,6 +30,8 @@ from ..simulation.world import SimConfig
 from .safety import Choice, SafetyConfig, Verdict, brake_along, cap_speed, check, choose
 from .traces import decision_record
 
+#: where :class:`SafeAgent` reads parked cars from (``None``: the lane gaps)
+PROFILES = (None, "perceived", "true")
 #: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
 COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
 TABLES = ("sources", "kinds", "at_impact", "before_impact")
@@ -186,6 +189,11 @@ class SafeAgent:
             and the check's verdict on the heaviest mode with both: when the rule with the true
             affordances first objected, and what the perceived module did from then on. Costs
             the true affordances and a second check per car per decision.
+        profile: check parked cars by the free-space profile in the car's frame
+            (:mod:`e2e_lite.experiments.freespace_rule`) instead of the lane gaps: ``"perceived"``
+            reads the driver's (a :class:`~e2e_lite.learning.agents.TrajectoryAgent` with a
+            ``profile_head``), ``"true"`` computes it from the world (the profile's upper bound;
+            free from 59.5 m); ``None``: the lane gaps.
     """
 
     def __init__(
@@ -200,7 +208,15 @@ class SafeAgent:
         seer: Any = None,
         vote: SafetyConfig | None = None,
         trace_before_impact: int = 0,
+        profile: str | None = None,
     ) -> None:
+        if profile not in PROFILES:
+            raise ValueError(
+                f"SafeAgent: profile={profile!r} is invalid: must be one of {PROFILES}"
+            )
+        if profile == "perceived" and getattr(agent, "profile_head", None) is None:
+            raise ValueError("SafeAgent: profile='perceived' needs an agent with a profile_head")
+        self.profile = profile
         check_range("SafeAgent", "audit_every", audit_every, 1, integer=True)
         check_range("SafeAgent", "trace_before_impact", trace_before_impact, 0, 1000, integer=True)
         unknown = sorted(set(true_affordances) - set(AFFORDANCE_NAMES))
@@ -316,6 +332,11 @@ class SafeAgent:
                 own[:, self._true_columns] = truth[:, self._true_columns]
             if self.cfg.gyro_heading:
                 own[:, _HEADING] = seen[:, _HEADING]
+        if self.profile == "true":
+            cap = np.full(N_STRIPS, PROFILE_CAP_M - 0.5)
+            reads = free_profiles(obs.worlds, obs.s, obs.d, obs.heading_error)
+        elif self.profile == "perceived":
+            cap, reads = self.agent.last["profile_free_m"], self.agent.last["profile"]
         chosen = np.empty_like(proposal)
         sources, kinds, audits, perceived = [], [], [], []
         # a persistence filter (confirm_decisions > 1); a re-placed car starts at 0
@@ -330,8 +351,10 @@ class SafeAgent:
 
         for i in range(len(proposal)):
             if self.cfg.check_proposals:
+                profile = None if self.profile is None else (reads[i], cap)
+                speed = float(obs.speed[i])
                 c = choose(
-                    modes[i], weights[i], seen[i], float(obs.speed[i]), obs.curvature[i], self.cfg
+                    modes[i], weights[i], seen[i], speed, obs.curvature[i], self.cfg, profile
                 )
             else:  # the control: the heaviest mode (capped with sight_speed), unchecked
                 c = heaviest(i)

@@ -38,6 +38,10 @@ braked along its own path (:func:`brake_along`): on perception, the lane fallbac
 of the very affordances that are wrong (chapter 11). With ``SafetyConfig.modes_only`` there is
 no fallback: none of the modes passing, the heaviest is driven as proposed (a control).
 
+Given a free-space profile (``check(..., profile=)``, chapter 11), steps 3 and 4 read the parked
+cars in the car's own frame instead of the lane gaps
+(:func:`~e2e_lite.experiments.freespace_rule.check_profile`); the road edges stay as in step 2.
+
 The driver that applies the rule to a trajectory network is :class:`~e2e_lite.experiments.safe_agent.SafeAgent`.
 """
 
@@ -55,6 +59,7 @@ from ..control.labels import (
     POINT_DT_S,
     along_path,
 )
+from .freespace_rule import check_profile
 
 _A = AFFORDANCE_INDEX
 _SUBSTEPS = 4  # interpolated positions per 0.3 s between points
@@ -211,6 +216,7 @@ def check(
     speed_mps: float,
     curvature: float,
     cfg: SafetyConfig | None = None,
+    profile: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Verdict:
     """Is following ``points`` safe, by the rule of the module docstring?
 
@@ -221,6 +227,10 @@ def check(
         speed_mps: the car's speed now [m/s].
         curvature: the road's curvature here [1/m] (left positive).
         cfg: the settings.
+        profile: ``(profile_m, free_m)``, a free-space profile and its thresholds (each
+            ``(15,)`` [m], :mod:`e2e_lite.learning.freespace`): parked cars are then checked in the
+            car's frame (:func:`~e2e_lite.experiments.freespace_rule.check_profile`) instead of
+            by the lane gaps, which are ignored; the road edges as above.
     """
     cfg = cfg or SafetyConfig()
     pts = np.asarray(points, dtype=np.float64)
@@ -244,6 +254,11 @@ def check(
                 "road edge",
                 k * POINT_DT_S / _SUBSTEPS,
             )
+    if profile is not None:  # parked cars as the camera sees them, in the car's frame
+        kind, near, t_s = check_profile(pts, *profile, speed_mps, curvature, cfg)
+        if not kind:
+            return Verdict(True)
+        return Verdict(False, f"{kind}: a car read {near:.0f} m ahead", "", kind, t_s)
     # 3. which lanes the body occupies, relative to the ego lane's centre
     width = max(2.0, a[_A["left_marking_m"]] + a[_A["right_marking_m"]])
     lateral = a[_A["center_offset_m"]] + delta
@@ -379,6 +394,7 @@ def choose(
     speed_mps: float,
     curvature: float,
     cfg: SafetyConfig | None = None,
+    profile: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Choice:
     """The fallback order: the heaviest mode if it passes, else the next heaviest that passes,
     else, with ``cfg.brake_along_path`` and the heaviest rejected for a parked car, the modes'
@@ -400,7 +416,8 @@ def choose(
     Args:
         modes: ``(K, 5, 2)`` proposals (K = 1 for a single trajectory) [m].
         weights: ``(K,)`` their weights.
-        aff, speed_mps, curvature, cfg: as :func:`check`.
+        aff, speed_mps, curvature, cfg, profile: as :func:`check` (every candidate is checked
+            with them).
 
     Returns:
         The :class:`Choice`; its ``verdicts`` hold one per mode checked (heaviest first), then,
@@ -412,7 +429,7 @@ def choose(
     order = np.argsort(-np.asarray(weights, dtype=np.float64), kind="stable")
     verdicts = []
     for rank, k in enumerate(order.tolist()):
-        verdict = check(modes[k], aff, speed_mps, curvature, cfg)
+        verdict = check(modes[k], aff, speed_mps, curvature, cfg, profile)
         verdicts.append(verdict)
         if verdict.ok:
             return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
@@ -422,7 +439,7 @@ def choose(
         heaviest = brake_along(modes[order[0]], speed_mps, cfg)
         for k in order.tolist():
             brake = heaviest if k == order[0] else brake_along(modes[k], speed_mps, cfg)
-            verdict = check(brake, aff, speed_mps, curvature, cfg)
+            verdict = check(brake, aff, speed_mps, curvature, cfg, profile)
             verdicts.append(verdict)
             if verdict.ok:
                 return Choice(brake, "fallback", verdicts)
@@ -432,7 +449,7 @@ def choose(
         heading_to = end_lateral(modes[order[0]], aff, curvature) / lane_width(aff)
         for lanes in sorted((0, 1, -1), key=lambda n: (abs(heading_to - n), abs(n))):
             brake = brake_to_lane(aff, speed_mps, curvature, lanes, cfg)
-            verdict = check(brake, aff, speed_mps, curvature, cfg)
+            verdict = check(brake, aff, speed_mps, curvature, cfg, profile)
             verdicts.append(verdict)
             if verdict.ok:
                 return Choice(brake, "fallback", verdicts)
@@ -440,7 +457,7 @@ def choose(
     brake = keep_lane_brake(aff, speed_mps, curvature, cfg)
     if not cfg.check_fallback:
         return Choice(brake, "fallback", verdicts)
-    brake_verdict = check(brake, aff, speed_mps, curvature, cfg)
+    brake_verdict = check(brake, aff, speed_mps, curvature, cfg, profile)
     verdicts.append(brake_verdict)
     if brake_verdict.ok or brake_verdict.kind == "cannot stop":
         return Choice(brake, "fallback", verdicts)
