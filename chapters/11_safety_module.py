@@ -1254,7 +1254,9 @@ else:
 # heading and the road edges, the gyro heading at camera weight 0.03, braking along the path):
 # the perceived profile, and its control, the same rule on the true profile (computed from the
 # world at every decision, 59.5 m for "nothing seen"; heading and edges still perceived), which
-# separates what the head reads from what the rule and its fallback do.
+# separates what the head reads from what the rule and its fallback do; and the rule's ceiling,
+# the true profile with the true geometry and the lane fallback (braking to a lane centre, as the
+# ground-truth row of section 2 does).
 
 # %%
 profile_rows = (
@@ -1263,6 +1265,9 @@ profile_rows = (
      [{"profile_head": h} for h in profile_heads]),
     ("free-space profile (true), approach views + brake along path + gyro heading, camera weight "
      "0.03", "profiletrue_gyro003", steady, {"profile": "true"}, approached),
+    ("free-space profile (true), true geometry, lane fallback", "profiletrue_truegeometry_lanes",
+     [dataclasses.replace(c, brake_along_path=False) for c in steady],
+     {"profile": "true", "true_affordances": GEOMETRY}, approached),
 )  # fmt: skip
 for name, tag, settings, perceives, heads, *agent_kw in profile_rows:
     pooled, stats[name], first, _ = drive_guarded(
