@@ -1261,7 +1261,7 @@ else:
 # %%
 profile_rows = (
     ("free-space profile (perceived), approach views + brake along path + gyro heading, camera "
-     "weight 0.03", "profile_gyro003", steady, {"profile": "perceived"}, approached,
+     "weight 0.03", "profile_gyro003", steady, {"profile": "perceived", **TRACED}, approached,
      [{"profile_head": h} for h in profile_heads]),
     ("free-space profile (true), approach views + brake along path + gyro heading, camera weight "
      "0.03", "profiletrue_gyro003", steady, {"profile": "true"}, approached),
@@ -1270,10 +1270,12 @@ profile_rows = (
      {"profile": "true", "true_affordances": GEOMETRY}, approached),
 )  # fmt: skip
 for name, tag, settings, perceives, heads, *agent_kw in profile_rows:
-    pooled, stats[name], first, _ = drive_guarded(
+    pooled, stats[name], first, per_seed = drive_guarded(
         f"11_{key}_{tag}", f"with the module ({name})", heads, settings, perceives, *agent_kw
     )
     guarded[name] = (pooled, first)
+    if perceives.get("trace_before_impact"):  # (the traced row: its last 4 s before each)
+        before_collision[name] = danger_summary([t for traced in per_seed for t in traced])
     verdicts[name] = compare_rates(pooled, without)["verdict"]
 profile_names = [name for name, *_ in profile_rows]
 print(results_table([(f"{label} + safety module ({n})", guarded[n][0]) for n in profile_names],
@@ -1283,6 +1285,13 @@ for name in profile_names:
     s = stats[name]
     print(f"{name}: interventions {s['intervention_pct']:.1f} % of decisions, false alarms "
           f"{s['false_alarm_pct']:.1f} %; vs without: {verdicts[name]}")  # fmt: skip
+for name in profile_names:
+    if before_collision.get(name, {}).get("with_truth_objecting"):
+        m = before_collision[name]["median"]
+        print(f"{name}, medians over its collisions: the rule on the truth objected "
+              f"{m['lead_s']} s before the impact at {m['speed_then_mps']} m/s; at the last "
+              f"decision {m['speed_last_mps']} m/s; {100 * m['overridden']:.0f} % of the decisions "
+              "in danger overridden")  # fmt: skip
 best_lane_row = traced_rows[0]  # (the best row on lane gaps)
 by_speed |= print_by_speed(
     {"without": without, best_lane_row: guarded[best_lane_row][0]}
@@ -1291,15 +1300,19 @@ by_speed |= print_by_speed(
 )  # fmt: skip
 
 # %% [markdown]
-# What the full-profile run found (README): the profile takes every cruise-speed collision out of
-# the perceived module's count, and does not lower the count. The best lane row drives 24
-# collisions (9 / 54 / 9 in 1,000 stored miles by speed under 10 / 10-20 / 20+ m/s); the perceived
-# profile 24, none at 20+ m/s; its control on the true profile 11. About half of what is left is
-# the head's reading (MAE 5-7 m at 10-40 m, and 2 % of free strips read as a car), the other half
-# the rule and its fallback: braking along the path from the first objection, 40-50 m short of
-# the car at 24 m/s, ends in it at 9-16 m/s, because the driver's heaviest mode promises a lane
-# change (the rule on the truth waits for it, "cannot stop" applies only to the lane the path
-# ends in) that the car then does not complete.
+# What the full-profile run found (README). Offline, the profile rule rejects 83 of the 104
+# misread decisions (the true profile 96). In closed loop the perceived profile drives 21
+# collisions, as many as the driver without the module (21, every one at 20+ m/s), and one at
+# 20+ m/s (the best lane row: 24, 3 of them at 20+ m/s): the profile sees the cars the lane gaps
+# misplaced, and the brake then arrives too late to stop. The true profile with the same brake
+# drives 11 (p = 0.08), so the head's reading (MAE 5-8 m at 10-40 m; 2 % of free strips read as a
+# car) costs about 10; the rest is the rule and its brake: braking along the path from the first
+# objection, 40-50 m short of the car at 24 m/s, ends in it at 9-16 m/s, because the driver's
+# heaviest mode promises a lane change (the rule waits for it: "cannot stop" applies to the lane
+# the path ends in) that the car then does not complete. With the true geometry and the lane
+# fallback the true profile drives 6 (p = 0.004): the rule itself is sound when what it reads
+# is. Strips within 10 m to the side lie outside the camera's view and read free (the 0-10 m
+# row above), so a lane fallback on the perceived profile cannot check the lane it swerves into.
 
 # %% [markdown]
 # ## 3. Interventions, frame by frame
