@@ -21,6 +21,7 @@ from e2e_lite.learning.freespace import (
     fit_profile_head,
     free_profile,
     free_profiles,
+    in_view,
     load_or_label,
     profile_head_or_load,
 )
@@ -190,3 +191,11 @@ def test_labels_are_stored_and_read_back(monkeypatch):
     first = load_or_label(data, cfg, progress=False)
     second = load_or_label(data, cfg, progress=False)
     assert np.array_equal(first, second) and len(calls) == 1
+
+
+def test_strips_beside_the_car_are_out_of_the_cameras_view():
+    near = in_view(np.full(N_STRIPS, 2.0), 50.0, 1.5)  # 4.1 m ahead of the lens: +-1.9 m seen
+    assert near[CENTRE] and near[CENTRE - 2] and near[CENTRE + 2]
+    assert not near[CENTRE + 3] and not near[0]
+    assert in_view(np.full(N_STRIPS, 20.0), 50.0, 1.5).all()  # 22.1 m ahead: +-10.3 m seen
+    assert not in_view(np.full(N_STRIPS, 0.0), 10.0, 1.5)[CENTRE + 1]  # a narrow lens

@@ -86,6 +86,18 @@ def free_profile(world: World, s: float, d: float, heading_error: float) -> np.n
     return out
 
 
+def in_view(
+    distance_m: np.ndarray, hfov_deg: float, camera_ahead_m: float, front_m: float = 3.6
+) -> np.ndarray:
+    """Whether each strip at ``distance_m`` from the front bumper (``(..., N_STRIPS)`` [m]) lies
+    in a camera's horizontal field of view ``hfov_deg`` [deg] from ``camera_ahead_m`` ahead of
+    the rear axle (the strip's nearer side must be in view; ``front_m``: rear axle to front bumper
+    [m]): strips to the side close to the car do not."""
+    ahead = np.asarray(distance_m, dtype=float) + front_m - camera_ahead_m
+    side = np.maximum(np.abs(STRIP_CENTRES_M) - STRIP_HALF_M, 0.0)
+    return ahead * np.tan(np.radians(hfov_deg) / 2.0) >= side
+
+
 def free_profiles(
     worlds: list[World], s: np.ndarray, d: np.ndarray, heading_error: np.ndarray
 ) -> np.ndarray:
