@@ -81,7 +81,7 @@ from e2e_lite.learning.data import (
     load_or_collect,
 )
 from e2e_lite.learning.dataset import concat
-from e2e_lite.learning.freespace import free_profile, in_view, load_or_label
+from e2e_lite.learning.freespace import STRIP_CENTRES_M, free_profile, in_view, load_or_label
 from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 from e2e_lite.learning.recovery import ApproachConfig, load_or_make_approach
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
@@ -1218,6 +1218,34 @@ print("thresholds per training seed: " + "; ".join(
     f"seed {k} {min(f):.1f}-{max(f):.1f} m" for k, f in enumerate(profile_free_m)))  # fmt: skip
 
 # %% [markdown]
+# What the head reads, on three validation frames with the most strips holding a car 10-40 m
+# ahead in the camera's view: the camera's image, and the profile seen from above (the car at the
+# bottom, left on the left): the true distance to a car per strip as a grey bar (none: the strip
+# is free), the head's read as a blue dot, each strip's "nothing seen" threshold as a red tick.
+
+# %%
+busy = ((val_profile >= 10.0) & (val_profile < 40.0) & seen_strip).sum(axis=1)
+shown = np.argsort(-busy, kind="stable")[:3]
+fig = Figure(figsize=(10, 6.6), layout="constrained")
+axes = fig.subplots(len(shown), 2, width_ratios=(1.6, 1), squeeze=False)
+for (ax_img, ax_top), j in zip(axes, shown):
+    ax_img.imshow(a["images"][rows[j]])
+    ax_img.set_axis_off()
+    ax_img.set_title(
+        f"validation frame {rows[j]}, {a['speed'][rows[j]]:.0f} m/s", fontsize=8, loc="left"
+    )
+    car = val_profile[j] < GAP_CAP_M  # (a free strip gets no bar)
+    ax_top.bar(STRIP_CENTRES_M[car], val_profile[j][car], width=0.8, color="0.75", label="true")
+    ax_top.plot(STRIP_CENTRES_M, profile_read[j], "o", color="tab:blue", ms=4, label="read")
+    ax_top.plot(STRIP_CENTRES_M, profile_heads[0].free_m.numpy(), "_", color="tab:red", ms=8,
+                label="nothing seen from")  # fmt: skip
+    ax_top.set(xlim=(7.6, -7.6), ylim=(0, GAP_CAP_M + 3), ylabel="ahead of the bumper [m]")
+axes[-1][1].set_xlabel("strip centre, left of the car [m]")
+fig.legend(*axes[0][1].get_legend_handles_labels(), loc="outside upper right", ncols=3, fontsize=8)
+profile_png = save_figure(fig, artifacts.artifact_path("figures", "11_free_space.png"))
+print(f"saved {profile_png}")
+
+# %% [markdown]
 # Strips within 10 m of the bumper to the side lie outside the camera's 50 degree field of view
 # (`freespace.in_view`): the head reads them free, and the profile cannot see a car beside the
 # car. In view, the error is the last column's.
@@ -1858,7 +1886,7 @@ artifacts.write_metrics(
         "table_md": table,
         "lines": lines,
     },
-    figures=(rows_png, traces_png, misread_png, grid_png, data_png),
+    figures=(rows_png, traces_png, misread_png, grid_png, data_png, profile_png),
 )
 
 # %% [markdown]
