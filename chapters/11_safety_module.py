@@ -1342,12 +1342,11 @@ by_speed |= print_by_speed(
 # the module overrode 87 % of the decisions from then on, and the car still arrived at 11.7 m/s
 # (medians): it sees the car and brakes too late to stop. The true profile with the same brake
 # drives 11 (p = 0.08), so the head's reading (MAE 5.5-8.2 m at 10-40 m; 1.8 % of free strips read
-# as a car) costs about 10; the rest is the rule and its brake, which wait while the driver's
-# heaviest mode promises a lane change ("cannot stop" applies to the lane the path ends in) that
-# the car then does not complete. With the true geometry and the lane fallback the true profile
-# drives 6 (p = 0.004): the rule itself is sound when what it reads is. Strips within 10 m to
-# the side lie outside the camera's view and read free (the 0-10 m row above), so a lane
-# fallback on the perceived profile cannot check the lane it swerves into.
+# as a car) costs about 10; the rest is the rule and its brake along the path. With the true
+# geometry and the lane fallback the true profile drives 6 (p = 0.004): the rule is sound when
+# what it reads is. Strips within 10 m to the side lie outside the camera's view and read free
+# (the 0-10 m row above), so a lane fallback on the perceived profile cannot check the lane it
+# swerves into.
 
 # %% [markdown]
 # ## 3. Interventions, frame by frame
