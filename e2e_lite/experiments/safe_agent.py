@@ -165,8 +165,9 @@ class SafeAgent:
         cfg: the check's settings.
         ground_truth: check with the world's true affordances instead of the network's
             predictions (the upper bound; needs no affordance head).
-        audit: at every intervention, also ask a fresh expert and the ground-truth check whether
-            it was needed (the false-alarm counts; costs time).
+        audit: at every intervention, also ask a fresh expert and the ground-truth check (the
+            lane rule on the true affordances, also with a ``profile``) whether it was needed
+            (the false-alarm counts; costs time).
         audit_every: audit one intervention in this many (1: all; the rates are then
             estimated from that sample).
         keep_examples: interventions kept per shard for figures (JSON-able, see above).
