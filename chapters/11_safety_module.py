@@ -1999,3 +1999,10 @@ artifacts.write_metrics(
 #    new name) and drive the best perceived row's settings. Does the gap ahead on turned
 #    frames improve on the validation views, and do the collisions move? If not, what does that
 #    say about where the head's errors come from?
+# 10. The free-space rule counts a strip when the body overlaps it by more than 0.2 m
+#     (`freespace_rule.STRIP_OVERLAP_M`). Drive the true-profile row (`SafeAgent(...,
+#     profile="true")`) with it at 0 and the body wider (`SafetyConfig(car_width_m=2.2)`): more
+#     caution, so fewer collisions? Compare the speeds at impact and the stalls with the row above,
+#     and explain what you see with section 5. Then fit the free-space head on the trunk's fourth
+#     convolution (64 x 3 x 20: more rows of the image) instead of its output: does it read the
+#     distances better, and what bounds how well any head can read them from a 66 x 200 frame?
