@@ -86,7 +86,7 @@ class ChapterInfo(NamedTuple):
 # other row read back, against about 2 min reading all back, 158; quick 25.4 s from an empty
 # folder, 36 s scaled by 25.4 / 20.9, 44. Since 9e96769 (the free-space profile: labels for the
 # 56k training frames and views, about 20 s; three head fits of about 1 min; three rows of
-# 4.2-4.6 min each as session 33's scripts drove them, the traced one about 1 min longer): about
+# 4.2-4.6 min each as session 32's scripts drove them, the traced one about 1 min longer): about
 # 18 min more, estimated from those parts, 176; quick 27.3 s from an empty folder on the second
 # machine, 36 s scaled by 27.3 / 20.9, 47.
 CHAPTERS: dict[int, ChapterInfo] = {
