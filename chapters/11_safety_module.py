@@ -124,15 +124,18 @@ model = perceivers[0]  # section 1 probes training seed 0; section 2 drives ever
 agent = TrajectoryAgent(model)
 
 
-def perceive(agent: TrajectoryAgent, data, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The network's affordances (N, 9) and the trajectories it would follow (N, 5, 2) [m] on
-    the dataset's ``rows``, 256 frames at a time."""
-    arrays, affs, points = data.arrays, [], []
+def perceive(
+    agent: TrajectoryAgent, data, rows: np.ndarray, what: str = "affordances"
+) -> tuple[np.ndarray, np.ndarray]:
+    """The network's affordances (N, 9) (or another of its readings, ``what``: e.g. the
+    free-space ``"profile"``) and the trajectories it would follow (N, 5, 2) [m] on the
+    dataset's ``rows``, 256 frames at a time."""
+    arrays, reads, points = data.arrays, [], []
     for i in range(0, len(rows), 256):
         batch = rows[i : i + 256]
         points.append(agent.trajectories_from(arrays["images"][batch], arrays["speed"][batch]))
-        affs.append(agent.last["affordances"])  # filled by the same call
-    return np.concatenate(affs), np.concatenate(points)
+        reads.append(agent.last[what])  # filled by the same call
+    return np.concatenate(reads), np.concatenate(points)
 
 
 rows = np.arange(0, len(val), max(1, len(val) // 4000))  # up to ~4,000 samples
@@ -1185,12 +1188,7 @@ profile_heads = [
 ]
 val_profile = load_or_label(val, val_cfg)[rows]  # (the validation rows of section 1)
 profile_reader = TrajectoryAgent(approached[0], profile_head=profile_heads[0])
-profile_read = []
-for i in range(0, len(rows), 256):
-    batch = rows[i : i + 256]
-    profile_reader.trajectories_from(a["images"][batch], a["speed"][batch])
-    profile_read.append(profile_reader.last["profile"])
-profile_read = np.concatenate(profile_read)
+profile_read = perceive(profile_reader, val, rows, "profile")[0]
 profile_error = {}
 lens = profile_reader.camera  # (where the camera sees: strips close beside the car it does not)
 seen_strip = in_view(val_profile, lens.hfov_deg, lens.forward_offset_m)

@@ -78,7 +78,7 @@ def test_the_rule_reads_the_strips_the_body_sweeps():
     def verdict(points, centres, distance):
         p = profile.copy()
         p[np.isin(STRIP_CENTRES_M, centres)] = distance
-        return check_profile(points, p, FREE, 25.0, 0.0, cfg)[0]
+        return check_profile(points, p, FREE, 0.0, cfg)[0]
 
     ahead = np.stack([25.0 * T, 0.0 * T], axis=1)
     u = T / T[-1]

@@ -73,6 +73,21 @@ def throttle_brake(accel_mps2: np.ndarray, vehicle: VehicleParams) -> tuple[np.n
     return np.maximum(a, 0.0) / vehicle.max_accel_mps2, np.maximum(-a, 0.0) / vehicle.max_brake_mps2
 
 
+#: Positions interpolated per 0.3 s between a trajectory's points (:func:`interpolated_path`).
+PATH_SUBSTEPS = 4
+
+
+def interpolated_path(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rear axle's positions between the origin and a trajectory's 5 points ``(5, 2)`` [m],
+    :data:`PATH_SUBSTEPS` per 0.3 s: ``(x, y, t)`` [m, m, s] (what the safety rules sweep the
+    body along)."""
+    pts = np.concatenate([np.zeros((1, 2)), np.asarray(points, dtype=np.float64)])
+    u = np.linspace(0.0, N_POINTS, N_POINTS * PATH_SUBSTEPS + 1)
+    x = np.interp(u, np.arange(N_POINTS + 1), pts[:, 0])
+    y = np.interp(u, np.arange(N_POINTS + 1), pts[:, 1])
+    return x, y, u * POINT_DT_S
+
+
 def along_path(points: np.ndarray, progress: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     """Trajectories ``(..., 5, 2)`` [m] re-timed along their own paths: each point moved along its
     polyline (from the origin) to the distance ``progress(along)`` [m], where ``along`` ``(M, 5)``

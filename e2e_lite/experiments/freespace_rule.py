@@ -21,14 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from ..control.labels import N_POINTS, POINT_DT_S
-from ..learning.freespace import STRIP_CENTRES_M, STRIP_HALF_M
+from ..control.labels import N_POINTS, POINT_DT_S, interpolated_path
+from ..learning.freespace import FRONT_M, STRIP_CENTRES_M, STRIP_HALF_M
 
 #: How far a body must overlap a strip to meet what is in it [m].
 STRIP_OVERLAP_M = 0.2
-#: The rear axle to the front bumper [m] (the course's car: 4.5 m long, 0.9 m rear overhang).
-FRONT_M = 3.6
-_SUBSTEPS = 4  # interpolated positions per 0.3 s between points
 
 
 def nearest_car(
@@ -42,11 +39,29 @@ def nearest_car(
     return np.where(overlap > STRIP_OVERLAP_M, seen[None], np.inf).min(axis=1)
 
 
+def _meets(
+    x: np.ndarray,
+    y: np.ndarray,
+    slope: np.ndarray | float,
+    profile_m: np.ndarray,
+    free_m: np.ndarray,
+    cfg: Any,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The body at rear-axle positions ``(x, y)`` [m] heading along ``slope`` (dy/dx): whether
+    its front reaches a car read in the strips it overlaps, and that car's distance [m]."""
+    half = cfg.car_width_m / 2.0
+    y_front = y + slope * FRONT_M
+    near = nearest_car(
+        profile_m, free_m, np.minimum(y, y_front) - half, np.maximum(y, y_front) + half
+    )
+    hit = (x > near - cfg.margin_m) & (x - cfg.car_length_m < near + cfg.parked_length_m)
+    return hit, near
+
+
 def check_profile(
     points: np.ndarray,
     profile_m: np.ndarray,
     free_m: np.ndarray,
-    speed_mps: float,
     curvature: float,
     cfg: Any,
 ) -> tuple[str, float, float]:
@@ -56,7 +71,6 @@ def check_profile(
         points: the proposal, rear-axle positions 0.3 s apart [m].
         profile_m: ``(15,)`` distances from the front bumper per strip [m].
         free_m: ``(15,)`` (or a scalar) reads from which a strip is free [m].
-        speed_mps: the car's speed now [m/s] (unused: the stop is from the proposal's end).
         curvature: the road's curvature [1/m] (left positive), for the stop's extrapolation.
         cfg: the lengths and margins (a :class:`~e2e_lite.experiments.safety.SafetyConfig`; that
             module imports this one).
@@ -65,30 +79,18 @@ def check_profile(
         ``(kind, distance_m, t_s)``: kind ``""`` (nothing met), ``"collision course"`` or
         ``"cannot stop"``; the car's read distance [m]; when the violation begins [s].
     """
-    del speed_mps
-    half = cfg.car_width_m / 2.0
-    pts = np.concatenate([np.zeros((1, 2)), np.asarray(points, dtype=np.float64)])
-    u = np.linspace(0.0, N_POINTS, N_POINTS * _SUBSTEPS + 1)
-    x = np.interp(u, np.arange(N_POINTS + 1), pts[:, 0])
-    y = np.interp(u, np.arange(N_POINTS + 1), pts[:, 1])
-    forward = np.all(np.diff(x) > 1e-6)
-    slope = np.gradient(y, x) if forward else np.zeros_like(x)
-    y_front = y + slope * FRONT_M
-    near = nearest_car(
-        profile_m, free_m, np.minimum(y, y_front) - half, np.maximum(y, y_front) + half
-    )
-    hit = (x > near - cfg.margin_m) & (x - cfg.car_length_m < near + cfg.parked_length_m)
+    pts = np.asarray(points, dtype=np.float64)
+    x, y, t = interpolated_path(pts)
+    slope = np.gradient(y, x) if np.all(np.diff(x) > 1e-6) else np.zeros_like(x)
+    hit, near = _meets(x, y, slope, profile_m, free_m, cfg)
     if hit.any():
         k = int(np.argmax(hit))
-        return "collision course", float(near[k]), float(u[k] * POINT_DT_S)
+        return "collision course", float(near[k]), float(t[k])
     v_end = float(np.hypot(*(pts[-1] - pts[-2]))) / POINT_DT_S
     need = v_end * cfg.reaction_s + v_end**2 / (2.0 * cfg.brake_mps2)
     ahead = np.arange(0.0, need + 0.01, 1.0)
-    x_e = x[-1] + ahead
     y_e = y[-1] + slope[-1] * ahead + curvature * ahead**2 / 2.0
-    y_f = y_e + slope[-1] * FRONT_M
-    near = nearest_car(profile_m, free_m, np.minimum(y_e, y_f) - half, np.maximum(y_e, y_f) + half)
-    hit = (x_e > near - cfg.margin_m) & (x_e - cfg.car_length_m < near + cfg.parked_length_m)
+    hit, near = _meets(x[-1] + ahead, y_e, slope[-1], profile_m, free_m, cfg)
     if hit.any():
         return "cannot stop", float(near[int(np.argmax(hit))]), N_POINTS * POINT_DT_S
     return "", float("inf"), float("inf")

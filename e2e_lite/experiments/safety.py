@@ -56,13 +56,14 @@ from ..control.labels import (
     AFFORDANCE_INDEX,
     GAP_CAP_M,
     N_POINTS,
+    PATH_SUBSTEPS,
     POINT_DT_S,
     along_path,
+    interpolated_path,
 )
 from .freespace_rule import check_profile
 
 _A = AFFORDANCE_INDEX
-_SUBSTEPS = 4  # interpolated positions per 0.3 s between points
 
 
 @dataclass(frozen=True)
@@ -201,15 +202,6 @@ class Verdict:
     t_s: float = float("inf")  # when the violation begins [s] (the horizon's end for "cannot stop")
 
 
-def _path(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions interpolated between the origin and the 5 points: ``(x, y, t)``."""
-    pts = np.concatenate([np.zeros((1, 2)), np.asarray(points, dtype=np.float64)])
-    u = np.linspace(0.0, N_POINTS, N_POINTS * _SUBSTEPS + 1)
-    x = np.interp(u, np.arange(N_POINTS + 1), pts[:, 0])
-    y = np.interp(u, np.arange(N_POINTS + 1), pts[:, 1])
-    return x, y, u * POINT_DT_S
-
-
 def check(
     points: np.ndarray,
     aff: np.ndarray,
@@ -237,7 +229,7 @@ def check(
     if pts.shape != (N_POINTS, 2) or not np.all(np.isfinite(pts)):
         return Verdict(False, "the proposal is not 5 finite points", kind="invalid", t_s=0.0)
     a = np.asarray(aff, dtype=np.float64)
-    x, y, _ = _path(pts)
+    x, y, _ = interpolated_path(pts)
     delta = y + a[_A["heading_rad"]] * x - curvature * x * x / 2.0
     half = cfg.car_width_m / 2.0
     # 2. road edges
@@ -249,13 +241,13 @@ def check(
             return Verdict(
                 False,
                 f"leaves the road on the {side} ({excess.max():.2f} m past the edge, "
-                f"{k * POINT_DT_S / _SUBSTEPS:.1f} s ahead)",
+                f"{k * POINT_DT_S / PATH_SUBSTEPS:.1f} s ahead)",
                 side,
                 "road edge",
-                k * POINT_DT_S / _SUBSTEPS,
+                k * POINT_DT_S / PATH_SUBSTEPS,
             )
     if profile is not None:  # parked cars as the camera sees them, in the car's frame
-        kind, near, t_s = check_profile(pts, *profile, speed_mps, curvature, cfg)
+        kind, near, t_s = check_profile(pts, *profile, curvature, cfg)
         if not kind:
             return Verdict(True)
         return Verdict(False, f"{kind}: a car read {near:.0f} m ahead", "", kind, t_s)
@@ -285,10 +277,10 @@ def check(
             return Verdict(
                 False,
                 f"runs into the car {gap:.0f} m ahead in the {lane} lane "
-                f"({k * POINT_DT_S / _SUBSTEPS:.1f} s ahead)",
+                f"({k * POINT_DT_S / PATH_SUBSTEPS:.1f} s ahead)",
                 lane,
                 "collision course",
-                k * POINT_DT_S / _SUBSTEPS,
+                k * POINT_DT_S / PATH_SUBSTEPS,
             )
         # 4b. ending the 1.5 s in that lane (its centre line inside it): can it stop in time?
         ends_here = abs(lateral[-1] - offset) <= width / 2

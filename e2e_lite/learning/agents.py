@@ -219,6 +219,8 @@ class TrajectoryAgent(NetworkAgent):
                 f"a profile head reads a fusion model's trunk, not a {type(model).__name__}'s"
             )
         self.profile_head = None if profile_head is None else profile_head.eval().to(self.device)
+        # (its thresholds, read once: the same array every decision)
+        self._free_m = None if profile_head is None else profile_head.free_m.double().cpu().numpy()
         check_reading("TrajectoryAgent", preview_s, speed, SPEED_SOURCES)
         if decode not in DECODES:
             raise ValueError(
@@ -251,7 +253,7 @@ class TrajectoryAgent(NetworkAgent):
         if head is not None:
             with torch.inference_mode():
                 extra["profile"] = head(outputs["trunk"]).double().cpu().numpy()
-            extra["profile_free_m"] = head.free_m.double().cpu().numpy()
+            extra["profile_free_m"] = self._free_m
         if not isinstance(HEADS[model.cfg.head], GMM):  # a point estimate of the trajectory
             pts = model.denormalise(out).reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy()
             self.last = {"points": pts, **extra}

@@ -35,6 +35,7 @@ from torch import nn
 from ..artifacts import artifact_path, cached, settings_key
 from ..config import check_range, tqdm
 from ..control.labels import GAP_CAP_M
+from ..simulation.vehicle import VehicleParams
 from .dataset import DrivingData, DrivingDataset
 from .models import TRUNK_FEATURES, DrivingModel
 from .probes import _standardiser, layer_features
@@ -49,6 +50,8 @@ STRIP_HALF_M = 0.5
 N_STRIPS = len(STRIP_CENTRES_M)
 #: A strip with nothing nearer reads this [m] (the lane gaps' cap).
 PROFILE_CAP_M = GAP_CAP_M
+#: The course's car, rear axle to front bumper [m].
+FRONT_M = VehicleParams().length_m - VehicleParams().rear_overhang_m
 _OUTLINE = np.linspace(0.0, 1.0, 13)[:-1]  # 12 points along each of a box's 4 edges
 
 
@@ -87,7 +90,7 @@ def free_profile(world: World, s: float, d: float, heading_error: float) -> np.n
 
 
 def in_view(
-    distance_m: np.ndarray, hfov_deg: float, camera_ahead_m: float, front_m: float = 3.6
+    distance_m: np.ndarray, hfov_deg: float, camera_ahead_m: float, front_m: float = FRONT_M
 ) -> np.ndarray:
     """Whether each strip at ``distance_m`` from the front bumper (``(..., N_STRIPS)`` [m]) lies
     in a camera's horizontal field of view ``hfov_deg`` [deg] from ``camera_ahead_m`` ahead of
@@ -111,18 +114,15 @@ def profile_labels(data: DrivingData, data_cfg: DataConfig, progress: bool = Tru
     """The free-space profile of every frame of ``data`` (recorded with ``data_cfg``, or views
     made from such frames), ``(N, N_STRIPS)`` float32 [m]: rebuilt from each frame's track,
     ``(s, d)`` and heading to the road (the first affordance)."""
-    from ..simulation.world import make_world
+    from .recovery import _world_cache  # (the simulator: only where labels are made)
 
     a = data.arrays
-    made: dict[int, World] = {}
+    worlds = _world_cache(data_cfg)(a["track"])  # (each track built once)
     out = np.empty((len(data), N_STRIPS), dtype=np.float32)
     bar = tqdm(range(len(data)), desc="free-space labels", unit="frame", disable=not progress)
     for i in bar:
-        t = int(a["track"][i])
-        if t not in made:
-            made[t] = make_world(data_cfg.world, data_cfg.split, t)
         heading = float(a["affordances"][i, 0])
-        out[i] = free_profile(made[t], float(a["s"][i]), float(a["d"][i]), heading)
+        out[i] = free_profile(worlds[i], float(a["s"][i]), float(a["d"][i]), heading)
     return out
 
 
