@@ -388,6 +388,37 @@ def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
     assert set(stats["at_impact"]) <= {"network", "other mode", "fallback"}
 
 
+class Watched(SafeAgent):
+    """The module, keeping each decision's sources and commanded accelerations."""
+
+    def act(self, obs: Observation) -> Actuation:
+        out = super().act(obs)
+        self.__dict__.setdefault("seen", []).append((list(self.last["sources"]), out.accel_mps2))
+        return out
+
+
+def test_an_emergency_brake_stops_where_the_trackers_brake_cannot():
+    """Parked cars seen from 28 m only, at 20 m/s: braking at the tracker's 6 m/s^2 needs
+    4 + 33 + 2 m to stop, the car's full 8 m/s^2 4 + 25 + 2 m."""
+    world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    runs = {}
+    for emergency in (None, 8.0):
+        how = SafetyConfig(gap_free_m=28.0, fallback_lanes=False, emergency_brake_mps2=emergency)
+        agent = Watched(StraightOn(), how, ground_truth=True)
+        runs[emergency] = (evaluate(agent, world, cfg, progress=False), agent.seen)
+    tracker_brake, emergency = runs[None][0], runs[8.0][0]
+    assert tracker_brake.car_collisions >= 3 and emergency.collisions == 0  # (4 and 0 here)
+    for sources, accel in runs[8.0][1]:  # the fallback's cars at -8, every other as tracked
+        fallback = np.array(sources) == "fallback"
+        assert np.all(accel[fallback] == -8.0) and np.all(accel[~fallback] >= -6.0)
+    assert any("fallback" in sources for sources, _ in runs[8.0][1])
+    assert "emergency_brake_mps2=8.0" in repr(SafetyConfig(emergency_brake_mps2=8.0))
+    assert "emergency" not in repr(SafetyConfig())  # stored results keep their keys
+    with pytest.raises(ValueError, match="emergency_brake_mps2"):
+        SafetyConfig(emergency_brake_mps2=0.0)
+
+
 def test_the_speed_cap_alone_slows_the_driver_and_unchecked_it_is_the_driver_alone():
     """``check_proposals=False`` is the control: without ``sight_speed`` it drives exactly what
     the driver alone drives; with it, the same paths no faster than the sight allows."""

@@ -449,7 +449,12 @@ class SafeAgent:
         if len(self._overrode) == len(sources):
             self._overrode = np.roll(self._overrode, -1, axis=1)
             self._overrode[:, -1] = [src != "network" for src in sources]
-        return dataclasses.replace(self.agent.follow(chosen, obs), info=info)
+        out = self.agent.follow(chosen, obs)
+        if self.cfg.emergency_brake_mps2 is not None:  # the fallback brakes at it
+            accel = np.array(out.accel_mps2, dtype=np.float64)
+            accel[np.array(sources) == "fallback"] = -self.cfg.emergency_brake_mps2
+            out = dataclasses.replace(out, accel_mps2=accel)
+        return dataclasses.replace(out, info=info)
 
     def _fused_heading(self, obs: Observation, camera: np.ndarray) -> np.ndarray:
         """The perceived heading fused with each car's yaw change since the last decision

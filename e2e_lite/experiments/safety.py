@@ -123,6 +123,12 @@ class SafetyConfig:
             the heaviest, driven as proposed (no braking fallback; the source stays "network").
             The control that separates what the module's braking costs (the slow states it
             leaves the car in) from what its perception costs (chapter 11).
+        emergency_brake_mps2: the fallback's deceleration [m/s^2]: a car the module falls back
+            for (source ``"fallback"``) is braked at this, the tracker's steering kept (an
+            emergency brake; the car's own limit still clips it). ``None``: the tracker's
+            braking, at most ``brake_mps2``. The check still plans with ``brake_mps2``, so a
+            stronger emergency brake is headroom the rule does not count on (chapter 11: the
+            course's car brakes at 8 where the tracker stops at 6).
     """
 
     reaction_s: float = 0.2
@@ -145,6 +151,7 @@ class SafetyConfig:
     confirm_decisions: int = field(default=1, repr=False)  # (shown when set)
     release_decisions: int = field(default=1, repr=False)  # (shown when set)
     modes_only: bool = field(default=False, repr=False)  # (shown when set)
+    emergency_brake_mps2: float | None = field(default=None, repr=False)  # (shown when set)
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -163,6 +170,10 @@ class SafetyConfig:
             check_range(o, "gyro_camera_weight", self.gyro_camera_weight, 0.0, 1.0, lo_open=True)
         check_range(o, "confirm_decisions", self.confirm_decisions, 1, 100, integer=True)
         check_range(o, "release_decisions", self.release_decisions, 1, 100, integer=True)
+        if self.emergency_brake_mps2 is not None:
+            check_range(
+                o, "emergency_brake_mps2", self.emergency_brake_mps2, 0.0, 15.0, lo_open=True
+            )
 
     def __repr__(self) -> str:
         # the fields added later shown only when set (stored results are keyed by this text)
