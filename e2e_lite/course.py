@@ -88,7 +88,9 @@ class ChapterInfo(NamedTuple):
 # 56k training frames and views, about 20 s; three head fits of about 1 min; three rows of
 # 4.2-4.6 min each as session 32's scripts drove them, the traced one about 1 min longer): about
 # 18 min more, estimated from those parts, 176; quick 27.3 s from an empty folder on the second
-# machine, 36 s scaled by 27.3 / 20.9, 47.
+# machine, 36 s scaled by 27.3 / 20.9, 47. Since 4543ce3 (three rows with the emergency brake): 9.7
+# min with every other row read back, against about 2 reading all back, 185; quick 28.9 s from an
+# empty folder, 36 s scaled by 28.9 / 20.9, 50.
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -100,7 +102,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 11),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 26),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 47, 176),
+    11: ChapterInfo("the safety module on the affordances", 50, 185),
 }
 
 
