@@ -1424,12 +1424,13 @@ by_speed |= print_by_speed(
 # gaps misplace, and the profile needs the brake, which stops the car it sees late. Traced, the
 # rule on the truth still began to object 2.3 s before each impact at 23.5 m/s (medians); the
 # car now arrived at 9.6 m/s (11.7 braking at 6). In all 8 the rule on the truth objected first
-# and the module took the car over: each is a stop that came too late. Two controls by a script (README): on roads the chapter never drove, 10
-# against 18 (p = 0.14; both road sets together 18 against 39, p = 0.0075); and on two other
-# drivers, their own heads fitted the same way: chapter 10's GMM + affordance, 69 against 66
-# alone (46 of them under 10 m/s), and section 5's networks trained on deep braking, 50 against
-# 46 (most at 10-20 m/s). The gain is this driver's, whose collisions without the module are late
-# stops at cruise speed; the others' come, with the module, after it has taken the car over.
+# and the module took the car over: each is a stop that came too late. Two controls by a script
+# (README): on roads the chapter never drove, 10 against 18 (p = 0.14; both road sets together 18
+# against 39, p = 0.0075); and on two other drivers, their own heads fitted the same way:
+# chapter 10's GMM + affordance, 69 against 66 alone (46 of them under 10 m/s), and section 5's
+# networks trained on deep braking, 50 against 46 (most at 10-20 m/s). The gain is this
+# driver's, whose collisions without the module are late stops at cruise speed; the others'
+# come, with the module, after it has taken the car over.
 
 # %% [markdown]
 # ## 3. Interventions, frame by frame
