@@ -76,7 +76,7 @@ def free_profile(world: World, s: float, d: float, heading_error: float) -> np.n
     x0, y0, road = track.pose(s, d)
     h = float(road) + heading_error
     c, sn = np.cos(h), np.sin(h)
-    pts = _outlines(cars.corners()[near])
+    pts = _outlines(cars.box_corners_3d[near, :4, :2])  # (the footprints, computed once)
     dx, dy = pts[..., 0] - x0, pts[..., 1] - y0
     ahead, left = c * dx + sn * dy, -sn * dx + c * dy  # car frame, (cars, 48)
     keep = ahead.max(axis=1) > -rear_m  # not wholly behind the rear bumper
