@@ -1402,7 +1402,8 @@ emergency_png = save_figure(
         [("without the module", without)]
         + [(f"{short[a]}{brake}", guarded[n][0]) for a, b in pairs
            for n, brake in ((a, ""), (b, " + emergency brake"))],
-        title=f"{label}: the module's fallback braking at 6 or at 8 m/s^2, {n_seeds} seeds pooled",
+        title=f"{label}: the module's fallback braking at {cfg.brake_mps2:g} or at "
+        f"{EMERGENCY['emergency_brake_mps2']:g} m/s^2, {n_seeds} seeds pooled",
         reference=[("without", result_dict(without)["collisions_per_100mi"])],
     ),
     artifacts.artifact_path("figures", "11_emergency.png"),
