@@ -6,12 +6,21 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.control.expert import Expert, ExpertConfig, car_ahead, lane_clear, speed_profile
+from e2e_lite.control import expert as expert_module
+from e2e_lite.control.expert import (
+    Expert,
+    ExpertConfig,
+    SpeedLimits,
+    car_ahead,
+    fresh_labels,
+    lane_clear,
+    speed_profile,
+)
 from e2e_lite.control.labels import CHANGE, KEEP
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe
 from e2e_lite.simulation.geometry import RoadConfig, Track
-from e2e_lite.simulation.world import Fleet, TrafficConfig, World, WorldConfig
+from e2e_lite.simulation.world import Fleet, TrafficConfig, World, WorldConfig, make_world
 
 
 def small_world_cfg() -> WorldConfig:
@@ -126,6 +135,33 @@ def test_label_is_the_clean_rollout_not_the_noisy_future():
             clean_xy.append(replay_fleet.state[0, :2] - obs0.state[0, :2])
     np.testing.assert_allclose(label, np.array(clean_xy), atol=1e-6)
     assert np.abs(label[:, 1] - np.array(noisy_xy)[:, 1]).max() > 0.5
+
+
+def test_fresh_labels_with_kept_speed_limits_are_the_same_and_profile_each_track_once(monkeypatch):
+    """The safety module's audits ask a fresh expert at every intervention; with the speed limits
+    kept across calls they get the same labels, and each track's profile is computed once."""
+    cfg = small_world_cfg()
+    worlds = [make_world(cfg, "test", k) for k in range(2)]
+    fleet = Fleet([worlds[0], worlds[0], worlds[1], worlds[1]], cfg)
+    for i, (s, lane, v) in enumerate(((150.0, 0, 24.0), (600.0, 1, 18.0), (300.0, 2, 26.0),
+                                       (900.0, 1, 12.0))):  # fmt: skip
+        world = fleet.worlds[i]
+        fleet.place(i, s, float(world.track.lane_center(lane)), v)
+    obs = observe(fleet, respawned=True)
+    calls = []
+    real = expert_module.speed_profile
+    monkeypatch.setattr(
+        expert_module, "speed_profile", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    plain = [fresh_labels(obs, idx) for idx in ([0, 1], [2, 3], [0, 3])]
+    assert len(calls) == 4  # a fresh expert computes every track it meets again
+    calls.clear()
+    limits = SpeedLimits(ExpertConfig())
+    kept = [fresh_labels(obs, idx, limits=limits) for idx in ([0, 1], [2, 3], [0, 3])]
+    assert len(calls) == 2  # once per track
+    for a, b in zip(plain, kept):
+        np.testing.assert_array_equal(a, b)
+    assert np.abs(plain[0][:, -1, 0]).min() > 10.0  # (the cars drive: a real label)
 
 
 def test_label_rollout_does_not_change_the_plan():

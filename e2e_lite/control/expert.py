@@ -449,3 +449,35 @@ class Expert:
         accel = self.tracker.accel(speeds, v_ref)
         accel = np.where(brake > 0, np.minimum(accel, -brake), accel)
         return steer, accel
+
+
+def fresh_labels(
+    obs: Observation,
+    idx: list[int],
+    sim: SimConfig | None = None,
+    limits: SpeedLimits | None = None,
+) -> np.ndarray:
+    """What a fresh expert (default settings, new plans) would drive from cars ``idx``'s states:
+    ``(len(idx), 5, 2)`` points in each car's frame [m], as :meth:`Expert.trajectory_label`.
+
+    ``sim``: the driven agent's time steps (default :class:`~e2e_lite.simulation.world.SimConfig`);
+    ``limits``: speed limits of the default expert to reuse across calls (the safety module's
+    audits), so a track's profile is computed once, not at every call: the same numbers.
+    """
+    sub = Observation(
+        state=obs.state[idx],
+        s=obs.s[idx],
+        d=obs.d[idx],
+        heading_error=obs.heading_error[idx],
+        curvature=obs.curvature[idx],
+        lane=obs.lane[idx],
+        respawned=np.ones(len(idx), dtype=bool),
+        time_s=obs.time_s,
+        worlds=[obs.worlds[i] for i in idx],
+    )
+    # the expert of the car and time steps being driven, not a default one
+    expert = Expert(vehicle=obs.worlds[idx[0]].vehicle, sim=sim)
+    if limits is not None:
+        expert.speed_limits = limits
+    expert.reset(len(idx))
+    return expert.trajectory_label(sub)

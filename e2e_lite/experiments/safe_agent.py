@@ -19,14 +19,13 @@ from typing import Any
 import numpy as np
 
 from ..config import check_range
-from ..control.expert import Expert
+from ..control.expert import ExpertConfig, SpeedLimits, fresh_labels
 from ..control.labels import AFFORDANCE_INDEX, AFFORDANCE_NAMES
 from ..learning.data import affordances
 from ..learning.freespace import N_STRIPS, PROFILE_CAP_M, free_profiles
 from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H
-from ..simulation.world import SimConfig
 from .safety import Choice, SafetyConfig, Verdict, brake_along, cap_speed, check, choose
 from .traces import decision_record
 
@@ -256,6 +255,7 @@ class SafeAgent:
         self._gyro: tuple[float, np.ndarray, np.ndarray] | None = None  # time, yaw, fused heading
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
+        self._limits = SpeedLimits(ExpertConfig())  # the audits' speed limits, once per track
 
     def reset(self, n_worlds: int) -> None:
         """Reset the network agent and the count of reported examples."""
@@ -282,6 +282,7 @@ class SafeAgent:
             twin._passes = np.zeros(0, dtype=np.int64)
             twin._traces = []
             twin._gyro = None
+            twin._limits = SpeedLimits(ExpertConfig())
             out.append(twin)
         return out
 
@@ -391,7 +392,7 @@ class SafeAgent:
                 audited.append(i)
             self._seen += 1
         if audited:
-            expert_pts = _expert_labels(obs, audited, getattr(self.agent, "sim", None))
+            expert_pts = fresh_labels(obs, audited, getattr(self.agent, "sim", None), self._limits)
             for j, i in enumerate(audited):
                 dx, dy = np.abs(expert_pts[j, -1] - proposal[i, -1])
                 false_alarms += int(dy <= 1.0 and dx <= 5.0)
@@ -474,23 +475,3 @@ class SafeAgent:
 def _flags(values: np.ndarray | None, n: int) -> np.ndarray:
     """``values`` as ``(n,)`` booleans (``None``: all False)."""
     return np.broadcast_to(np.asarray(False if values is None else values, dtype=bool), n)
-
-
-def _expert_labels(obs: Observation, idx: list[int], sim: SimConfig | None = None) -> np.ndarray:
-    """What a fresh expert would drive from cars ``idx``'s states: ``(len(idx), 5, 2)`` [m]
-    (``sim``: the driven agent's time steps, default :class:`~e2e_lite.simulation.world.SimConfig`)."""
-    sub = Observation(
-        state=obs.state[idx],
-        s=obs.s[idx],
-        d=obs.d[idx],
-        heading_error=obs.heading_error[idx],
-        curvature=obs.curvature[idx],
-        lane=obs.lane[idx],
-        respawned=np.ones(len(idx), dtype=bool),
-        time_s=obs.time_s,
-        worlds=[obs.worlds[i] for i in idx],
-    )
-    # the expert of the car and time steps being driven, not a default one
-    expert = Expert(vehicle=obs.worlds[idx[0]].vehicle, sim=sim)
-    expert.reset(len(idx))
-    return expert.trajectory_label(sub)
