@@ -20,7 +20,8 @@ Names:
             simulated miles per wall-second with camera + CNN in the loop: B = 16 in one thread
             (chapters 05-09), B = 64 in one thread, two threads (20 miles each) and two processes
             (chapter 10; 100 miles, the workers' start counted), and that last one against the
-            network alone (``loop_vs_network``).
+            network alone (``loop_vs_network``), with where each frame's core-milliseconds go
+            (``budget_*``) and the ratio a free camera would leave.
     placement [--agent ...]   (default gmm)
             where the network runs while 64 cars drive: on the CPU in 2 worker processes and in
             one per core, and with a GPU on it in this process (1 and 2 threads) and in 2 workers.
@@ -313,7 +314,34 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     out["network_miles_per_s"] = network_fps * miles_per_frame
     out["loop_miles_per_s"] = out["b64_2processes_sim_miles_per_wall_s"]
     out["loop_vs_network"] = out["loop_miles_per_s"] / out["network_miles_per_s"]
+    out.update(frame_budget(out, workers))
     return out
+
+
+def frame_budget(out: dict[str, float], workers: int) -> dict[str, float]:
+    """Where the headline's frame goes, in core-milliseconds per frame [ms]: the network alone,
+    what the policy spends beyond it (batching the frames, reading the modes, the tracker), the
+    camera, the physics, the rest of the loop (worlds built, bookkeeping) and the workers' start
+    spread over the frames; and ``loop_vs_network_without_render``, the ratio the same run would
+    give with every other part as measured and the camera free (derived from these parts, not a
+    run without a camera): how far making the camera faster alone could take the ratio."""
+    p = "b64_2processes"
+    frames = out[f"{p}_frames"]
+    network = 1e3 * workers / out["network_frames_per_s"]
+    startup = 1e3 * out[f"{p}_startup_s"] * workers / frames
+    parts = {
+        "network": network,
+        "policy_beyond_network": out[f"{p}_policy_ms_per_frame"] - network,
+        "render": out[f"{p}_render_ms_per_frame"],
+        "physics": out[f"{p}_physics_ms_per_frame"],
+        "rest": out[f"{p}_rest_ms_per_frame"],
+        "startup": startup,
+    }
+    total = sum(parts.values())
+    budget = {f"budget_{k}_ms_per_frame": v for k, v in parts.items()}
+    budget["budget_total_ms_per_frame"] = total
+    budget["loop_vs_network_without_render"] = network / (total - parts["render"])
+    return budget
 
 
 def bench_placement(quick: bool, agent: str = "gmm") -> dict[str, float]:
