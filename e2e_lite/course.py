@@ -90,7 +90,11 @@ class ChapterInfo(NamedTuple):
 # 18 min more, estimated from those parts, 176; quick 27.3 s from an empty folder on the second
 # machine, 36 s scaled by 27.3 / 20.9, 47. Since 4543ce3 (three rows with the emergency brake): 9.7
 # min with every other row read back, against about 2 reading all back, 185; quick 28.9 s from an
-# empty folder, 36 s scaled by 28.9 / 20.9, 50.
+# empty folder, 36 s scaled by 28.9 / 20.9, 50. Measured again at 51540fe (`course --only 11` on a
+# folder holding chapters 01-10's artifacts alone, nothing else running): sections 1-4 in 90 min
+# (the ledger when section 5 began, less two timed pauses), its 99 evaluations equal to the stored
+# ones; with section 5's 72 min of ffef143's run, 162, so 165 (the stored rows' wall times behind
+# the earlier sum had shared the CPU).
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
     2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
@@ -102,7 +106,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     8: ChapterInfo("the affordance auxiliary loss", 16, 11),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 26),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 50, 185),
+    11: ChapterInfo("the safety module on the affordances", 50, 165),
 }
 
 
