@@ -255,7 +255,6 @@ class SafeAgent:
         self._gyro: tuple[float, np.ndarray, np.ndarray] | None = None  # time, yaw, fused heading
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
-        self._limits = SpeedLimits(ExpertConfig())  # the audits' speed limits, once per track
 
     def reset(self, n_worlds: int) -> None:
         """Reset the network agent and the count of reported examples."""
@@ -267,6 +266,7 @@ class SafeAgent:
         self._passes = np.full(n_worlds, self.cfg.release_decisions, dtype=np.int64)
         self._traces = [deque(maxlen=self.trace_before_impact) for _ in range(n_worlds)]
         self._gyro = None
+        self._limits = SpeedLimits(ExpertConfig())  # the audits' speed limits, once per track
 
     def fork(self, k: int) -> list[SafeAgent]:
         """``k`` agents for parallel shards, sharing the model."""
