@@ -42,7 +42,7 @@ from e2e_lite.driving.evaluation import (
     result_dict,
     results_table,
 )
-from e2e_lite.experiments import ablation
+from e2e_lite import ablation
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.cvar import cvar, cvar_curve, cvar_loss, cvar_ru

@@ -45,7 +45,8 @@ from e2e_lite.driving.evaluation import (
     result_dict,
     results_table,
 )
-from e2e_lite.experiments import ablation, replay
+from e2e_lite import ablation
+from e2e_lite.driving import replay
 from e2e_lite.learning.data import DataConfig, load_or_collect
 from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.viz import collision_chart, save_figure
@@ -241,7 +242,7 @@ print(f"saved {chart_png}")
 #
 # Numbers say how often; a replay shows how. Each driver (its training seed 0) drives the same
 # stretch (validation track 0, middle lane, from 30 m) alone, for up to the replay length or until
-# its first collision. `e2e_lite.experiments.replay` writes each drive as a **standalone 3D page** (meshcat's viewer
+# its first collision. `e2e_lite.driving.replay` writes each drive as a **standalone 3D page** (meshcat's viewer
 # and the scene in one HTML file, no server: open it from disk) with the car's declared intent
 # at every decision: the 5 proposed points, one colour per GMM mode, bigger for heavier modes.
 # The same drive as a GIF of the camera view with the proposal drawn on it is next to it.

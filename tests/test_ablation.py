@@ -7,12 +7,12 @@ from dataclasses import replace
 import pytest
 import torch
 
+from e2e_lite import ablation
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.control.expert import Expert
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.driving.evaluation import EvalConfig, EvalResult
-from e2e_lite.experiments import ablation
 from e2e_lite.learning.agents import SteeringAgent, TrajectoryAgent
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig

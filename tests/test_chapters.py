@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from e2e_lite.ablation import DRIVERS, UNTRAINED
 from e2e_lite.course import (
     TIMES_FILE,
     ChapterClock,
@@ -21,7 +22,6 @@ from e2e_lite.course import (
     select,
     summary_table,
 )
-from e2e_lite.experiments.ablation import DRIVERS, UNTRAINED
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAPTERS = find_chapters(ROOT / "chapters")

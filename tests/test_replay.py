@@ -16,8 +16,8 @@ import umsgpack
 from PIL import Image
 
 from e2e_lite.control.drivers import LaneKeeper
+from e2e_lite.driving import replay
 from e2e_lite.driving.evaluation import close_shard_workers
-from e2e_lite.experiments import replay
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig

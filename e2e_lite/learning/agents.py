@@ -191,16 +191,12 @@ class TrajectoryAgent(NetworkAgent):
         decode: for a GMM, which trajectory is followed, one of :data:`DECODES`: ``"top"`` (the
             paper's: the mean of the heaviest mode) or ``"mean"`` (the mixture's mean, the
             weighted average of the modes: what an L2 head estimates; a diagnostic control).
-        profile_head: a :class:`~e2e_lite.learning.freespace.ProfileHead` fitted on this
-            fusion model's trunk: each decision also reads the free-space profile, in the same
-            pass (for the safety module, chapter 11).
 
     Attributes:
         last: the latest decision's ``{"points": (B, 5, 2) followed [m], "modes": (B, K, 5, 2) [m],
-            "weights": (B, K), "sigmas": (B, K, 5, 2) [m], "affordances": (B, 9), "profile":
-            (B, 15) [m], "profile_free_m": (15,) [m]}`` (modes, weights and sigmas for GMMs only;
-            the predicted affordances, in the dataset's units, for models with an affordance head
-            only; the profile and its thresholds with a ``profile_head`` only).
+            "weights": (B, K), "sigmas": (B, K, 5, 2) [m], "affordances": (B, 9)}`` (modes,
+            weights and sigmas for GMMs only; the predicted affordances, in the dataset's units,
+            for models with an affordance head only).
     """
 
     def __init__(
@@ -210,17 +206,9 @@ class TrajectoryAgent(NetworkAgent):
         speed: str = DEFAULT_SPEED,
         preview_s: float = DEFAULT_PREVIEW_S,
         decode: str = "top",
-        profile_head: torch.nn.Module | None = None,
         **kwargs,
     ) -> None:
         super().__init__(model, **kwargs)
-        if profile_head is not None and not hasattr(model, "features"):
-            raise ValueError(
-                f"a profile head reads a fusion model's trunk, not a {type(model).__name__}'s"
-            )
-        self.profile_head = None if profile_head is None else profile_head.eval().to(self.device)
-        # (its thresholds, read once: the same array every decision)
-        self._free_m = None if profile_head is None else profile_head.free_m.double().cpu().numpy()
         check_reading("TrajectoryAgent", preview_s, speed, SPEED_SOURCES)
         if decode not in DECODES:
             raise ValueError(
@@ -241,19 +229,12 @@ class TrajectoryAgent(NetworkAgent):
 
     def trajectories_from(self, images: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
         """:meth:`trajectories` for frames ``(B, H, W, 3)`` uint8 at speeds ``(B,)`` [m/s]."""
-        head = self.profile_head
-        outputs = self.predict_frames(
-            images, speed_mps, **({} if head is None else {"with_trunk": True})
-        )
+        outputs = self.predict_frames(images, speed_mps)
         out, model = outputs["main"], self.model
         extra = {}
         if "affordance" in outputs:
             aff = outputs["affordance"] * model.affordance_std + model.affordance_mean
             extra["affordances"] = aff.double().cpu().numpy()
-        if head is not None:
-            with torch.inference_mode():
-                extra["profile"] = head(outputs["trunk"]).double().cpu().numpy()
-            extra["profile_free_m"] = self._free_m
         if not isinstance(HEADS[model.cfg.head], GMM):  # a point estimate of the trajectory
             pts = model.denormalise(out).reshape(-1, N_POINTS, POINT_DIMS).double().cpu().numpy()
             self.last = {"points": pts, **extra}

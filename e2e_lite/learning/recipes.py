@@ -25,7 +25,7 @@ Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.lea
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -35,14 +35,10 @@ from ..control.labels import AFFORDANCE_NAMES
 from .checkpoints import refit_or_load, train_or_load
 from .cvar import CVaRObjective
 from .dataset import DrivingData, DrivingDataset, concat
-from .freespace import ProfileHead, load_or_label, profile_head_or_load
 from .losses import GMMObjective, Objective, WithAffordance
 from .models import DrivingModel, ModelConfig
 from .probes import HeadRefit
 from .training import History, TrainConfig, evaluate_loss
-
-if TYPE_CHECKING:
-    from .data import DataConfig
 
 Trained = tuple[DrivingModel, Objective, History]
 
@@ -358,23 +354,6 @@ def perceiving(
     expert's frames never show)."""
     frames = train if views is None else concat(train, views)
     return refit_or_load(name, model, frames, HEAD_REFIT, **kw)
-
-
-def free_space(
-    model: DrivingModel,
-    train: DrivingData,
-    views: DrivingData,
-    train_cfg: DataConfig,
-    name: str,
-    progress: bool = True,
-) -> ProfileHead:
-    """Chapter 11's free-space head on ``model``'s frozen trunk
-    (:func:`~e2e_lite.learning.freespace.fit_profile_head`), fitted on the training frames and
-    the approach views ``views`` (made from them, recorded with ``train_cfg``), the labels and
-    the head stored (``<name>_profile.pt``)."""
-    frames = concat(train, views)
-    labels = [load_or_label(d, train_cfg, progress) for d in (train, views)]
-    return profile_head_or_load(name, model, frames, np.concatenate(labels), progress=progress)
 
 
 #: How chapter 09's fine-tunes reduce a batch (:func:`gmm_affordance_cvar`): the paper's CVaR

@@ -27,20 +27,19 @@ from typing import Any
 
 import torch
 
-from ..artifacts import artifact_path, cached, load_json, save_json, settings_key
-from ..config import FULL, Profile
-from ..control.expert import Expert
-from ..control.oracle import Oracle
-from ..driving.evaluation import evaluate
-from ..driving.metrics import EvalResult, pool_results, result_dict, result_info, results_table
-from ..driving.rollout import EvalConfig, disjoint_runs
-from ..learning import recipes
-from ..learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
-from ..learning.checkpoints import weights_digest
-from ..learning.data import DataConfig, DrivingData, load_or_collect
-from ..simulation.policy import Policy
-from ..simulation.world import WorldConfig
-from .traces import RECORD_VERSION
+from .artifacts import artifact_path, cached, load_json, save_json, settings_key
+from .config import FULL, Profile
+from .control.expert import Expert
+from .control.oracle import Oracle
+from .driving.evaluation import evaluate
+from .driving.metrics import EvalResult, pool_results, result_dict, result_info, results_table
+from .driving.rollout import EvalConfig, disjoint_runs
+from .learning import recipes
+from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
+from .learning.checkpoints import weights_digest
+from .learning.data import DataConfig, DrivingData, load_or_collect
+from .simulation.policy import Policy
+from .simulation.world import WorldConfig
 
 
 @dataclass
@@ -301,28 +300,17 @@ def fingerprint(policy: Policy) -> str:
         if policy.speed_input_floor_mps is not None:  # (likewise)
             parts.append(("speed_input_floor_mps", policy.speed_input_floor_mps))
         parts += [repr(policy.camera), str(policy.device)]
-        if getattr(policy, "profile_head", None) is not None:  # (only when set, likewise)
-            parts.append(("profile_head", weights_digest(policy.profile_head)))
     for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
         if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
             parts.append(repr(getattr(policy, attr)))
     if isinstance(policy, Oracle):  # its noise draws depend on its seed
         parts += [repr(policy.expert.cfg), policy.seed]
-    inner = getattr(policy, "agent", None)  # a wrapper (e.g. the safety module) around a driver
+    inner = getattr(policy, "agent", None)  # a wrapper (the safety module) around a driver
     if inner is not None:
         parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
         # what the safety module reports (its audits and examples) is stored with the result
         parts += [getattr(policy, a, None) for a in ("audit", "audit_every", "keep_examples")]
-        if getattr(policy, "true_affordances", ()):  # (only when set: the other keys stay)
-            parts.append(policy.true_affordances)
-        if getattr(policy, "seer", None) is not None:  # a separate perception network (likewise)
-            parts.append(("seer", fingerprint(policy.seer)))
-        if getattr(policy, "vote", None) is not None:  # (likewise)
-            parts.append(("vote", repr(policy.vote)))
-        if getattr(policy, "profile", None) is not None:  # (likewise)
-            parts.append(("profile", policy.profile))
-        if getattr(policy, "trace_before_impact", 0):  # (likewise)
-            parts.append(("trace", policy.trace_before_impact, RECORD_VERSION))
+        parts.append(("results version", getattr(policy, "RESULTS_VERSION", None)))
     return settings_key(*parts)
 
 

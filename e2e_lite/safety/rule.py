@@ -33,21 +33,18 @@ to a lane centre): the first that passes the check among the current lane's and 
 nearest first to where the network's heaviest mode was going (a car half-way through a lane
 change brakes on into the lane it is entering, not back towards the car it is leaving);
 otherwise :func:`keep_lane_brake`, back to the centre of the current lane (the last resort,
-unchecked). With ``SafetyConfig.brake_along_path``, a mode rejected for a parked car is instead
-braked along its own path (:func:`brake_along`): on perception, the lane fallback's path is made
-of the very affordances that are wrong (chapter 11). With ``SafetyConfig.modes_only`` there is
-no fallback: none of the modes passing, the heaviest is driven as proposed (a control).
+unchecked). A car the module falls back for may be braked harder than the rule plans with
+(``SafetyConfig.emergency_brake_mps2``, applied by the driver).
 
-Given a free-space profile (``check(..., profile=)``, chapter 11), steps 3 and 4 read the parked
-cars in the car's own frame instead of the lane gaps
-(:func:`~e2e_lite.experiments.freespace_rule.check_profile`); the road edges stay as in step 2.
+The "nothing seen" thresholds of a perceived module are calibrated on training frames
+(:func:`calibrate_gap_free`).
 
-The driver that applies the rule to a trajectory network is :class:`~e2e_lite.experiments.safe_agent.SafeAgent`.
+The driver that applies the rule to a trajectory network is :class:`~e2e_lite.safety.agent.SafeAgent`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -55,80 +52,51 @@ from ..config import check_range
 from ..control.labels import (
     AFFORDANCE_INDEX,
     GAP_CAP_M,
+    GAP_NAMES,
     N_POINTS,
     PATH_SUBSTEPS,
     POINT_DT_S,
-    along_path,
     interpolated_path,
 )
-from .freespace_rule import check_profile
 
 _A = AFFORDANCE_INDEX
 
 
+#: The version of what the module computes: part of every stored guarded evaluation's key
+#: (:func:`e2e_lite.ablation.fingerprint`). Bump it when a change to the rule, its fallback or
+#: the driver's reports changes what a stored result would hold.
+RESULTS_VERSION = 2
+
+
 @dataclass(frozen=True)
 class SafetyConfig:
-    """Settings of the check.
+    """Settings of the check (twelve, each the rule's or its fallback's).
 
     Attributes:
         reaction_s: reaction time rho before braking [s] (one policy period and a margin).
-        brake_mps2: braking beta assumed for stopping, and used by the fallback [m/s^2] (the
-            tracker's braking limit).
+        brake_mps2: braking beta assumed for stopping, and used by the fallback's path [m/s^2]
+            (the tracker's braking limit).
         margin_m: distance always kept to a parked car [m].
         lane_overlap_m: how far across a marking the body must be to occupy that lane [m].
         edge_margin_m: how far past the road's edge line the body may go (onto the shoulder; the
             guard rail is further out) [m].
         car_width_m, car_length_m: the ego's body [m].
         parked_length_m: a parked car's length [m].
-        gap_free_m: a perceived gap at least this long means nothing was seen [m]. Right
-            for the true affordances (exactly the 60 m cap when the lane is free); a learned head
-            answers near the cap with noise, so the perceived module calibrates it on training
-            frames (:func:`calibrate_gap_free`).
+        gap_free_m: a perceived gap at least this long means nothing was seen in the ego lane
+            [m]. Right for the true affordances (exactly the 60 m cap when the lane is free); a
+            learned head answers near the cap with noise, so the perceived module calibrates it
+            on training frames (:func:`calibrate_gap_free`).
         gap_free_side_m: the same threshold for the left and right lanes' gaps [m]; ``None``:
-            ``gap_free_m``. A head may see the neighbouring lanes less sharply than its own
-            (:func:`calibrate_gap_free` sets both).
+            ``gap_free_m``. A head may see the neighbouring lanes less sharply than its own.
         fallback_lanes: brake into a neighbouring lane when braking in the current lane fails
             the check and braking there passes (see :func:`choose`). With the true affordances
             the keep-lane brake alone pulled cars half-way through a lane change back in front
             of the parked car they were passing (chapter 11).
-        brake_along_path: when no mode passes and the heaviest was rejected for a parked car
-            ("collision course" or "cannot stop"), brake along the modes' own paths
-            (:func:`brake_along`, heaviest first, the first that passes, else the heaviest's)
-            instead of steering to a lane centre; road-edge rejections keep the lane fallback.
-            A path to a lane centre is made of the perceived heading, offset and lane width, and
-            its lane is chosen by the perceived side gaps; the network's own path needs neither
-            (chapter 11 measures both fallbacks on perception).
-        check_fallback: check the keep-lane brake too (see :func:`choose`). Off: with the true
-            affordances it traded car for rail collisions (seed 0, 40 mi: 12 car / 23 rail
-            against 21 / 13 unchecked, before ``fallback_lanes``); chapter 11's exercise 5.
-        gyro_heading: fuse the perceived heading with the car's yaw rate (a gyro) before the
-            check (:func:`~e2e_lite.experiments.safe_agent.fuse_heading`).
-        gyro_camera_weight: the camera's weight in that fusion at every speed, in (0, 1];
-            ``None``: the speed-dependent weight (the camera alone at cruise speed).
-        sight_speed: drive every proposal no faster than :meth:`sight_speed_mps` (:func:`cap_speed`;
-            "assured clear distance ahead"): a car first seen can be stopped for (chapter 11).
-        check_proposals: ``False`` drives the heaviest mode unchecked (with ``sight_speed``:
-            the speed cap alone, the control that says what slowing down does by itself).
-        confirm_decisions: intervene only once the heaviest mode has failed the check on this
-            many consecutive decisions of a car (1: at once); before that the network drives. A
-            persistence filter against a noisy head's one-off alarms, paid in reaction time.
-        release_decisions: after an intervention, give the car back to the network only once its
-            heaviest mode has passed the check on this many consecutive decisions (1: at the
-            first pass); until then drive that passing mode's path braking (:func:`brake_along`,
-            the source ``"hold"``). The opposite of ``confirm_decisions``: on perception a real
-            hazard's alarm flickers (a car read at 44 m, then at 55, then at 40), and each pass
-            hands the car back at cruise speed, so the brake is applied in bursts and the car
-            arrives at 18-20 m/s (chapter 11). Paid in braking after false alarms.
-        modes_only: the module only re-ranks the network's modes: the first that passes, else
-            the heaviest, driven as proposed (no braking fallback; the source stays "network").
-            The control that separates what the module's braking costs (the slow states it
-            leaves the car in) from what its perception costs (chapter 11).
         emergency_brake_mps2: the fallback's deceleration [m/s^2]: a car the module falls back
-            for (source ``"fallback"``) is braked at this, the tracker's steering kept (an
-            emergency brake; the car's own limit still clips it). ``None``: the tracker's
-            braking, at most ``brake_mps2``. The check still plans with ``brake_mps2``, so a
-            stronger emergency brake is headroom the rule does not count on (chapter 11: the
-            course's car brakes at 8 where the tracker stops at 6).
+            for is braked at this, the tracker's steering kept (the car's own limit still clips
+            it). ``None``: the tracker's braking, at most ``brake_mps2``. The check still plans
+            with ``brake_mps2``, so a stronger emergency brake is headroom the rule does not count
+            on (chapter 11: the course's car brakes at 8 where the tracker stops at 6).
     """
 
     reaction_s: float = 0.2
@@ -140,18 +108,9 @@ class SafetyConfig:
     car_length_m: float = 4.5
     parked_length_m: float = 4.5
     gap_free_m: float = GAP_CAP_M - 0.5
+    gap_free_side_m: float | None = None
     fallback_lanes: bool = True
-    check_fallback: bool = False
-    gap_free_side_m: float | None = field(default=None, repr=False)  # (shown when set)
-    brake_along_path: bool = field(default=False, repr=False)  # (shown when set)
-    gyro_heading: bool = field(default=False, repr=False)  # (shown when set)
-    gyro_camera_weight: float | None = field(default=None, repr=False)  # (shown when set)
-    sight_speed: bool = field(default=False, repr=False)  # (shown when set)
-    check_proposals: bool = field(default=True, repr=False)  # (shown when set)
-    confirm_decisions: int = field(default=1, repr=False)  # (shown when set)
-    release_decisions: int = field(default=1, repr=False)  # (shown when set)
-    modes_only: bool = field(default=False, repr=False)  # (shown when set)
-    emergency_brake_mps2: float | None = field(default=None, repr=False)  # (shown when set)
+    emergency_brake_mps2: float | None = None
 
     def __post_init__(self) -> None:
         o = "SafetyConfig"
@@ -166,23 +125,10 @@ class SafetyConfig:
         for name in ("gap_free_m", "gap_free_side_m"):
             if getattr(self, name) is not None:
                 check_range(o, name, getattr(self, name), 1.0, 1000.0)
-        if self.gyro_camera_weight is not None:
-            check_range(o, "gyro_camera_weight", self.gyro_camera_weight, 0.0, 1.0, lo_open=True)
-        check_range(o, "confirm_decisions", self.confirm_decisions, 1, 100, integer=True)
-        check_range(o, "release_decisions", self.release_decisions, 1, 100, integer=True)
         if self.emergency_brake_mps2 is not None:
             check_range(
                 o, "emergency_brake_mps2", self.emergency_brake_mps2, 0.0, 15.0, lo_open=True
             )
-
-    def __repr__(self) -> str:
-        # the fields added later shown only when set (stored results are keyed by this text)
-        shown = [
-            f"{f.name}={getattr(self, f.name)!r}"
-            for f in fields(self)
-            if f.repr or getattr(self, f.name) != f.default
-        ]
-        return f"{type(self).__name__}({', '.join(shown)})"
 
     def free_from_m(self, lane: str) -> float:
         """The perceived gap from which ``lane`` (``"ego"``, ``"left"``, ``"right"``) is free [m]."""
@@ -193,13 +139,6 @@ class SafetyConfig:
         """RSS's safe distance to a standing obstacle: ``v rho + v^2 / (2 beta) + margin`` [m]."""
         v = max(0.0, speed_mps)
         return v * self.reaction_s + v * v / (2.0 * self.brake_mps2) + self.margin_m
-
-    def sight_speed_mps(self) -> float:
-        """The fastest speed that stops within sight [m/s]: :meth:`stopping_m` ``(v)`` equals the
-        ego lane's threshold :meth:`free_from_m` (where a parked car is first seen)."""
-        room = max(0.0, self.free_from_m("ego") - self.margin_m)
-        rho, beta = self.reaction_s, self.brake_mps2
-        return float(beta * (np.sqrt(rho * rho + 2.0 * room / beta) - rho))
 
 
 @dataclass(frozen=True)
@@ -219,7 +158,6 @@ def check(
     speed_mps: float,
     curvature: float,
     cfg: SafetyConfig | None = None,
-    profile: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Verdict:
     """Is following ``points`` safe, by the rule of the module docstring?
 
@@ -230,10 +168,6 @@ def check(
         speed_mps: the car's speed now [m/s].
         curvature: the road's curvature here [1/m] (left positive).
         cfg: the settings.
-        profile: ``(profile_m, free_m)``, a free-space profile and its thresholds (each
-            ``(15,)`` [m], :mod:`e2e_lite.learning.freespace`): parked cars are then checked in the
-            car's frame (:func:`~e2e_lite.experiments.freespace_rule.check_profile`) instead of
-            by the lane gaps, which are ignored; the road edges as above.
     """
     cfg = cfg or SafetyConfig()
     pts = np.asarray(points, dtype=np.float64)
@@ -257,11 +191,6 @@ def check(
                 "road edge",
                 k * POINT_DT_S / PATH_SUBSTEPS,
             )
-    if profile is not None:  # parked cars as the camera sees them, in the car's frame
-        kind, near, t_s = check_profile(pts, *profile, curvature, cfg)
-        if not kind:
-            return Verdict(True)
-        return Verdict(False, f"{kind}: a car read {near:.0f} m ahead", "", kind, t_s)
     # 3. which lanes the body occupies, relative to the ego lane's centre
     width = max(2.0, a[_A["left_marking_m"]] + a[_A["right_marking_m"]])
     lateral = a[_A["center_offset_m"]] + delta
@@ -364,23 +293,6 @@ def brake_to_lane(
     return np.stack([x, y], axis=1)
 
 
-def brake_along(
-    points: np.ndarray, speed_mps: float, cfg: SafetyConfig | None = None
-) -> np.ndarray:
-    """``points`` ``(5, 2)`` [m] driven along their own path braking at ``cfg.brake_mps2`` from
-    ``speed_mps`` to a stop, never past its end (an emergency brake keeping the planned path)."""
-    cfg = cfg or SafetyConfig()
-    return along_path(points, lambda along: braking_progress(speed_mps, cfg.brake_mps2))
-
-
-def cap_speed(points: np.ndarray, max_speed_mps: float) -> np.ndarray:
-    """Trajectories ``(..., 5, 2)`` [m] driven along their own paths at no more than
-    ``max_speed_mps`` [m/s] (each point moved back to ``max_speed_mps t_i`` along the path if
-    further); slower proposals are unchanged."""
-    limit = max(0.0, float(max_speed_mps)) * POINT_DT_S * np.arange(1, N_POINTS + 1)
-    return along_path(points, lambda along: np.minimum(along, limit))
-
-
 @dataclass
 class Choice:
     """What the module did for one car at one decision."""
@@ -397,75 +309,93 @@ def choose(
     speed_mps: float,
     curvature: float,
     cfg: SafetyConfig | None = None,
-    profile: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Choice:
     """The fallback order: the heaviest mode if it passes, else the next heaviest that passes,
-    else, with ``cfg.brake_along_path`` and the heaviest rejected for a parked car, the modes'
-    paths braking (:func:`brake_along`; the first that passes, else the heaviest's),
     else (with ``cfg.fallback_lanes``) the first braking trajectory that passes among
     :func:`brake_to_lane` to the current lane and its two neighbours, ordered by how near each
     lane's centre is to where the heaviest mode ends (:func:`end_lateral`; on a tie the current
-    lane), else :func:`keep_lane_brake`. With ``cfg.modes_only`` the order stops after the modes:
-    none passing, the heaviest is driven.
-
-    With ``cfg.check_fallback`` the braking trajectory is checked too. It is driven when it
-    passes or only "cannot stop" (it already brakes as hard as the rule assumes: nothing stops
-    sooner in this lane). When it would itself run into a car or off the road within the 1.5 s,
-    the candidate (modes and brake) whose first violation comes **latest** is driven instead (on
-    a tie the brake, which meets it slower, then the heaviest mode): braking in the lane of a car
-    too close to stop for makes the contact certain, while a swerve the rule finds too tight may
-    still miss it. Off by default (see :class:`SafetyConfig`).
+    lane), else :func:`keep_lane_brake`, unchecked (the last resort: nothing stops sooner).
 
     Args:
         modes: ``(K, 5, 2)`` proposals (K = 1 for a single trajectory) [m].
         weights: ``(K,)`` their weights.
-        aff, speed_mps, curvature, cfg, profile: as :func:`check` (every candidate is checked
-            with them).
+        aff, speed_mps, curvature, cfg: as :func:`check` (every candidate is checked with them).
 
     Returns:
         The :class:`Choice`; its ``verdicts`` hold one per mode checked (heaviest first), then,
-        when a lane's brake passed, one per braking trajectory checked up to it, or else the
-        keep-lane brake's when ``cfg.check_fallback`` checked it.
+        when a lane's brake passed, one per braking trajectory checked up to it.
     """
     cfg = cfg or SafetyConfig()
     modes = np.asarray(modes, dtype=np.float64)
     order = np.argsort(-np.asarray(weights, dtype=np.float64), kind="stable")
     verdicts = []
     for rank, k in enumerate(order.tolist()):
-        verdict = check(modes[k], aff, speed_mps, curvature, cfg, profile)
+        verdict = check(modes[k], aff, speed_mps, curvature, cfg)
         verdicts.append(verdict)
         if verdict.ok:
             return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
-    if cfg.modes_only:  # nothing passes: the network's own choice, unbraked
-        return Choice(modes[order[0]], "network", verdicts)
-    if cfg.brake_along_path and verdicts[0].kind in ("collision course", "cannot stop"):
-        heaviest = brake_along(modes[order[0]], speed_mps, cfg)
-        for k in order.tolist():
-            brake = heaviest if k == order[0] else brake_along(modes[k], speed_mps, cfg)
-            verdict = check(brake, aff, speed_mps, curvature, cfg, profile)
-            verdicts.append(verdict)
-            if verdict.ok:
-                return Choice(brake, "fallback", verdicts)
-        verdicts = verdicts[: len(order)]  # none passed: the heaviest mode's path, braking
-        return Choice(heaviest, "fallback", verdicts)
     if cfg.fallback_lanes:
         heading_to = end_lateral(modes[order[0]], aff, curvature) / lane_width(aff)
         for lanes in sorted((0, 1, -1), key=lambda n: (abs(heading_to - n), abs(n))):
             brake = brake_to_lane(aff, speed_mps, curvature, lanes, cfg)
-            verdict = check(brake, aff, speed_mps, curvature, cfg, profile)
+            verdict = check(brake, aff, speed_mps, curvature, cfg)
             verdicts.append(verdict)
             if verdict.ok:
                 return Choice(brake, "fallback", verdicts)
         verdicts = verdicts[: len(order)]  # none passed: the last resort, as without them
-    brake = keep_lane_brake(aff, speed_mps, curvature, cfg)
-    if not cfg.check_fallback:
-        return Choice(brake, "fallback", verdicts)
-    brake_verdict = check(brake, aff, speed_mps, curvature, cfg, profile)
-    verdicts.append(brake_verdict)
-    if brake_verdict.ok or brake_verdict.kind == "cannot stop":
-        return Choice(brake, "fallback", verdicts)
-    latest = max(range(len(verdicts)), key=lambda j: (verdicts[j].t_s, j == len(order), -j))
-    if latest == len(order):
-        return Choice(brake, "fallback", verdicts)
-    source = "network" if latest == 0 else "other mode"
-    return Choice(modes[order[latest]], source, verdicts)
+    return Choice(keep_lane_brake(aff, speed_mps, curvature, cfg), "fallback", verdicts)
+
+
+#: The share of training frames with nothing within the cap on which a calibrated
+#: ``gap_free_m`` may still see a car (:func:`calibrate_gap_free`).
+GHOST_SHARE = 0.01
+_GAPS = [_A[n] for n in GAP_NAMES]
+
+
+def calibrate_gap_free(
+    cfg: SafetyConfig, predicted: np.ndarray, true: np.ndarray, ghost_share: float = GHOST_SHARE
+) -> SafetyConfig:
+    """``cfg`` with the "nothing seen" thresholds set for a perception whose gaps are noisy at
+    the cap: ``gap_free_m`` for the ego lane, ``gap_free_side_m`` for the left and right lanes.
+
+    A free lane's true gap is exactly :data:`~e2e_lite.control.labels.GAP_CAP_M`; a learned head
+    answers around it, so a threshold just under the cap sees a parked car on the free frames
+    whose answer falls under it, and "cannot stop" brakes for it. Each calibrated threshold is
+    the ``ghost_share`` quantile of the predicted gaps on frames whose true gap is at the cap
+    (the ego lane's alone; the left and right lanes' pooled): with it, at most that share of
+    those frames sees a car that is not there. The price: a car between the threshold and the
+    cap counts as not seen until it comes nearer. The lanes are calibrated apart because a head
+    may see its own lane more sharply than its neighbours.
+
+    Args:
+        cfg: the settings to start from; its ``gap_free_m`` bounds both thresholds.
+        predicted, true: (N, 9) affordances of the same frames, predicted and true (training
+            frames: the thresholds must not be chosen on the evaluation's tracks).
+        ghost_share: the share of free frames allowed to see a car, in (0, 1).
+
+    Returns:
+        The settings with each threshold ``min(cfg.gap_free_m, quantile)`` (at least 1 m); a
+        threshold whose lanes are never free in the frames is left as it was.
+    """
+    p, t = np.asarray(predicted, np.float64), np.asarray(true, np.float64)
+    if p.shape != t.shape or p.ndim != 2 or p.shape[1] != len(_A):
+        raise ValueError(
+            f"calibrate_gap_free needs (N, {len(_A)}) predictions and truths; got {p.shape}, "
+            f"{t.shape}"
+        )
+    if not 0.0 < ghost_share < 1.0:
+        raise ValueError(f"calibrate_gap_free: ghost_share={ghost_share} must lie in (0, 1)")
+
+    def threshold(columns: list[int], current: float | None) -> float | None:
+        free = t[:, columns] >= GAP_CAP_M
+        if not free.any():
+            return current
+        quantile = float(np.quantile(p[:, columns][free], ghost_share))
+        return max(1.0, min(cfg.gap_free_m, quantile))
+
+    ego, side = _GAPS[:1], _GAPS[1:]
+    return replace(
+        cfg,
+        gap_free_m=threshold(ego, cfg.gap_free_m),
+        gap_free_side_m=threshold(side, cfg.gap_free_side_m),
+    )

@@ -37,7 +37,6 @@ with warnings.catch_warnings():  # meshcat 0.3 imports a deprecated pyzmq module
     import meshcat.transformations as tf
     from meshcat.animation import Animation
 
-from ..driving.rollout import drive
 from ..simulation.camera import Camera, CameraConfig
 from ..simulation.camera import draw_trajectory as draw_on_frame
 from ..simulation.geometry import Track
@@ -45,6 +44,7 @@ from ..simulation.policy import Actuation, Observation, Policy
 from ..simulation.raster import CAR_COLOURS, DASH_M, DASH_PERIOD_M, RAIL_HEIGHT_M
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import ParkedCars, World, WorldConfig
+from .rollout import drive
 
 MODE_COLOURS = ((40, 110, 230), (240, 140, 30), (60, 170, 80), (170, 60, 170))
 CAR_HEIGHT_M = 1.5
