@@ -297,8 +297,6 @@ def fingerprint(policy: Policy) -> str:
         parts += [getattr(policy, "preview_s", 0.0)]
         if getattr(policy, "decode", "top") != "top":  # (so the stored keys of "top" stay)
             parts.append(policy.decode)
-        if policy.speed_input_floor_mps is not None:  # (likewise)
-            parts.append(("speed_input_floor_mps", policy.speed_input_floor_mps))
         parts += [repr(policy.camera), str(policy.device)]
     for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
         if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):

@@ -393,17 +393,6 @@ def test_trajectory_agent_keeps_every_mode():
     from e2e_lite.ablation import fingerprint
 
     assert fingerprint(mean_agent) != fingerprint(agent)
-    # a speed-input floor changes what the network is told, and only that: at 20 m/s told "at
-    # least 25" it answers what it answers for 25 m/s; above the floor, as without one
-    told = TrajectoryAgent(model, speed_input_floor_mps=25.0)
-    frames = np.zeros((2, 66, 200, 3), np.uint8)
-    at = lambda a, v: a.trajectories_from(frames, np.full(2, v))  # noqa: E731
-    np.testing.assert_array_equal(at(told, 20.0), at(agent, 25.0))
-    np.testing.assert_array_equal(at(told, 30.0), at(agent, 30.0))
-    assert not np.array_equal(at(agent, 20.0), at(agent, 25.0))  # (the speed input matters)
-    assert fingerprint(told) != fingerprint(agent) and told.fork(2)[1].speed_input_floor_mps == 25
-    with pytest.raises(ValueError, match="speed_input_floor_mps"):
-        TrajectoryAgent(model, speed_input_floor_mps=-1.0)
     with_aff = prepare(
         build_model(ModelConfig(head="gmm", affordance=True, fusion_width=16)), torch.device("cpu")
     ).eval()

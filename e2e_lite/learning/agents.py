@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import check_range
 from ..control.expert import ExpertConfig, SpeedLimits
 from ..control.labels import N_POINTS, POINT_DIMS
 from ..control.tracker import (
@@ -58,11 +57,6 @@ class NetworkAgent:
         vehicle: the car (wheelbase, steering limit).
         sim: the world's time steps (its policy period discretises the default trackers; the
             evaluator checks it against the world's).
-        speed_input_floor_mps: the speed told to the network is at least this [m/s] (``None``:
-            the car's own; the tracker always has the car's own). A control for the speed input
-            as a shortcut: in the expert's data a car below cruise speed is mostly one slowing
-            around a parked car, and a network told "slow" steers as if changing lanes
-            (chapter 11).
     """
 
     def __init__(
@@ -71,11 +65,7 @@ class NetworkAgent:
         camera: CameraConfig | None = None,
         vehicle: VehicleParams | None = None,
         sim: SimConfig | None = None,
-        speed_input_floor_mps: float | None = None,
     ) -> None:
-        if speed_input_floor_mps is not None:
-            check_range(type(self).__name__, "speed_input_floor_mps", speed_input_floor_mps, 0, 100)
-        self.speed_input_floor_mps = speed_input_floor_mps
         self.model = model.eval()
         self.camera = camera or CameraConfig()
         self.vehicle = vehicle or VehicleParams()
@@ -105,8 +95,6 @@ class NetworkAgent:
         """The network's raw outputs for frames ``(B, H, W, 3)`` uint8 at speeds ``(B,)`` [m/s]
         (e.g. recorded frames of a dataset); ``kw`` goes to the model's ``forward``."""
         image = images_to_tensor(images, self.device)
-        if self.speed_input_floor_mps is not None:
-            speed_mps = np.maximum(speed_mps, self.speed_input_floor_mps)
         speed = torch.as_tensor(speed_mps, dtype=torch.float32, device=self.device)[:, None]
         with torch.inference_mode():
             return self.model(image, speed, **kw)

@@ -253,24 +253,17 @@ class FusionNet(DrivingModel):
             else None
         )
 
-    def forward(
-        self, image: torch.Tensor, speed: torch.Tensor, with_trunk: bool = False
-    ) -> dict[str, torch.Tensor]:
-        """``{"main": (B, out_size)[, "affordance": (B, 9)][, "trunk": (B, 1152)]}`` in
-        normalised units.
+    def forward(self, image: torch.Tensor, speed: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``{"main": (B, out_size)[, "affordance": (B, 9)]}`` in normalised units.
 
         Args:
             image: (B, 3, 66, 200) uint8 (or float in [0, 255]).
             speed: (B, 1) speed [m/s] (normalised inside with the model's statistics).
-            with_trunk: also return the trunk's features (for a head fitted on them, e.g.
-                :class:`~e2e_lite.learning.freespace.ProfileHead`, read in the same pass).
         """
         features = self.features(image, speed)
         out = {"main": self.head(features["fused"])}
         if self.affordance_head is not None:
             out["affordance"] = self.affordance_head(features[self.cfg.affordance_from])
-        if with_trunk:
-            out["trunk"] = features["trunk"]
         return out
 
     def features(self, image: torch.Tensor, speed: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -34,7 +34,7 @@ from ..config import Profile
 from ..control.labels import AFFORDANCE_NAMES
 from .checkpoints import refit_or_load, train_or_load
 from .cvar import CVaRObjective
-from .dataset import DrivingData, DrivingDataset, concat
+from .dataset import DrivingData, DrivingDataset
 from .losses import GMMObjective, Objective, WithAffordance
 from .models import DrivingModel, ModelConfig
 from .probes import HeadRefit
@@ -337,7 +337,6 @@ def perceiving(
     model: DrivingModel,
     train: DrivingData,
     name: str,
-    views: DrivingData | None = None,
     **kw: Any,
 ) -> DrivingModel:
     """The network whose affordances the course reads (chapter 08's scatter, chapter 11's safety
@@ -347,13 +346,8 @@ def perceiving(
 
     Why: a trajectory network keeps the epoch that drives best (``select_by``), and the head
     rides along; when an early epoch wins, the head it carries has trained for one epoch
-    (chapter 08, "the head over the epochs").
-
-    ``views``: extra frames the head also fits (chapter 11: the approach views of
-    :func:`~e2e_lite.learning.recovery.approach_views`, parked cars at the distances the
-    expert's frames never show)."""
-    frames = train if views is None else concat(train, views)
-    return refit_or_load(name, model, frames, HEAD_REFIT, **kw)
+    (chapter 08, "the head over the epochs")."""
+    return refit_or_load(name, model, train, HEAD_REFIT, **kw)
 
 
 #: How chapter 09's fine-tunes reduce a batch (:func:`gmm_affordance_cvar`): the paper's CVaR
