@@ -24,8 +24,8 @@
 #
 # *Where* the head reads is a choice too. The paper's Fig. 1 puts it on the fusion network's
 # output, beside the trajectory head. The course's head reads the image backbone's (trunk's)
-# features instead: section 4 shows the measurement behind that choice, the paper's placement
-# beside ours (`recipes.AFFORDANCE_FROM`).
+# features instead (`recipes.AFFORDANCE_FROM`): probes on the frozen features of both placements
+# found more of the affordances in the trunk (`docs/lab-notes.md`; exercise 6).
 #
 # Run it with `python chapters/08_affordance.py` (add `--quick` for a run of seconds).
 
@@ -57,7 +57,6 @@ from e2e_lite.learning.data import (
     load_or_collect,
 )
 from e2e_lite.learning.heldout import affordance_errors, goal_ratios
-from e2e_lite.learning.probes import PROBE_LAYERS, probe_affordances
 from e2e_lite.learning.training import evaluate_loss
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.viz import collision_chart, save_figure
@@ -161,7 +160,7 @@ for row in head_by_epoch:
 #
 # The kept network is kept for how it drives; the head it carries need not stay as young as
 # that epoch. So the course trains the head **alone** on, on the frozen features it reads (the
-# kept trunk), with the loss it trained with, for the probes' schedule (section 4: 30 passes of
+# kept trunk), with the loss it trained with, for the probes' schedule (30 passes of
 # Adam at 1e-3 over every training frame, inputs standardised while it trains and folded back
 # into its first layer after). No other weight moves, so the network drives exactly as the kept
 # one (`recipes.perceiving`; tested to the bit). Everything below that reads the network's
@@ -234,95 +233,6 @@ for what, ratio in goals.items():
     print(f"{what}: {ratio:.2f} of the mean predictor's ({'met' if ratio <= 0.5 else 'not met'}: "
           f"the goal is at most half); the joint head of the kept epoch {goals_joint[what]:.2f}")  # fmt: skip
 print(f"saved {scatter_png}")
-
-# %% [markdown]
-# ### Where the offset's error sits
-#
-# The lane-centre offset is measured from the *nearest* lane's centre, so it jumps by a lane
-# width when the rear axle crosses a marking: at the crossing, +1.85 m and -1.85 m are the same
-# place (the scatter's two off-diagonal clouds). Near the jump the least-squares answer is the
-# middle, 0, and every lane change passes through it. We split the squared error by situation
-# and also read it *wrapped* to a lane width (an error of 3.5 m counts as 0.2 m), which forgives
-# exactly that ambiguity and nothing else.
-
-# %%
-j_off = OFFSET
-lane_w = world_cfg.road.lane_width_m
-
-
-def wrapped(err: np.ndarray) -> np.ndarray:
-    """An offset error [m] read modulo one lane width, into [-w/2, w/2)."""
-    return (err + lane_w / 2) % lane_w - lane_w / 2
-
-
-off_err = pred[:, j_off] - true[:, j_off]
-off_mean_err = a_mean[j_off] - true[:, j_off]
-near_marking = np.abs(true[:, j_off]) >= lane_w / 3
-offset_split = {}
-for what, mask in (
-    ("all frames", np.ones(len(true), bool)),
-    ("lane change", changing),
-    ("keeping the lane", ~changing),
-    ("within a third of a lane width of a marking", near_marking),
-):
-    if not mask.any():  # the quick profile's few frames may hold no lane change
-        continue
-    offset_split[what] = {
-        "frames": int(mask.sum()),
-        "share_of_squared_error": float(np.sum(off_err[mask] ** 2) / np.sum(off_err**2)),
-        "rmse_ratio": float(
-            np.sqrt(np.mean(off_err[mask] ** 2) / np.mean(off_mean_err[mask] ** 2))
-        ),
-    }
-offset_split["wrapped to a lane width"] = {
-    "frames": len(true),
-    "rmse_ratio": float(
-        np.sqrt(np.mean(wrapped(off_err) ** 2) / np.mean(wrapped(off_mean_err) ** 2))
-    ),
-}
-print("lane-centre offset, RMSE as a share of the mean predictor's (the goal: at most 0.5):")
-for what, e in offset_split.items():
-    share = e.get("share_of_squared_error")
-    share_txt = f", {share:.0%} of the squared error" if share is not None else ""
-    print(f"  {what:46s} {e['rmse_ratio']:.2f}  ({e['frames']} frames{share_txt})")
-
-# %% [markdown]
-# ### Where is the information? Probes, and where the head should read
-#
-# A head no better than the mean can mean two things: the network's features do not hold the
-# affordance, or they hold it and the head does not get it out. A **probe** separates the two: a
-# small network (one hidden layer) trained on the *frozen* features of a trained model, asked on
-# the same held-out frames. We probe two layers: the trunk's 1,152 image features and the fusion
-# MLP's 256 outputs. And we do it for two networks trained alike except for where their head
-# reads: on the fused features (the paper's Fig. 1; chapter 10's control `gmm_affordance_fused`)
-# and on the trunk (the course). A probe that beats its network's head says the information is
-# there and the head does not get it out; the layer where a probe does best says where to read.
-
-# %%
-paper_model, paper_objective, _ = recipes.gmm_affordance(
-    profile, train, val, w_best, name="08_gmm_affordance_fused", affordance_from="fused"
-)
-
-
-def head_goals(predicted: np.ndarray) -> dict[str, float]:
-    """Each goal affordance's error on the validation frames as a share of the mean predictor's."""
-    return goal_ratios(affordance_errors(predicted, true, a_mean))
-
-
-probe_train = DrivingDataset(train, np.arange(0, len(train), 2))  # half the training frames
-probe_val = DrivingDataset(val, rows)  # the scatter's frames
-probe_goals = {}
-for placement, net in (("fused (paper)", paper_model), ("trunk (course)", model)):
-    probe_goals[f"head on {placement}: the head"] = head_goals(head_affordances(net))
-    if net is model:
-        probe_goals[f"head on {placement}: the head, refit"] = goals
-    for layer in PROBE_LAYERS:
-        predicted_by_probe = probe_affordances(net, probe_train, probe_val, layer)
-        probe_goals[f"head on {placement}: probe on {layer}"] = head_goals(predicted_by_probe)
-print("error as a share of the mean predictor's (the goal: at most 0.5):")
-print(f"  {'':44s}" + "".join(f"{what:>26s}" for what in goals))
-for who, ratios in probe_goals.items():
-    print(f"  {who:44s}" + "".join(f"{ratios.get(what, np.nan):26.2f}" for what in goals))
 
 # %% [markdown]
 # ## 5. Along a drive
@@ -410,33 +320,6 @@ chart = collision_chart(
 chart_png = save_figure(chart, artifacts.artifact_path("figures", "08_collisions.png"))
 
 # %% [markdown]
-# ## 7. A heavier w: what the head gains, what the driving pays
-#
-# The head refit on the kept trunk beats the mean predictor, but a goal of half the mean
-# predictor's error on the lane-centre offset asks more of it (the goals line of section 4), and
-# a probe on the same trunk does no better (section 4's table): the trunk does not hold the
-# offset more sharply. A trunk trained with more weight on the affordances might. The same
-# recipe again with `w = 30` (the trajectory loss still there, the affordances ten times the
-# grid's largest weight), the head refit as above, driven on the same tracks: does the head reach
-# the goals, and what does the driving pay for it?
-
-# %%
-HEAVY_W = 30.0
-heavy_name = f"08_gmm_affordance_w{HEAVY_W:g}"
-heavy, _, heavy_hist = recipes.gmm_affordance(profile, train, val, HEAVY_W, name=heavy_name)
-heavy_goals = head_goals(head_affordances(recipes.perceiving(heavy, train, heavy_name)))
-heavy_res = evaluate(TrajectoryAgent(heavy), world_cfg, ev, desc=f"w = {HEAVY_W:g}")
-print("| w | kept epoch | " + " | ".join(heavy_goals) + " | collisions per 100 mi | mph |")
-print("|---:|---:|" + "---:|" * (len(heavy_goals) + 2))
-for w, kept, g, r in ((w_best, hist.best_epoch, goals, res),
-                      (HEAVY_W, heavy_hist.best_epoch, heavy_goals, heavy_res)):  # fmt: skip
-    print(f"| {w:g} | {kept + 1} | " + " | ".join(f"{g[k]:.2f}" for k in heavy_goals)
-          + f" | {r.collisions_per_100mi:.1f} | {r.mean_speed_mph:.1f} |")  # fmt: skip
-print("(each goal: the refit head's error over the mean predictor's; at most 0.5 is the goal)")
-heavy_verdict = f"w = {HEAVY_W:g} vs w = {w_best:g}: " + compare_rates(heavy_res, res)["verdict"]
-print(heavy_verdict)
-
-# %% [markdown]
 # ## Headline figures
 
 # %%
@@ -461,20 +344,11 @@ artifacts.write_metrics(
         "affordance_error_joint_head": errors_joint,
         "affordance_goals_joint_head": goals_joint,
         "head_refit": recipes.HEAD_REFIT,
-        "offset_error_split": offset_split,
-        "affordance_probes": probe_goals,
         "head_by_epoch": head_by_epoch,
         "kept_epoch": hist.best_epoch,
         "affordances_learned": learned,
         "drive_gap_mae_m": drive_mae,
         "verdict_vs_gmm": verdict,
-        "heavy_w": {
-            "w": HEAVY_W,
-            "kept_epoch": heavy_hist.best_epoch,
-            "affordance_goals": heavy_goals,
-            "result": heavy_res.to_dict(),
-            "verdict": heavy_verdict,
-        },
         "table_md": table,
     },
     figures=(scatter_png, drive_png, chart_png),
@@ -485,29 +359,24 @@ artifacts.write_metrics(
 #
 # * An affordance head adds 9 dense labels per frame; the total loss is the GMM NLL plus `w`
 #   times their normalised squared error, with `w` chosen on held-out trajectory NLL.
-# * Where the head reads matters, and a probe on frozen features measures it: the table of
-#   section 4 compares the paper's placement (the fused features) with the course's (the trunk).
 # * The predicted affordances make the network's perception readable: the scatter and the drive
 #   show what it sees of the lane and the car ahead, and where it is wrong. Judge them against
 #   the floor printed beside them (always answering the mean): a head can train without learning.
 # * A network kept for how it drives carries the head of that epoch. When an early epoch drives
 #   best, the head has barely trained (the per-epoch table); training the head alone on the kept
 #   trunk afterwards (`recipes.perceiving`) finishes it without moving a weight that drives.
-# * An error can also sit in the label: the lane-centre offset jumps by a lane width at every
-#   marking the car crosses, so a lane change's frames weigh in its RMSE far beyond their number
-#   (the split after the scatter).
-# * A head perceives only what its trunk encodes. Weighting the affordances heavily (section 7)
-#   trains a trunk that encodes them better, and that trunk is trained less for the trajectory:
-#   the auxiliary loss is a trade, read both sides of it (the goals and the collisions).
 # * Whether the auxiliary task lowers collisions here is the verdict line above, measured on the
-#   same tracks and seeds as chapter 07; the paper reports 12.7 -> 0.83 per 100 miles. The verdict
-#   compares two *training runs*, one per setting: it is only evidence for the auxiliary loss if
-#   two runs of the same setting agree far better than that (exercise 4 measures it).
+#   same roads as chapter 07 (the paper reports its step from 12.7 to 0.83 per 100 miles). The
+#   verdict compares two *training runs*, one per setting: it is evidence for the auxiliary loss
+#   only if two runs of one setting agree far better than that (exercise 4; chapter 10 trains
+#   three seeds per row).
 #
 # ## Exercises
 #
-# 1. Train with `w = 10` (between the grid and section 7's 30). What happens to the trajectory
-#    NLL, to the affordance errors, and to the collisions?
+# 1. Train with `w = 30` (`recipes.gmm_affordance(profile, train, val, 30.0,
+#    name="08_gmm_affordance_w30")`), refit its head and drive it. Does the head reach half the
+#    mean predictor's error on every goal, and what does the driving pay (lab note "A heavier
+#    affordance weight")?
 # 2. Drop the three gap affordances (train on the six lane geometry ones only). Which part of the
 #    closed-loop result moves?
 # 3. Use the predicted gap ahead as a brake: if it is below 20 m, set the followed trajectory's
@@ -515,8 +384,10 @@ artifacts.write_metrics(
 # 4. Train the same network with `w = 0` (head present, unused) and, separately, chapter 07's GMM
 #    with `TrainConfig.seed=1`. How far apart are two training runs of one recipe in closed loop?
 #    Compare with the difference you would attribute to the affordance loss.
-# 5. The grid search trains on a quarter of the data for two epochs. Is its winner the winner at
-#    full length? Train two values of `w` at full length and compare.
-# 6. Probe the trunk of chapter 07's GMM (no affordance head, no auxiliary loss):
-#    `probe_affordances(gmm07, probe_train, probe_val, "trunk")`. How much of the affordances does
-#    a trajectory network learn to see without being asked?
+# 5. The lane-centre offset jumps by a lane width when the car crosses a marking. Split the
+#    offset's squared error into lane changes and lane keeping, and read it wrapped to a lane
+#    width: how much of the head's error is the label's ambiguity?
+# 6. Probe where the affordances are: `probes.probe_affordances(net, train_set, val_set, layer)`
+#    on the trunk and on the fused features, for this network and for one trained with
+#    `affordance_from="fused"` (the paper's placement). Which layer holds the affordances, and
+#    does the head get them out?

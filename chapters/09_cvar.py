@@ -26,25 +26,20 @@ from e2e_lite.course import start_chapter
 
 profile = start_chapter(9)  # flags, profile, outputs folder: checked before any work
 
-import dataclasses
 
 import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from e2e_lite import artifacts
-from e2e_lite.control.labels import KEEP
+from e2e_lite import ablation, artifacts
 from e2e_lite.driving.evaluation import (
     EvalConfig,
     compare_rates,
     miles_text,
-    pool_results,
     result_dict,
     results_table,
 )
-from e2e_lite import ablation
 from e2e_lite.learning import recipes
-from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.learning.data import (
     AFFORDANCE_NAMES,
@@ -277,51 +272,18 @@ print(
 )
 
 # %% [markdown]
-# Where does the cost on the easy cases land? On straight validation frames where the expert
-# keeps its lane, compare the followed trajectory's lateral error at 1.5 s: base, control and CVaR.
-
-# %%
-easy = np.flatnonzero((val.expert_state == KEEP) & (np.abs(val.curvature) < 1e-4))
-easy = easy[:: max(1, len(easy) // 2000)]
-easy_report = {}
-for name, m in (("base", base), ("control", control), ("cvar", model)):
-    probe = TrajectoryAgent(m)
-    chunks = np.array_split(easy, max(1, len(easy) // 256))
-    pts = np.concatenate([probe.trajectories_from(val.images[c], val.speed[c]) for c in chunks])
-    err_y5 = np.abs(pts[:, -1, 1] - val.trajectory[easy, -1, 1])
-    easy_report[name] = {
-        "lateral_error_1p5s_m": float(err_y5.mean()),
-        "share_swerving_over_1m": float(np.mean(np.abs(pts[:, -1, 1]) > 1.0)),
-    }
-    print(
-        f"{name:7s}: {len(easy)} straight keep-lane frames, lateral error at 1.5 s "
-        f"{easy_report[name]['lateral_error_1p5s_m']:.3f} m, followed trajectory more than 1 m "
-        f"sideways in {easy_report[name]['share_swerving_over_1m']:.1%}"
-    )
-
-# %% [markdown]
 # ## 5. Closed loop: base, control and CVaR, over the training seeds
 #
 # The three drivers (the chapter-08 model, its control fine-tune, its CVaR fine-tune), each
 # trained with chapter 10's seeds, on chapter 10's roads and miles: each seed drives its share of
 # the miles on roads of its own, and the counts are pooled. Chapter 10 reuses these evaluations.
-# Two more rows are the same two fine-tunes with the sigmas open (the paper's NLL); section 6
-# reads them.
 
 # %%
-keys = (
-    "gmm_affordance",
-    "gmm_affordance_control",
-    "gmm_affordance_cvar",
-    "gmm_affordance_control_open",
-    "gmm_affordance_cvar_open",
-)
+keys = ("gmm_affordance", "gmm_affordance_control", "gmm_affordance_cvar")
 names = {
     "gmm_affordance": "base",
     "gmm_affordance_control": "control",
     "gmm_affordance_cvar": "cvar",
-    "gmm_affordance_control_open": "control_open",
-    "gmm_affordance_cvar_open": "cvar_open",
 }
 seeded = ablation.build_seeded_drivers(profile, keys, train=train, val=val)
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
@@ -337,15 +299,6 @@ verdicts = {
     ),
     "cvar_vs_base": compare_rates(closed["gmm_affordance_cvar"], closed["gmm_affordance"]),
     "control_vs_base": compare_rates(closed["gmm_affordance_control"], closed["gmm_affordance"]),
-    "open_cvar_vs_open_control": compare_rates(
-        closed["gmm_affordance_cvar_open"], closed["gmm_affordance_control_open"]
-    ),
-    "cvar_vs_open_cvar": compare_rates(
-        closed["gmm_affordance_cvar"], closed["gmm_affordance_cvar_open"]
-    ),
-    "control_vs_open_control": compare_rates(
-        closed["gmm_affordance_control"], closed["gmm_affordance_control_open"]
-    ),
 }
 for what, test in verdicts.items():
     print(f"{what.replace('_', ' ')}: {test['verdict']}")
@@ -371,133 +324,16 @@ for k in keys:
     )
 
 # %% [markdown]
-# The same comparison at matched speed: only the training seeds whose CVaR fine-tune drove within
-# 10 % of its control's speed, pooled. This conditions on an outcome of the fine-tune (its speed),
-# so it is a reading aid, not a test of the method: it asks whether, where CVaR did not slow
-# down, it still collided less.
-
-# %%
-cv, co = (result_dict(closed[k]) for k in ("gmm_affordance_cvar", "gmm_affordance_control"))
-pairs = list(zip(cv.get("seeds") or [cv], co.get("seeds") or [co]))
-matched = [k for k, (a, b) in enumerate(pairs) if a["mean_speed_mph"] >= 0.9 * b["mean_speed_mph"]]
-matched_test = None
-if matched:
-    matched_test = compare_rates(
-        pool_results([pairs[k][0] for k in matched]), pool_results([pairs[k][1] for k in matched])
-    )
-    matched_test["seeds"] = matched
-    print(f"seeds {matched}, CVaR at matched speed vs its control: {matched_test['verdict']}")
-else:
-    print("no seed's CVaR fine-tune drove within 10 % of its control's speed")
-
-# %% [markdown]
-# 500 miles separate the fine-tunes from their base, but a gap between two good drivers (a few
-# collisions per 100 mi each) needs more. So the CVaR fine-tune and its control drive as many
-# miles again, on roads no driver of the course has driven (tracks from `NEW_ROADS` on), and the
-# two sets of roads are pooled.
-
-# %%
-NEW_ROADS = 5000  # the first track of the second set: beyond every track chapter 10 drives
-pair = ("gmm_affordance_cvar", "gmm_affordance_control")
-more = ablation.evaluate_drivers(
-    {k: seeded[k] for k in pair},
-    world_cfg,
-    dataclasses.replace(ev, first_track=NEW_ROADS),
-    workers=profile.ablation_workers,
-)
-both_roads = {k: pool_results([closed[k], more[k]]) for k in pair}
-verdicts["cvar_vs_control_new_roads"] = compare_rates(*(more[k] for k in pair))
-verdicts["cvar_vs_control_both_roads"] = compare_rates(*(both_roads[k] for k in pair))
-for k in pair:
-    print(f"{names[k]:8s} new roads: {ablation.per_seed(more[k])} per 100 mi by seed; "
-          f"both sets: {result_dict(both_roads[k])['collisions']} collisions in "
-          f"{result_dict(both_roads[k])['miles']:.0f} mi")  # fmt: skip
-for what in ("cvar_vs_control_new_roads", "cvar_vs_control_both_roads"):
-    print(f"{what.replace('_', ' ')}: {verdicts[what]['verdict']}")
-
-# %% [markdown]
 # ## 6. Why the fine-tunes hold sigma at 1
 #
-# With the sigmas open, a sample's NLL is large when its error is large *relative to its sigma*,
-# and the cheapest way to lower the loss of the worst samples is to widen their sigmas. That also
-# weakens the pull on the means (each mean is pulled with weight 1 / sigma²). The mean fine-tune
-# has the opposite problem when the base was kept inside its sigma warm-up (chapter 07: the epoch
-# is kept by the driving error, and an early one often wins): its sigmas have never trained, and
-# its one epoch is spent shrinking them from 1. Either way the sigmas, not the reduction, can
-# decide which fine-tune drives better.
-#
-# For every training seed: the epoch its base was kept at and whether its sigmas were still held
-# then; on held-out frames, the followed mode's sideways sigma at 1.5 s and the followed
-# trajectory's average error (ADE); and each driver's collisions per 100 mi from section 5.
-
-# %%
-probe_val = np.linspace(0, len(val) - 1, min(len(val), 2000)).round().astype(int)
-
-
-def held_out(agent: TrajectoryAgent) -> dict[str, float]:
-    """The followed mode's sideways sigma at 1.5 s (median) and the followed trajectory's ADE
-    (mean) on ``probe_val`` [m]."""
-    sigmas, points = [], []
-    for rows_k in np.array_split(probe_val, max(1, len(probe_val) // 256)):
-        points.append(agent.trajectories_from(val.images[rows_k], val.speed[rows_k]))
-        top = agent.last["weights"].argmax(axis=1)  # the followed (heaviest) mode
-        sigmas.append(agent.last["sigmas"][np.arange(len(rows_k)), top, -1, 1])
-    error = np.linalg.norm(np.concatenate(points) - val.trajectory[probe_val], axis=-1)
-    return {
-        "sigma_y_1p5s_m": float(np.median(np.concatenate(sigmas))),
-        "ade_m": float(error.mean()),
-    }
-
-
-diagnosis = []
-for k in range(profile.ablation_seeds):
-    parent = recipes.gmm_affordance(
-        profile, train, val, w, name=recipes.seeded_name("08_gmm_affordance", k), seed=k,
-        keep_optimizer=True, progress=False,
-    )[2]  # fmt: skip
-    entry = {
-        "seed": k,
-        "base_epoch": parent.best_epoch + 1,
-        "base_sigmas": "held" if "head.log_sigma" in parent.best["frozen"] else "trained",
-    }
-    for key in keys:
-        rate = (result_dict(closed[key]).get("seeds") or [result_dict(closed[key])])[k]
-        entry[names[key]] = {
-            **held_out(seeded[key][k]),
-            "collisions_per_100mi": rate["collisions_per_100mi"],
-        }
-    diagnosis.append(entry)
-order = [names[key] for key in keys]
-print("per seed: " + " / ".join(order))
-print("| seed | base kept at epoch (its sigmas) | followed sigma sideways at 1.5 s [m] | "
-      "held-out ADE [m] | collisions per 100 mi |")  # fmt: skip
-print("|---|---|---|---|---|")
-for e in diagnosis:
-    cells = [
-        " / ".join(f"{e[n][field]:{fmt}}" for n in order)
-        for field, fmt in (("sigma_y_1p5s_m", ".2f"), ("ade_m", ".3f"), ("collisions_per_100mi", ".1f"))
-    ]  # fmt: skip
-    print(f"| {e['seed']} | {e['base_epoch']} ({e['base_sigmas']}) | " + " | ".join(cells) + " |")
-
-
-def fewer(entry: dict, a: str, b: str) -> str:
-    """Whether driver ``a`` of a diagnosis entry had fewer collisions per 100 mi than ``b``."""
-    rate = {n: entry[n]["collisions_per_100mi"] for n in (a, b)}
-    return "fewer" if rate[a] < rate[b] else "not fewer"
-
-
-for e in diagnosis:
-    print(
-        f"seed {e['seed']} (base sigmas {e['base_sigmas']}): sigma open, CVaR had "
-        f"{fewer(e, 'cvar_open', 'control_open')} collisions than its control; sigma held, "
-        f"{fewer(e, 'cvar', 'control')}"
-    )
-
-# %% [markdown]
-# Read the table seed by seed. With the sigmas open, compare the CVaR fine-tune's sigma and ADE
-# with its base's and its control's, and see whether the sign of CVaR against its control follows
-# the base's sigma state rather than anything CVaR does. With the sigmas held, the two fine-tunes
-# differ in which samples they learn from, nothing else.
+# With the sigmas open (the paper's NLL), a sample's loss is large when its error is large
+# *relative to its sigma*, and the cheapest way to lower the loss of the worst samples is to
+# widen their sigmas. That also weakens the pull on the means (each mean is pulled with weight
+# 1 / sigma², chapter 07). The mean fine-tune has the opposite problem when its base was kept
+# inside the sigma warm-up: its sigmas have never trained, and its one epoch is spent shrinking
+# them from 1. Either way the sigmas, not the reduction, can decide which fine-tune drives better;
+# held at 1, the two differ in the reduction alone. Exercise 2 drives both with the sigmas open
+# (lab note "CVaR with the sigmas held at 1").
 
 # %%
 res = result_dict(closed["gmm_affordance_cvar"])
@@ -545,7 +381,6 @@ artifacts.write_metrics(
             "rank_by": recipes.CVAR_RANK_BY,
         },
         "held_out": {k: float(v.mean()) for k, v in cvar_metrics.items()},
-        "easy_frames": easy_report,
         "fine_tune": {
             "lr": recipes.CVAR_LR,
             "batch": recipes.CVAR_BATCH,
@@ -560,15 +395,6 @@ artifacts.write_metrics(
         "tests": {
             k: {"p_value": v["p_value"], "verdict": v["verdict"]} for k, v in verdicts.items()
         },
-        "matched_speed": matched_test,
-        "new_roads": {
-            "first_track": NEW_ROADS,
-            **{
-                names[k]: {f: v for f, v in result_dict(more[k]).items() if f != "events"}
-                for k in pair
-            },
-        },
-        "sigma_diagnosis": diagnosis,
         "table_md": table,
     },
     figures=(grid_png, curve_png, chart_png),
@@ -589,9 +415,8 @@ artifacts.write_metrics(
 #   that reaches the road.
 # * A rate per mile is read with the speed and the stalls: a driver that learns from a tail rich
 #   in braking and swerving can buy fewer collisions per hour by not driving.
-# * With a GMM, the fine-tune's sigmas are a second change beside the reduction. Open, CVaR can
-#   lower its tail by widening them, and the base's sigma state (trained, or still held by its
-#   warm-up) can decide the comparison; held at 1, the fine-tunes differ in the reduction alone.
+# * With a GMM, the fine-tune's sigmas are a second change beside the reduction: held at 1, the
+#   fine-tunes differ in the reduction alone.
 #
 # ## Exercises
 #
@@ -599,12 +424,15 @@ artifacts.write_metrics(
 # 2. Rank the tail by the followed trajectory's error (`CVaRObjective(..., rank_by=
 #    "followed_error")`, or `recipes.CVAR_RANK_BY`). Does section 3's table change the way you
 #    expected, and does the closed loop follow?
-#    Try it with the sigmas open too (`sigma="open"`): does ranking by the followed error stop
-#    CVaR from widening the sigmas?
+#    Then fine-tune both with the sigmas open (`recipes.gmm_affordance_cvar(..., sigma="open")`,
+#    the drivers `gmm_affordance_cvar_open` and `gmm_affordance_control_open` of
+#    `ablation.DRIVERS`), seed by seed: does the sign of CVaR against its control follow the
+#    base's sigma state (trained, or still held by its warm-up at the kept epoch)?
 # 3. Two epochs of CVaR-90: does the mean loss keep rising? Does the closed-loop rate follow the
 #    CVaR-90 or the mean?
-# 4. The tail of section 3 is measured with the training loss. Do the same with the validation
-#    loss: are the worst held-out samples the same situations?
+# 4. Where does the cost on the easy cases land? On straight validation frames where the expert
+#    keeps its lane, compare the followed trajectory's lateral error at 1.5 s of base, control
+#    and CVaR. Then measure section 3's tail with the validation loss.
 # 5. Fine-tune with a fresh Adam instead (`carry_optimizer=False` in `recipes.gmm_affordance_cvar`'s
 #    `train_or_load` call). How far do the weights move in the first ten steps, against the
 #    carried optimiser?

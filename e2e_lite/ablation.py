@@ -168,18 +168,25 @@ DRIVERS = (
         build=lambda b: _finetune(b, "cvar"),
     ),
 )
-#: Controls (not in the paper), same seeds and roads as the rows:
-#: ``gmm_affordance_w0``, the affordance network trained with ``w = 0`` (its head then learns
-#: nothing): is the affordance step the auxiliary loss? ``gmm_mean``, the GMM row's checkpoints
-#: following the mixture's mean (the modes' weighted average) instead of the heaviest mode: does
-#: choosing a mode matter? ``gmm_k1``, the GMM's loss and schedule with one mode: is the GMM row's
-#: gap to L2 the choice between modes, or the NLL? ``gmm_sigma_fixed``, the GMM with every sigma
-#: held at 1 for the whole training (the warm-up never ends): is it the learned sigmas?
-#: ``gmm_affordance_control``, the CVaR row's fine-tune with the batch mean instead of CVaR: is the
-#: CVaR step CVaR, or one more epoch? ``gmm_affordance_fused``, the affordance network with its
-#: head on the fused features (the paper's Fig. 1) instead of the trunk's: where should it read?
+#: The controls of chapter 10's table (not in the paper), same seeds and roads as the rows: a
+#: fine-tune needs its control and an auxiliary loss its ``w = 0``. ``gmm_affordance_w0``, the
+#: affordance network trained with ``w = 0`` (its head then learns nothing): is the affordance
+#: step the auxiliary loss? ``gmm_affordance_control``, the CVaR row's fine-tune with the batch
+#: mean instead of CVaR: is the CVaR step CVaR, or one more epoch?
 CONTROLS = (
     Driver("gmm_affordance_w0", "GMM + affordance head, w = 0", build=_w0),
+    Driver(
+        "gmm_affordance_control",
+        "GMM + affordance, the fine-tune with the mean",
+        build=lambda b: _finetune(b, "mean"),
+    ),
+)
+#: Drivers of the exercises and the lab notes, which the course does not drive: the affordance
+#: head on the fused features (the paper's Fig. 1) instead of the trunk's; the GMM following the
+#: mixture's mean, with one mode, and with every sigma held at 1; CVaR and its control with the
+#: mixture's sigmas open, as the paper's NLL trains them (the course holds them at 1,
+#: :data:`~e2e_lite.learning.recipes.CVAR_SIGMA`).
+DIAGNOSTICS = (
     Driver(
         "gmm_affordance_fused",
         "GMM + affordance, head on the fused features",
@@ -190,16 +197,6 @@ CONTROLS = (
     Driver(
         "gmm_sigma_fixed", "GMM with sigma held at 1", build=lambda b: _gmm(b, sigma_fixed=True)
     ),
-    Driver(
-        "gmm_affordance_control",
-        "GMM + affordance, the fine-tune with the mean",
-        build=lambda b: _finetune(b, "mean"),
-    ),
-)
-#: Chapter 09's controls of the fine-tune itself (not in chapter 10's table): CVaR and its
-#: control with the mixture's sigmas open, as the paper's NLL trains them, where the course's
-#: fine-tunes hold them at 1 (:data:`~e2e_lite.learning.recipes.CVAR_SIGMA`).
-FINETUNE_CONTROLS = (
     Driver(
         "gmm_affordance_cvar_open",
         "GMM + affordance + CVaR, sigma open",
@@ -217,7 +214,7 @@ UNTRAINED = ("expert", "oracle")
 PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
-BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS, *FINETUNE_CONTROLS)}
+BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS, *DIAGNOSTICS)}
 #: shards of a full-profile ablation evaluation (part of its settings: see ``evaluate``'s
 #: ``workers``; the chapters pass their profile's ``ablation_workers``).
 WORKERS = FULL.ablation_workers

@@ -119,9 +119,10 @@ def test_seeded_names_keep_the_chapters_checkpoint_for_seed_zero():
     assert seeded_name("09_gmm_affordance_cvar", 1) == "10_gmm_affordance_cvar_seed1"
 
 
-def test_chapter_09s_open_sigma_controls_are_drivers_but_not_chapter_10_rows():
-    keys = [d.key for d in ablation.FINETUNE_CONTROLS]
-    assert keys == ["gmm_affordance_cvar_open", "gmm_affordance_control_open"]
+def test_the_exercises_drivers_are_drivers_but_not_chapter_10_rows():
+    keys = [d.key for d in ablation.DIAGNOSTICS]
+    assert "gmm_affordance_cvar_open" in keys and "gmm_sigma_fixed" in keys
     assert all(k in ablation.BY_KEY for k in keys)
+    assert [d.key for d in ablation.CONTROLS] == ["gmm_affordance_w0", "gmm_affordance_control"]
     table_keys = {d.key for d in (*ablation.DRIVERS, *ablation.CONTROLS)}
     assert not table_keys & set(keys)
