@@ -175,8 +175,9 @@ print(f"figure: {png}")
 #
 # Collisions are rare, random events: a count `k` over `m` miles is a Poisson sample. The exact
 # (Garwood) 95 % interval of the rate uses the chi-square quantiles
-# `[χ²(0.025; 2k) / 2, χ²(0.975; 2k + 2) / 2] / m`. Even **zero collisions in 100 miles** only says
-# the rate is below about 3.7 per 100 miles: this is why the ablation (chapter 10) drives 500.
+# `[χ²(0.025; 2k) / 2, χ²(0.975; 2k + 2) / 2] / m`. Even **zero collisions in 100 miles** leaves
+# an interval reaching several collisions per 100 miles (the cell below prints it): this is why
+# the ablation (chapter 10) drives 500.
 
 # %%
 for k_col, m in ((0, 100.0), (0, 500.0), (1, 100.0), (10, 100.0)):
@@ -226,5 +227,5 @@ for name, res in results.items():
 #    and why does the 10 Hz policy rate matter?
 # 3. Make a track with `RoadConfig(radius_m=(60, 100))`. Which driver hits the rails, and why does
 #    the curvature feed-forward alone not save it?
-# 4. How many miles without a collision would you need to claim a rate below 1 per 100 miles
+# 4. How many miles without a collision would you need to claim a rate below one per 100 miles
 #    with 95 % confidence?

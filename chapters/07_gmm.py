@@ -482,8 +482,8 @@ artifacts.write_metrics(
 #
 # ## Exercises
 #
-# The course's investigations of this chapter (target scaling, who sets the speed, the data's
-# take-overs, the mixture's mean and K = 1) are in `docs/lab-notes.md`, each with its commit.
+# This chapter's investigations (target scaling, who sets the speed, the data's take-overs, the
+# mixture's mean, K = 1) are in `docs/lab-notes.md`, each with its commit.
 #
 # 1. Train with `sigma_warmup_epochs=0`. Does the validation NLL of the first epoch differ? Do the
 #    modes still separate on the overtake frame?
@@ -492,8 +492,7 @@ artifacts.write_metrics(
 #    parked-car frame beside the two modes, and drive it. Which failure of chapter 06 comes back?
 # 4. Hold every sigma at 1 (`recipes.gmm(profile, train, val, name="07_gmm_sigma_fixed",
 #    sigma_fixed=True)`) and drive it beside the GMM on the same roads. Is the learned sigma what
-#    separates the GMM from L2? Try two training seeds before you answer (lab note "Sigma held
-#    at 1").
+#    separates the GMM from L2? Try two seeds before you answer (lab note "Sigma held at 1").
 # 5. Scale the targets per coordinate (`recipes.gmm_objective(profile,
 #    target_scale="coordinate")`, `sigma_floor_m=None`): do the modes still split left and right,
 #    or by speed (`learning.heldout.mode_split`)?

@@ -202,7 +202,7 @@ print(profile.caveat.strip())
 #
 # Bars: our pooled rates with their 95 % intervals; grey dots: each training seed's own rate and
 # interval; diamonds: the paper's figure for the same method (seed 000's Table 1). The axis is
-# logarithmic above 1 per 100 miles: the rates span decades.
+# logarithmic above one per 100 miles: the rates span decades.
 
 # %%
 rows = [(ablation.BY_KEY[k].label, r) for k, r in results.items()]
