@@ -1,0 +1,254 @@
+"""The course's numbers of record, rendered: Table 1 in the README and ``docs/results.md``, from
+the committed JSON under ``docs/results/`` (``python -m e2e_lite.report``; ``--check`` exits 1
+when either file differs from the render, which a test runs).
+
+The training seed is the unit of replication. Each row holds its seeds' collisions and miles; the
+table shows each seed's rate per 100 miles, their median and range, and the pooled Poisson
+interval as a secondary column (it treats the seeds' miles as one draw, which three networks are
+not). Each of the paper's steps is tested on the per-seed rates with an exact one-sided
+Mann-Whitney test (:func:`seed_level_test`): with 3 seeds against 3 the smallest possible p is
+0.05, so no step of a 3-seed table can be called reproduced; 5 against 5 can reach 0.004. A row
+driven more than 10 % slower than the expert is marked, and its verdict names its speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .artifacts import atomic_write, save_figure
+from .driving.metrics import poisson_ci
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORD = ROOT / "docs" / "results" / "table1.json"
+RESULTS_MD = ROOT / "docs" / "results.md"
+FIGURE = ROOT / "docs" / "figures" / "table1.png"
+README = ROOT / "README.md"
+#: the README's rendered block lies between these two lines
+BEGIN, END = "<!-- table1: rendered by python -m e2e_lite.report -->", "<!-- /table1 -->"
+#: the paper's steps: (before, after, what); each goes "better" in the paper (seed 000)
+STEPS = (
+    ("actuators", "gmm", "Baseline E2E -> trajectory GMM"),
+    ("gmm", "gmm_affordance", "GMM -> + affordance"),
+    ("gmm_affordance", "gmm_affordance_cvar", "+ affordance -> + CVaR"),
+    ("gmm_affordance_control", "gmm_affordance_cvar", "CVaR against its control (the mean)"),
+    ("gmm_affordance_w0", "gmm_affordance", "affordance loss against its control (w = 0)"),
+)
+#: a row slower than this share of the expert's speed is marked
+SLOW_SHARE = 0.9
+LEVEL = 0.05
+
+
+def load(path: Path = RECORD) -> dict[str, Any]:
+    """A record of ``docs/results/`` (rows with per-seed collisions and miles), checked."""
+    record = json.loads(path.read_text())
+    for row in record["rows"]:
+        if not row["seeds"] or any(s["miles"] <= 0 or s["collisions"] < 0 for s in row["seeds"]):
+            raise ValueError(f"{path.name}: row {row['key']!r} needs seeds with miles > 0")
+        if sum(s["collisions"] for s in row["seeds"]) != row["car"] + row["rail"]:
+            raise ValueError(f"{path.name}: row {row['key']!r}: seeds do not add up to car + rail")
+    return record
+
+
+def seed_rates(row: dict[str, Any]) -> np.ndarray:
+    """Each training seed's collisions per 100 miles."""
+    return np.array([100.0 * s["collisions"] / s["miles"] for s in row["seeds"]])
+
+
+def pooled(row: dict[str, Any]) -> tuple[float, float, float]:
+    """The pooled rate per 100 miles and its exact 95 % Poisson interval (secondary)."""
+    k = sum(s["collisions"] for s in row["seeds"])
+    miles = sum(s["miles"] for s in row["seeds"])
+    lo, hi = poisson_ci(k, miles / 100.0)
+    return 100.0 * k / miles, lo, hi
+
+
+def dispersion(row: dict[str, Any]) -> float | None:
+    """The seeds' chi-square against one shared rate (degrees of freedom: seeds - 1); far above
+    its degrees of freedom, the seeds do not drive alike. ``None`` for one run."""
+    if len(row["seeds"]) < 2:
+        return None
+    k = np.array([s["collisions"] for s in row["seeds"]], dtype=float)
+    m = np.array([s["miles"] for s in row["seeds"]], dtype=float)
+    expected = m * k.sum() / m.sum()
+    return float(np.sum((k - expected) ** 2 / np.maximum(expected, 1e-12)))
+
+
+def seed_level_test(before: np.ndarray, after: np.ndarray) -> float:
+    """Exact one-sided p-value that ``after``'s per-seed rates are lower than ``before``'s
+    (Mann-Whitney U, :func:`scipy.stats.mannwhitneyu` with ``method="exact"``)."""
+    from scipy.stats import mannwhitneyu
+
+    return float(mannwhitneyu(after, before, alternative="less", method="exact").pvalue)
+
+
+def verdict(p_better: float, p_worse: float, slow_mph: float | None) -> str:
+    """A step's verdict from its two one-sided seed-level p-values."""
+    if p_better < LEVEL:
+        text = "reproduces"
+    elif p_worse < LEVEL:
+        text = "the opposite"
+    else:
+        text = f"not shown at the seed level (p = {p_better:.2g})"
+    return text + (f", at {slow_mph:.1f} mph" if slow_mph is not None else "")
+
+
+def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each of :data:`STEPS` present in the record, tested on the per-seed rates."""
+    rows = {r["key"]: r for r in record["rows"]}
+    expert_mph = rows["expert"]["mph"] if "expert" in rows else None
+    out = []
+    for before, after, what in STEPS:
+        if before not in rows or after not in rows:
+            continue
+        a, b = seed_rates(rows[before]), seed_rates(rows[after])
+        p_better, p_worse = seed_level_test(a, b), seed_level_test(b, a)
+        mph = rows[after]["mph"]
+        slow = mph if expert_mph and mph < SLOW_SHARE * expert_mph else None
+        out.append(
+            {"step": what, "p_better": p_better, "p_worse": p_worse,
+             "verdict": verdict(p_better, p_worse, slow)}
+        )  # fmt: skip
+    return out
+
+
+def _row_cells(row: dict[str, Any], expert_mph: float | None) -> list[str]:
+    rates = seed_rates(row)
+    rate, lo, hi = pooled(row)
+    seeds = " / ".join(f"{r:.1f}" for r in rates) if len(rates) > 1 else "-"
+    spread = f"{np.median(rates):.1f} [{rates.min():.1f}-{rates.max():.1f}]"
+    slow = " (slow)" if expert_mph and row["mph"] < SLOW_SHARE * expert_mph else ""
+    paper = "-" if row["paper_per_100mi"] is None else f"{row['paper_per_100mi']:g}"
+    return [row["label"], seeds, spread, f"{rate:.1f} [{lo:.1f}-{hi:.1f}]",
+            f"{row['mph']:.1f}{slow}", paper]  # fmt: skip
+
+
+def table1(record: dict[str, Any]) -> str:
+    """The README's Table 1: the paper's rows and the two controls, each seed's rate."""
+    rows = {r["key"]: r for r in record["rows"]}
+    expert_mph = rows["expert"]["mph"] if "expert" in rows else None
+    lines = [
+        "| driver | per seed, per 100 mi | median [range] | pooled [95 % CI] | mph | paper |",
+        "|---|---|---|---|---:|---:|",
+    ]
+    for row in record["rows"]:
+        lines.append("| " + " | ".join(_row_cells(row, expert_mph)) + " |")
+    lines.append("")
+    lines.append("| the paper's step | seed-level verdict (one-sided exact Mann-Whitney) |")
+    lines.append("|---|---|")
+    lines += [f"| {s['step']} | {s['verdict']} |" for s in steps(record)]
+    seeds = max(len(r["seeds"]) for r in record["rows"])
+    lines.append("")
+    lines.append(
+        f"*{record['status']}. {seeds} seeds per learned row on {record['roads']} roads; "
+        f"{record['machine']}, torch {record['torch']}; code of "
+        + ", ".join(f"{c} ({what})" for c, what in record["commits"].items())
+        + f". The paper's drivers averaged {record['paper_mph']:g} mph.*"
+    )
+    return "\n".join(lines)
+
+
+def results_md(record: dict[str, Any]) -> str:
+    """``docs/results.md``: Table 1 and, per row, what a reader needs to judge it."""
+    rows = record["rows"]
+    detail = [
+        "| driver | collisions (car / rail) | miles | stalls | minutes between collisions "
+        "| seeds' chi-square (df) |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
+    for row in rows:
+        k, miles = row["car"] + row["rail"], sum(s["miles"] for s in row["seeds"])
+        between = f"{60.0 * miles / row['mph'] / k:.0f}" if k else "-"
+        chi = dispersion(row)
+        chi_text = "-" if chi is None else f"{chi:.1f} ({len(row['seeds']) - 1})"
+        stalls = "-" if row["stalls"] is None else str(row["stalls"])
+        detail.append(f"| {row['label']} | {k} ({row['car']} / {row['rail']}) | {miles:.0f} | "
+                      f"{stalls} | {between} | {chi_text} |")  # fmt: skip
+    return "\n".join([
+        "# Results",
+        "",
+        "Rendered by `python -m e2e_lite.report` from `docs/results/table1.json`; do not edit by"
+        " hand. Every chapter prints its own numbers when it runs; the findings of the"
+        " investigations behind the course's recipes are in [lab-notes.md](lab-notes.md).",
+        "",
+        f"## {record['title']}",
+        "",
+        table1(record),
+        "",
+        "## Per row",
+        "",
+        "A seeds' chi-square far above its degrees of freedom says the training seeds do not drive"
+        " alike: read the per-seed rates before the pooled one. Stalls: a car under 0.5 m/s for"
+        " 20 s, re-placed ('-': not recorded by that run).",
+        "",
+        *detail,
+        "",
+        f"*{record['miles_note']}.*",
+        "",
+    ])  # fmt: skip
+
+
+def figure(record: dict[str, Any]):
+    """Table 1 as a picture: each training seed's rate (grey dots), their median (a black bar)
+    and the paper's figure (a red diamond), on a symmetric-log axis (the rates span decades)."""
+    from matplotlib.figure import Figure
+
+    rows = record["rows"]
+    fig = Figure(figsize=(8.5, 0.45 * len(rows) + 1.4), layout="constrained")
+    ax = fig.subplots()
+    for y, row in enumerate(rows):
+        rates = seed_rates(row)
+        ax.scatter(rates, np.full(len(rates), y), color="0.55", s=22, zorder=2)
+        ax.plot([np.median(rates)] * 2, [y - 0.3, y + 0.3], color="black", lw=2.5, zorder=3)
+        if row["paper_per_100mi"] is not None:
+            ax.scatter([row["paper_per_100mi"]], [y], marker="D", color="C3", s=40, zorder=4)
+    ax.set_yticks(range(len(rows)), [r["label"] for r in rows], fontsize=9)
+    ax.invert_yaxis()
+    ax.set_xscale("symlog", linthresh=1.0)
+    ax.set_xlim(left=0.0)
+    ax.grid(axis="x", alpha=0.3)
+    ax.set_xlabel("collisions per 100 miles: grey, each training seed; black, their median; "
+                  "red, the paper", fontsize=9)  # fmt: skip
+    ax.set_title(record["title"], fontsize=10)
+    return fig
+
+
+def readme_with(readme: str, table: str) -> str:
+    """``readme`` with the block between :data:`BEGIN` and :data:`END` replaced by ``table``."""
+    pattern = re.compile(re.escape(BEGIN) + r".*?" + re.escape(END), re.S)
+    if not pattern.search(readme):
+        raise ValueError(f"README.md has no block between {BEGIN!r} and {END!r}")
+    return pattern.sub(lambda _: f"{BEGIN}\n{table}\n{END}", readme)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m e2e_lite.report", description=__doc__)
+    parser.add_argument("--check", action="store_true", help="exit 1 if a file differs")
+    args = parser.parse_args(argv)
+    record = load()
+    wanted = {
+        README: readme_with(README.read_text(), table1(record)),
+        RESULTS_MD: results_md(record),
+    }
+    stale = [p for p, text in wanted.items() if not p.exists() or p.read_text() != text]
+    if args.check:
+        for p in stale:
+            print(f"{p.relative_to(ROOT)} differs from the render: run python -m e2e_lite.report")
+        return 1 if stale else 0
+    for p in stale:
+        with atomic_write(p, "w") as f:
+            f.write(wanted[p])
+        print(f"wrote {p.relative_to(ROOT)}")
+    save_figure(figure(record), FIGURE)
+    print(f"wrote {FIGURE.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
