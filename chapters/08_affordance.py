@@ -1,7 +1,7 @@
 # %% [markdown]
 # # 08 · Perception as an auxiliary task (affordances)
 #
-# The paper's third idea (seed 000, section 3.4): besides the trajectory, ask the network to say
+# The paper's auxiliary loss (seed 000, section 3.5): besides the trajectory, ask the network to say
 # what it sees, a handful of **affordances** (after DeepDriving): the heading relative to the
 # road, the offset from the lane centre, the distances to the lane markings and road edges, and
 # the gaps to the nearest car ahead in the ego, left and right lanes. They are not used to drive;

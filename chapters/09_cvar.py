@@ -4,7 +4,7 @@
 # An average loss is dominated by the easy frames: most of a highway is a straight lane with
 # nothing ahead. The frames that decide collisions (a parked car close ahead, an overtake on a
 # curve) are few, and a model can be very good on average while bad exactly there. The paper's
-# fourth idea (seed 000, section 3.5) borrows a tool from finance.
+# answer (seed 000, section 3.4, "focusing on rare events") borrows a tool from finance.
 #
 # A bank does not ask "what do I lose on an average day?" but "how bad are my worst days?". The
 # **value at risk** `VaR_α` is the α-quantile of the loss (at α = 0.9, the loss exceeded on 10 %

@@ -3,7 +3,7 @@
     python -m e2e_lite.course [--quick] [--only N ...] [--from N] [--chapters DIR]
                               [--processes auto|one|each]
 
-The full profile runs each chapter in its own process with plain ``python`` (hours of work,
+The full profile runs each chapter in its own process with plain ``python`` (long work,
 isolated); the quick profile runs them all in this one (``runpy``), so torch's and the other
 imports are paid once instead of eleven times.
 
@@ -47,66 +47,37 @@ _CHAPTER_RE = re.compile(r"^(\d{2})_[a-z0-9_]+\.py$")
 
 
 class ChapterInfo(NamedTuple):
-    """What ``--help`` says about a chapter: its purpose and its measured time on 2 CPU cores.
+    """What ``--help`` and the README say about a chapter: its idea, where the paper has it, and
+    its time on 2 CPU cores (``docs/benchmarks.md`` says how each was measured).
 
     Attributes:
         purpose: one line.
-        quick_s: the quick profile, from an empty outputs folder [s].
+        paper: where the papers have it (seed 000 unless named), or "" for the course's own.
+        quick_s: the quick profile, the chapter alone from an empty outputs folder [s].
         full_min: the full profile, building everything it needs that earlier chapters did not
             [min].
     """
 
     purpose: str
+    paper: str
     quick_s: int
     full_min: int
 
 
-# Times on 2 cores. Quick: the first development machine, each chapter alone from an empty outputs
-# folder (`python -m e2e_lite.course --quick --processes each`, imports included; inside the
-# course's one interpreter they are 5-12 s shorter). Full: `python -m e2e_lite.course` from an
-# empty outputs folder on the second machine (AMD EPYC, about twice as fast as the first; code of
-# 9f8f420 for chapters 01-10 in one run, ffef143 for chapter 11 in four, `course_times.json`),
-# rounded up to a minute. Chapter 11's includes about 10 minutes of CPU shared with other work and
-# of work redone after its cuts. Chapter 09 since a5d8376 (two more fine-tunes per seed, the
-# sigma-open controls, and their rows; since 360b23b the CVaR/control pair again on new roads):
-# quick 13.2 s measured alone on the second machine before the new roads; full 16 min measured
-# before all of them plus an estimate for them (6 fine-tunes of about 50 s and 12 drives of 167 mi
-# of about 45 s each there), 31 min; then measured, at a5acf9c: `course --only 9` on a folder
-# holding chapters 01-08's artifacts alone, 1,515.6 s, so 26 min (the metrics equal the earlier
-# run's, wall times aside). Chapter 10 likewise at 2aba32b on that folder after chapter 09: 3,188.9
-# s, 54 min as before (its metrics equal too). Chapter 08 since e06262c (section 7: one more
-# training at w = 30, its head refit and 100 mi): 4.5 min more measured with the rest reused, 11
-# min. Chapter 11 since cd35c16 (a 19th guarded row, 3 x 167 mi): 3.3 min measured with the rest
-# reused, 133; since 0459e70 (a perception network per seed: two trainings of 2.2 and 1.6 min,
-# three head refits of about 0.5 min, two more rows driven in 4.1 and 3.2 min), 146; quick 20.9 ->
-# 23.3 s alone from an empty folder on the second machine, so 36 s scaled by that, 40. Since 5289a26
-# (a 22nd row, the hold, 3.7 min; the best perceived row traced, 2.4 min instead of about 1.5):
-# 151; quick 24.1 s alone from an empty folder on the second machine, 36 s scaled by 24.1 / 20.9, 42.
-# Since cecbdd6 (side views, a fourth head refit per seed, three more rows): 8.7 min with every
-# other row read back, against about 2 min reading all back, 158; quick 25.4 s from an empty
-# folder, 36 s scaled by 25.4 / 20.9, 44. Since 9e96769 (the free-space profile: labels for the
-# 56k training frames and views, about 20 s; three head fits of about 1 min; three rows of
-# 4.2-4.6 min each as session 32's scripts drove them, the traced one about 1 min longer): about
-# 18 min more, estimated from those parts, 176; quick 27.3 s from an empty folder on the second
-# machine, 36 s scaled by 27.3 / 20.9, 47. Since 4543ce3 (three rows with the emergency brake): 9.7
-# min with every other row read back, against about 2 reading all back, 185; quick 28.9 s from an
-# empty folder, 36 s scaled by 28.9 / 20.9, 50. Measured again at 51540fe (`course --only 11` on a
-# folder holding chapters 01-10's artifacts alone, nothing else running): sections 1-4 in 90 min
-# (the ledger when section 5 began, less two timed pauses), its 99 evaluations equal to the stored
-# ones; with section 5's 72 min of ffef143's run, 162, so 165 (the stored rows' wall times behind
-# the earlier sum had shared the CPU).
 CHAPTERS: dict[int, ChapterInfo] = {
-    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", 3, 1),
-    2: ChapterInfo("the rasterised front camera the networks see", 3, 1),
-    3: ChapterInfo("LQR tracking: following a trajectory with steering and acceleration", 4, 1),
-    4: ChapterInfo("the rule-based expert and the driving dataset", 13, 2),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", 16, 10),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", 11, 3),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", 25, 15),
-    8: ChapterInfo("the affordance auxiliary loss", 16, 11),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", 14, 26),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", 32, 54),
-    11: ChapterInfo("the safety module on the affordances", 50, 165),
+    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 3, 1),
+    2: ChapterInfo("the rasterised front camera the networks see", "4.1", 3, 1),
+    3: ChapterInfo(
+        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 4, 1
+    ),
+    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 13, 2),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 16, 10),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 11, 3),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 20, 6),
+    8: ChapterInfo("the affordance auxiliary loss", "3.5", 14, 5),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 12, 12),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 30, 33),
+    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 15, 12),
 }
 
 

@@ -30,8 +30,10 @@ RECORD = ROOT / "docs" / "results" / "table1.json"
 RESULTS_MD = ROOT / "docs" / "results.md"
 FIGURE = ROOT / "docs" / "figures" / "table1.png"
 README = ROOT / "README.md"
-#: the README's rendered block lies between these two lines
+#: the README's rendered blocks lie between these pairs of lines
 BEGIN, END = "<!-- table1: rendered by python -m e2e_lite.report -->", "<!-- /table1 -->"
+CHAPTERS_BEGIN = "<!-- chapters: rendered by python -m e2e_lite.report -->"
+CHAPTERS_END = "<!-- /chapters -->"
 #: the paper's steps: (before, after, what); each goes "better" in the paper (seed 000)
 STEPS = (
     ("actuators", "gmm", "Baseline E2E -> trajectory GMM"),
@@ -122,7 +124,9 @@ def _row_cells(row: dict[str, Any], expert_mph: float | None) -> list[str]:
     rates = seed_rates(row)
     rate, lo, hi = pooled(row)
     seeds = " / ".join(f"{r:.1f}" for r in rates) if len(rates) > 1 else "-"
-    spread = f"{np.median(rates):.1f} [{rates.min():.1f}-{rates.max():.1f}]"
+    spread = (
+        f"{np.median(rates):.1f} [{rates.min():.1f}-{rates.max():.1f}]" if len(rates) > 1 else "-"
+    )
     slow = " (slow)" if expert_mph and row["mph"] < SLOW_SHARE * expert_mph else ""
     paper = "-" if row["paper_per_100mi"] is None else f"{row['paper_per_100mi']:g}"
     return [row["label"], seeds, spread, f"{rate:.1f} [{lo:.1f}-{hi:.1f}]",
@@ -143,13 +147,12 @@ def table1(record: dict[str, Any]) -> str:
     lines.append("| the paper's step | seed-level verdict (one-sided exact Mann-Whitney) |")
     lines.append("|---|---|")
     lines += [f"| {s['step']} | {s['verdict']} |" for s in steps(record)]
-    seeds = max(len(r["seeds"]) for r in record["rows"])
     lines.append("")
     lines.append(
-        f"*{record['status']}. {seeds} seeds per learned row on {record['roads']} roads; "
-        f"{record['machine']}, torch {record['torch']}; code of "
-        + ", ".join(f"{c} ({what})" for c, what in record["commits"].items())
-        + f". The paper's drivers averaged {record['paper_mph']:g} mph.*"
+        f"*{record['status']}. Measured on {record['machine']}, torch {record['torch']}: "
+        + "; ".join(f"{what} at {c}" for c, what in record["commits"].items())
+        + f". Slow: more than {100 * (1 - SLOW_SHARE):.0f} % slower than the expert. The paper's"
+        f" drivers averaged {record['paper_mph']:g} mph.*"
     )
     return "\n".join(lines)
 
@@ -164,7 +167,7 @@ def results_md(record: dict[str, Any]) -> str:
     ]
     for row in rows:
         k, miles = row["car"] + row["rail"], sum(s["miles"] for s in row["seeds"])
-        between = f"{60.0 * miles / row['mph'] / k:.0f}" if k else "-"
+        between = f"{60.0 * miles / row['mph'] / k:.1f}" if k else "-"
         chi = dispersion(row)
         chi_text = "-" if chi is None else f"{chi:.1f} ({len(row['seeds']) - 1})"
         stalls = "-" if row["stalls"] is None else str(row["stalls"])
@@ -181,6 +184,7 @@ def results_md(record: dict[str, Any]) -> str:
         "",
         table1(record),
         "",
+        *(line for note in record.get("notes", []) for line in (note, "")),
         "## Per row",
         "",
         "A seeds' chi-square far above its degrees of freedom says the training seeds do not drive"
@@ -211,7 +215,8 @@ def figure(record: dict[str, Any]):
     ax.set_yticks(range(len(rows)), [r["label"] for r in rows], fontsize=9)
     ax.invert_yaxis()
     ax.set_xscale("symlog", linthresh=1.0)
-    ax.set_xlim(left=0.0)
+    top = max(max(seed_rates(r).max(), r["paper_per_100mi"] or 0.0) for r in rows)
+    ax.set_xlim(0.0, 2.0 * top)
     ax.grid(axis="x", alpha=0.3)
     ax.set_xlabel("collisions per 100 miles: grey, each training seed; black, their median; "
                   "red, the paper", fontsize=9)  # fmt: skip
@@ -219,12 +224,40 @@ def figure(record: dict[str, Any]):
     return fig
 
 
-def readme_with(readme: str, table: str) -> str:
-    """``readme`` with the block between :data:`BEGIN` and :data:`END` replaced by ``table``."""
-    pattern = re.compile(re.escape(BEGIN) + r".*?" + re.escape(END), re.S)
-    if not pattern.search(readme):
-        raise ValueError(f"README.md has no block between {BEGIN!r} and {END!r}")
-    return pattern.sub(lambda _: f"{BEGIN}\n{table}\n{END}", readme)
+def chapters_table() -> str:
+    """The README's chapter list, one line each, from :data:`e2e_lite.course.CHAPTERS` (the same
+    times ``--help`` prints)."""
+    from .course import CHAPTERS, find_chapters
+
+    paths = dict(find_chapters(ROOT / "chapters"))
+    lines = [
+        "| # | chapter | the idea | paper | quick | full |",
+        "|---|---|---|---|---:|---:|",
+    ]
+    for n, info in CHAPTERS.items():
+        path = paths[n].relative_to(ROOT)
+        name = path.stem[3:].replace("_", " ")
+        paper = f"§{info.paper}" if info.paper[:1].isdigit() else info.paper or "-"
+        lines.append(f"| {n:02d} | [{name}]({path}) | {info.purpose} | {paper} | "
+                     f"{info.quick_s} s | {info.full_min} min |")  # fmt: skip
+    total = sum(i.full_min for i in CHAPTERS.values())
+    quick = sum(i.quick_s for i in CHAPTERS.values())
+    lines.append(f"| | **the course** | | | {quick} s | {total} min |")
+    return "\n".join(lines)
+
+
+def _replace(text: str, begin: str, end: str, block: str) -> str:
+    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
+    if not pattern.search(text):
+        raise ValueError(f"README.md has no block between {begin!r} and {end!r}")
+    return pattern.sub(lambda _: f"{begin}\n{block}\n{end}", text)
+
+
+def readme_with(readme: str, table: str, chapters: str | None = None) -> str:
+    """``readme`` with its Table 1 block replaced by ``table`` and its chapters block by
+    ``chapters`` (default: :func:`chapters_table`)."""
+    readme = _replace(readme, BEGIN, END, table)
+    return _replace(readme, CHAPTERS_BEGIN, CHAPTERS_END, chapters or chapters_table())
 
 
 def main(argv: list[str] | None = None) -> int:

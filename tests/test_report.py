@@ -1,0 +1,91 @@
+"""The numbers of record and their render: Table 1 in the README and docs/results.md come from
+docs/results/ by one command, and the paper's steps are judged on the training seeds."""
+
+from __future__ import annotations
+
+import copy
+import re
+
+import numpy as np
+import pytest
+
+from e2e_lite import report
+
+ROOT = report.ROOT
+
+
+def row(key: str, counts: list[int], miles: float = 100.0, mph: float = 55.0) -> dict:
+    """A hand-made row: one entry per training seed, all collisions into parked cars."""
+    seeds = [{"seed": k, "collisions": c, "miles": miles} for k, c in enumerate(counts)]
+    return {"key": key, "label": key, "paper_per_100mi": None, "seeds": seeds,
+            "car": sum(counts), "rail": 0, "mph": mph, "stalls": 0}  # fmt: skip
+
+
+def test_the_readme_and_results_page_are_the_render_of_the_committed_record() -> None:
+    assert report.main(["--check"]) == 0, "run python -m e2e_lite.report"
+    readme = (ROOT / "README.md").read_text()
+    assert report.table1(report.load()) in readme
+    assert report.chapters_table() in readme
+
+
+def test_the_readme_is_a_front_door_with_one_table_1() -> None:
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 250
+    assert readme.count("## Table 1") == 1 and readme.count(report.BEGIN) == 1
+    assert readme.count("| the paper's step |") == 1  # one table of steps, one Table 1
+    for page in ("results.md", "lab-notes.md", "benchmarks.md"):
+        assert (ROOT / "docs" / page).exists() and f"docs/{page}" in readme
+
+
+def test_every_lab_note_names_the_commit_of_its_code() -> None:
+    notes = (ROOT / "docs" / "lab-notes.md").read_text()
+    headings = re.findall(r"^## (.*)$", notes, flags=re.M)
+    assert len(headings) >= 10
+    assert all(re.search(r"\b[0-9a-f]{7}\b", h) for h in headings), headings
+
+
+def test_the_seed_level_test_gives_the_exact_mann_whitney_p() -> None:
+    # 3 against 3 with no overlap: 1 of the C(6, 3) = 20 orderings, p = 0.05
+    assert report.seed_level_test(np.array([10.0, 11, 12]), np.array([1.0, 2, 3])) == 0.05
+    # 5 against 5 with no overlap: 1 / C(10, 5) = 1 / 252
+    five = report.seed_level_test(np.arange(10.0, 15), np.arange(5.0))
+    assert five == pytest.approx(1 / 252)
+    # the other direction is the mirror
+    assert report.seed_level_test(np.array([1.0, 2, 3]), np.array([10.0, 11, 12])) == 1.0
+
+
+def test_a_row_with_one_catastrophic_seed_is_not_called_reproduced() -> None:
+    record = copy.deepcopy(report.load())
+    record["rows"] = [
+        row("expert", [0]),
+        row("gmm", [20, 21, 22, 19, 23]),
+        # four seeds far better than the GMM, one catastrophic: the pooled rate is worse
+        row("gmm_affordance", [1, 2, 1, 2, 200]),
+    ]
+    step = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
+    assert step["p_better"] > 0.05 and not step["verdict"].startswith("reproduces")
+    # five clean seeds below the GMM's five are
+    record["rows"][2] = row("gmm_affordance", [1, 2, 1, 2, 3])
+    step = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
+    assert step["verdict"] == "reproduces" and step["p_better"] == pytest.approx(1 / 252)
+
+
+def test_a_slow_row_is_marked_and_its_verdict_names_its_speed() -> None:
+    record = copy.deepcopy(report.load())
+    record["rows"] = [
+        row("expert", [0], mph=55.0),
+        row("gmm", [20, 21, 22, 19, 23]),
+        row("gmm_affordance", [1, 2, 1, 2, 3], mph=40.0),
+    ]
+    step = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
+    assert step["verdict"] == "reproduces, at 40.0 mph"
+    assert "40.0 (slow)" in report.table1(record)
+
+
+def test_a_record_whose_seeds_do_not_add_up_is_refused(tmp_path) -> None:
+    record = copy.deepcopy(report.load())
+    record["rows"][2]["car"] += 1
+    path = tmp_path / "bad.json"
+    path.write_text(__import__("json").dumps(record))
+    with pytest.raises(ValueError, match="do not add up"):
+        report.load(path)
