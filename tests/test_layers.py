@@ -139,7 +139,13 @@ def test_recovery_views_re_express_the_labels_in_the_shifted_cars_frame() -> Non
 # The layers, bottom to top: a module may import from its own folder and the folders below it.
 LAYERS = ("simulation", "control", "driving", "learning", "safety")
 BASE = ("config", "artifacts")  # used by every layer
-TOP = ("ablation", "report", "viz", "course", "bench")  # beside the layers, free to import any of them
+TOP = (
+    "ablation",
+    "report",
+    "viz",
+    "course",
+    "bench",
+)  # beside the layers, free to import any of them
 
 
 def _library_imports() -> dict[str, set[str]]:
