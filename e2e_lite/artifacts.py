@@ -7,9 +7,20 @@ checkpoints, datasets or metrics.
 
 Reused artifacts are keyed by a hash of the settings that made them (:func:`settings_key`), so
 changing a setting makes a new file instead of silently reusing an old one. Writes go to a
-temporary file in the same folder and are renamed into place (:func:`atomic_write`), so an
-interrupted run never leaves a half-written file that a later run trusts. :func:`cached` loads a
-valid artifact, or rebuilds it with a one-line message when it is missing, corrupt or mismatched.
+temporary file in the same folder, flushed to disk and renamed into place (:func:`atomic_write`),
+so an interrupted run never leaves a half-written file that a later run trusts; a temporary left
+by a killed run is removed by the next (:func:`remove_stale_temporaries`, at every chapter's
+start). Every artifact that is read back (datasets, checkpoints, evaluations, metrics) is
+**sealed**: a SHA-256 digest of its bytes beside it (``<name>.sha256``, :func:`seal`), checked
+before it is trusted (:func:`check_seal`), so a flipped bit or a truncation is one line and a
+rebuild, never a silently wrong number. :func:`cached` loads a valid artifact, or rebuilds it with
+a one-line message when it is missing, corrupt, unsealed by its digest or made by other settings.
+
+What the course guarantees after a crash (a killed process, a lost laptop battery, Ctrl-C): every
+artifact is either the whole file a finished write left or absent; a digest that does not match
+its file (a write cut between the two, or a disk that flipped a bit) makes the artifact rebuilt;
+and the temporaries of the cut write are deleted by the next run. An artifact from before seals
+existed (no ``.sha256`` beside it) is trusted as before and sealed on its first read.
 """
 
 from __future__ import annotations
@@ -19,7 +30,9 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import tempfile
+import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -156,19 +169,99 @@ def _temp_beside(path: Path, suffix: str) -> tuple[int, str]:
     return fd, tmp
 
 
+#: a temporary of :func:`_temp_beside`: ``.<target's name>.<mkstemp's 8 characters><suffix>``
+_TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
+#: a temporary whose file was last written this long before a run began is stale [s] (a live
+#: write keeps its file's modification time fresh)
+STALE_AFTER_S = 60.0
+
+
+def remove_stale_temporaries(root: Path | str | None = None, before: float | None = None) -> int:
+    """Delete the temporaries that killed writes left under ``root`` (default: the outputs
+    folder): files named as :func:`atomic_write` and :func:`cached` name theirs whose last
+    modification is older than ``before`` (a time, default now) less :data:`STALE_AFTER_S`.
+    Returns how many were deleted; says so in one line when any were."""
+    root = Path(root) if root is not None else outputs_dir()
+    cutoff = (time.time() if before is None else before) - STALE_AFTER_S
+    removed = 0
+    for path in root.rglob(".*"):
+        try:
+            if path.is_file() and _TEMPORARY.match(path.name) and path.stat().st_mtime < cutoff:
+                path.unlink()
+                removed += 1
+        except OSError:  # gone meanwhile, or not ours to delete
+            continue
+    if removed:
+        print(f"[artifacts] removed {removed} temporary file(s) left by an interrupted run")
+    return removed
+
+
+def _fsync(path: Path | str) -> None:
+    """Flush a written file's bytes to the disk (before it is renamed into place)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def file_digest(path: Path | str) -> str:
+    """SHA-256 hex digest of a file's bytes, read in chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 22):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def seal_path(path: Path | str) -> Path:
+    """Where the digest of ``path`` is kept: ``<path>.sha256``."""
+    path = Path(path)
+    return path.with_name(path.name + ".sha256")
+
+
+def seal(path: Path | str) -> Path:
+    """Write the SHA-256 digest of ``path``'s bytes beside it (atomically). Returns the path."""
+    digest = file_digest(path)
+    with atomic_write(seal_path(path), "w", sealed=False) as f:
+        f.write(digest + "\n")
+    return Path(path)
+
+
+class CorruptArtifact(OSError):
+    """A stored artifact's bytes do not match the digest sealed beside it."""
+
+
+def check_seal(path: Path | str) -> str:
+    """``"ok"`` when ``path``'s bytes match its sealed digest, ``"unsealed"`` when it has none
+    (an artifact from before seals existed: it is sealed now, and trusted as before). Raises
+    :class:`CorruptArtifact` (one line, naming the file) when they differ."""
+    path = Path(path)
+    try:
+        stored = seal_path(path).read_text().strip()
+    except FileNotFoundError:
+        seal(path)
+        return "unsealed"
+    if stored != file_digest(path):
+        raise CorruptArtifact(f"{path.name} does not match its digest (corrupt or cut short)")
+    return "ok"
+
+
 @contextlib.contextmanager
-def atomic_write(path: Path | str, mode: str = "wb") -> Iterator[Any]:
+def atomic_write(path: Path | str, mode: str = "wb", sealed: bool = False) -> Iterator[Any]:
     """Open a temporary file beside ``path``; rename it onto ``path`` only if the block succeeds.
 
-    Usage: ``with atomic_write(p) as f: f.write(data)``. On an exception the temporary file is
-    removed and ``path`` is left as it was. The file gets the permissions the umask allows
-    (0644 under the usual 022), as a plain ``open`` would give.
+    Usage: ``with atomic_write(p) as f: f.write(data)``. The bytes are flushed to disk before the
+    rename; on an exception the temporary file is removed and ``path`` is left as it was. With
+    ``sealed``, the file's digest is written beside it (:func:`seal`) for :func:`check_seal`. The
+    file gets the permissions the umask allows (0644 under the usual 022), as a plain ``open``
+    would give.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = _temp_beside(path, ".tmp")
     try:
-        with os.fdopen(fd, mode) as f:
+        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8"})) as f:
             yield f
             f.flush()
             os.fsync(f.fileno())
@@ -177,6 +270,8 @@ def atomic_write(path: Path | str, mode: str = "wb") -> Iterator[Any]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    if sealed:
+        seal(path)
 
 
 def show_in_notebook(png: Path | str) -> None:
@@ -191,9 +286,10 @@ def show_in_notebook(png: Path | str) -> None:
         display(Image(filename=str(png)))
 
 
-def save_json(path: Path | str, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON, atomically. Returns the path."""
-    with atomic_write(path, "w") as f:
+def save_json(path: Path | str, obj: Any, sealed: bool = False) -> Path:
+    """Write ``obj`` as indented JSON, atomically (``sealed``: its digest beside it). Returns the
+    path."""
+    with atomic_write(path, "w", sealed=sealed) as f:
         json.dump(_jsonable(obj), f, indent=2, allow_nan=True)
     return Path(path)
 
@@ -215,21 +311,42 @@ def write_metrics(
     """Write a chapter's headline numbers where the course runner (and the next chapters) read
     them, with the chapter's ``figures`` (paths under the outputs folder; ``None`` skipped) as
     ``metrics["figures"]``, relative to that folder."""
+    metrics = {"schema": METRICS_SCHEMA, **metrics}
     if figures:
         root = outputs_dir()
         metrics = {**metrics, "figures": [str(Path(f).relative_to(root)) for f in figures if f]}
-    return save_json(metrics_path(chapter), metrics)
+    return save_json(metrics_path(chapter), metrics, sealed=True)
+
+
+#: The version of what the chapters write into their metrics (``metrics["schema"]``). Bump it when
+#: a chapter's metrics change what a later chapter reads: metrics of another schema are not read
+#: (:func:`read_metrics` says so and names the chapter to run again).
+METRICS_SCHEMA = 2
 
 
 def read_metrics(chapter: str, profile: str | None = None) -> dict[str, Any] | None:
-    """A chapter's metrics, or ``None`` when it has not written any (or they are unreadable), or
-    when ``profile`` is given and they were written under another profile."""
+    """A chapter's metrics, or ``None`` when it has not written any, when they are unreadable or
+    do not match their digest, when they were written by older code (another
+    :data:`METRICS_SCHEMA`: one line names the chapter to run again), or when ``profile`` is given
+    and they were written under another profile."""
     path = outputs_dir() / "metrics" / f"{Path(chapter).stem}.json"
+    if not path.exists():
+        return None
     try:
+        check_seal(path)
         metrics = load_json(path)
-    except (OSError, ValueError):
+    except (OSError, ValueError) as err:
+        print(
+            f"[artifacts] {path.name} is unreadable ({err}); run chapter {Path(chapter).stem} again"
+        )
         return None
     if profile is not None and metrics.get("profile") != profile:
+        return None
+    if metrics.get("schema") != METRICS_SCHEMA:
+        print(
+            f"[artifacts] {path.name} was written by older code (schema {metrics.get('schema')}, "
+            f"now {METRICS_SCHEMA}); run chapter {Path(chapter).stem} again to use its results"
+        )
         return None
     return metrics
 
@@ -247,12 +364,17 @@ def cached(
 
     ``save(path, value, key)`` must store the key inside the file (it is called inside an atomic
     write to a temporary path), and ``load(path) -> (value, stored_key)`` must read it back.
-    A file that fails to load, or whose key differs, is rebuilt with a one-line message.
+    A file that fails to load, does not match its digest (:func:`check_seal`) or whose key
+    differs is rebuilt with a one-line message; the new file is sealed.
     """
     path = Path(path)
     if path.exists():
         try:
+            check_seal(path)
             value, stored = load(path)
+        except CorruptArtifact as err:
+            if verbose:
+                print(f"[artifacts] {err}; rebuilding")
         except Exception as err:  # a corrupt artifact of any kind is rebuilt, never trusted
             if verbose:
                 print(f"[artifacts] {path.name} is unreadable ({type(err).__name__}); rebuilding")
@@ -267,11 +389,13 @@ def cached(
     os.close(fd)
     try:
         save(Path(tmp), value, key)
+        _fsync(tmp)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    seal(path)
     return value
 
 

@@ -39,7 +39,14 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, NamedTuple, NoReturn
 
-from .artifacts import check_outputs_writable, load_json, outputs_dir, read_metrics, save_json
+from .artifacts import (
+    check_outputs_writable,
+    load_json,
+    outputs_dir,
+    read_metrics,
+    remove_stale_temporaries,
+    save_json,
+)
 from .config import QUICK_ENV, Profile, active_profile, in_notebook, quick_requested
 
 _REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -126,6 +133,7 @@ def start_chapter(number: int, argv: Sequence[str] | None = None) -> Profile:
         print(f"{prog}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     print(f"Chapter {number:02d}, {profile.name} profile; outputs in {root}")
+    remove_stale_temporaries(root)  # what a killed run's writes left behind
     if profile.quick:
         print(profile.caveat.strip())
     return profile

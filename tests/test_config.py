@@ -72,9 +72,10 @@ def test_outputs_dir_follows_the_environment(tmp_path):
     assert artifacts.outputs_dir() == tmp_path / "outputs"
     p = artifacts.write_metrics("99_demo", {"headline": {"x": 1.5}})
     assert p == tmp_path / "outputs" / "metrics" / "99_demo.json"
-    assert artifacts.read_metrics("99_demo") == {"headline": {"x": 1.5}}
+    schema = {"schema": artifacts.METRICS_SCHEMA}
+    assert artifacts.read_metrics("99_demo") == {**schema, "headline": {"x": 1.5}}
     artifacts.write_metrics("97_full", {"profile": "full"})
-    assert artifacts.read_metrics("97_full", "full") == {"profile": "full"}
+    assert artifacts.read_metrics("97_full", "full") == {**schema, "profile": "full"}
     assert artifacts.read_metrics("97_full", "quick") is None
     assert artifacts.read_metrics("98_missing") is None
     # a chapter's figures are stored relative to the outputs folder, missing ones skipped
@@ -152,8 +153,13 @@ def test_cached_reuses_rebuilds_on_mismatch_and_on_corruption(tmp_path, capsys):
     assert len(calls) == 2 and "other settings" in capsys.readouterr().out
     path.write_bytes(b"garbage")
     artifacts.cached(path, "k2", build, _save, _load)
-    assert len(calls) == 3 and "unreadable" in capsys.readouterr().out
-    assert sorted(os.listdir(tmp_path)) == ["thing.npz"]  # no temporary files left
+    assert len(calls) == 3 and "does not match its digest" in capsys.readouterr().out
+    artifacts.seal_path(path).unlink()  # a file from before seals: read as before
+    path.write_bytes(b"garbage")
+    artifacts.cached(path, "k2", build, _save, _load)
+    assert len(calls) == 4 and "unreadable" in capsys.readouterr().out
+    # no temporary files left; the artifact and its digest
+    assert sorted(os.listdir(tmp_path)) == ["thing.npz", "thing.npz.sha256"]
 
 
 def test_metrics_keep_their_order_and_keys_ignore_it():

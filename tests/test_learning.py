@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from e2e_lite.artifacts import artifact_path, settings_key
+from e2e_lite.artifacts import artifact_path, seal, settings_key
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
 from e2e_lite.driving.parallel import processes_ok
 from e2e_lite.learning.agents import (
@@ -540,6 +540,7 @@ def test_carrying_the_optimiser_needs_a_parent_that_kept_it(capsys):
     blob = torch.load(path, weights_only=False)
     blob["optimizer"] = None  # as saved before the course kept optimiser states
     torch.save(blob, path)
+    seal(path)  # (a file the course wrote: sealed)
     with pytest.raises(CheckpointMismatch, match="no optimiser state"):
         train_or_load("kid", cfg, tcfg, obj, data, val, init_from="old", carry_optimizer=True)
     with pytest.raises(ValueError, match="needs init_from"):

@@ -37,6 +37,7 @@ with warnings.catch_warnings():  # meshcat 0.3 imports a deprecated pyzmq module
     import meshcat.transformations as tf
     from meshcat.animation import Animation
 
+from ..artifacts import atomic_write
 from ..simulation.camera import Camera, CameraConfig
 from ..simulation.camera import draw_trajectory as draw_on_frame
 from ..simulation.geometry import Track
@@ -341,8 +342,8 @@ def export_html(ep: Episode, path: Path | str, caption: str = "") -> Path:
         title=html.escape(ep.name), caption=text, viewer=viewer_script(), commands=commands
     )
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
+    with atomic_write(path, "w") as f:
+        f.write(page)
     return path
 
 
@@ -356,9 +357,12 @@ def export_gif(ep: Episode, path: Path | str, every: int = 2, scale: float = 0.7
         small = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         pics.append(Image.fromarray(small))
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     ms = round(1000 * ep.period_s * every)
-    pics[0].save(path, save_all=True, append_images=pics[1:], duration=ms, loop=0, optimize=True)
+    with atomic_write(path) as f:
+        pics[0].save(
+            f, format="GIF", save_all=True, append_images=pics[1:], duration=ms, loop=0,
+            optimize=True,
+        )  # fmt: skip
     return path
 
 
@@ -376,6 +380,6 @@ def write_index(entries: list[tuple[str, str, str]], path: Path | str, title: st
         f"<ul>\n{rows}\n</ul>\n</body></html>\n"
     )
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
+    with atomic_write(path, "w") as f:
+        f.write(page)
     return path

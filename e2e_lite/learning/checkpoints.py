@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..artifacts import artifact_path, atomic_write, settings_key
+from ..artifacts import CorruptArtifact, artifact_path, atomic_write, check_seal, settings_key
 from .dataset import DrivingData, DrivingDataset
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
@@ -72,7 +72,7 @@ def save_checkpoint(
         "history": None if history is None else history.to_dict(),
         "optimizer": None if history is None else history.optimizer_state,
     }
-    with atomic_write(path) as f:
+    with atomic_write(path, sealed=True) as f:
         torch.save(blob, f)
     return Path(path)
 
@@ -95,7 +95,12 @@ def load_checkpoint(
 
     Returns:
         ``(model in eval mode, the checkpoint's metadata)``.
+
+    Raises:
+        CorruptArtifact: the file does not match the digest sealed beside it (``torch.load``
+            checks nothing: a flipped bit in a weight would load).
     """
+    check_seal(path)
     blob = torch.load(path, map_location="cpu", weights_only=False)
     stored_cfg = ModelConfig(**blob["model_config"])
     if model_cfg is not None and stored_cfg != model_cfg:
@@ -203,7 +208,7 @@ def train_or_load(
             if progress:
                 why = "other settings" if kept else "no optimiser state kept"
                 print(f"[checkpoints] {name}: trained with {why}; retraining")
-        except CheckpointMismatch as err:
+        except (CheckpointMismatch, CorruptArtifact) as err:
             if progress:
                 print(f"[checkpoints] {name}: {err}; retraining")
         except Exception as err:  # a corrupt file is retrained, never trusted
@@ -252,6 +257,7 @@ def refit_or_load(
     path = artifact_path("checkpoints", f"{name}_head.pt")
     if path.exists():
         try:
+            check_seal(path)
             blob = torch.load(path, map_location="cpu", weights_only=True)
             if blob["key"] == key:
                 out = copy.deepcopy(model)
@@ -261,6 +267,9 @@ def refit_or_load(
                 return out.eval()
             if progress:
                 print(f"[checkpoints] {name}: head refit for another network or data; refitting")
+        except CorruptArtifact as err:
+            if progress:
+                print(f"[checkpoints] {name}: {err}; refitting")
         except Exception as err:  # a corrupt file is refit, never trusted
             if progress:
                 print(f"[checkpoints] {name}: unreadable head ({type(err).__name__}); refitting")
@@ -268,6 +277,6 @@ def refit_or_load(
         print(f"[checkpoints] {name}: refitting the affordance head on the frozen features")
     out = refit_affordance_head(model, DrivingDataset(train_data), settings)
     head = {k: v.detach().cpu() for k, v in out.affordance_head.state_dict().items()}
-    with atomic_write(path) as f:
+    with atomic_write(path, sealed=True) as f:
         torch.save({"key": key, "head": head}, f)
     return out
