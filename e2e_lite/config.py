@@ -13,6 +13,8 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 QUICK_ENV = "E2E_LITE_QUICK"
 QUICK_FLAG = "--quick"
 
@@ -38,9 +40,9 @@ def check_range(
     rng = f"{'(' if lo_open or lo is None else '['}{lo_s}, {hi_s}{')' if hi_open or hi is None else ']'}"
     kind = "an integer" if integer else "a number"
     msg = f"{owner}.{name}={value!r} is invalid: must be {kind} in {rng}"
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
         raise ValueError(msg)
-    if integer and (not float(value).is_integer()):
+    if integer and not isinstance(value, (int, np.integer)):  # (2.0 is a float, not a count)
         raise ValueError(msg)
     if not math.isfinite(float(value)) and not (hi is None and value == math.inf):
         raise ValueError(msg)

@@ -9,6 +9,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+import torch
 
 from e2e_lite import artifacts
 from e2e_lite.config import FULL, QUICK, Profile, active_profile
@@ -192,3 +193,55 @@ def test_the_umask_read_at_import_is_the_process_umask():
     current = os.umask(0o022)
     os.umask(current)
     assert artifacts._UMASK == current
+
+
+def test_settings_are_checked_where_they_are_defined_types_as_well_as_ranges(tmp_path):
+    """Issue 51: each of these was accepted, or failed far from its owner, before."""
+    from e2e_lite.driving.rollout import EvalConfig
+    from e2e_lite.learning.cvar import CVaRObjective, cvar, cvar_loss
+    from e2e_lite.learning.losses import Objective
+
+    with pytest.raises(ValueError, match=r"cvar\.alpha='0\.9' is invalid"):
+        cvar(np.arange(5.0), "0.9")
+    with pytest.raises(ValueError, match=r"cvar_loss\.alpha=1\.5 is invalid"):
+        cvar_loss(torch.arange(5.0), 1.5)
+    with pytest.raises(ValueError, match=r"cvar_loss\.min_tail=-5 is invalid"):
+        cvar_loss(torch.arange(50.0), 0.9, min_tail=-5)
+    with pytest.raises(ValueError, match=r"CVaRObjective\.min_tail"):
+        CVaRObjective(Objective("trajectory"), 0.9, min_tail=0)
+    with pytest.raises(
+        ValueError, match=r"EvalConfig\.n_worlds=2\.0 is invalid: must be an integer"
+    ):
+        EvalConfig(n_worlds=2.0)
+    EvalConfig(n_worlds=np.int64(2))  # a numpy count is a count
+
+
+def test_the_gmm_loss_and_the_model_must_agree_on_k_at_the_first_batch():
+    from e2e_lite.learning.dataset import DrivingDataset, synthetic_data
+    from e2e_lite.learning.losses import GMMObjective
+    from e2e_lite.learning.models import ModelConfig, build_model
+    from e2e_lite.learning.training import model_stats
+
+    data = synthetic_data(8)
+    model = build_model(ModelConfig(head="gmm", gmm_modes=3, fusion_width=16))
+    model.set_normalisation(model_stats(model.cfg, data, GMMObjective(n_modes=3)))
+    batch = DrivingDataset(data).batch(np.arange(8))
+    out = model(batch["image"], batch["speed"])
+    assert GMMObjective(n_modes=3).per_sample(out, batch, model).shape == (8,)
+    with pytest.raises(ValueError, match="n_modes=2, but the model's head has 3 modes"):
+        GMMObjective(n_modes=2).per_sample(out, batch, model)
+
+
+def test_a_checkpoint_of_other_settings_names_only_the_fields_that_differ():
+    from e2e_lite.learning.checkpoints import CheckpointMismatch, load_checkpoint, save_checkpoint
+    from e2e_lite.learning.losses import Objective
+    from e2e_lite.learning.models import ModelConfig, build_model
+    from e2e_lite.learning.training import TrainConfig
+
+    model = build_model(ModelConfig(head="trajectory", fusion_width=16))
+    path = artifacts.artifact_path("checkpoints", "m.pt")
+    save_checkpoint(path, model, TrainConfig(epochs=1), Objective("trajectory"), "data")
+    with pytest.raises(CheckpointMismatch) as err:
+        load_checkpoint(path, ModelConfig(head="trajectory", fusion_width=32))
+    assert str(err.value).count("fusion_width") == 1 and "16 (asked: 32)" in str(err.value)
+    assert len(str(err.value)) < 200 and "head=" not in str(err.value)

@@ -104,9 +104,14 @@ def load_checkpoint(
     blob = torch.load(path, map_location="cpu", weights_only=False)
     stored_cfg = ModelConfig(**blob["model_config"])
     if model_cfg is not None and stored_cfg != model_cfg:
+        differ = ", ".join(
+            f"{f} {getattr(stored_cfg, f)!r} (asked: {getattr(model_cfg, f)!r})"
+            for f in asdict(stored_cfg)
+            if getattr(stored_cfg, f) != getattr(model_cfg, f)
+        )
         raise CheckpointMismatch(
-            f"{Path(path).name} holds a model with settings {stored_cfg}, not the requested "
-            f"{model_cfg}; retrain or ask for the stored settings"
+            f"{Path(path).name} holds a model of other settings: {differ}; retrain or ask for "
+            "the stored settings"
         )
     if data_key is not None and blob["data_key"] != data_key:
         raise CheckpointMismatch(

@@ -15,6 +15,7 @@ import warnings
 import numpy as np
 import torch
 
+from ..config import check_range
 from .heads import Batch
 from .losses import Objective, WrappedObjective
 from .models import DrivingModel
@@ -38,12 +39,9 @@ def cvar(losses: np.ndarray | torch.Tensor, alpha: float) -> float:
     return float(_tail_mean(values, alpha))
 
 
-def _check_alpha(alpha: float, n: int, lo_closed: bool) -> None:
-    ok = (0.0 <= alpha < 1.0) if lo_closed else (0.0 < alpha < 1.0)
-    if not ok:
-        raise ValueError(
-            f"alpha={alpha!r} is invalid: must be in {'[0, 1)' if lo_closed else '(0, 1)'}"
-        )
+def _check_alpha(alpha: float, n: int, lo_closed: bool, owner: str = "cvar") -> None:
+    """``alpha`` a number in [0, 1) (``lo_closed``) or (0, 1), named with its ``owner``."""
+    check_range(owner, "alpha", alpha, 0.0, 1.0, lo_open=not lo_closed, hi_open=True)
     if n < 1:
         raise ValueError("CVaR of an empty set of losses is undefined: give at least one sample")
 
@@ -88,7 +86,7 @@ def cvar_ru(losses: torch.Tensor, nu: torch.Tensor | float, alpha: float) -> tor
         nu: the threshold (a tensor to learn it, or a number), in the losses' units.
         alpha: the quantile level, ``0 <= alpha < 1``.
     """
-    _check_alpha(alpha, losses.numel(), lo_closed=True)
+    _check_alpha(alpha, losses.numel(), lo_closed=True, owner="cvar_ru")
     nu = torch.as_tensor(nu, dtype=losses.dtype, device=losses.device)
     return nu + torch.relu(losses.reshape(-1) - nu).mean() / (1.0 - alpha)
 
@@ -108,7 +106,8 @@ def cvar_loss(losses: torch.Tensor, alpha: float, min_tail: int = 10) -> torch.T
         raise ValueError(
             f"cvar_loss takes per-sample losses of shape (B,), got {tuple(losses.shape)}"
         )
-    _check_alpha(alpha, losses.numel(), lo_closed=False)
+    _check_alpha(alpha, losses.numel(), lo_closed=False, owner="cvar_loss")
+    check_range("cvar_loss", "min_tail", min_tail, 1, integer=True)
     k = (1.0 - alpha) * losses.numel()
     if k < min_tail:
         warnings.warn(
@@ -152,7 +151,8 @@ class CVaRObjective(WrappedObjective):
     def __init__(
         self, base: Objective, alpha: float = 0.9, min_tail: int = 10, rank_by: str = "loss"
     ) -> None:
-        _check_alpha(alpha, 1, lo_closed=False)
+        _check_alpha(alpha, 1, lo_closed=False, owner="CVaRObjective")
+        check_range("CVaRObjective", "min_tail", min_tail, 1, integer=True)
         if rank_by not in RANK_BY:
             raise ValueError(f"CVaRObjective.rank_by={rank_by!r} is invalid: must be in {RANK_BY}")
         super().__init__(base)

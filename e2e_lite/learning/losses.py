@@ -173,8 +173,18 @@ class GMMObjective(Objective):
     def per_sample(
         self, out: Batch, batch: Batch, model: DrivingModel, *, epoch: int | None = None
     ) -> torch.Tensor:
-        """The NLL of each sample's normalised trajectory (sigma held at 1 in a warm-up epoch)."""
+        """The NLL of each sample's normalised trajectory (sigma held at 1 in a warm-up epoch).
+
+        Raises:
+            ValueError: the model's head has another number of modes than ``n_modes`` (its name
+                would then describe a loss that is not the one trained).
+        """
         mix = model.mixture(out["main"], self.sigma_fixed(epoch))
+        if mix.weights.shape[-1] != self.n_modes:
+            raise ValueError(
+                f"GMMObjective: n_modes={self.n_modes}, but the model's head has "
+                f"{mix.weights.shape[-1]} modes (ModelConfig.gmm_modes); make them agree"
+            )
         return mix.nll(model.normalise_target(target("gmm", batch, self.wheelbase_m)))
 
     def metrics(self, out: Batch, batch: Batch, model: DrivingModel) -> Batch:
