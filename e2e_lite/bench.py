@@ -344,6 +344,11 @@ def frame_budget(out: dict[str, float], workers: int) -> dict[str, float]:
     return budget
 
 
+def placement_eval(quick: bool) -> EvalConfig:
+    """The placement benchmark's drive: 64 cars, 10 simulated miles (quick: 0.5)."""
+    return EvalConfig(miles=0.5 if quick else 10.0, n_worlds=64, n_tracks=16)
+
+
 def bench_placement(quick: bool, agent: str = "gmm") -> dict[str, float]:
     """Where the network runs while 64 cars drive (10 simulated miles each row; quick: 0.5): on
     the CPU in 2 worker processes (the course's setting) and in one per core, and with a GPU
@@ -352,7 +357,7 @@ def bench_placement(quick: bool, agent: str = "gmm") -> dict[str, float]:
     between rows: the shard count changes the start lanes' draws, and GPU arithmetic differs
     from the CPU's in the last bits)."""
     world_cfg = WorldConfig.for_profile(active_profile([]))
-    ev = EvalConfig(miles=0.5 if quick else 10.0, n_worlds=64, n_tracks=16)
+    ev = placement_eval(quick)
     cores = os.cpu_count() or 1
     rows = [("cpu", 2, "processes")] + ([("cpu", cores, "processes")] if cores > 2 else [])
     if torch.cuda.is_available():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import json
+import math
 import os
 import re
 import subprocess
@@ -54,6 +55,10 @@ def test_chapter_runs_in_quick_profile(path, quick_course):
     assert f"<== {path.stem} done in" in proc.stdout, (proc.stdout[-2000:], proc.stderr[-3000:])
     metrics = json.loads((outputs / "metrics" / f"{path.stem}.json").read_text())
     assert metrics["profile"] == "quick" and metrics["headline"]
+    # every headline figure is a finite number (a NaN or a string would reach the summary table)
+    for name, value in metrics["headline"].items():
+        assert isinstance(value, (int, float)) and not isinstance(value, bool), name
+        assert math.isfinite(value), (path.stem, name, value)
     if path.stem == "10_ablation":  # the ablation's table holds every driver, paper beside it
         assert list(metrics["results"]) == [d.key for d in DRIVERS]
         for d in DRIVERS:

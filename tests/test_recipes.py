@@ -22,14 +22,28 @@ def test_affordance_weight_is_chosen_on_trajectory_nll_then_on_perception():
 
 def test_a_gmm_recipe_with_one_mode_and_a_mismatch_refused():
     """K = 1 (chapter 07's control: the same NLL, no choice of modes) builds a one-mode head."""
+    import numpy as np
     import pytest
 
     from e2e_lite.config import QUICK
-    from e2e_lite.learning.recipes import gmm, gmm_objective
+    from e2e_lite.learning.dataset import DrivingDataset, synthetic_data
+    from e2e_lite.learning.models import build_model
+    from e2e_lite.learning.recipes import gmm, gmm_config, gmm_objective
+    from e2e_lite.learning.training import model_stats
 
     with pytest.raises(ValueError, match="modes"):
         gmm(QUICK, None, None, objective=gmm_objective(QUICK), modes=1)
-    assert gmm_objective(QUICK, n_modes=1).n_modes == 1
+    # the one-mode recipe's network and loss agree, and the loss is the one-mode NLL
+    one, two = gmm_objective(QUICK, n_modes=1), gmm_objective(QUICK)
+    model = build_model(gmm_config(modes=1, fusion_width=16))
+    data = synthetic_data(8)
+    model.set_normalisation(model_stats(model.cfg, data, one))
+    batch = DrivingDataset(data).batch(np.arange(8))
+    out = model(batch["image"], batch["speed"])
+    assert out["main"].shape[1] == model.cfg.out_size == 21  # 10 means, 10 sigmas, 1 weight
+    assert one.per_sample(out, batch, model).shape == (8,) and "K1" in one.name
+    with pytest.raises(ValueError, match="n_modes=2, but the model's head has 1 modes"):
+        two.per_sample(out, batch, model)
 
 
 def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
