@@ -133,10 +133,28 @@ def start_chapter(number: int, argv: Sequence[str] | None = None) -> Profile:
         print(f"{prog}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     print(f"Chapter {number:02d}, {profile.name} profile; outputs in {root}")
+    if not notebook:
+        sys.excepthook = _interrupted_in_one_line(sys.excepthook, prog)
     remove_stale_temporaries(root)  # what a killed run's writes left behind
     if profile.quick:
         print(profile.caveat.strip())
     return profile
+
+
+def _interrupted_in_one_line(hook: Any, prog: str) -> Any:
+    """``hook`` (``sys.excepthook``), except that Ctrl-C prints one line instead of a traceback:
+    what the chapter stored is kept, and running it again resumes from there."""
+
+    def excepthook(kind: type[BaseException], value: BaseException, tb: Any) -> None:
+        if issubclass(kind, KeyboardInterrupt):
+            print(
+                f"{prog}: interrupted; what it stored is kept, run it again to go on",
+                file=sys.stderr,
+            )
+            return
+        hook(kind, value, tb)
+
+    return excepthook
 
 
 def find_chapters(directory: Path | None = None) -> list[tuple[int, Path]]:
@@ -336,6 +354,28 @@ def main(argv: list[str] | None = None) -> int:
     profile = "quick" if quick else "full"
     print(f"e2e-lite course: {len(chapters)} chapters, {profile} profile", flush=True)
     ledger = (outputs_dir(quick) / TIMES_FILE).resolve()  # (in-process chapters change the cwd)
+    try:
+        return _run(chapters, found, quick, in_process, env, profile, ledger)
+    except KeyboardInterrupt:
+        print(
+            "\ninterrupted: what the chapters stored is kept; `python -m e2e_lite.course --from NN`"
+            " goes on from chapter NN",
+            file=sys.stderr,
+            flush=True,
+        )
+        return 130
+
+
+def _run(
+    chapters: list[tuple[int, Path]],
+    found: list[tuple[int, Path]],
+    quick: bool,
+    in_process: bool,
+    env: dict[str, str],
+    profile: str,
+    ledger: Path,
+) -> int:
+    """Run ``chapters`` in order (see :func:`main`); returns the exit code."""
     rows: list[tuple[str, float, dict | None]] = []
     t_course = time.perf_counter()
     for k, (_, path) in enumerate(chapters, 1):

@@ -149,7 +149,8 @@ def table1(record: dict[str, Any]) -> str:
     lines += [f"| {s['step']} | {s['verdict']} |" for s in steps(record)]
     lines.append("")
     lines.append(
-        f"*{record['status']}. Measured on {record['machine']}, torch {record['torch']}: "
+        f"*{record['status']}. Measured on {record['machine']}, torch {record['torch']} on "
+        f"{record['torch_threads']} threads: "
         + "; ".join(f"{what} at {c}" for c, what in record["commits"].items())
         + f". Slow: more than {100 * (1 - SLOW_SHARE):.0f} % slower than the expert. The paper's"
         f" drivers averaged {record['paper_mph']:g} mph.*"

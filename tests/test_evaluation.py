@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import replace
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -435,3 +436,47 @@ def test_collision_kinds_sort_hand_made_events():
     counts = collision_kinds({"events": events}, BUSY)
     assert counts == dict(zip(COLLISION_KINDS, (1, 2, 1)))
     assert collision_kinds({"events": []}, BUSY) == dict.fromkeys(COLLISION_KINDS, 0)
+
+
+def test_the_evaluator_pins_the_networks_threads_whatever_the_caller_set():
+    """Issue 51: torch's kernels round differently with other thread counts, and a closed loop
+    amplifies it; an evaluation pins them (parallel.EVAL_TORCH_THREADS over its shards), so the
+    caller's count (a machine's core count) is not part of the result."""
+    import torch
+
+    from e2e_lite.driving.parallel import EVAL_TORCH_THREADS, shard_threads
+    from e2e_lite.learning.agents import TrajectoryAgent
+    from e2e_lite.learning.models import ModelConfig, build_model, prepare
+
+    class Counting(TrajectoryAgent):
+        seen: ClassVar[set] = set()
+
+        def act(self, obs):
+            Counting.seen.add(torch.get_num_threads())
+            return super().act(obs)
+
+        def fork(self, k):
+            return [Counting(self.model) for _ in range(k)]
+
+    torch.manual_seed(0)
+    model = prepare(
+        build_model(ModelConfig(head="trajectory", fusion_width=16)), torch.device("cpu")
+    ).eval()
+    world = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_cars=(4, 4)))
+    ev = EvalConfig(miles=0.1, n_worlds=4, n_tracks=2)
+    before = torch.get_num_threads()
+    events = {}
+    try:
+        for callers in (1, 3):
+            torch.set_num_threads(callers)
+            for workers in (1, 2):
+                Counting.seen = set()
+                res = evaluate(Counting(model), world, ev, progress=False, workers=workers,
+                               parallel="threads")  # fmt: skip
+                assert Counting.seen == {shard_threads(workers)}, (callers, workers)
+                events[callers, workers] = res.events
+            assert torch.get_num_threads() == callers  # the caller's count is given back
+    finally:
+        torch.set_num_threads(before)
+    assert events[1, 1] == events[3, 1] and events[1, 2] == events[3, 2]
+    assert shard_threads(1) == EVAL_TORCH_THREADS == 2 and shard_threads(2) == 1

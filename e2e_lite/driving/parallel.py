@@ -3,6 +3,23 @@
 the same interpreter (:func:`close_shard_workers` ends them; also done at exit). A job is pickled
 to its worker, which drives it with :func:`~e2e_lite.driving.rollout.drive_shard` and sends back its
 progress and its :class:`~e2e_lite.driving.rollout.ShardResult`.
+
+Why a small pool of our own rather than a general one (joblib's loky, ``concurrent.futures``):
+the workers must be fresh interpreters (a fork of a process whose torch threads ran can deadlock,
+and one that started CUDA must not fork), must be kept between the evaluations of a chapter (an
+interpreter and torch's import cost about 1 s each time), must stream progress while a shard
+drives, and must leave their thread count to the evaluator (the results depend on it). These
+few needs fit in this module; loky would bring the first two, not the progress stream, and has not
+been measured against it here.
+
+Stopping: Ctrl-C (or any exception) in the parent stops every shard at its next decision (a stop
+flag that the threads' shard loops check, the worker processes killed), and idle workers exit
+quietly on Ctrl-C and when their parent's pipe closes. A worker that sends nothing for
+:data:`DEADLINE_S` while it owes a result is killed, with one line naming it.
+
+The network's threads are pinned (:data:`EVAL_TORCH_THREADS` over an evaluation's shards), so an
+evaluation's result does not depend on the machine's core count: torch's kernels round
+differently with other thread counts, and a closed loop amplifies the difference.
 """
 
 from __future__ import annotations
@@ -24,6 +41,22 @@ from ..simulation.policy import Policy
 from .metrics import ShardResult
 from .rollout import drive_shard
 
+#: torch threads for an evaluation's networks, shared out over its shards (2: the course's 2-core
+#: machine; every stored result was driven so). Part of every result: see the module docstring.
+EVAL_TORCH_THREADS = 2
+#: a worker that owes a result and sends nothing for this long is killed [s] (a shard sends
+#: progress at least every 0.25 s while it drives)
+DEADLINE_S = 60.0
+
+
+def shard_threads(n_shards: int) -> int:
+    """Torch threads for each of ``n_shards`` shards of one evaluation (at least 1)."""
+    return max(1, EVAL_TORCH_THREADS // n_shards)
+
+
+class _Stopped(Exception):
+    """Raised inside a shard's loop when its evaluation was stopped."""
+
 
 def processes_ok(policy: Policy) -> bool:
     """Shards may run in worker processes when a fresh interpreter can unpickle the policy: its
@@ -37,17 +70,29 @@ def processes_ok(policy: Policy) -> bool:
 
 
 def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[ShardResult]:
-    """Drive each job's shard in its own thread (torch on ``1 / workers`` of the cores each)."""
+    """Drive each job's shard in its own thread (torch on :func:`shard_threads` threads). An
+    exception in the caller's thread (Ctrl-C) stops every shard at its next decision."""
     torch = sys.modules.get("torch")  # loaded when the policy is a network
     threads = None if torch is None else torch.get_num_threads()
     interval = sys.getswitchinterval()
+    stop = threading.Event()
+
+    def guarded(miles: float) -> None:
+        if stop.is_set():
+            raise _Stopped
+        advance(miles)
+
     try:
         if torch is not None:  # one core per shard instead of every shard on every core
-            torch.set_num_threads(max(1, threads // len(jobs)))
+            torch.set_num_threads(shard_threads(len(jobs)))
         sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
         with ThreadPoolExecutor(len(jobs)) as pool:
-            futures = [pool.submit(_drive_job, job, advance) for job in jobs]
-            return [f.result() for f in futures]
+            futures = [pool.submit(_drive_job, job, guarded) for job in jobs]
+            try:
+                return [f.result() for f in futures]
+            except BaseException:
+                stop.set()  # the other shards stop at their next decision
+                raise
     finally:
         sys.setswitchinterval(interval)
         if torch is not None:
@@ -81,11 +126,19 @@ def shard_worker(inbox: Any, outbox: Any) -> None:
     """Body of a shard process (``python -m e2e_lite.driving.shard_worker``): for each job until its
     input ends, read ``(sys.path, torch threads, job)``, drive the shard, send ``("ready", None)``,
     progress ``("miles", m)`` now and then and finally ``("ok", shard)`` or ``("error",
-    traceback)``. A worker serves its parent's evaluations until :func:`close_shard_workers`."""
+    traceback)``. A worker serves its parent's evaluations until :func:`close_shard_workers`; it
+    returns quietly when its parent is gone (its input ends, or its output pipe breaks)."""
+    try:
+        _serve(inbox, outbox)
+    except (BrokenPipeError, ConnectionError):  # the parent is gone: nobody to tell
+        return
+
+
+def _serve(inbox: Any, outbox: Any) -> None:
     while True:
         try:
             sys.path[:] = _receive(inbox)  # where the parent found the policy's classes
-        except EOFError:  # the parent closed the pool, or is gone
+        except (EOFError, OSError):  # the parent closed the pool, or is gone
             return
         try:
             torch_threads, job = _receive(inbox)
@@ -106,6 +159,8 @@ def shard_worker(inbox: Any, outbox: Any) -> None:
             _send(outbox, ("miles", last[1]))
             _send(outbox, ("ok", shard))
             del job, shard  # the next job's policy replaces this one's
+        except (BrokenPipeError, ConnectionError):
+            raise  # the parent is gone (handled by shard_worker)
         except BaseException:  # everything goes back to the parent, which then ends the pool
             _send(outbox, ("error", traceback.format_exc()))
             return
@@ -141,16 +196,16 @@ class _Workers:
         return all(proc.poll() is None for proc in self.procs)
 
     def close(self) -> None:
-        """End every worker (closing its input ends it; a stuck one is killed) and wait."""
+        """End every worker and wait. Workers are only closed idle (between evaluations) or
+        after a failed one, so none holds anything worth a graceful exit: they are killed, which
+        takes milliseconds where an interpreter's shutdown with torch takes most of a second."""
         for proc in self.procs:
             with contextlib.suppress(OSError, ValueError):
                 proc.stdin.close()
-        for proc in self.procs:
-            try:
-                proc.wait(timeout=5.0)
-            except subprocess.TimeoutExpired:
+            if proc.poll() is None:
                 proc.kill()
-                proc.wait()
+        for proc in self.procs:
+            proc.wait()
             proc.stdout.close()
 
 
@@ -179,7 +234,7 @@ def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> l
     model included) and sends its :class:`ShardResult` back, with what the policy reported
     (``info``)."""
     torch = sys.modules.get("torch")
-    per_shard = 0 if torch is None else max(1, torch.get_num_threads() // len(jobs))
+    per_shard = 0 if torch is None else shard_threads(len(jobs))
     started, ready, startup_s = time.perf_counter(), 0, 0.0
     with _WORKERS_LOCK:  # one evaluation at a time uses a pool
         workers = _WORKERS.pop(len(jobs), None)
@@ -192,11 +247,20 @@ def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> l
         for k, job in enumerate(jobs):
             _send(workers.procs[k].stdin, list(sys.path))
             _send(workers.procs[k].stdin, (per_shard, job))
+        heard = dict.fromkeys(range(len(jobs)), time.perf_counter())
         while len(results) < len(jobs):
             try:
                 k, (status, payload) = workers.messages.get(timeout=0.5)
             except queue.Empty:
+                now = time.perf_counter()
+                for k in range(len(jobs)):
+                    if k not in results and now - heard[k] > DEADLINE_S:
+                        raise RuntimeError(
+                            f"evaluation shard {k} (process {workers.procs[k].pid}) sent nothing "
+                            f"for {DEADLINE_S:.0f} s: stopped"
+                        ) from None
                 continue
+            heard[k] = time.perf_counter()
             if status == "miles":
                 advance(payload)
             elif status == "ready":

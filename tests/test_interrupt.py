@@ -1,0 +1,161 @@
+"""Ctrl-C stops a long evaluation within a second and prints one line, in threads and in worker
+processes, and leaves no process behind; a worker that stops answering is stopped."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+DRIVE = """
+import sys
+import time
+import torch
+from e2e_lite.driving.evaluation import EvalConfig, evaluate
+from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.learning.models import ModelConfig, build_model, prepare
+from e2e_lite.simulation.world import WorldConfig
+
+torch.manual_seed(0)
+model = prepare(build_model(ModelConfig(head="trajectory", fusion_width=16)), torch.device("cpu"))
+policy = TrajectoryAgent(model.eval())
+try:
+    if sys.argv[2] == "idle":  # one short evaluation; its workers are kept, idle
+        evaluate(policy, WorldConfig(), EvalConfig(miles=0.05, n_worlds=8), progress=False,
+                 workers=2, parallel=sys.argv[1])
+        print("driving", flush=True)
+        time.sleep(600)
+    print("driving", flush=True)
+    evaluate(policy, WorldConfig(), EvalConfig(miles=1000.0, n_worlds=8), progress=False,
+             workers=2, parallel=sys.argv[1])
+except KeyboardInterrupt:
+    print("interrupted", file=sys.stderr, flush=True)
+    sys.exit(130)
+"""
+
+
+def _marked(marker: str) -> list[int]:
+    """Processes whose environment carries ``marker`` (the test's child and its workers)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            if marker.encode() in (entry / "environ").read_bytes():
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
+def _start(parallel: str, when: str, tmp_path: Path) -> tuple[subprocess.Popen, str]:
+    """The drive in a child of its own process group, marked; returns it once it drives."""
+    marker = f"E2E_LITE_TEST_MARK={uuid.uuid4().hex}"
+    env = {**os.environ, marker.split("=")[0]: marker.split("=")[1]}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", DRIVE, parallel, when],
+        env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,  # its own process group: Ctrl-C reaches it and its workers
+    )  # fmt: skip
+    assert proc.stdout.readline().strip() == "driving"
+    return proc, marker
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs Linux's /proc")
+@pytest.mark.parametrize(
+    "parallel, when",
+    [("threads", "driving"), ("processes", "driving"), ("processes", "idle")],
+)
+def test_ctrl_c_stops_an_evaluation_within_a_second_with_one_line(parallel, when, tmp_path):
+    """Ctrl-C while the shards drive, or between evaluations with the workers kept idle (they
+    each printed a KeyboardInterrupt traceback before)."""
+    proc, marker = _start(parallel, when, tmp_path)
+    try:
+        time.sleep(4.0)  # the workers started and the shards are driving
+        assert proc.poll() is None, proc.stderr.read()
+        if parallel == "processes":
+            assert len(_marked(marker)) == 3  # the child and its two workers (kept if idle)
+        sent = time.perf_counter()
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole group
+        proc.wait(timeout=10)
+        took = time.perf_counter() - sent
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    err = proc.stderr.read()
+    assert proc.returncode == 130, err
+    assert took <= 1.0, f"took {took:.2f} s to stop"
+    assert err.strip() == "interrupted", err  # one line: no traceback of a worker or a thread
+    time.sleep(0.2)
+    assert _marked(marker) == []  # no process left
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs Linux's /proc")
+def test_workers_whose_parent_is_killed_mid_drive_exit_quietly(tmp_path):
+    """A parent killed outright (no Ctrl-C handling): its workers find the pipe closed, and end
+    without a traceback (about 25 lines of chained BrokenPipeError each, before)."""
+    proc, marker = _start("processes", "driving", tmp_path)
+    time.sleep(4.0)
+    assert len(_marked(marker)) == 3
+    os.kill(proc.pid, signal.SIGKILL)  # the parent only
+    proc.wait(timeout=10)
+    deadline = time.perf_counter() + 10.0
+    while _marked(marker) and time.perf_counter() < deadline:
+        time.sleep(0.1)
+    assert _marked(marker) == []  # the workers ended by themselves
+    err = proc.stderr.read()  # (the workers wrote to the same stderr)
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err[-3000:]
+
+
+STUCK = """
+import time
+from e2e_lite.driving import parallel
+from e2e_lite.driving.evaluation import EvalConfig, evaluate
+from e2e_lite.simulation.world import WorldConfig
+from tests_stuck import Stuck
+
+parallel.DEADLINE_S = 2.0
+try:
+    evaluate(Stuck(), WorldConfig(), EvalConfig(miles=1.0, n_worlds=2), progress=False,
+             workers=2, parallel="processes")
+except RuntimeError as err:
+    print(str(err).splitlines()[0])
+"""
+
+STUCK_POLICY = """
+import time
+from e2e_lite.control.drivers import LaneKeeper
+
+class Stuck(LaneKeeper):
+    '''A lane keeper whose second shard hangs at its first decision.'''
+    shard = 0
+    def fork(self, k):
+        out = [Stuck() for _ in range(k)]
+        for j, p in enumerate(out):
+            p.shard = j
+        return out
+    def act(self, obs):
+        if self.shard == 1:
+            time.sleep(3600)
+        return super().act(obs)
+"""
+
+
+def test_a_worker_that_stops_answering_is_stopped_with_one_line(tmp_path):
+    (tmp_path / "tests_stuck.py").write_text(STUCK_POLICY)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    started = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, "-c", STUCK], env=env, cwd=tmp_path, capture_output=True, text=True,
+        timeout=60,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().startswith("evaluation shard 1 (process ")
+    assert "sent nothing for 2 s: stopped" in out.stdout
+    assert time.perf_counter() - started < 30
