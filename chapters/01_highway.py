@@ -134,7 +134,7 @@ print(f"L/tan(δ) = {radius:.4f} m; driven radius {r_measured.min():.4f}-{r_meas
 # * the **lane changer** also asks the world (a pymunk range query) for the gap to the next parked
 #   car in its lane, and moves to a free neighbouring lane when that gap falls under 70 m.
 #
-# The evaluator drives each on the same unseen validation tracks, B cars at once, until the
+# The evaluator drives each on the same unseen test tracks, B cars at once, until the
 # budget of miles is spent. After a collision the car is put back 15 m past the obstacle on the
 # nearest free lane centre, aligned with the road, and driving goes on.
 

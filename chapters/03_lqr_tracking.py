@@ -290,7 +290,7 @@ trajectory_png = save_figure(fig, artifacts.artifact_path("figures", "03_traject
 # %% [markdown]
 # ## 6. A whole track, closed loop
 #
-# A lane-centre follower built on the tracker, driven through the evaluator on validation tracks
+# A lane-centre follower built on the tracker, driven through the evaluator on test tracks
 # **without parked cars**: it should never touch a rail. It records the lateral error at every
 # decision.
 
@@ -377,7 +377,7 @@ print(
 #   millisecond.
 # * The same tracker follows lane centres, lane-change paths and the networks' 5-point
 #   trajectories (a fixed least-squares cubic turns points into error, heading, curvature, speed).
-# * On obstacle-free validation tracks it drives without touching a rail; what remains is to say
+# * On obstacle-free test tracks it drives without touching a rail; what remains is to say
 #   *where* to drive: the expert (chapter 04), then the networks.
 #
 # ## Exercises

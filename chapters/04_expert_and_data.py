@@ -178,7 +178,8 @@ print(
 # %% [markdown]
 # ## 3. The ceiling and the oracle
 #
-# The expert drives the validation tracks (the unseen tracks every learned driver is judged on).
+# The expert drives the test tracks (the unseen tracks every learned driver is judged on; the
+# validation tracks give the validation data, on which choices are made).
 # It is the ceiling: if it collided, the fix would go into the expert, not the count. The oracle
 # is the LQR tracker following the expert's **5-point trajectories** (re-planned every 0.1 s),
 # not its commands: if the oracle drives as well, the paper's output representation plus a
@@ -380,7 +381,7 @@ print(
 # %% [markdown]
 # ## Summary
 #
-# * A privileged state machine on the LQR tracker drives the validation tracks without a
+# * A privileged state machine on the LQR tracker drives the test tracks without a
 #   collision: that is the ceiling every learned driver is compared with.
 # * The oracle, the tracker following the expert's own 5-point trajectories, also drives them:
 #   predicting the trajectory loses nothing a controller cannot recover.

@@ -12,7 +12,7 @@
 #
 # This chapter builds the learning stack every later chapter reuses (models, one training loop,
 # checkpoints that refuse the wrong normalisation, agents that drive B worlds at once) and judges
-# both baselines in closed loop on the unseen validation tracks.
+# both baselines in closed loop on the unseen test tracks.
 #
 # **You will learn**
 # 1. PilotNet's layers, and the fixed normalisation layer;

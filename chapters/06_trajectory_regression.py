@@ -128,7 +128,7 @@ print(f"saved {fig2_png}")
 # ## 4. Closed loop
 #
 # The agent: frame and speed in, 5 points out, de-normalised, the LQR tracker follows. Same
-# validation tracks and seeds as chapter 05.
+# test tracks and seeds as chapter 05.
 
 # %%
 ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)

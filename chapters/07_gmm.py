@@ -304,7 +304,7 @@ table = results_table([*earlier, ("trajectory GMM + LQR", res)])
 print(table + profile.caveat)
 chart = collision_chart(
     [*earlier, ("trajectory GMM + LQR", res)],
-    title=f"chapters 05-07, {miles_text(round(res.miles, 1))} each, same validation tracks and seeds",
+    title=f"chapters 05-07, {miles_text(round(res.miles, 1))} each, same test tracks and seeds",
 )
 chart_png = save_figure(chart, artifacts.artifact_path("figures", "07_collisions.png"))
 print(f"saved {chart_png}")

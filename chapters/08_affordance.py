@@ -288,7 +288,7 @@ print(
 # %% [markdown]
 # ## 6. Closed loop
 #
-# Same validation tracks and seeds as chapters 05-07; the speed comes from the trajectory, as in
+# Same test tracks and seeds as chapters 05-07; the speed comes from the trajectory, as in
 # chapter 07's headline.
 
 # %%
@@ -315,7 +315,7 @@ verdict = (
 print(verdict)
 chart = collision_chart(
     rows_table,
-    title=f"{miles_text(round(res.miles, 1))} each, same validation tracks and seeds",
+    title=f"{miles_text(round(res.miles, 1))} each, same test tracks and seeds",
 )
 chart_png = save_figure(chart, artifacts.artifact_path("figures", "08_collisions.png"))
 

@@ -2,7 +2,7 @@
 # # 10 · The ablation: every driver on the same roads, beside the paper's Table 1
 #
 # Chapters 05-09 each added one idea of the paper (seed 000) and judged it on 100 miles. This
-# chapter is the course's result: **every driver on the same unseen validation tracks, with the
+# chapter is the course's result: **every driver on the same unseen test tracks, with the
 # same seeds, for at least 500 miles each** (the paper drove "more than 480 miles"), in one table
 # beside the paper's Table 1:
 #
@@ -224,7 +224,7 @@ print(f"saved {chart_png}")
 # ## 5. Replays
 #
 # Numbers say how often; a replay shows how. Each driver (its training seed 0) drives the same
-# stretch (validation track 0, middle lane, from 30 m) alone, for up to the replay length or until
+# stretch (test track 0, middle lane, from 30 m) alone, for up to the replay length or until
 # its first collision. `e2e_lite.driving.replay` writes each drive as a **standalone 3D page** (meshcat's viewer
 # and the scene in one HTML file, no server: open it from disk) with the car's declared intent
 # at every decision: the 5 proposed points, one colour per GMM mode, bigger for heavier modes.
@@ -236,7 +236,7 @@ entries = []
 for key, policy in drivers.items():
     ep = replay.record(
         ablation.first(policy),
-        make_world(world_cfg, "val", 0),
+        make_world(world_cfg, "test", 0),
         world_cfg,
         ablation.BY_KEY[key].label,
         s_m=30.0,
@@ -338,7 +338,7 @@ artifacts.write_metrics(
 # %% [markdown]
 # ## Summary
 #
-# * Every driver of the course drove the same validation tracks from the same starts; the table
+# * Every driver of the course drove the same test tracks from the same starts; the table
 #   puts our rates, with their 95 % intervals, beside the paper's.
 # * Each of the paper's steps is tested, not eyeballed: a difference counts only when the exact
 #   rate test says it is beyond chance.

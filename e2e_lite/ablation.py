@@ -1,4 +1,4 @@
-"""Chapter 10's ablation: every driver of the course on the same validation tracks with the same
+"""Chapter 10's ablation: every driver of the course on the same test tracks with the same
 seeds, beside the paper's Table 1 (seed 000) and seed 002's times to collision.
 
 The drivers, in the order of the table (:data:`DRIVERS`): the expert (the ceiling), the oracle

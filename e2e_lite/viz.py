@@ -154,7 +154,7 @@ def highway_figure(
 
 def collision_chart(
     rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
-    title: str = "closed loop on the validation tracks",
+    title: str = "closed loop on the test tracks",
     reference: Sequence[tuple[str, float]] = (),
     marks: Sequence[float | None] = (),
     marks_label: str = "paper",

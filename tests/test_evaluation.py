@@ -480,3 +480,39 @@ def test_the_evaluator_pins_the_networks_threads_whatever_the_caller_set():
         torch.set_num_threads(before)
     assert events[1, 1] == events[3, 1] and events[1, 2] == events[3, 2]
     assert shard_threads(1) == EVAL_TORCH_THREADS == 2 and shard_threads(2) == 1
+
+
+def test_no_closed_loop_number_drives_a_road_that_a_choice_was_made_on():
+    """Issue 50: epochs, weights, thresholds and calibrations are chosen on the validation data
+    (val tracks) and the training data (train tracks); every closed-loop number drives the test
+    split, whose tracks come from seeds of their own (geometry.track_rng)."""
+    import re
+    from pathlib import Path
+
+    from e2e_lite.config import FULL, QUICK
+    from e2e_lite.learning.data import DataConfig
+    from e2e_lite.simulation.geometry import RoadConfig, generate_track
+
+    assert EvalConfig().split == "test"
+    for profile in (FULL, QUICK):
+        for split in ("train", "val"):
+            assert DataConfig.for_profile(profile, split).split in ("train", "val")
+        for ev in (
+            EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds),
+            EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds),
+        ):
+            assert all(run.split == "test" for run in disjoint_runs(ev, WorldConfig(), 5))
+    with pytest.raises(ValueError, match="split"):
+        DataConfig(split="test")  # no data, and so no choice, from the test roads
+    # no chapter or library call overrides the split of an evaluation (but the data collector,
+    # which drives the expert on the data's own roads)
+    root = Path(__file__).resolve().parents[1]
+    for path in [*root.glob("chapters/*.py"), *root.glob("e2e_lite/**/*.py")]:
+        if path.name == "data.py":
+            continue
+        for call in re.findall(r"EvalConfig\([^)]*\)", path.read_text()):
+            assert "split" not in call, (path.name, call)
+    # and the splits' roads differ (seeded apart): the first tracks of each are not the same
+    first = {s: generate_track(RoadConfig(), s, 0) for s in ("train", "val", "test")}
+    lengths = {s: tuple(np.round(t.seg_len, 6)) for s, t in first.items()}
+    assert len(set(lengths.values())) == 3

@@ -168,9 +168,7 @@ def results_table(
 COLLISION_KINDS = ("rail", "parked car in its lane, car centred", "parked car, off centre")
 
 
-def collision_kinds(
-    result: EvalResult | dict[str, Any], world_cfg: WorldConfig, split: str = "val"
-) -> dict[str, int]:
+def collision_kinds(result: EvalResult | dict[str, Any], world_cfg: WorldConfig) -> dict[str, int]:
     """Count a result's collisions by kind (:data:`COLLISION_KINDS`).
 
     A car collision is *in its lane, car centred* when the parked car's centre is within a third
@@ -180,16 +178,16 @@ def collision_kinds(
     parked car's position comes from the track the event names (rebuilt from its seed).
     """
     counts = dict.fromkeys(COLLISION_KINDS, 0)
-    worlds: dict[int, World] = {}
+    worlds: dict[tuple[str, int], World] = {}
     for e in result_events(result):
         if e["kind"] == "rail":
             counts["rail"] += 1
             continue
-        index = int(e["track"][1])
-        if index not in worlds:
-            worlds[index] = make_world(world_cfg, split, index)
-        track, d_ego = worlds[index].track, float(e["d_m"])
-        d_car = float(worlds[index].cars.d[e["car"]])
+        track_id = (str(e["track"][0]), int(e["track"][1]))  # (split, index)
+        if track_id not in worlds:
+            worlds[track_id] = make_world(world_cfg, *track_id)
+        track, d_ego = worlds[track_id].track, float(e["d_m"])
+        d_car = float(worlds[track_id].cars.d[e["car"]])
         centres = track.lane_center(np.arange(track.n_lanes))  # (every track: one cross-section)
         centred = float(np.min(np.abs(d_ego - centres))) <= 0.8
         in_lane = abs(d_ego - d_car) < track.lane_width / 3

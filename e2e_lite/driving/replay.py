@@ -1,7 +1,7 @@
 """Replays of closed-loop driving: a 3D meshcat scene as one standalone HTML file, and a GIF of
 the camera view with the prediction drawn on it (chapter 10).
 
-A replay is one car driving one stretch of a validation track (:func:`record`), the way the
+A replay is one car driving one stretch of a track (:func:`record`), the way the
 evaluator drives it, stopping at the first collision. :func:`export_html` draws it with meshcat's
 geometry and animation objects, but **without meshcat's server**: ``meshcat.Visualizer()`` starts
 a ZMQ/web server process (see ``../shared/API_NOTES.md``); here the visualizer writes into a

@@ -1,7 +1,7 @@
 """The lockstep rollout: B cars in B independent worlds (:class:`~e2e_lite.simulation.world.Fleet`), one
 policy decision per policy period, until each car has driven its share of the miles.
 
-World ``i`` drives the validation tracks ``f + i, f + i + B, f + i + 2B, ...`` (``f =
+World ``i`` drives the tracks of its split (by default the test split) ``f + i, f + i + B, f + i + 2B, ...`` (``f =
 first_track``; :func:`track_index`), each from its start (:func:`start_state`), and restarts
 after a collision or a stall where :func:`restart_state` says; so every policy with the same
 settings drives the same roads with the same parked cars, and no road twice. (Tracks are
@@ -42,7 +42,9 @@ class EvalConfig:
     Attributes:
         miles: distance budget over all cars [mi].
         n_worlds: cars driven in lockstep (B).
-        split: which tracks: ``"val"`` (unseen by training) or ``"test"``.
+        split: which tracks: ``"test"`` (the default: roads that no training and no choice
+            has seen; every closed-loop number of the course drives them) or ``"val"`` (the
+            roads the validation data, and so every choice made on it, comes from).
         n_tracks: ``None`` (default): every car drives tracks no other car and no earlier lap
             drove, so every mile is new road. An integer cycles through that many tracks
             (indices modulo ``n_tracks``), which repeats roads.
@@ -72,7 +74,7 @@ class EvalConfig:
 
     miles: float = 100.0
     n_worlds: int = 16
-    split: str = "val"
+    split: str = "test"
     n_tracks: int | None = None
     first_track: int = 0
     start_speed_mps: float = 20.0
