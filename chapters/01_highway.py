@@ -57,7 +57,7 @@ print(
 # world point to `(s, d)`, is one `atan2` per arc: no search over thousands of samples.
 
 # %%
-track = generate_track(world_cfg.road, "val", 0)
+track = generate_track(world_cfg.road, "test", 0)
 print(
     f"track {track.track_id}: {track.length:.0f} m in {len(track.k)} segments, "
     f"{track.curve_share():.0%} of it on arcs, {track.n_lanes} lanes of {track.lane_width} m"
@@ -89,7 +89,7 @@ assert abs(s_hand - s_lib) < 1e-6 and abs(d_hand - d_lib) < 1e-6
 # touches something (a callback registered with `Space.on_collision`).
 
 # %%
-world = make_world(world_cfg, "val", 0)
+world = make_world(world_cfg, "test", 0)  # the first road the evaluator drives
 print(
     f"{len(world.cars)} parked cars, {len(world.space.shapes)} pymunk shapes "
     f"(rail segments + cars + ego)"
@@ -148,7 +148,7 @@ for name, driver in (("lane keeper", LaneKeeper()), ("lane changer", LaneChanger
 # %% [markdown]
 # ## 5. Where they went
 #
-# The top map is the whole validation track (colour = curvature, red dots = parked cars). Below,
+# The top map is the whole test track (colour = curvature, red dots = parked cars). Below,
 # a zoomed stretch: the lane keeper's path ends in collisions (yellow crosses) while the lane
 # changer weaves around the same cars.
 

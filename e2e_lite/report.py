@@ -9,12 +9,20 @@ not). Each of the paper's steps is tested on the per-seed rates with an exact on
 Mann-Whitney test (:func:`seed_level_test`): with 3 seeds against 3 the smallest possible p is
 0.05, so no step of a 3-seed table can be called reproduced; 5 against 5 can reach 0.004. A row
 driven more than 10 % slower than the expert is marked, and its verdict names its speed.
+
+The record itself is one resumable command: ``python -m e2e_lite.report --record [--seeds 5]
+[--miles 100]`` trains every paper row, L2 and the two controls with that many training seeds,
+drives each seed on test roads of its own (:func:`record_table1`), writes
+``docs/results/table1.json`` and renders it. Trainings and drives are stored as the chapters store
+theirs, so a cut run goes on where it stopped. It takes longer than the course's full profile
+(five seeds instead of three, and every row), which keeps to its own budget.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -23,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from .artifacts import atomic_write, save_figure
-from .driving.metrics import poisson_ci
+from .config import Profile, check_range
+from .driving.metrics import poisson_ci, result_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORD = ROOT / "docs" / "results" / "table1.json"
@@ -261,10 +270,124 @@ def readme_with(readme: str, table: str, chapters: str | None = None) -> str:
     return _replace(readme, CHAPTERS_BEGIN, CHAPTERS_END, chapters or chapters_table())
 
 
+def record_table1(
+    profile: Profile,
+    seeds: int = 5,
+    miles_per_seed: float = 100.0,
+    *,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Table 1 of record: every row of :data:`DRIVERS` and :data:`CONTROLS`, each learned row
+    trained with ``seeds`` training seeds, each seed driving ``miles_per_seed`` on test roads of
+    its own (:func:`evaluate_drivers`; trainings and evaluations are stored, so a cut run goes on
+    where it stopped). Returns the record :mod:`e2e_lite.report` renders (per row: each seed's
+    collisions, miles, mph and stalls; the code's commit, the CPU, torch and its threads)."""
+    import platform
+    import subprocess
+
+    import torch
+
+    from . import ablation
+    from .driving.parallel import EVAL_TORCH_THREADS
+    from .driving.rollout import EvalConfig
+    from .simulation.world import WorldConfig
+
+    check_range("record_table1", "seeds", seeds, 1, integer=True)
+    check_range("record_table1", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
+    keys = [d.key for d in (*ablation.DRIVERS, *ablation.CONTROLS)]
+    world_cfg = WorldConfig.for_profile(profile)
+    ev = EvalConfig(miles=miles_per_seed * seeds, n_worlds=profile.ablation_worlds)
+    drivers = ablation.build_seeded_drivers(profile, keys, seeds=seeds, progress=progress)
+    results = ablation.evaluate_drivers(
+        drivers, world_cfg, ev, progress=progress, workers=profile.ablation_workers
+    )
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
+            cwd=Path(__file__).resolve().parent,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    cpu = next(
+        (ln.split(":", 1)[1].strip() for ln in _cpuinfo() if ln.startswith("model name")),
+        platform.processor() or platform.machine(),
+    )
+    rows = []
+    for key in keys:
+        r = result_dict(results[key])
+        parts = r.get("seeds") or [r]
+        rows.append({
+            "key": key,
+            "label": ablation.BY_KEY[key].label,
+            "paper_per_100mi": ablation.BY_KEY[key].paper_per_100mi,
+            "seeds": [
+                {"seed": k, "collisions": p["collisions"], "miles": round(p["miles"], 3),
+                 "mph": round(p["mean_speed_mph"], 2), "stalls": p["stalls"]}
+                for k, p in enumerate(parts)
+            ],
+            "car": r["car_collisions"],
+            "rail": r["rail_collisions"],
+            "mph": round(r["mean_speed_mph"], 2),
+            "stalls": r["stalls"],
+            "commit": commit,
+            "control": key in {d.key for d in ablation.CONTROLS},
+        })  # fmt: skip
+    return {
+        "title": f"Table 1 of record ({profile.name} profile, {seeds} training seeds)",
+        "status": (
+            f"Of record: {seeds} training seeds per learned row, {miles_per_seed:g} mi each on "
+            "test roads no choice has seen"
+        ),
+        "machine": f"{cpu}, {os.cpu_count()} cores",
+        "torch": torch.__version__,
+        "torch_threads": EVAL_TORCH_THREADS,
+        "roads": ev.split,
+        "commits": {commit: "every row"},
+        "miles_note": "each seed drove its miles on test roads of its own (evaluation.disjoint_runs)",
+        "paper_mph": ablation.PAPER_MPH,
+        "rows": rows,
+    }
+
+
+def _cpuinfo() -> list[str]:
+    """The lines of ``/proc/cpuinfo`` (empty where there is none)."""
+    try:
+        return Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return []
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Render the committed record (``--check``: only compare), or drive a new one first
+    (``--record``)."""
     parser = argparse.ArgumentParser(prog="python -m e2e_lite.report", description=__doc__)
     parser.add_argument("--check", action="store_true", help="exit 1 if a file differs")
+    parser.add_argument(
+        "--record",
+        action="store_true",
+        help="train and drive Table 1 of record first (hours in the full profile; stop and run "
+        "again to go on: trainings and drives are stored), then write docs/results/table1.json",
+    )
+    parser.add_argument("--seeds", type=int, default=5, help="training seeds per learned row")
+    parser.add_argument("--miles", type=float, default=100.0, help="test-road miles per seed")
+    parser.add_argument(
+        "--quick", action="store_true", help="with --record: the quick profile (a smoke test; "
+        "written to the outputs folder, never to docs/)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.record:
+        from .artifacts import outputs_dir
+        from .config import FULL, QUICK
+
+        profile = QUICK if args.quick else FULL
+        record = record_table1(profile, args.seeds, args.miles)
+        path = outputs_dir(quick=True) / "table1.json" if args.quick else RECORD
+        with atomic_write(path, "w") as f:
+            json.dump(record, f, indent=1)
+        print(f"wrote {path}")
+        if args.quick:
+            print(table1(record))
+            return 0
     record = load()
     wanted = {
         README: readme_with(README.read_text(), table1(record)),

@@ -146,7 +146,7 @@ def highway_figure(
     ax_zoom.set_xlim(pts[:, 0].min() - pad, pts[:, 0].max() + pad)
     ax_zoom.set_ylim(pts[:, 1].min() - pad, pts[:, 1].max() + pad)
     ax_zoom.set_title(f"s = {s_range[0]:.0f}-{s_range[1]:.0f} m (orange on the map)")
-    if paths or len(crashes):
+    if ax_zoom.get_legend_handles_labels()[0]:  # (a stretch no path or crash reached has none)
         ax_zoom.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     return fig

@@ -329,3 +329,28 @@ def test_selection_and_table():
         select(chapters, [7], None)
     table = summary_table([("01_a", 1.0, {"headline": {"rate": 2.5}}), ("02_b", 2.0, None)])
     assert "| 01_a | 1.0 | rate: 2.5 |" in table and "(no metrics)" in table
+
+
+def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick_profile(
+    quick_course, monkeypatch, capsys
+):
+    """``python -m e2e_lite.report --record --quick``: each learned row with its seeds, each
+    seed's counts, miles, speed and stalls, the machine, and the render of it (the quick record
+    goes to the outputs folder, never to docs/)."""
+    from e2e_lite import ablation, artifacts, report
+
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(quick_course[1].parent))  # its networks, trained
+    before = (ROOT / "docs" / "results" / "table1.json").read_text()
+    assert report.main(["--record", "--quick", "--seeds", "2", "--miles", "0.1"]) == 0
+    assert (ROOT / "docs" / "results" / "table1.json").read_text() == before
+    record = json.loads((artifacts.outputs_dir(quick=True) / "table1.json").read_text())
+    keys = [r["key"] for r in record["rows"]]
+    assert keys == [d.key for d in (*ablation.DRIVERS, *ablation.CONTROLS)]
+    for row in record["rows"]:
+        n = 1 if row["key"] in ablation.UNTRAINED else 2
+        assert len(row["seeds"]) == n, row["key"]
+        assert sum(s["collisions"] for s in row["seeds"]) == row["car"] + row["rail"]
+        assert all(s["miles"] > 0 and s["mph"] > 0 for s in row["seeds"])
+    assert record["roads"] == "test" and record["torch_threads"] == 2
+    assert "| the paper's step |" in report.table1(record)
+    assert "wrote" in capsys.readouterr().out
