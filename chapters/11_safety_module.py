@@ -54,6 +54,7 @@ from e2e_lite import ablation, artifacts
 from e2e_lite.driving.evaluation import (
     EvalConfig,
     compare_rates,
+    compare_seeds,
     disjoint_runs,
     pool_results,
     result_dict,
@@ -292,7 +293,10 @@ for name, tag, settings, truth in variants:
         counts.add(result_info(res))
         examples.setdefault(name, result_info(res).get("examples", [])[:3])  # seed 0's
     guarded[name], stats[name] = pool_results(per_seed), counts.to_dict()
-    verdicts[name] = compare_rates(guarded[name], without)["verdict"]
+    # seed by seed (the training seed is the unit), the pooled Poisson test beside it
+    verdicts[name] = compare_seeds(guarded[name], without)["verdict"] + (
+        f"; pooled: {compare_rates(guarded[name], without)['verdict']}"
+    )
 
 label = ablation.BY_KEY[key].label
 rows_of = [("without the module", without)] + [

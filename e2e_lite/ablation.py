@@ -412,6 +412,7 @@ def ablation_table(results: dict[str, EvalResult | dict[str, Any]]) -> str:
         [(d.label, r) for d, r in zip(drivers, results.values())],
         extra=[
             ("per seed, per 100 mi", [per_seed(r) for r in results.values()]),
+            ("stalls", [f"{result_dict(r)['stalls']:,}" for r in results.values()]),
             ("paper: per 100 mi (seed 000)", [_fmt(d.paper_per_100mi) for d in drivers]),
             ("paper: time to collision (seed 002)", [_fmt(d.paper_ttc_s, " s") for d in drivers]),
         ],

@@ -516,3 +516,25 @@ def test_no_closed_loop_number_drives_a_road_that_a_choice_was_made_on():
     first = {s: generate_track(RoadConfig(), s, 0) for s in ("train", "val", "test")}
     lengths = {s: tuple(np.round(t.seg_len, 6)) for s, t in first.items()}
     assert len(set(lengths.values())) == 3
+
+
+def test_compare_seeds_is_the_exact_mann_whitney_test_on_the_per_seed_rates():
+    """Issue 50: the verdicts use the training seed as the unit. Hand-made counts with known p."""
+    from e2e_lite.driving.evaluation import compare_seeds, seed_rates
+
+    def row(counts, miles=100.0):
+        seeds = [{"collisions": c, "miles": miles} for c in counts]
+        return {"seeds": seeds, "collisions": sum(counts), "miles": miles * len(counts)}
+
+    low, high = row([1, 2, 3, 4, 5]), row([10, 11, 12, 13, 14])
+    test = compare_seeds(low, high)
+    assert test["p_fewer"] == pytest.approx(1 / 252) and test["p_more"] == 1.0
+    assert "fewer collisions, seed by seed" in test["verdict"]
+    # three against three cannot go below 1 / 20
+    three = compare_seeds(row([1, 2, 3]), row([10, 11, 12]))
+    assert three["p_fewer"] == pytest.approx(0.05) and "not shown" in three["verdict"]
+    # one catastrophic seed: pooled it is far worse, seed by seed it is not shown either way
+    cat = row([1, 2, 1, 2, 300])
+    assert compare_rates(cat, high)["verdict"].split(":")[1].strip().startswith("more")
+    assert "not shown" in compare_seeds(cat, high)["verdict"]
+    np.testing.assert_allclose(seed_rates(row([3], 50.0)), [6.0])

@@ -33,6 +33,7 @@ from .metrics import (  # noqa: F401 (re-exported: the chapters read the evaluat
     EvalResult,
     collision_kinds,
     compare_rates,
+    compare_seeds,
     merge_shards,
     miles_text,
     poisson_ci,
@@ -41,6 +42,7 @@ from .metrics import (  # noqa: F401 (re-exported: the chapters read the evaluat
     result_events,
     result_info,
     results_table,
+    seed_rates,
     speed_histogram,
 )
 from .parallel import (  # noqa: F401 (close_shard_workers re-exported, as above)

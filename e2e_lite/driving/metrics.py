@@ -283,6 +283,45 @@ def compare_rates(
     }
 
 
+def seed_rates(result: EvalResult | dict[str, Any]) -> np.ndarray:
+    """Each training seed's collisions per 100 miles of a pooled result (:func:`pool_results`);
+    a single run's rate alone."""
+    r = result_dict(result)
+    return np.array([100.0 * s["collisions"] / s["miles"] for s in (r.get("seeds") or [r])])
+
+
+def compare_seeds(
+    a: EvalResult | dict[str, Any], b: EvalResult | dict[str, Any], level: float = 0.95
+) -> dict[str, Any]:
+    """Does driver a collide less than b, or more, with the training seed as the unit?
+
+    The exact one-sided Mann-Whitney test on the per-seed rates (:func:`seed_rates`), each way:
+    with 3 seeds against 3 the smallest p is 0.05, so three seeds cannot show a step; 5 against 5
+    can reach 1 / 252. The pooled Poisson test (:func:`compare_rates`) treats a row's miles as one
+    draw and is secondary.
+
+    Returns:
+        ``{"p_fewer", "p_more", "fewer", "more", "verdict": one line}``: ``fewer`` (``more``)
+        when its p-value is below ``1 - level`` (with a margin for rounding: 3 seeds against 3
+        give exactly 0.05, which is not below 0.05).
+    """
+    from scipy.stats import mannwhitneyu  # (here: see poisson_ci)
+
+    ra, rb = seed_rates(a), seed_rates(b)
+    p_fewer = float(mannwhitneyu(ra, rb, alternative="less", method="exact").pvalue)
+    p_more = float(mannwhitneyu(ra, rb, alternative="greater", method="exact").pvalue)
+    med = f"median {np.median(ra):.1f} vs {np.median(rb):.1f} per 100 mi ({len(ra)} vs {len(rb)} seeds)"
+    cut = 1.0 - level - 1e-9
+    fewer, more = p_fewer < cut, p_more < cut
+    if fewer:
+        verdict = f"{med}: fewer collisions, seed by seed (p = {p_fewer:.2g})"
+    elif more:
+        verdict = f"{med}: more collisions, seed by seed (p = {p_more:.2g})"
+    else:
+        verdict = f"{med}: not shown at the seed level (p = {min(p_fewer, p_more):.2g})"
+    return {"p_fewer": p_fewer, "p_more": p_more, "fewer": fewer, "more": more, "verdict": verdict}
+
+
 SPEED_BINS = 41  # 1 m/s bins of EvalResult.speed_hist: 0-1, ..., 39-40, >= 40 m/s
 
 
