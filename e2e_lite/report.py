@@ -137,8 +137,15 @@ def _row_cells(row: dict[str, Any], expert_mph: float | None) -> list[str]:
     )
     slow = " (slow)" if expert_mph and row["mph"] < SLOW_SHARE * expert_mph else ""
     paper = "-" if row["paper_per_100mi"] is None else f"{row['paper_per_100mi']:g}"
+    stalls = "-" if row["stalls"] is None else f"{row['stalls']:,}"
     return [row["label"], seeds, spread, f"{rate:.1f} [{lo:.1f}-{hi:.1f}]",
-            f"{row['mph']:.1f}{slow}", paper]  # fmt: skip
+            f"{row['mph']:.1f}{slow}", stalls, _between(row), paper]  # fmt: skip
+
+
+def _between(row: dict[str, Any]) -> str:
+    """The mean driving time between two collisions [min] ("-" without a collision)."""
+    k, miles = row["car"] + row["rail"], sum(s["miles"] for s in row["seeds"])
+    return f"{60.0 * miles / row['mph'] / k:.1f}" if k else "-"
 
 
 def table1(record: dict[str, Any]) -> str:
@@ -146,8 +153,9 @@ def table1(record: dict[str, Any]) -> str:
     rows = {r["key"]: r for r in record["rows"]}
     expert_mph = rows["expert"]["mph"] if "expert" in rows else None
     lines = [
-        "| driver | per seed, per 100 mi | median [range] | pooled [95 % CI] | mph | paper |",
-        "|---|---|---|---|---:|---:|",
+        "| driver | per seed, per 100 mi | median [range] | pooled [95 % CI] | mph | stalls "
+        "| min between collisions | paper |",
+        "|---|---|---|---|---:|---:|---:|---:|",
     ]
     for row in record["rows"]:
         lines.append("| " + " | ".join(_row_cells(row, expert_mph)) + " |")
@@ -176,7 +184,7 @@ def results_md(record: dict[str, Any]) -> str:
     ]
     for row in rows:
         k, miles = row["car"] + row["rail"], sum(s["miles"] for s in row["seeds"])
-        between = f"{60.0 * miles / row['mph'] / k:.1f}" if k else "-"
+        between = _between(row)
         chi = dispersion(row)
         chi_text = "-" if chi is None else f"{chi:.1f} ({len(row['seeds']) - 1})"
         stalls = "-" if row["stalls"] is None else str(row["stalls"])
