@@ -318,6 +318,22 @@ def write_metrics(
     return save_json(metrics_path(chapter), metrics, sealed=True)
 
 
+#: The versions of what each kind of stored artifact holds, part of its key: bump one when a
+#: change to the code changes what such an artifact would hold, and every stored one is rebuilt
+#: (``tests/test_reference.py`` refuses to record a changed behaviour under the same versions).
+ARTIFACT_VERSIONS = {
+    "dataset": 3,
+    "checkpoint": 1,
+    "head-refit": 1,
+    "recovery": 1,
+}
+
+
+def versioned(kind: str) -> str:
+    """The tag a kind of artifact puts in its key, e.g. ``"dataset-v3"``."""
+    return f"{kind}-v{ARTIFACT_VERSIONS[kind]}"
+
+
 #: The version of what the chapters write into their metrics (``metrics["schema"]``). Bump it when
 #: a chapter's metrics change what a later chapter reads: metrics of another schema are not read
 #: (:func:`read_metrics` says so and names the chapter to run again).

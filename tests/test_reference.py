@@ -40,6 +40,7 @@ from typing import Any
 from unittest import mock
 
 import numpy as np
+import pytest
 
 REFERENCE = Path(__file__).parent / "data" / "reference_metrics.json"
 #: How far a trained network's figures may move with the CPU's kernels (relative), ten times the
@@ -110,6 +111,59 @@ def _measure() -> dict[str, Any]:
     return out
 
 
+def differences(now: dict[str, Any], reference: dict[str, Any]) -> list[str]:
+    """What differs between a measurement and the reference (trained figures within
+    :data:`TRAINED_RTOL`); empty when the behaviour is the same."""
+    out = []
+    for name in ("dataset_sha256", "samples"):
+        if now[name] != reference[name]:
+            out.append(name)
+    for name in ("expert", "lane_keeper", "l2", "gmm"):
+        ref, got = dict(reference[name]), dict(now[name])
+        if "val_loss" in ref:
+            for key, rtol in TRAINED_RTOL.items():
+                if not np.isclose(got.pop(key), ref.pop(key), rtol=rtol, atol=0.0):
+                    out.append(f"{name}.{key}")
+        if got != ref:
+            out.append(name)
+    return out
+
+
+def test_a_behaviour_change_cannot_be_recorded_without_bumping_the_artifacts_versions() -> None:
+    """Stored artifacts are keyed by ``artifacts.ARTIFACT_VERSIONS``: a change that alters what
+    they would hold must bump them, or a later run trusts artifacts of the old behaviour. The
+    recorder refuses a changed behaviour under the recorded versions; the versions never go
+    back."""
+    from e2e_lite.artifacts import ARTIFACT_VERSIONS
+
+    reference = json.loads(REFERENCE.read_text())
+    recorded = reference["artifact_versions"]
+    assert all(ARTIFACT_VERSIONS[k] >= v for k, v in recorded.items()), (
+        recorded,
+        ARTIFACT_VERSIONS,
+    )
+    changed = {**reference, "expert": {**reference["expert"], "collisions": 99}}
+    with pytest.raises(SystemExit, match="bump"):
+        check_recordable(changed, reference)
+    check_recordable(reference, reference)  # the same behaviour: fine
+    bumped = {k: v + 1 for k, v in ARTIFACT_VERSIONS.items()}
+    with mock.patch.dict(ARTIFACT_VERSIONS, bumped):
+        check_recordable(changed, reference)  # a change with its bump: fine
+
+
+def check_recordable(now: dict[str, Any], reference: dict[str, Any]) -> None:
+    """Refuse (SystemExit) to record ``now`` over ``reference`` when the behaviour changed but
+    no artifact version did."""
+    from e2e_lite.artifacts import ARTIFACT_VERSIONS
+
+    changed = differences(now, reference)
+    if changed and reference.get("artifact_versions") == ARTIFACT_VERSIONS:
+        sys.exit(
+            f"the behaviour changed ({', '.join(changed)}) but artifacts.ARTIFACT_VERSIONS did "
+            "not: bump the version of every kind of artifact the change alters, then record"
+        )
+
+
 def test_behaviour_equals_the_reference_recorded_before_the_reorganisation() -> None:
     reference = json.loads(REFERENCE.read_text())
     now = measure()
@@ -127,8 +181,12 @@ if __name__ == "__main__":
     if len(sys.argv) not in (2, 3) or sys.argv[1] != "--record":
         sys.exit("usage: python tests/test_reference.py --record [PATH]  (see the docstring)")
     import e2e_lite
+    from e2e_lite.artifacts import ARTIFACT_VERSIONS
 
     path = Path(sys.argv[2]) if len(sys.argv) == 3 else REFERENCE
     path.parent.mkdir(exist_ok=True)
-    path.write_text(json.dumps(measure(), indent=1) + "\n")
+    now = {**measure(), "artifact_versions": dict(ARTIFACT_VERSIONS)}
+    if path.exists():
+        check_recordable(now, json.loads(path.read_text()))
+    path.write_text(json.dumps(now, indent=1) + "\n")
     print(f"recorded {path} with the code in {Path(e2e_lite.__file__).parent}")

@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..artifacts import CorruptArtifact, artifact_path, atomic_write, check_seal, settings_key
+from ..artifacts import (
+    CorruptArtifact,
+    artifact_path,
+    atomic_write,
+    check_seal,
+    settings_key,
+    versioned,
+)
 from .dataset import DrivingData, DrivingDataset
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
@@ -46,7 +53,11 @@ def checkpoint_key(
 ) -> str:
     """The settings key of a training run (the device is left out: CPU and GPU runs share it)."""
     return settings_key(
-        "checkpoint-v1", model_cfg, {**asdict(train_cfg), "device": None}, objective.name, data_key
+        versioned("checkpoint"),
+        model_cfg,
+        {**asdict(train_cfg), "device": None},
+        objective.name,
+        data_key,
     )
 
 
@@ -258,7 +269,9 @@ def refit_or_load(
     Returns:
         A copy of ``model`` (eval mode) with the refit head; ``model`` is left as it was.
     """
-    key = settings_key("head-refit-v1", settings, weights_digest(model), train_data.info["key"])
+    key = settings_key(
+        versioned("head-refit"), settings, weights_digest(model), train_data.info["key"]
+    )
     path = artifact_path("checkpoints", f"{name}_head.pt")
     if path.exists():
         try:

@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..artifacts import artifact_path, cached, settings_key
+from ..artifacts import artifact_path, cached, settings_key, versioned
 from ..config import Profile, check_pair, check_range, tqdm
 from ..control.expert import Expert, ExpertConfig
 from ..control.labels import (  # noqa: F401 (re-exported, as above)
@@ -210,7 +210,7 @@ class DataConfig:
     def key(self) -> str:
         """Settings key of the dataset these settings make (v3: the gap labels of the fixed
         :meth:`~e2e_lite.simulation.world.World.gap_ahead`, 2026-11-24)."""
-        return settings_key("dataset-v3", self)
+        return settings_key(versioned("dataset"), self)
 
 
 class _Recorder:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import artifact_path, cached, settings_key
+from ..artifacts import artifact_path, cached, settings_key, versioned
 from ..config import check_pair, check_range, tqdm
 from ..control.tracker import LQRTracker, follow_trajectory
 from ..simulation.camera import Camera
@@ -156,7 +156,7 @@ def recovery_views(
         camera.render_batch(
             [w.track for w in ws], [w.cars for w in ws], pose1, s, out=out["images"][sl]
         )
-    return _views("recovery-v1", "recovery", data, cfg, rows, out)
+    return _views(versioned("recovery"), "recovery", data, cfg, rows, out)
 
 
 def _load_or_make(
@@ -188,4 +188,6 @@ def load_or_make_recovery(
 ) -> DrivingData:
     """The recovery views of ``data`` from disk if made by these settings, else render and save."""
     cfg = cfg or RecoveryConfig()
-    return _load_or_make("recovery-v1", "recovery", recovery_views, data, data_cfg, cfg, progress)
+    return _load_or_make(
+        versioned("recovery"), "recovery", recovery_views, data, data_cfg, cfg, progress
+    )
