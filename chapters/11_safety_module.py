@@ -252,7 +252,11 @@ for name, how in (("uncalibrated", cfg), ("calibrated", calibrated[0])):
 #
 # * **without** the module (chapter 10's stored evaluation, reused);
 # * the module **on the truth** (the world's affordances): the rule's ceiling;
-# * the module **on perception**: each seed's own head, with its calibrated thresholds;
+# * the module **on perception**: each seed's own head, with its calibrated thresholds, and the
+#   fallback that survives perception: braking along the network's own path when a parked car is
+#   the reason (`fallback="path"`). The lane fallback steers to a lane centre drawn from the
+#   perceived heading, offset and lane width, the very affordances that are wrong when the
+#   module intervenes (`docs/lab-notes.md`; exercise 2 drives it);
 # * the same **with an emergency brake**: a car the module falls back for is braked at the car's
 #   full deceleration (`VehicleParams.max_brake_mps2`), while the rule still plans with the
 #   tracker's gentler `brake_mps2`. A fallback that comes late then still stops short; the
@@ -274,11 +278,12 @@ without = ablation.evaluate_drivers({key: seeded}, world_cfg, ev, workers=profil
 n_seeds = len(seeded)
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
 EMERGENCY = world_cfg.vehicle.max_brake_mps2  # the car's full brake [m/s^2]
+path = [dataclasses.replace(c, fallback="path") for c in calibrated]  # (brake along its path)
 variants = (  # (name, stored as, settings per seed, checked on the truth)
     ("on the truth", "truth", [cfg] * n_seeds, True),
-    ("on perception", "calibrated", calibrated, False),
-    ("on perception + emergency brake", "calibrated_emergency",
-     [dataclasses.replace(c, emergency_brake_mps2=EMERGENCY) for c in calibrated], False),
+    ("on perception", "calibrated_path", path, False),
+    ("on perception + emergency brake", "calibrated_path_emergency",
+     [dataclasses.replace(c, emergency_brake_mps2=EMERGENCY) for c in path], False),
 )  # fmt: skip
 guarded, stats, examples, verdicts = {}, {}, {}, {}
 for name, tag, settings, truth in variants:
@@ -436,8 +441,9 @@ artifacts.write_metrics(
 #   by seed, with the speed beside each rate.
 # * A fallback is a driver too: who drove the last decision before each collision, and at what
 #   speed, says whether the collisions left are the network's or the module's own.
-# * Let the fallback use the car it has: a rule that plans with a comfortable brake keeps the
-#   car's full brake as headroom for the stops that come late.
+# * A fallback is only as good as what it reads: braking to a lane centre needs the perceived
+#   lane geometry, braking along the network's own path does not. The car's full brake, kept as
+#   headroom by a rule that plans with a gentler one, can only help a stop that comes late.
 #
 # ## Exercises
 #
@@ -446,8 +452,10 @@ artifacts.write_metrics(
 #
 # 1. Set `SafetyConfig(brake_mps2=8.0)` (the car's hardest braking) and `reaction_s=0.0`: how do
 #    interventions, false alarms and speed move? Which setting would you defend, and why?
-# 2. Set `SafetyConfig(fallback_lanes=False)` (brake only in the current lane): what happens to
-#    the collisions of the ground-truth row, and who drove into them?
+# 2. Drive the perceived row with the lane fallback (`fallback="lanes"`, the ground-truth row's),
+#    and the ground-truth row with `fallback="keep-lane"` (brake only in the current lane): what
+#    happens to the collisions, who drove into them, and why does the lane fallback that serves
+#    the truth fail on perception?
 # 3. Check the L2 driver of chapter 06 with the ground-truth module (`ground_truth=True`; it has
 #    one mode): does it gain more or less than the GMM from the module? Why would a second mode
 #    matter to a fallback?

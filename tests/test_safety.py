@@ -19,6 +19,7 @@ from e2e_lite.learning.data import AFFORDANCE_NAMES, affordances
 from e2e_lite.safety.agent import SafeAgent, SafetyStats
 from e2e_lite.safety.rule import (
     SafetyConfig,
+    brake_along,
     brake_to_lane,
     calibrate_gap_free,
     check,
@@ -135,10 +136,56 @@ def test_fallback_order_heaviest_passing_mode_then_keep_lane_braking():
     assert c.source == "other mode" and np.array_equal(c.points, safe)
     assert [v.ok for v in c.verdicts] == [False, True]
     # no mode passes: without the neighbouring lanes, the keep-lane brake, unchecked
-    lane_only = SafetyConfig(fallback_lanes=False)
+    lane_only = SafetyConfig(fallback="keep-lane")
     c = choose(np.stack([unsafe, unsafe]), np.array([0.5, 0.5]), a, 25.0, 0.0, lane_only)
     assert c.source == "fallback" and len(c.verdicts) == 2
     assert np.allclose(c.points, keep_lane_brake(a, 25.0, 0.0))
+
+
+def test_the_path_fallback_brakes_for_a_parked_car_on_the_networks_own_path():
+    """The perceived module's fallback (chapter 11): the heaviest mode heads for a car 30 m
+    ahead; the lanes beside look free, but the lane fallback would steer by perceived geometry.
+    With ``fallback="path"`` the mode's own path is driven, braking."""
+    along = SafetyConfig(fallback="path")
+    a = aff(gap_ego=30.0)
+    drift = straight(25.0, y_end=0.4)  # the network's path, drifting a little left
+    c = choose(drift[None], np.array([1.0]), a, 25.0, 0.0, along)
+    assert c.source == "fallback" and np.allclose(c.points, brake_along(drift, 25.0, along))
+    assert not c.verdicts[0].ok and len(c.verdicts) == 1  # its brake fails too: the last resort
+    # without the option, the lane fallback brakes into the left lane's centre
+    lanes = choose(drift[None], np.array([1.0]), a, 25.0, 0.0)
+    assert np.allclose(lanes.points, brake_to_lane(a, 25.0, 0.0, 1))
+    # a passing braked path is taken from the modes heaviest first: 40 m ahead at 15 m/s, the
+    # mode's own path cannot stop, braking along it can
+    b = aff(gap_ego=40.0)
+    c = choose(straight(15.0)[None], np.array([1.0]), b, 15.0, 0.0, along)
+    assert c.verdicts[0].kind == "cannot stop" and c.verdicts[-1].ok
+    # a road-edge rejection keeps the lane fallback: the path itself leaves the road
+    off = straight(25.0, y_end=8.0)
+    edge = choose(off[None], np.array([1.0]), aff(), 25.0, 0.0, along)
+    assert edge.verdicts[0].kind == "road edge"
+    assert np.allclose(edge.points, choose(off[None], np.array([1.0]), aff(), 25.0, 0.0).points)
+    with pytest.raises(ValueError, match="fallback"):
+        SafetyConfig(fallback="swerve")
+
+
+@settings(max_examples=60, deadline=None)
+@given(speed=st.floats(0.0, 40.0), y_end=st.floats(-4.0, 4.0), pace=st.floats(0.5, 1.5))
+def test_braking_along_a_path_stays_on_it_and_slows_down(speed, y_end, pace):
+    path = straight(pace * max(speed, 1.0), y_end=y_end)
+    pts = brake_along(path, speed)
+    assert pts.shape == (5, 2) and np.all(np.isfinite(pts))
+    whole = np.concatenate([np.zeros((1, 2)), pts])
+    steps = np.hypot(*np.diff(whole, axis=0).T)
+    assert np.all(np.diff(steps) <= 1e-9)  # never faster
+    assert steps.sum() <= speed * 1.5 + 1e-9  # never further than at the speed now
+    # every point lies on the proposed path: on the segment between two of its points
+    dense = np.concatenate([np.zeros((1, 2)), path])
+    u = np.linspace(0.0, 1.0, 2001)[:, None, None]
+    on_path = (dense[:-1] + u * np.diff(dense, axis=0)).reshape(-1, 2)
+    nearest = np.min(np.hypot(*(pts[:, None] - on_path[None]).transpose(2, 0, 1)), axis=1)
+    step = np.max(np.hypot(*np.diff(dense, axis=0).T)) / 2000
+    assert np.all(nearest <= step + 1e-6)
 
 
 def test_half_way_through_a_lane_change_the_fallback_brakes_on_into_the_lane_being_entered():
@@ -243,7 +290,7 @@ class StraightOn:
 
 def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
-    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2, split="val")
     alone = evaluate(StraightOn(), world, cfg, progress=False)
     guarded = SafeAgent(StraightOn(), ground_truth=True)
     safe = evaluate(guarded, world, cfg, progress=False, workers=2)
@@ -270,10 +317,10 @@ def test_an_emergency_brake_stops_where_the_trackers_brake_cannot():
     """Parked cars seen from 28 m only, at 20 m/s: braking at the tracker's 6 m/s^2 needs
     4 + 33 + 2 m to stop, the car's full 8 m/s^2 4 + 25 + 2 m."""
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
-    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2, split="val")
     runs = {}
     for emergency in (None, 8.0):
-        how = SafetyConfig(gap_free_m=28.0, fallback_lanes=False, emergency_brake_mps2=emergency)
+        how = SafetyConfig(gap_free_m=28.0, fallback="keep-lane", emergency_brake_mps2=emergency)
         agent = Watched(StraightOn(), how, ground_truth=True)
         runs[emergency] = (evaluate(agent, world, cfg, progress=False), agent.seen)
     tracker_brake, emergency = runs[None][0], runs[8.0][0]
@@ -296,7 +343,12 @@ def test_the_rollout_tells_the_policy_of_each_collision_with_its_next_decision()
             return super().act(obs)
 
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
-    res = evaluate(Counting(), world, EvalConfig(miles=1.0, n_worlds=2, n_tracks=2), progress=False)
+    res = evaluate(
+        Counting(),
+        world,
+        EvalConfig(miles=1.0, n_worlds=2, n_tracks=2, split="val"),
+        progress=False,
+    )
     assert res.collisions >= 3 and Counting.told == res.collisions
 
 
@@ -306,7 +358,7 @@ def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(tmp_path, 
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
-    cfg = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2)
+    cfg = EvalConfig(miles=0.3, n_worlds=2, n_tracks=2, split="val")
     guarded = SafeAgent(StraightOn(), ground_truth=True)
     first = evaluate_stored("guarded", "guarded", guarded, world, cfg, progress=False, workers=1)
     again = evaluate_stored("guarded", "guarded", guarded, world, cfg, progress=False, workers=1)
@@ -315,7 +367,7 @@ def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(tmp_path, 
     assert stored == SafetyStats.from_info(first.info).to_dict() and stored["interventions"] > 0
     assert result_info(again)["examples"] == first.info["examples"]
     # the module's settings and audits are part of the driver's identity
-    other = SafeAgent(StraightOn(), SafetyConfig(fallback_lanes=False), ground_truth=True)
+    other = SafeAgent(StraightOn(), SafetyConfig(fallback="keep-lane"), ground_truth=True)
     assert fingerprint(other) != fingerprint(guarded)
     assert fingerprint(SafeAgent(StraightOn(), ground_truth=True, audit_every=4)) != fingerprint(
         guarded
@@ -351,7 +403,7 @@ def test_the_perceived_module_is_as_good_as_what_it_perceives():
     """An exact affordance head drives exactly as the ground-truth module; a head blind to parked
     cars lets the unsafe driver collide as it does alone."""
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
-    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2)
+    cfg = EvalConfig(miles=1.0, n_worlds=2, n_tracks=2, split="val")
     alone = evaluate(StraightOn(), world, cfg, progress=False)
     truth = evaluate(SafeAgent(StraightOn(), ground_truth=True), world, cfg, progress=False)
     exact = evaluate(SafeAgent(Exact()), world, cfg, progress=False)
@@ -369,7 +421,7 @@ def test_the_perceived_check_needs_predicted_affordances():
 
 def test_the_module_counts_the_same_in_threads_and_in_processes():
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))
-    cfg = EvalConfig(miles=0.5, n_worlds=2, n_tracks=2)
+    cfg = EvalConfig(miles=0.5, n_worlds=2, n_tracks=2, split="val")
     runs = {}
     for parallel in ("threads", "processes"):
         guarded = SafeAgent(StraightOn(), ground_truth=True)

@@ -1,7 +1,8 @@
 """The labels: what the networks learn from a frame, in one place (no simulator imports).
 
 * The trajectory format (the paper's): :data:`N_POINTS` points :data:`POINT_DT_S` apart, in the
-  car frame at the rear axle [m], and its path interpolated between them (:func:`interpolated_path`).
+  car frame at the rear axle [m], its path interpolated between them (:func:`interpolated_path`),
+  and a trajectory re-timed along its own path (:func:`along_path`).
 * The expert's manoeuvre states (:data:`KEEP`, :data:`CHANGE`, :data:`PASS`, :data:`FOLLOW`), which
   the dataset records with every sample.
 * The 9 affordances (:data:`AFFORDANCE_NAMES`, after DeepDriving) and the cap of their gaps.
@@ -12,6 +13,8 @@ The collector (:mod:`e2e_lite.learning.data`) computes them from the world; the 
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -84,3 +87,26 @@ def interpolated_path(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     x = np.interp(u, np.arange(N_POINTS + 1), pts[:, 0])
     y = np.interp(u, np.arange(N_POINTS + 1), pts[:, 1])
     return x, y, u * POINT_DT_S
+
+
+def along_path(points: np.ndarray, progress: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """Trajectories ``(..., 5, 2)`` [m] re-timed along their own paths: each point moved along its
+    polyline (from the origin) to the distance ``progress(along)`` [m], where ``along`` ``(M, 5)``
+    holds each point's own distance; never past the path's end. All at once, to the bit as
+    :func:`numpy.interp` (the safety module's braking and speed caps)."""
+    pts = np.asarray(points, dtype=np.float64)
+    poly = np.pad(pts.reshape(-1, N_POINTS, 2), ((0, 0), (1, 0), (0, 0)))
+    step = np.diff(poly, axis=1)
+    along = np.pad(np.cumsum(np.hypot(step[..., 0], step[..., 1]), axis=1), ((0, 0), (1, 0)))
+    covered = np.minimum(progress(along[:, 1:]), along[:, -1:])
+    out = poly[:, 1:].copy()
+    moved = np.any(np.abs(covered - along[:, 1:]) > 1e-9, axis=1)  # (re-timed)
+    a, x, p = along[moved], covered[moved], poly[moved]
+    j = np.minimum((x[:, :, None] >= a[:, None, :]).sum(axis=2) - 1, N_POINTS - 1)  # segment
+    lo, hi = np.take_along_axis(a, j, axis=1), np.take_along_axis(a, j + 1, axis=1)
+    p_lo, p_hi = (np.take_along_axis(p, i[..., None], axis=1) for i in (j, j + 1))
+    with np.errstate(divide="ignore", invalid="ignore"):  # (a zero-length step is replaced)
+        at = (p_hi - p_lo) / (hi - lo)[..., None] * (x - lo)[..., None] + p_lo
+    end = (x >= a[:, -1:])[..., None]  # on a vertex or at the end: that point (as np.interp)
+    out[moved] = np.where((x == lo)[..., None] | end, np.where(end, p[:, -1:], p_lo), at)
+    return out.reshape(pts.shape)

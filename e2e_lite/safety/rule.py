@@ -56,12 +56,15 @@ from ..control.labels import (
     N_POINTS,
     PATH_SUBSTEPS,
     POINT_DT_S,
+    along_path,
     interpolated_path,
 )
 
 _A = AFFORDANCE_INDEX
 
 
+#: What the module may fall back to (:attr:`SafetyConfig.fallback`).
+FALLBACKS = ("lanes", "path", "keep-lane")
 #: The version of what the module computes: part of every stored guarded evaluation's key
 #: (:func:`e2e_lite.ablation.fingerprint`). Bump it when a change to the rule, its fallback or
 #: the driver's reports changes what a stored result would hold.
@@ -88,10 +91,14 @@ class SafetyConfig:
             on training frames (:func:`calibrate_gap_free`).
         gap_free_side_m: the same threshold for the left and right lanes' gaps [m]; ``None``:
             ``gap_free_m``. A head may see the neighbouring lanes less sharply than its own.
-        fallback_lanes: brake into a neighbouring lane when braking in the current lane fails
-            the check and braking there passes (see :func:`choose`). With the true affordances
-            the keep-lane brake alone pulled cars half-way through a lane change back in front
-            of the parked car they were passing (chapter 11).
+        fallback: what the module drives when no mode passes (see :func:`choose`), one of
+            :data:`FALLBACKS`. ``"lanes"``: braking to a lane centre, the current lane's or a
+            neighbour's, the first that passes (with the true affordances the keep-lane brake
+            alone pulled cars half-way through a lane change back in front of the car they were
+            passing). ``"path"``: when a parked car is the reason, braking along the network's
+            own path (its lane and its path need no perceived lane geometry, which the lane
+            fallback is made of; road-edge rejections keep the lane fallback). ``"keep-lane"``:
+            the keep-lane brake alone.
         emergency_brake_mps2: the fallback's deceleration [m/s^2]: a car the module falls back
             for is braked at this, the tracker's steering kept (the car's own limit still clips
             it). ``None``: the tracker's braking, at most ``brake_mps2``. The check still plans
@@ -109,7 +116,7 @@ class SafetyConfig:
     parked_length_m: float = 4.5
     gap_free_m: float = GAP_CAP_M - 0.5
     gap_free_side_m: float | None = None
-    fallback_lanes: bool = True
+    fallback: str = "lanes"
     emergency_brake_mps2: float | None = None
 
     def __post_init__(self) -> None:
@@ -122,6 +129,10 @@ class SafetyConfig:
         check_range(o, "car_width_m", self.car_width_m, 0.5, 4.0)
         check_range(o, "car_length_m", self.car_length_m, 1.0, 20.0)
         check_range(o, "parked_length_m", self.parked_length_m, 1.0, 20.0)
+        if self.fallback not in FALLBACKS:
+            raise ValueError(
+                f"{o}.fallback={self.fallback!r} is invalid: must be one of {FALLBACKS}"
+            )
         for name in ("gap_free_m", "gap_free_side_m"):
             if getattr(self, name) is not None:
                 check_range(o, name, getattr(self, name), 1.0, 1000.0)
@@ -293,6 +304,15 @@ def brake_to_lane(
     return np.stack([x, y], axis=1)
 
 
+def brake_along(
+    points: np.ndarray, speed_mps: float, cfg: SafetyConfig | None = None
+) -> np.ndarray:
+    """``points`` ``(5, 2)`` [m] driven along their own path braking at ``cfg.brake_mps2`` from
+    ``speed_mps`` to a stop, never past its end (an emergency stop keeping the planned path)."""
+    cfg = cfg or SafetyConfig()
+    return along_path(points, lambda along: braking_progress(speed_mps, cfg.brake_mps2))
+
+
 @dataclass
 class Choice:
     """What the module did for one car at one decision."""
@@ -311,7 +331,9 @@ def choose(
     cfg: SafetyConfig | None = None,
 ) -> Choice:
     """The fallback order: the heaviest mode if it passes, else the next heaviest that passes,
-    else (with ``cfg.fallback_lanes``) the first braking trajectory that passes among
+    else, with ``cfg.fallback == "path"`` and the heaviest rejected for a parked car, the modes'
+    paths braking (:func:`brake_along`; the first that passes, else the heaviest's), else (with
+    ``"lanes"`` or ``"path"``) the first braking trajectory that passes among
     :func:`brake_to_lane` to the current lane and its two neighbours, ordered by how near each
     lane's centre is to where the heaviest mode ends (:func:`end_lateral`; on a tie the current
     lane), else :func:`keep_lane_brake`, unchecked (the last resort: nothing stops sooner).
@@ -334,7 +356,16 @@ def choose(
         verdicts.append(verdict)
         if verdict.ok:
             return Choice(modes[k], "network" if rank == 0 else "other mode", verdicts)
-    if cfg.fallback_lanes:
+    if cfg.fallback == "path" and verdicts[0].kind in ("collision course", "cannot stop"):
+        heaviest = brake_along(modes[order[0]], speed_mps, cfg)
+        for k in order.tolist():
+            brake = heaviest if k == order[0] else brake_along(modes[k], speed_mps, cfg)
+            verdict = check(brake, aff, speed_mps, curvature, cfg)
+            verdicts.append(verdict)
+            if verdict.ok:
+                return Choice(brake, "fallback", verdicts)
+        return Choice(heaviest, "fallback", verdicts[: len(order)])
+    if cfg.fallback in ("lanes", "path"):
         heading_to = end_lateral(modes[order[0]], aff, curvature) / lane_width(aff)
         for lanes in sorted((0, 1, -1), key=lambda n: (abs(heading_to - n), abs(n))):
             brake = brake_to_lane(aff, speed_mps, curvature, lanes, cfg)
