@@ -83,11 +83,11 @@ CHAPTERS: dict[int, ChapterInfo] = {
     4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 13, 2),
     5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 16, 10),
     6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 11, 3),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 20, 6),
-    8: ChapterInfo("the affordance auxiliary loss", "3.5", 14, 5),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 12, 12),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 30, 33),
-    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 15, 12),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 20, 9),
+    8: ChapterInfo("the affordance auxiliary loss", "3.5", 14, 6),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 12, 15),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 30, 34),
+    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 15, 8),
 }
 
 

