@@ -296,7 +296,7 @@ def test_no_road_is_driven_twice_by_default():
     # 3 cars, 2 mi = 3.2 km each on 3 km tracks: each car needs two tracks, no two share one
     cfg = EvalConfig(miles=6.0, n_worlds=3)
     res = evaluate(LaneKeeper(), BUSY, cfg, progress=False, record_traces=True)
-    assert sorted(res.traces) == [f"val-{i}" for i in range(6)] and res.tracks_driven == 6
+    assert sorted(res.traces) == [f"test-{i}" for i in range(6)] and res.tracks_driven == 6
     assert [track_index(cfg, 1, k) for k in range(3)] == [1, 4, 7]
     # cycling through a fixed few repeats roads (the old default, kept for tests and demos)
     few = EvalConfig(miles=3.0, n_worlds=3, n_tracks=2, first_track=1)
@@ -314,7 +314,7 @@ def test_disjoint_runs_share_the_miles_on_roads_of_their_own():
         roads.append(set(res.traces))
         assert res.miles == pytest.approx(2.0, rel=0.01)
     assert all(roads) and not (roads[0] & roads[1] or roads[0] & roads[2] or roads[1] & roads[2])
-    assert "val-5" in roads[0]
+    assert "test-5" in roads[0]
     with pytest.raises(ValueError, match="n"):
         disjoint_runs(cfg, BUSY, 0)
 
