@@ -60,7 +60,9 @@ class ChapterInfo(NamedTuple):
     Attributes:
         purpose: one line.
         paper: where the papers have it (seed 000 unless named), or "" for the course's own.
-        quick_s: the quick profile, the chapter alone from an empty outputs folder [s].
+        quick_s: the quick profile, the chapter in its own process (imports included) after the
+            chapters before it, from an empty outputs folder (``course --quick --processes each``)
+            [s].
         full_min: the full profile, building everything it needs that earlier chapters did not
             [min].
     """
@@ -73,21 +75,21 @@ class ChapterInfo(NamedTuple):
 
 #: ``python -m e2e_lite.course --quick``, every chapter in one interpreter from an empty outputs
 #: folder, on 2 cores with nothing else running [s] (``docs/benchmarks.md``)
-QUICK_COURSE_S = 30
+QUICK_COURSE_S = 26
 CHAPTERS: dict[int, ChapterInfo] = {
-    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 3, 1),
-    2: ChapterInfo("the rasterised front camera the networks see", "4.1", 3, 1),
+    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 2, 1),
+    2: ChapterInfo("the rasterised front camera the networks see", "4.1", 1, 1),
     3: ChapterInfo(
-        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 4, 1
+        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 2, 1
     ),
-    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 13, 2),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 16, 10),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 11, 3),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 20, 9),
-    8: ChapterInfo("the affordance auxiliary loss", "3.5", 14, 6),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 12, 15),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 30, 34),
-    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 15, 8),
+    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 5, 2),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 7, 10),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 5, 3),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 5, 9),
+    8: ChapterInfo("the affordance auxiliary loss", "3.5", 7, 6),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 15),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 34),
+    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 8),
 }
 
 
