@@ -32,7 +32,7 @@ import numpy as np
 
 from .artifacts import atomic_write, save_figure
 from .config import Profile, check_range
-from .driving.metrics import compare_seeds, poisson_ci, result_dict
+from .driving.metrics import compare_seeds, poisson_ci, result_dict, seed_rates
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORD = ROOT / "docs" / "results" / "table1.json"
@@ -53,7 +53,6 @@ STEPS = (
 )
 #: a row slower than this share of the expert's speed is marked
 SLOW_SHARE = 0.9
-LEVEL = 0.05
 
 
 def load(path: Path = RECORD) -> dict[str, Any]:
@@ -65,11 +64,6 @@ def load(path: Path = RECORD) -> dict[str, Any]:
         if sum(s["collisions"] for s in row["seeds"]) != row["car"] + row["rail"]:
             raise ValueError(f"{path.name}: row {row['key']!r}: seeds do not add up to car + rail")
     return record
-
-
-def seed_rates(row: dict[str, Any]) -> np.ndarray:
-    """Each training seed's collisions per 100 miles."""
-    return np.array([100.0 * s["collisions"] / s["miles"] for s in row["seeds"]])
 
 
 def pooled(row: dict[str, Any]) -> tuple[float, float, float]:
@@ -98,14 +92,15 @@ def seed_level_test(before: np.ndarray, after: np.ndarray) -> float:
     return compare_seeds(as_result(after), as_result(before))["p_fewer"]
 
 
-def verdict(p_better: float, p_worse: float, slow_mph: float | None) -> str:
-    """A step's verdict from its two one-sided seed-level p-values."""
-    if p_better < LEVEL - 1e-9:  # (3 seeds against 3 give exactly 0.05: not below it)
+def verdict(test: dict[str, Any], slow_mph: float | None) -> str:
+    """A step's verdict from its seed-level test (:func:`~e2e_lite.driving.metrics.compare_seeds`
+    of the later row against the earlier), with the later row's speed when it is slow."""
+    if test["fewer"]:
         text = "reproduces"
-    elif p_worse < LEVEL - 1e-9:
+    elif test["more"]:
         text = "the opposite"
     else:
-        text = f"not shown at the seed level (p = {p_better:.2g})"
+        text = f"not shown at the seed level (p = {test['p_fewer']:.2g})"
     return text + (f", at {slow_mph:.1f} mph" if slow_mph is not None else "")
 
 
@@ -117,13 +112,12 @@ def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
     for before, after, what in STEPS:
         if before not in rows or after not in rows:
             continue
-        a, b = seed_rates(rows[before]), seed_rates(rows[after])
-        p_better, p_worse = seed_level_test(a, b), seed_level_test(b, a)
+        test = compare_seeds(rows[after], rows[before])  # (a record's rows hold their seeds)
         mph = rows[after]["mph"]
         slow = mph if expert_mph and mph < SLOW_SHARE * expert_mph else None
         out.append(
-            {"step": what, "p_better": p_better, "p_worse": p_worse,
-             "verdict": verdict(p_better, p_worse, slow)}
+            {"step": what, "p_better": test["p_fewer"], "p_worse": test["p_more"],
+             "verdict": verdict(test, slow)}
         )  # fmt: skip
     return out
 
