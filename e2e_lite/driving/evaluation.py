@@ -15,7 +15,6 @@ Their public names are re-exported here, so a chapter imports the evaluation fro
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -49,6 +48,7 @@ from .parallel import (  # noqa: F401 (close_shard_workers re-exported, as above
     close_shard_workers,
     drive_in_processes,
     drive_in_threads,
+    pinned_threads,
     processes_ok,
     shard_threads,
     shard_worker,
@@ -140,17 +140,10 @@ def evaluate(
 
     cars = np.array_split(np.arange(n), workers)
     if workers == 1:
-        torch = sys.modules.get("torch")  # (loaded when the policy is a network)
-        threads = None if torch is None else torch.get_num_threads()
-        try:
-            if torch is not None:  # pinned, as in the shards (parallel.EVAL_TORCH_THREADS)
-                torch.set_num_threads(shard_threads(1))
+        with pinned_threads(1):  # (as in the shards: parallel.EVAL_TORCH_THREADS)
             shards = [
                 drive_shard(policy, world_cfg, cfg, cars[0], 0, advance, record_traces, stop_when)
             ]
-        finally:
-            if torch is not None:
-                torch.set_num_threads(threads)
     else:
         policies = policy.fork(workers)  # type: ignore[attr-defined]
         jobs = [

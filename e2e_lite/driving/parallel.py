@@ -33,7 +33,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -54,6 +54,22 @@ def shard_threads(n_shards: int) -> int:
     return max(1, EVAL_TORCH_THREADS // n_shards)
 
 
+@contextlib.contextmanager
+def pinned_threads(n_shards: int) -> Iterator[None]:
+    """Torch (when loaded: the policy is a network) on :func:`shard_threads` threads for the
+    ``n_shards`` shards driven in this process, the caller's count given back after."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(shard_threads(n_shards))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 class _Stopped(Exception):
     """Raised inside a shard's loop when its evaluation was stopped."""
 
@@ -72,8 +88,6 @@ def processes_ok(policy: Policy) -> bool:
 def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[ShardResult]:
     """Drive each job's shard in its own thread (torch on :func:`shard_threads` threads). An
     exception in the caller's thread (Ctrl-C) stops every shard at its next decision."""
-    torch = sys.modules.get("torch")  # loaded when the policy is a network
-    threads = None if torch is None else torch.get_num_threads()
     interval = sys.getswitchinterval()
     stop = threading.Event()
 
@@ -83,10 +97,8 @@ def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> lis
         advance(miles)
 
     try:
-        if torch is not None:  # one core per shard instead of every shard on every core
-            torch.set_num_threads(shard_threads(len(jobs)))
         sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
-        with ThreadPoolExecutor(len(jobs)) as pool:
+        with pinned_threads(len(jobs)), ThreadPoolExecutor(len(jobs)) as pool:
             futures = [pool.submit(_drive_job, job, guarded) for job in jobs]
             try:
                 return [f.result() for f in futures]
@@ -95,8 +107,6 @@ def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> lis
                 raise
     finally:
         sys.setswitchinterval(interval)
-        if torch is not None:
-            torch.set_num_threads(threads)
 
 
 def _drive_job(job: tuple, advance: Callable[[float], None]) -> ShardResult:
