@@ -189,7 +189,7 @@ class SafeAgent:
             if c.source != "network":
                 kinds.append(c.verdicts[0].kind)
                 audits.append((i, c))
-        false_alarms, perception_only = self._audit([i for i, _ in audits], obs, proposal)
+        audited, false_alarms, perception_only = self._audit([i for i, _ in audits], obs, proposal)
         examples = []  # JSON-able: stored with the evaluation (rebuild the world from track_id)
         for i, c in audits[: max(0, self.keep_examples - self._kept)]:
             examples.append(
@@ -209,7 +209,7 @@ class SafeAgent:
         self._kept += len(examples)
         info = {
             "decisions": len(proposal),
-            "audited": self._audited,
+            "audited": audited,
             "false_alarms": false_alarms,
             "perception_only": perception_only,
             "sources": Counter(sources),
@@ -226,30 +226,32 @@ class SafeAgent:
             out = dataclasses.replace(out, accel_mps2=accel)
         return dataclasses.replace(out, info=info)
 
-    def _audit(self, intervened: list[int], obs: Observation, proposal: np.ndarray) -> tuple:
-        """Audit one in ``audit_every`` of this decision's interventions (cars ``intervened``):
-        how many a fresh expert from the same state would not have made (its trajectory within
-        1 m sideways and 5 m along of the proposal at 1.5 s: false alarms), and how many the rule
-        on the world's true affordances would have let pass (perception alone caused them)."""
+    def _audit(
+        self, intervened: list[int], obs: Observation, proposal: np.ndarray
+    ) -> tuple[int, int, int]:
+        """Audit one in ``audit_every`` of this decision's interventions (cars ``intervened``).
+        Returns ``(audited, false alarms, perception only)``: how many were audited, how many a
+        fresh expert from the same state would not have needed (its trajectory within 1 m
+        sideways and 5 m along of the proposal at 1.5 s), and how many the rule on the world's
+        true affordances would have let pass (perception alone caused them)."""
         audited = []
         for i in intervened:
             if self.audit and self._seen % self.audit_every == 0:
                 audited.append(i)
             self._seen += 1
-        self._audited = len(audited)
         if not audited:
-            return 0, 0
+            return 0, 0, 0
         expert_pts = fresh_labels(obs, audited, getattr(self.agent, "sim", None), self._limits)
         false_alarms = 0
         for j, i in enumerate(audited):
             dx, dy = np.abs(expert_pts[j, -1] - proposal[i, -1])
             false_alarms += int(dy <= 1.0 and dx <= 5.0)
         if self.ground_truth:  # (the ground-truth check already saw the truth)
-            return false_alarms, 0
+            return len(audited), false_alarms, 0
         worlds = [obs.worlds[i] for i in audited]
         true_aff = affordances(worlds, obs.s[audited], obs.d[audited], obs.heading_error[audited])
         perception_only = sum(
             int(check(proposal[i], true_aff[j], float(obs.speed[i]), obs.curvature[i], self.cfg).ok)
             for j, i in enumerate(audited)
         )
-        return false_alarms, perception_only
+        return len(audited), false_alarms, perception_only
