@@ -33,7 +33,9 @@ to a lane centre): the first that passes the check among the current lane's and 
 nearest first to where the network's heaviest mode was going (a car half-way through a lane
 change brakes on into the lane it is entering, not back towards the car it is leaving);
 otherwise :func:`keep_lane_brake`, back to the centre of the current lane (the last resort,
-unchecked). A car the module falls back for may be braked harder than the rule plans with
+unchecked). With ``SafetyConfig(fallback="path")`` a mode rejected for a parked car is instead
+braked along its own path (:func:`brake_along`), which needs no perceived lane geometry. A car
+the module falls back for may be braked harder than the rule plans with
 (``SafetyConfig.emergency_brake_mps2``, applied by the driver).
 
 The "nothing seen" thresholds of a perceived module are calibrated on training frames
