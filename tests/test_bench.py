@@ -69,3 +69,22 @@ def test_benchmark_command_prints_json(argv, capsys):
             * figures["b64_2processes_sim_miles"]
             / figures["b64_2processes_frames"]
         )
+
+
+def test_pool_benchmark_measures_the_course_pool(capsys, monkeypatch):
+    """``bench pool`` drives both calls with the course's pool (loky only where installed) and its
+    Ctrl-C trial sees the child stop within a second, one line on stderr, no process left."""
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "loky" else real(name, *a)
+    )
+    assert bench.main(["pool", "--quick", "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert not any(k.startswith("loky") for k in figures)
+    assert figures["ours_first_sim_miles_per_wall_s"] > 0
+    assert figures["ours_second_sim_miles_per_wall_s"] > 0
+    assert figures["ours_ctrl_c_exit_s"] < 1.5
+    assert figures["ours_ctrl_c_stderr_lines"] == 1  # the child's own "interrupted"
+    assert figures["ours_ctrl_c_left"] == 0
