@@ -705,3 +705,27 @@ def test_a_refit_head_is_stored_and_refit_only_for_another_network(capsys):
         model.trunk.convs[0].weight.mul_(1.01)
     refit_or_load("net", model, train, settings)
     assert "refitting" in capsys.readouterr().out
+
+
+def test_on_epoch_sees_each_epoch_in_eval_mode_and_its_numbers_join_the_record():
+    """``on_epoch`` (what lab/epochs_on_the_road.py keeps each epoch's weights with) is called
+    once per epoch after validation, with the model in eval mode; what it returns joins that
+    epoch's record; a stored checkpoint calls it no more."""
+    data, val = synthetic_data(32, 0), synthetic_data(16, 1)
+    cfg = ModelConfig(head="gmm", fusion_width=16)
+    seen: list[tuple[int, bool, float]] = []
+
+    def hook(epoch: int, model) -> dict[str, float]:
+        seen.append((epoch, model.training, float(next(model.parameters()).detach().sum())))
+        return {"probe": 10.0 + epoch}
+
+    obj = GMMObjective(sigma_warmup_epochs=1)
+    _, hist = train_or_load(
+        "hook", cfg, small_train_cfg(epochs=2), obj, data, val, progress=False, on_epoch=hook
+    )
+    assert [(e, training) for e, training, _ in seen] == [(0, False), (1, False)]
+    assert seen[0][2] != seen[1][2]  # the weights after each epoch, not one copy
+    assert [r["probe"] for r in hist.epochs] == [10.0, 11.0]
+    train_or_load("hook", cfg, small_train_cfg(epochs=2), obj, data, val, progress=False,
+                  on_epoch=hook)  # fmt: skip
+    assert len(seen) == 2

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -162,6 +163,7 @@ def train_or_load(
     carry_optimizer: bool = False,
     keep_optimizer: bool = False,
     progress: bool = True,
+    on_epoch: Callable[[int, DrivingModel], dict[str, float] | None] | None = None,
 ) -> tuple[DrivingModel, History]:
     """The model ``name`` from ``<outputs>/checkpoints/<name>.pt`` if it was trained with these
     settings on this data; otherwise train it (seeded), save it and return it.
@@ -184,6 +186,8 @@ def train_or_load(
         keep_optimizer: a stored checkpoint without its optimiser state (saved before the course
             kept it) is retrained, so a fine-tune can carry the state on.
         progress: progress bars and per-epoch lines.
+        on_epoch: given to :func:`~e2e_lite.learning.training.fit` when the model is trained
+            (not called for a stored one).
     """
     device = pick_device(train_cfg.device)
     rows = np.arange(len(train_data)) if train_rows is None else np.asarray(train_rows)
@@ -246,6 +250,7 @@ def train_or_load(
         name=name,
         progress=progress,
         optimizer_state=parent_meta["optimizer"] if carry_optimizer else None,
+        on_epoch=on_epoch,
     )
     model.eval()
     save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -201,10 +202,14 @@ def fit(
     name: str = "model",
     progress: bool = True,
     optimizer_state: dict[str, Any] | None = None,
+    on_epoch: Callable[[int, DrivingModel], dict[str, float] | None] | None = None,
 ) -> History:
     """Train ``model`` in place; on return it holds the weights of the best epoch by
     ``cfg.select_by`` (the validation loss, or the decisive-situation error), and the history
     holds Adam's state after that epoch.
+
+    ``on_epoch(epoch, model)``: called after each epoch's validation, the model in eval mode
+    (e.g. to keep each epoch's weights, or drive them); what it returns joins the epoch's record.
 
     ``optimizer_state``: continue that Adam state (a fine-tune of the checkpoint it was saved
     with: its moment estimates and step count carry over) at ``cfg.lr``; None starts a fresh Adam.
@@ -279,6 +284,9 @@ def fit(
                     f"TrainConfig.select_by={cfg.select_by!r} needs a trajectory head (ADE metric)"
                 )
             record.update(decisive_errors(val_metrics["ADE [m]"], masks))
+        if on_epoch is not None:
+            model.eval()
+            record.update(on_epoch(epoch, model) or {})
         score = record["val_loss"] if masks is None else record[DECISIVE]
         epochs.append(record)
         if progress:
