@@ -145,6 +145,7 @@ TOP = (
     "viz",
     "course",
     "bench",
+    "bench_pool",
 )  # beside the layers, free to import any of them
 
 
