@@ -85,7 +85,7 @@ print(
 # ## 2. Choosing w
 #
 # Each candidate trains the same GMM + affordance model on the same fixed subset of the training
-# set for a short schedule (sigma frozen in the first epoch when there are two); the score is the
+# set for a short schedule (every sigma held at 1, as in chapter 07); the score is the
 # trajectory NLL alone on the validation samples. `w = 0` is the chapter-07 model with an unused
 # head: the reference. If it wins, the auxiliary loss does not help the trajectory, and the head
 # is kept for what it perceives (chapter 11's safety module reads it): the `w > 0` whose head has
@@ -107,7 +107,7 @@ print(f"chosen {why} ({first['train_samples']} samples, {first['epochs']} epoch(
 # %% [markdown]
 # ## 3. Training with the chosen w
 #
-# Same schedule as chapter 07 (sigma frozen in the first epoch, then opened), so the two models
+# Same schedule as chapter 07 (every sigma held at 1), so the two models
 # differ only by the auxiliary head and its loss.
 
 # %%
@@ -132,7 +132,7 @@ if gmm07 is not None:
 # frames that decide a drive), because the network is kept for how it drives. The head has no
 # say in that choice. Its validation error after each epoch (all frames, MAE, from the training
 # history) against the mean predictor's shows what the choice costs the perception: when the
-# first epoch (sigma frozen) drives best, the head that is kept has trained for one epoch.
+# first epoch drives best, the head that is kept has trained for one epoch.
 
 # %%
 head_names = ("center_offset_m", "gap_ego_m", "heading_rad")

@@ -331,11 +331,11 @@ for k in keys:
 # With the sigmas open (the paper's NLL), a sample's loss is large when its error is large
 # *relative to its sigma*, and the cheapest way to lower the loss of the worst samples is to
 # widen their sigmas. That also weakens the pull on the means (each mean is pulled with weight
-# 1 / sigma², chapter 07). The mean fine-tune has the opposite problem when its base was kept
-# inside the sigma warm-up: its sigmas have never trained, and its one epoch is spent shrinking
-# them from 1. Either way the sigmas, not the reduction, can decide which fine-tune drives better;
-# held at 1, the two differ in the reduction alone. Exercise 2 drives both with the sigmas open
-# (lab note "CVaR with the sigmas held at 1").
+# 1 / sigma², chapter 07). The course's base network never trained its sigmas (chapter 07 holds
+# them at 1), so an open fine-tune would also spend its one epoch moving them away from an
+# untrained layer. Either way the sigmas, not the reduction, could decide which fine-tune drives
+# better; held at 1, as the base trained, the two differ in the reduction alone. Exercise 2 drives
+# both with the sigmas open (lab note "CVaR with the sigmas held at 1").
 
 # %%
 res = result_dict(closed["gmm_affordance_cvar"])
@@ -426,8 +426,8 @@ artifacts.write_metrics(
 #    expected, and does the closed loop follow?
 #    Then fine-tune both with the sigmas open (`recipes.gmm_affordance_cvar(..., sigma="open")`,
 #    the drivers `gmm_affordance_cvar_open` and `gmm_affordance_control_open` of
-#    `ablation.DRIVERS`), seed by seed: does the sign of CVaR against its control follow the
-#    base's sigma state (trained, or still held by its warm-up at the kept epoch)?
+#    `ablation.DIAGNOSTICS`), seed by seed: does the sign of CVaR against its control change
+#    when the sigmas may move?
 # 3. Two epochs of CVaR-90: does the mean loss keep rising? Does the closed-loop rate follow the
 #    CVaR-90 or the mean?
 # 4. Where does the cost on the easy cases land? On straight validation frames where the expert

@@ -265,7 +265,7 @@ print(f"open {index} in a browser")
 # The lines below are computed from this run's numbers; the quick profile's few miles decide
 # nothing. The full profile's numbers of record are rendered in `docs/results.md` from committed
 # JSON, and the investigations behind the course's recipes (why the data takes the car over, why
-# the GMM's targets are scaled per axis, why the fine-tunes hold sigma at 1, the controls this
+# the GMM's targets are scaled per axis, why the GMM holds its sigmas at 1, the controls this
 # chapter no longer drives) are in `docs/lab-notes.md`.
 #
 # What our world lacks that the paper had: 10 times the data, a ResNet-34 instead of a PilotNet
@@ -355,9 +355,9 @@ artifacts.write_metrics(
 # 2. The rows pool three seeds. Compare the per-seed rates of the GMM + affordance row with those
 #    of the w = 0 control (e.g. a rank test on the six rates): does the affordance step survive
 #    training noise? How many seeds would you need for the test to have a chance?
-# 3. Drive the exercises' drivers (`ablation.DIAGNOSTICS`: the mixture's mean, K = 1, sigma held
-#    at 1, the head on the fused features) beside the GMM rows. Which of them locates the GMM's
-#    gap to L2 (lab notes "Chapter 10 on the corrected evaluator" and "Sigma held at 1")?
+# 3. Drive the exercises' drivers (`ablation.DIAGNOSTICS`: the mixture's mean, K = 1, the
+#    paper's learned sigmas, the head on the fused features) beside the GMM rows, seed by seed.
+#    Which of them changes the GMM row's spread (lab note "Every epoch on the road")?
 # 4. Drive the GMM drivers with `TrajectoryAgent(model, speed="cruise")`: which of the paper's
 #    steps reproduce once the longitudinal problem of chapter 07 is taken away?
 # 5. Open two replays side by side at a collision: did the network propose the collision, or

@@ -84,8 +84,8 @@ class Build:
 
 
 def _gmm(b: Build, decode: str = "top", **recipe: Any) -> Policy:
-    """A GMM recipe's network (``recipe``: ``modes``, ``sigma_fixed``) as a trajectory driver."""
-    chapter_name = {(): "07_gmm", ("modes",): "07_gmm_k1", ("sigma_fixed",): "07_gmm_sigma_fixed"}
+    """A GMM recipe's network (``recipe``: ``modes``, ``sigma``) as a trajectory driver."""
+    chapter_name = {(): "07_gmm", ("modes",): "07_gmm_k1", ("sigma",): "07_gmm_sigma_learned"}
     name = b.name(chapter_name[tuple(recipe)])
     return TrajectoryAgent(recipes.gmm(*b.data, name=name, **recipe, **b.seeded)[0], decode=decode)
 
@@ -183,7 +183,7 @@ CONTROLS = (
 )
 #: Drivers of the exercises and the lab notes, which the course does not drive: the affordance
 #: head on the fused features (the paper's Fig. 1) instead of the trunk's; the GMM following the
-#: mixture's mean, with one mode, and with every sigma held at 1; CVaR and its control with the
+#: mixture's mean, with one mode, and with the paper's learned sigmas; CVaR and its control with the
 #: mixture's sigmas open, as the paper's NLL trains them (the course holds them at 1,
 #: :data:`~e2e_lite.learning.recipes.CVAR_SIGMA`).
 DIAGNOSTICS = (
@@ -195,7 +195,9 @@ DIAGNOSTICS = (
     Driver("gmm_mean", "GMM, following the mixture's mean", build=lambda b: _gmm(b, decode="mean")),
     Driver("gmm_k1", "GMM loss with one mode (K = 1)", build=lambda b: _gmm(b, modes=1)),
     Driver(
-        "gmm_sigma_fixed", "GMM with sigma held at 1", build=lambda b: _gmm(b, sigma_fixed=True)
+        "gmm_sigma_learned",
+        "GMM with learned sigmas (the paper's NLL)",
+        build=lambda b: _gmm(b, sigma="learned"),
     ),
     Driver(
         "gmm_affordance_cvar_open",

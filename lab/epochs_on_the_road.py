@@ -5,7 +5,7 @@ learned sigma's? (issue 50, item 3; the lab note "Every epoch on the road" cites
                                      [--jobs N] [--json PATH]
 
 Trains chapter 07's GMM (recipes.gmm, the course's settings) with its sigmas learned and with
-them held at 1 (``sigma_fixed``), ``--seeds`` training seeds each, in a scratch outputs folder,
+them held at 1 (``sigma``), ``--seeds`` training seeds each, in a scratch outputs folder,
 keeping each epoch's weights; then drives every epoch ``--val-miles`` on validation roads and
 ``--test-miles`` on test roads (64 cars, one shard, one torch thread, ``--jobs`` drives at a
 time), and prints per epoch: the validation loss, the decisive ADE that picks the kept epoch,
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             t1 = time.perf_counter()
             _, _, hist = recipes.gmm(
                 profile, train, val, seed=seed, name=f"lab_{variant}_seed{seed}",
-                sigma_fixed=variant == "held", on_epoch=keep, progress=False,
+                sigma=variant, on_epoch=keep, progress=False,
             )  # fmt: skip
             cfg = recipes.gmm_config()
             print(

@@ -121,7 +121,7 @@ def test_seeded_names_keep_the_chapters_checkpoint_for_seed_zero():
 
 def test_the_exercises_drivers_are_drivers_but_not_chapter_10_rows():
     keys = [d.key for d in ablation.DIAGNOSTICS]
-    assert "gmm_affordance_cvar_open" in keys and "gmm_sigma_fixed" in keys
+    assert "gmm_affordance_cvar_open" in keys and "gmm_sigma_learned" in keys
     assert all(k in ablation.BY_KEY for k in keys)
     assert [d.key for d in ablation.CONTROLS] == ["gmm_affordance_w0", "gmm_affordance_control"]
     table_keys = {d.key for d in (*ablation.DRIVERS, *ablation.CONTROLS)}

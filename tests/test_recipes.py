@@ -46,10 +46,11 @@ def test_a_gmm_recipe_with_one_mode_and_a_mismatch_refused():
         two.per_sample(out, batch, model)
 
 
-def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
-    """Chapter 07's control for the learned sigmas: the warm-up never ends, so every epoch trains
-    the means and weights with sigma = 1 and the log-sigma layer frozen; the recipe refuses an
-    objective given beside the flag."""
+def test_the_course_holds_every_sigma_at_one_and_the_paper_s_sigmas_open_after_the_warm_up():
+    """The course's GMM (``GMM_SIGMA = "held"``) trains the means and weights with sigma = 1 and
+    the log-sigma layer frozen in every epoch, and is scored so after training; the paper's
+    learned sigmas open after the warm-up. The recipe refuses an objective given beside
+    ``sigma``, and an unknown value names its owner."""
     from types import SimpleNamespace
 
     import pytest
@@ -57,14 +58,23 @@ def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
 
     from e2e_lite.config import FULL
     from e2e_lite.learning.heads import LOG_2PI
-    from e2e_lite.learning.recipes import gmm, gmm_objective
+    from e2e_lite.learning.losses import GMMObjective
+    from e2e_lite.learning.recipes import GMM_SIGMA, gmm, gmm_objective
 
-    fixed = gmm_objective(FULL, warmup=FULL.train_epochs)
-    learned = gmm_objective(FULL)
+    assert GMM_SIGMA == "held"  # the course's choice (lab note "Every epoch on the road")
+    fixed = gmm_objective(FULL)
+    learned = gmm_objective(FULL, sigma="learned")
     for epoch in range(FULL.train_epochs):
         assert fixed.sigma_fixed(epoch) and fixed.frozen_prefixes(epoch) == ["head.log_sigma"]
-    assert not learned.sigma_fixed(FULL.train_epochs - 1)
+    assert fixed.sigma_fixed(None)  # scored after training as it trained
+    assert learned.sigma_fixed(0) and learned.frozen_prefixes(0) == ["head.log_sigma"]
+    assert not learned.sigma_fixed(FULL.train_epochs - 1) and not learned.sigma_fixed(None)
+    assert learned.frozen_prefixes(FULL.train_epochs - 1) == []
     assert fixed.name != learned.name  # a different checkpoint key
+    with pytest.raises(ValueError, match="GMMObjective: sigma='fixed'"):
+        GMMObjective(sigma="fixed")
+    with pytest.raises(ValueError, match="gmm_objective: sigma='open'"):
+        gmm_objective(FULL, sigma="open")
     # held at 1: the NLL is a soft mixture of squared errors whatever the raw log-sigmas say
     y, means = torch.zeros(3, 10), torch.randn(3, 2, 10)
     raw = torch.cat([means.reshape(3, -1), torch.full((3, 20), -5.0), torch.zeros(3, 2)], 1)
@@ -79,7 +89,7 @@ def test_the_sigma_fixed_control_holds_sigma_at_one_for_the_whole_schedule():
     expected = -torch.logsumexp(torch.log(torch.tensor(0.5)) - sq, dim=1)
     assert torch.allclose(nll, expected, atol=1e-5)
     with pytest.raises(ValueError, match="not both"):
-        gmm(FULL, None, None, objective=learned, sigma_fixed=True)
+        gmm(FULL, None, None, objective=learned, sigma="learned")
 
 
 def test_the_affordance_weight_is_scored_once_per_data_and_grid(tmp_path, monkeypatch):

@@ -28,6 +28,10 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
 * 2026-11-26, nothing re-recorded: the evaluations' default split became ``"test"`` (issue 50:
   no number drives a road a choice was made on); the reference drives the ``"val"`` split it was
   recorded on, so it still pins the evaluator's behaviour.
+* 2026-11-27, ``gmm`` only, with ``checkpoint`` version 2: the course's GMM holds every sigma at
+  1 (``recipes.GMM_SIGMA``, issue 50; lab note "Every epoch on the road"). Recorded on the
+  project's second machine (AMD EPYC) with the code of the commit that made the change; the other
+  entries are the old record's.
 """
 
 from __future__ import annotations

@@ -118,6 +118,10 @@ class Objective:
 
 
 # ------------------------------------------------------------------------------ GMM
+#: What a GMM objective does with the mixture's sigmas (:class:`GMMObjective`'s ``sigma``)
+GMM_SIGMAS = ("learned", "held")
+
+
 class GMMObjective(Objective):
     """The mixture-density loss of seed 000 (section 3.3) on the normalised trajectory.
 
@@ -129,6 +133,10 @@ class GMMObjective(Objective):
         sigma_warmup_epochs: for the first epochs every sigma is held at 1 (the loss is then a
             mixture of squared errors) and the head's log-sigma layer is frozen; then opened
             (the paper froze sigma for 5 epochs).
+        sigma: ``"learned"`` (the paper's NLL: the sigmas open after the warm-up) or ``"held"``:
+            every sigma is 1 in every epoch and after training, the log-sigma layer never trains
+            (a mixture of unit Gaussians: the weights and means are learned, the loss is each
+            mode's squared error soft-minimised over the modes; the warm-up is then moot).
         wheelbase_m: unused by the GMM; kept for the common interface.
         normalise_targets: as :class:`Objective` (``False``: the floor and the warm-up's
             sigma = 1 are then in metres).
@@ -142,26 +150,33 @@ class GMMObjective(Objective):
         wheelbase_m: float = 2.7,
         normalise_targets: bool = True,
         target_scale: str | None = None,
+        sigma: str = "learned",
     ) -> None:
         check_range("GMMObjective", "n_modes", n_modes, 1, 16, integer=True)
         check_range("GMMObjective", "sigma_warmup_epochs", sigma_warmup_epochs, 0, integer=True)
+        if sigma not in GMM_SIGMAS:
+            raise ValueError(
+                f"GMMObjective: sigma={sigma!r} is invalid: must be one of {GMM_SIGMAS}"
+            )
         self.head = "gmm"
         self.n_modes = n_modes
-        self.sigma_warmup_epochs = sigma_warmup_epochs
+        self.sigma = sigma
+        self.sigma_warmup_epochs = 0 if sigma == "held" else sigma_warmup_epochs
         self.wheelbase_m = wheelbase_m
         self.target_scale = _target_scale("GMMObjective", normalise_targets, target_scale)
         self.normalise_targets = self.target_scale != "none"
-        self.name = (
-            f"gmm-nll-K{n_modes}-warmup{sigma_warmup_epochs}" + _SCALE_SUFFIX[self.target_scale]
-        )
+        sigmas = "sigma1" if sigma == "held" else f"warmup{sigma_warmup_epochs}"
+        self.name = f"gmm-nll-K{n_modes}-{sigmas}" + _SCALE_SUFFIX[self.target_scale]
 
     def sigma_fixed(self, epoch: int | None) -> bool:
-        """Whether every sigma is held at 1 in ``epoch`` (the warm-up; None: after training)."""
-        return epoch is not None and epoch < self.sigma_warmup_epochs
+        """Whether every sigma is held at 1 in ``epoch`` (held sigmas, or the warm-up; None: after
+        training)."""
+        return self.sigma == "held" or (epoch is not None and epoch < self.sigma_warmup_epochs)
 
     def frozen_prefixes(self, epoch: int) -> list[str]:
-        """Parameters the training loop freezes this epoch: the log-sigma layer during warm-up."""
-        return ["head.log_sigma"] if epoch < self.sigma_warmup_epochs else []
+        """Parameters the training loop freezes this epoch: the log-sigma layer while sigma is
+        held."""
+        return ["head.log_sigma"] if self.sigma_fixed(epoch) else []
 
     def modes(
         self, out: dict[str, torch.Tensor], model: DrivingModel

@@ -9,9 +9,10 @@ Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.lea
   held-out samples; PilotNet and the actuator baseline keep the epoch of the lowest validation
   loss, the trajectory models (L2 and every GMM) the epoch whose followed trajectory has the
   lowest error on the situations that decide collisions (``select_by="decisive_ade"``);
-* GMM models (K = 2): gradient clipping at 10, sigma frozen for the first third of the epochs,
-  targets scaled per axis (:data:`GMM_TARGET_SCALE`) with a sigma floor in metres
-  (:data:`GMM_SIGMA_FLOOR_M`, a setting of the model); chapter 07 measures both choices;
+* GMM models (K = 2): gradient clipping at 10, every sigma held at 1 (:data:`GMM_SIGMA`; the
+  paper's learned sigmas open after a warm-up of a third of the epochs), targets scaled per axis
+  (:data:`GMM_TARGET_SCALE`) with a sigma floor in metres (:data:`GMM_SIGMA_FLOOR_M`, a setting
+  of the model); chapter 07 measures these choices;
 * the affordance weight ``w``: a grid search (:func:`affordance_grid`) on a quarter of the
   training set, two epochs per candidate, scored by held-out trajectory NLL; the affordance head
   reads the trunk's features (:data:`AFFORDANCE_FROM`, chosen by chapter 08's probes);
@@ -35,7 +36,7 @@ from ..control.labels import AFFORDANCE_NAMES
 from .checkpoints import refit_or_load, train_or_load
 from .cvar import CVaRObjective
 from .dataset import DrivingData, DrivingDataset
-from .losses import GMMObjective, Objective, WithAffordance
+from .losses import GMM_SIGMAS, GMMObjective, Objective, WithAffordance
 from .models import DrivingModel, ModelConfig
 from .probes import HeadRefit
 from .training import History, TrainConfig, evaluate_loss
@@ -48,6 +49,12 @@ GMM_MODES = 2
 #: split into left and right).
 GMM_TARGET_SCALE = "axis"
 GMM_SIGMA_FLOOR_M = 0.1
+#: The course's GMM sigmas (:data:`~e2e_lite.learning.losses.GMM_SIGMAS`): ``"held"`` at 1, a
+#: mixture of unit Gaussians whose weights and means are learned. Chosen on validation roads
+#: (lab note "Every epoch on the road", ``lab/epochs_on_the_road.py``): with the paper's learned
+#: sigmas, five training seeds' kept epochs collided far more often than with sigmas held, and
+#: far less alike; chapter 07 trains the learned variant beside it and shows the difference.
+GMM_SIGMA = "held"
 #: How trajectory models keep an epoch (:class:`~e2e_lite.learning.training.TrainConfig`'s ``select_by``).
 TRAJECTORY_SELECT_BY = "decisive_ade"
 CVAR_ALPHA = 0.9
@@ -139,18 +146,25 @@ def gmm_config(modes: int = GMM_MODES, **changes: Any) -> ModelConfig:
 
 
 def gmm_objective(
-    profile: Profile, epochs: int | None = None, warmup: int | None = None, **changes: Any
+    profile: Profile,
+    epochs: int | None = None,
+    warmup: int | None = None,
+    sigma: str = GMM_SIGMA,
+    **changes: Any,
 ) -> GMMObjective:
-    """The course's GMM NLL: K modes, targets scaled per axis, and the sigma warm-up for a
-    schedule of ``epochs`` (or ``warmup`` epochs); ``changes`` override settings (chapter 07
-    trains the per-coordinate variant this way). The sigma floor is the model's
-    (:func:`gmm_config`)."""
+    """The course's GMM NLL: K modes, targets scaled per axis, sigmas as ``sigma`` says (one of
+    :data:`~e2e_lite.learning.losses.GMM_SIGMAS`; learned ones after the warm-up for a schedule
+    of ``epochs``, or ``warmup`` epochs); ``changes`` override settings (chapter 07 trains the
+    per-coordinate variant this way). The sigma floor is the model's (:func:`gmm_config`)."""
+    if sigma not in GMM_SIGMAS:
+        raise ValueError(f"gmm_objective: sigma={sigma!r} is invalid: must be one of {GMM_SIGMAS}")
     settings = {
         "n_modes": GMM_MODES,
         "sigma_warmup_epochs": sigma_warmup(epochs or profile.train_epochs)
         if warmup is None
         else warmup,
         "target_scale": GMM_TARGET_SCALE,
+        "sigma": sigma,
     }
     return GMMObjective(**{**settings, **changes})
 
@@ -163,22 +177,21 @@ def gmm(
     name: str = "07_gmm",
     objective: GMMObjective | None = None,
     modes: int = GMM_MODES,
-    sigma_fixed: bool = False,
+    sigma: str = GMM_SIGMA,
     sigma_floor_m: float | None = GMM_SIGMA_FLOOR_M,
     **kw: Any,
 ) -> Trained:
     """Chapter 07: the same network with a K = 2 mixture head (``seed``: the training seed;
     ``objective``: another loss than :func:`gmm_objective`'s, and ``modes``: another K, for
-    chapter 07's comparisons; K = 1 is the same NLL without a choice of modes; ``sigma_fixed``:
-    the warm-up lasts the whole schedule, so every sigma stays 1 and the loss is a soft mixture
-    of squared errors, chapter 07's control for the learned sigmas; ``sigma_floor_m``: the
+    chapter 07's comparisons; K = 1 is the same NLL without a choice of modes; ``sigma``:
+    ``"learned"`` is the paper's NLL, whose sigmas open after the warm-up, chapter 07's
+    comparison for the course's held sigmas (:data:`GMM_SIGMA`); ``sigma_floor_m``: the
     model's sigma floor in metres, None for :class:`~e2e_lite.learning.models.ModelConfig`'s
     default floor in normalised units)."""
     if objective is None:
-        warmup = profile.train_epochs if sigma_fixed else None
-        objective = gmm_objective(profile, n_modes=modes, warmup=warmup)
-    elif sigma_fixed:
-        raise ValueError("give sigma_fixed or an objective, not both")
+        objective = gmm_objective(profile, n_modes=modes, sigma=sigma)
+    elif sigma != GMM_SIGMA:
+        raise ValueError("give sigma or an objective, not both")
     if objective.n_modes != modes:
         raise ValueError(f"the objective has {objective.n_modes} modes, the model {modes}")
     model, hist = train_or_load(
@@ -361,9 +374,9 @@ CVAR_RANK_BY = "loss"
 #: is then each sample's squared trajectory error, soft-minimised over the modes, and the tail is
 #: ranked by it), or ``"open"`` (the paper's NLL with the learned sigmas).
 FINETUNE_SIGMAS = ("held", "open")
-#: The course's choice (chapter 09, "why sigma is held"): with sigma open, a CVaR fine-tune lowers
-#: its tail by widening the sigmas of its worst samples, and the base's sigma state (trained, or
-#: still held by its warm-up at the kept epoch) decides whether CVaR or its control drives better.
+#: The course's choice: held, as the base network trained (:data:`GMM_SIGMA`). With sigma open, a
+#: CVaR fine-tune lowers its tail by widening the sigmas of its worst samples (chapter 09, "why
+#: sigma is held"); on the course's base those sigmas start from a layer that never trained.
 CVAR_SIGMA = "held"
 
 
@@ -379,15 +392,16 @@ def finetune_settings(
     mean; one epoch, batches of 256, learning rate :data:`CVAR_LR`. The two differ in the
     reduction only.
 
-    ``sigma``: one of :data:`FINETUNE_SIGMAS`. ``"held"`` (the course's :data:`CVAR_SIGMA`) runs
-    the one epoch inside the sigma warm-up: every sigma is 1 and the log-sigma layer is frozen, so
-    the trajectory term is the modes' squared error in target units. ``"open"`` trains the learned
-    sigmas, as the paper's NLL does."""
+    ``sigma``: one of :data:`FINETUNE_SIGMAS`. ``"held"`` (the course's :data:`CVAR_SIGMA`): every
+    sigma is 1 and the log-sigma layer is frozen, so the trajectory term is the modes' squared
+    error in target units. ``"open"`` trains the sigmas, as the paper's NLL does."""
     if reduction not in REDUCTIONS:
         raise ValueError(f"reduction={reduction!r} is invalid: must be one of {REDUCTIONS}")
     if sigma not in FINETUNE_SIGMAS:
         raise ValueError(f"sigma={sigma!r} is invalid: must be one of {FINETUNE_SIGMAS}")
-    base = WithAffordance(gmm_objective(profile, warmup=1 if sigma == "held" else 0), weight)
+    base = WithAffordance(
+        gmm_objective(profile, warmup=0, sigma="held" if sigma == "held" else "learned"), weight
+    )
     objective = (
         CVaRObjective(base, CVAR_ALPHA, rank_by=CVAR_RANK_BY) if reduction == "cvar" else base
     )
