@@ -89,3 +89,20 @@ def test_a_record_whose_seeds_do_not_add_up_is_refused(tmp_path) -> None:
     path.write_text(__import__("json").dumps(record))
     with pytest.raises(ValueError, match="do not add up"):
         report.load(path)
+
+
+def test_the_spread_is_the_worst_seed_over_the_median_and_a_paper_row_over_the_goal_is_marked():
+    row = {"seeds": [{"collisions": c, "miles": 100.0} for c in (10, 12, 60)]}
+    assert report.spread(row) == pytest.approx(5.0)
+    assert report.spread({"seeds": [{"collisions": 3, "miles": 100.0}]}) is None
+    zero = {"seeds": [{"collisions": c, "miles": 100.0} for c in (0, 0, 2)]}
+    assert report.spread(zero) == float("inf")
+    record = report.load()
+    paper = next(r for r in record["rows"] if r["paper_per_100mi"] is not None)
+    paper["seeds"] = [
+        {"collisions": c, "miles": 100.0, "mph": 50.0, "stalls": 0} for c in (10, 12, 60)
+    ]
+    paper["car"], paper["rail"] = 82, 0
+    md = report.results_md(record)
+    line = next(ln for ln in md.splitlines() if ln.startswith(f"| {paper['label']} | 82"))
+    assert line.endswith("| 5.0 (over the goal) |")
