@@ -85,7 +85,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 5, 2),
     5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 7, 10),
     6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 5, 3),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 5, 9),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 6, 14),
     8: ChapterInfo("the affordance auxiliary loss", "3.5", 7, 6),
     9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 15),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 34),
