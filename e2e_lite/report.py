@@ -92,8 +92,9 @@ SPREAD_GOAL = 3.0
 
 def spread(row: dict[str, Any]) -> float | None:
     """The worst seed's rate over the median seed's (``inf`` when the median is 0 and the worst
-    is not; ``None`` for one run): how far one training seed strays from the recipe's typical."""
-    if len(row["seeds"]) < 2:
+    is not; ``None`` for one run, e.g. an evaluation's result of a driver with no seeds): how far
+    one training seed strays from the recipe's typical."""
+    if len(row.get("seeds") or []) < 2:
         return None
     rates = seed_rates(row)
     median, worst = float(np.median(rates)), float(rates.max())
