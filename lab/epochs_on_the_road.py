@@ -2,7 +2,7 @@
 learned sigma's? (issue 50, item 3; the lab note "Every epoch on the road" cites its output)
 
     python lab/epochs_on_the_road.py [--quick] [--seeds 5] [--val-miles 20] [--test-miles 50]
-                                     [--jobs N] [--json PATH]
+                                     [--jobs N] [--json PATH] [--recipe gmm|gmm_affordance]
 
 Trains chapter 07's GMM (recipes.gmm, the course's settings) with its sigmas learned and with
 them held at 1 (``sigma``), ``--seeds`` training seeds each, in a scratch outputs folder,
@@ -10,7 +10,8 @@ keeping each epoch's weights; then drives every epoch ``--val-miles`` on validat
 ``--test-miles`` on test roads (64 cars, one shard, one torch thread, ``--jobs`` drives at a
 time), and prints per epoch: the validation loss, the decisive ADE that picks the kept epoch,
 and both roads' collisions per 100 mi. Not a chapter: an investigation's script, kept so that
-its lab note's numbers come from code in the repository.
+its lab note's numbers come from code in the repository. ``--recipe gmm_affordance``: chapter
+08's network instead (its sigmas as the course holds them, at chapter 08's chosen weight).
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--json", default=None, help="write the rows here")
     parser.add_argument("--data", default=None, help="outputs folder holding chapter 04's data")
+    parser.add_argument("--recipe", choices=["gmm", "gmm_affordance"], default="gmm")
     args = parser.parse_args(argv)
 
     scratch = tempfile.mkdtemp(prefix="epochs-on-the-road-")
@@ -98,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     jobs, trainings = [], []
-    for variant in ("learned", "held"):
+    affordance = args.recipe == "gmm_affordance"
+    weight = recipes.affordance_weight(profile, train, val, progress=False) if affordance else 0.0
+    for variant in ("held",) if affordance else ("learned", "held"):
         for seed in range(args.seeds):
             states: list[dict] = []
 
@@ -106,11 +110,19 @@ def main(argv: list[str] | None = None) -> int:
                 states.append({k: v.detach().cpu().clone() for k, v in model.state_dict().items()})
 
             t1 = time.perf_counter()
-            _, _, hist = recipes.gmm(
-                profile, train, val, seed=seed, name=f"lab_{variant}_seed{seed}",
-                sigma=variant, on_epoch=keep, progress=False,
-            )  # fmt: skip
-            cfg = recipes.gmm_config()
+            name = f"lab_{args.recipe}_{variant}_seed{seed}"
+            if affordance:
+                _, _, hist = recipes.gmm_affordance(
+                    profile, train, val, weight, name=name, seed=seed, on_epoch=keep,
+                    progress=False,
+                )  # fmt: skip
+                cfg = recipes.AFFORDANCE_CFG
+            else:
+                _, _, hist = recipes.gmm(
+                    profile, train, val, seed=seed, name=name, sigma=variant, on_epoch=keep,
+                    progress=False,
+                )  # fmt: skip
+                cfg = recipes.gmm_config()
             print(
                 f"{variant} seed {seed}: trained in {time.perf_counter() - t1:.0f} s, "
                 f"kept epoch {hist.best_epoch + 1}",
@@ -151,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"args": vars(args), "trainings": trainings, "drives": rows}, f, indent=1)
+            json.dump({"args": vars(args), "weight": weight, "trainings": trainings, "drives": rows}, f,
+                  indent=1)  # fmt: skip
     return 0
 
 
