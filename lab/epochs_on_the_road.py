@@ -73,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", default=None, help="write the rows here")
     parser.add_argument("--data", default=None, help="outputs folder holding chapter 04's data")
     parser.add_argument("--recipe", choices=["gmm", "gmm_affordance"], default="gmm")
+    parser.add_argument("--only-seeds", type=int, nargs="+", default=None, help="these seeds")
+    parser.add_argument("--variants", nargs="+", choices=["learned", "held"], default=None)
     args = parser.parse_args(argv)
 
     scratch = tempfile.mkdtemp(prefix="epochs-on-the-road-")
@@ -102,8 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     jobs, trainings = [], []
     affordance = args.recipe == "gmm_affordance"
     weight = recipes.affordance_weight(profile, train, val, progress=False) if affordance else 0.0
-    for variant in ("held",) if affordance else ("learned", "held"):
-        for seed in range(args.seeds):
+    variants = ("held",) if affordance else tuple(args.variants or ("learned", "held"))
+    for variant in variants:
+        for seed in args.only_seeds or range(args.seeds):
             states: list[dict] = []
 
             def keep(epoch: int, model: Any, states: list[dict] = states) -> None:
