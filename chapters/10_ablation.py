@@ -159,7 +159,9 @@ for before, after, what, paper_way in STEPS:
 # The seeds' spread in each row (the table's "per seed" column, the chart's grey dots) says how
 # large training noise is: the course's goal is a worst seed at most `SPREAD_GOAL` times its
 # row's median. The GMM's learned sigmas were measured as the cause of its spread, and the course
-# holds them at 1 (chapter 07; lab note "Every epoch on the road"). The stalls (a car under
+# holds them at 1 (chapter 07; lab note "Every epoch on the road"); what spread is left came from
+# the kept epoch, which the decisive ADE picks and driving would not (lab note "The GMM's worst
+# seeds of record, epoch by epoch"; exercise 6). The stalls (a car under
 # 0.5 m/s for 20 s, re-placed) say whether a row bought its rate by not driving.
 
 # %%
@@ -353,7 +355,7 @@ artifacts.write_metrics(
 # * Every driver of the course drove the same test tracks from the same starts; the table
 #   puts our rates, with their 95 % intervals, beside the paper's.
 # * Each of the paper's steps is tested, not eyeballed: a difference counts only when the exact
-#   rate test says it is beyond chance.
+#   rank test on the training seeds' rates says it is beyond chance.
 # * The replays (`outputs/replays/index.html`) show what the numbers count: where each driver
 #   meant to go, and where it went.
 #
@@ -371,3 +373,6 @@ artifacts.write_metrics(
 #    steps reproduce once the longitudinal problem of chapter 07 is taken away?
 # 5. Open two replays side by side at a collision: did the network propose the collision, or
 #    did the tracker fail to follow a safe proposal? (Chapter 11 builds a check for the first.)
+# 6. Keep every epoch of a GMM seed (`recipes.gmm(..., on_epoch=...)`, as `lab/epochs_on_the_road.py`
+#    does) and drive each on validation roads (`EvalConfig(split="val")`). Which epoch would
+#    driving keep? Does the row's worst seed come closer to its median?
