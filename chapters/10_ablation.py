@@ -374,5 +374,5 @@ artifacts.write_metrics(
 # 5. Open two replays side by side at a collision: did the network propose the collision, or
 #    did the tracker fail to follow a safe proposal? (Chapter 11 builds a check for the first.)
 # 6. Keep every epoch of a GMM seed (`recipes.gmm(..., on_epoch=...)`, as `lab/epochs_on_the_road.py`
-#    does) and drive each on validation roads (`EvalConfig(split="val")`). Which epoch would
+#    does) and drive each on validation roads (an evaluation with `split="val"`). Which epoch would
 #    driving keep? Does the row's worst seed come closer to its median?
