@@ -445,7 +445,7 @@ artifacts.write_metrics(
         },
         "result": res.to_dict(),
         "held_out": {"nll": float(val_losses.mean()), **held},
-        "training": {"kept_epoch": hist.best_epoch, "lowest_nll_epoch": by_nll, "sigma": "held"},
+        "training": {"kept_epoch": hist.best_epoch, "lowest_nll_epoch": by_nll},
         "fig3": {
             "straight_weights": uni["weights"][0].tolist(),
             "straight_mode_gap_m": gap_uni,

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from .config import active_profile
+from .driving.metrics import M_PER_MILE
 from .driving.rollout import EvalConfig
 from .simulation.world import WorldConfig
 
@@ -130,7 +131,7 @@ def bench_pool(quick: bool, driver: Callable) -> dict[str, float]:
             t0 = time.perf_counter()
             shards = _drive_with(pool, jobs)
             wall = time.perf_counter() - t0
-            miles = sum(s.miles_m for s in shards) / 1609.344
+            miles = sum(s.miles_m for s in shards) / M_PER_MILE
             out[f"{pool}_{call}_call_s"] = wall
             out[f"{pool}_{call}_sim_miles_per_wall_s"] = miles / wall
         out[f"{pool}_collisions"] = sum(len(s.events) for s in shards)
