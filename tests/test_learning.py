@@ -729,3 +729,73 @@ def test_on_epoch_sees_each_epoch_in_eval_mode_and_its_numbers_join_the_record()
     train_or_load("hook", cfg, small_train_cfg(epochs=2), obj, data, val, progress=False,
                   on_epoch=hook)  # fmt: skip
     assert len(seen) == 2
+
+
+def test_selection_by_validation_roads_keeps_the_epoch_that_collides_least():
+    """``select_by="val_roads"``: the epoch with the fewest collisions per 100 mi on validation
+    roads (what ``on_epoch`` returns) is kept, ties to the lower decisive ADE; without the drive,
+    or without its miles, the settings are refused; the miles are part of the checkpoint key, and
+    a configuration without them keeps the key it had before the option existed."""
+    from e2e_lite.learning.checkpoints import checkpoint_key
+    from e2e_lite.learning.training import VAL_ROADS
+
+    data, val = synthetic_data(48, 0), synthetic_data(32, 1)
+    val.arrays["curvature"][:10] = 0.01
+    cfg = ModelConfig(head="gmm", fusion_width=32)
+    obj = GMMObjective(sigma_warmup_epochs=0)
+    for rates in ([30.0, 5.0, 40.0], [10.0, 10.0, 10.0]):
+
+        def drive(epoch: int, model, rates=rates) -> dict[str, float]:
+            return {VAL_ROADS: rates[epoch]}
+
+        train_cfg = small_train_cfg(epochs=3, select_by="val_roads", select_miles=1.0)
+        _, hist = train_or_load(
+            f"roads{rates[0]:g}", cfg, train_cfg, obj, data, val, progress=False, on_epoch=drive
+        )
+        ties = [e for e, r in enumerate(rates) if r == min(rates)]
+        expected = min(ties, key=lambda e: hist.epochs[e][DECISIVE])
+        assert hist.best_epoch == expected
+        assert [r[VAL_ROADS] for r in hist.epochs] == rates
+    assert hist.best_epoch == int(np.argmin([e[DECISIVE] for e in hist.epochs]))  # all tied
+    with pytest.raises(ValueError, match="on_epoch"):
+        train_or_load("roads_nohook", cfg, small_train_cfg(select_by="val_roads", select_miles=1.0),
+                      obj, data, val, progress=False)  # fmt: skip
+    with pytest.raises(ValueError, match="select_miles"):
+        TrainConfig(select_by="val_roads")
+    with pytest.raises(ValueError, match="select_miles"):
+        TrainConfig(select_miles=20.0)
+    key = checkpoint_key(cfg, TrainConfig(), obj, "data")
+    old = dataclasses.asdict(TrainConfig())
+    del old["select_miles"]
+    assert key == settings_key("checkpoint-v2", cfg, {**old, "device": None}, obj.name, "data")
+    miles = [TrainConfig(select_by="val_roads", select_miles=m) for m in (10.0, 20.0)]
+    assert len({checkpoint_key(cfg, c, obj, "data") for c in miles}) == 2
+
+
+def test_the_road_scorer_drives_each_epoch_on_validation_roads_alike():
+    """The selection drive: the network's driver (by its head) on the validation split, the same
+    roads and start lanes for every epoch, so the same weights score the same; the caller's own
+    hook still runs."""
+    from e2e_lite.config import QUICK
+    from e2e_lite.learning import selection
+    from e2e_lite.learning.training import VAL_ROADS
+
+    torch.manual_seed(0)
+    model = prepare(
+        build_model(ModelConfig(head="actuators", fusion_width=16)), torch.device("cpu")
+    )
+    assert isinstance(selection.driver_for(model), ActuatorAgent)
+    assert isinstance(selection.driver_for(build_model(ModelConfig(head="gmm"))), TrajectoryAgent)
+    assert isinstance(
+        selection.driver_for(build_model(ModelConfig(kind="pilotnet", head="steer"))),
+        SteeringAgent,
+    )
+    model.train()
+    seen = []
+    score = selection.road_scorer(
+        WorldConfig.for_profile(QUICK), 0.3, also=lambda e, m: seen.append(e), workers=1
+    )
+    first, again = score(0, model), score(1, model)
+    assert first == again and set(first) == {VAL_ROADS, "val roads mph", "val roads stalls"}
+    assert seen == [0, 1] and first["val roads mph"] > 0
+    assert model.training  # the drive took a copy: the training's model is left as it was

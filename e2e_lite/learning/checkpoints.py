@@ -53,10 +53,13 @@ def checkpoint_key(
     model_cfg: ModelConfig, train_cfg: TrainConfig, objective: Objective, data_key: str
 ) -> str:
     """The settings key of a training run (the device is left out: CPU and GPU runs share it)."""
+    train = {**asdict(train_cfg), "device": None}
+    if train["select_miles"] is None:  # (added later: left out when unused, so keys stay)
+        del train["select_miles"]
     return settings_key(
         versioned("checkpoint"),
         model_cfg,
-        {**asdict(train_cfg), "device": None},
+        train,
         objective.name,
         data_key,
     )
