@@ -128,11 +128,11 @@ if gmm07 is not None:
 # %% [markdown]
 # ### The head over the epochs, and the epoch that was kept
 #
-# The checkpoint is the epoch with the lowest *decisive ADE* (chapter 07: the trajectory on the
-# frames that decide a drive), because the network is kept for how it drives. The head has no
-# say in that choice. Its validation error after each epoch (all frames, MAE, from the training
-# history) against the mean predictor's shows what the choice costs the perception: when the
-# first epoch drives best, the head that is kept has trained for one epoch.
+# The checkpoint is the epoch that collided least on validation roads (chapter 07), because the
+# network is kept for how it drives. The head has no say in that choice. Its validation error
+# after each epoch (all frames, MAE, from the training history) against the mean predictor's
+# shows what the choice costs the perception: when the first epoch drives best, the head that is
+# kept has trained for one epoch.
 
 # %%
 head_names = ("center_offset_m", "gap_ego_m", "heading_rad")

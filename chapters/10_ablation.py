@@ -159,10 +159,12 @@ for before, after, what, paper_way in STEPS:
 # The seeds' spread in each row (the table's "per seed" column, the chart's grey dots) says how
 # large training noise is: the course's goal is a worst seed at most `SPREAD_GOAL` times its
 # row's median. The GMM's learned sigmas were measured as the cause of its spread, and the course
-# holds them at 1 (chapter 07; lab note "Every epoch on the road"); what spread is left came from
-# the kept epoch, which the decisive ADE picks and driving would not (lab note "The GMM's worst
-# seeds of record, epoch by epoch"; exercise 6). The stalls (a car under
-# 0.5 m/s for 20 s, re-placed) say whether a row bought its rate by not driving.
+# holds them at 1 (chapter 07; lab note "Every epoch on the road"). The spread the first record
+# still showed came from the kept epoch: the decisive ADE kept epochs that drove worse than the
+# next (lab note "The GMM's worst seeds of record, epoch by epoch"), so every network now keeps
+# the epoch that drives best on validation roads (chapter 07). The lines below say whether each
+# row meets the goal. The stalls (a car under 0.5 m/s for 20 s, re-placed) say whether a row
+# bought its rate by not driving.
 
 # %%
 controls = ablation.build_seeded_drivers(
@@ -373,6 +375,7 @@ artifacts.write_metrics(
 #    steps reproduce once the longitudinal problem of chapter 07 is taken away?
 # 5. Open two replays side by side at a collision: did the network propose the collision, or
 #    did the tracker fail to follow a safe proposal? (Chapter 11 builds a check for the first.)
-# 6. Keep every epoch of a GMM seed (`recipes.gmm(..., on_epoch=...)`, as `lab/epochs_on_the_road.py`
-#    does) and drive each on validation roads (an evaluation with `split="val"`). Which epoch would
-#    driving keep? Does the row's worst seed come closer to its median?
+# 6. Drive every epoch of a GMM seed on test roads too (`lab/epochs_on_the_road.py` keeps each
+#    epoch's weights with `recipes.gmm(..., on_epoch=...)`). Does the epoch that validation roads
+#    keep drive best on test roads? Change `recipes.SELECT_MILES` (5, 20, 80): when is the choice
+#    more than chance, and what does it cost per training?

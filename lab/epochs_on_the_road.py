@@ -8,8 +8,9 @@ Trains chapter 07's GMM (recipes.gmm, the course's settings) with its sigmas lea
 them held at 1 (``sigma``), ``--seeds`` training seeds each, in a scratch outputs folder,
 keeping each epoch's weights; then drives every epoch ``--val-miles`` on validation roads and
 ``--test-miles`` on test roads (64 cars, one shard, one torch thread, ``--jobs`` drives at a
-time), and prints per epoch: the validation loss, the decisive ADE that picks the kept epoch,
-and both roads' collisions per 100 mi. Not a chapter: an investigation's script, kept so that
+time), and prints per epoch: the validation loss, the decisive ADE, whether the recipe kept it
+(since f3ded4a by its own validation-road drive, before by the decisive ADE) and both roads'
+collisions per 100 mi. Not a chapter: an investigation's script, kept so that
 its lab note's numbers come from code in the repository. ``--recipe gmm_affordance``: chapter
 08's network instead (its sigmas as the course holds them, at chapter 08's chosen weight).
 """
