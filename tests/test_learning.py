@@ -748,7 +748,7 @@ def test_selection_by_validation_roads_keeps_the_epoch_that_collides_least():
         def drive(epoch: int, model, rates=rates) -> dict[str, float]:
             return {VAL_ROADS: rates[epoch]}
 
-        train_cfg = small_train_cfg(epochs=3, select_by="val_roads", select_miles=1.0)
+        train_cfg = small_train_cfg(epochs=3, select_by="val_roads", select_miles=20.0)
         _, hist = train_or_load(
             f"roads{rates[0]:g}", cfg, train_cfg, obj, data, val, progress=False, on_epoch=drive
         )
@@ -799,3 +799,53 @@ def test_the_road_scorer_drives_each_epoch_on_validation_roads_alike():
     assert first == again and set(first) == {VAL_ROADS, "val roads mph", "val roads stalls"}
     assert seen == [0, 1] and first["val roads mph"] > 0
     assert model.training  # the drive took a copy: the training's model is left as it was
+
+
+def test_equal_collision_counts_tie_and_a_stored_epoch_the_rule_would_not_keep_is_retrained(
+    monkeypatch, capsys
+):
+    """Drives of one budget end a few metres apart, so 3 collisions give 15.02 or 14.98 per
+    100 mi: the rule counts whole collisions, and equal counts go to the lower decisive ADE (the
+    bug of f3ded4a's record kept two networks by the third digit of such rates). A checkpoint
+    whose kept epoch the rule would not keep is retrained, and so is its fine-tune (whose key
+    holds its parent's weights)."""
+    from e2e_lite.learning import training
+    from e2e_lite.learning.training import VAL_ROADS, kept_epoch, selection_score
+
+    roads = small_train_cfg(select_by="val_roads", select_miles=20.0)
+    near = [
+        {VAL_ROADS: 15.02, DECISIVE: 0.40, "val_loss": 1.0},
+        {VAL_ROADS: 14.98, DECISIVE: 0.60, "val_loss": 1.0},
+        {VAL_ROADS: 20.0, DECISIVE: 0.10, "val_loss": 1.0},
+    ]
+    assert [selection_score(r, roads)[0] for r in near] == [3, 3, 4]
+    assert kept_epoch(near, roads) == 0  # the tie, to the lower decisive ADE; not epoch 1
+    assert kept_epoch(near, small_train_cfg(select_by="decisive_ade")) == 2
+
+    data, val = synthetic_data(48, 0), synthetic_data(32, 1)
+    val.arrays["curvature"][:10] = 0.01
+    cfg = ModelConfig(head="gmm", fusion_width=32)
+    obj = GMMObjective(sigma_warmup_epochs=0)
+
+    def drive(epoch: int, model) -> dict[str, float]:
+        return {VAL_ROADS: 10.0}  # every epoch ties
+
+    # a parent kept by another rule (the highest decisive ADE), and its fine-tune
+    def worst(record: dict, cfg: TrainConfig) -> tuple[float, ...]:
+        return (-record[DECISIVE],) if cfg.select_by == "val_roads" else (record["val_loss"],)
+
+    with monkeypatch.context() as m:
+        m.setattr(training, "selection_score", worst)
+        _, old = train_or_load("par", cfg, roads, obj, data, val, progress=False, on_epoch=drive,
+                               keep_optimizer=True)  # fmt: skip
+        train_or_load("kid", cfg, small_train_cfg(epochs=1), obj, data, val, progress=False,
+                      init_from="par", carry_optimizer=True)  # fmt: skip
+    assert old.best_epoch == int(np.argmax([e[DECISIVE] for e in old.epochs]))
+    _, new = train_or_load("par", cfg, roads, obj, data, val, on_epoch=drive, keep_optimizer=True)
+    assert "which train_cfg's rule would not keep" in capsys.readouterr().out
+    assert new.best_epoch == int(np.argmin([e[DECISIVE] for e in new.epochs])) != old.best_epoch
+    train_or_load("kid", cfg, small_train_cfg(epochs=1), obj, data, val,
+                  init_from="par", carry_optimizer=True)  # fmt: skip
+    assert "kid: trained with other settings; retraining" in capsys.readouterr().out
+    train_or_load("par", cfg, roads, obj, data, val, on_epoch=drive, keep_optimizer=True)
+    assert "reusing" in capsys.readouterr().out

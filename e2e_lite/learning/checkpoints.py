@@ -31,7 +31,7 @@ from .dataset import DrivingData, DrivingDataset
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
 from .probes import HeadRefit, refit_affordance_head
-from .training import History, TrainConfig, fit, model_stats
+from .training import History, TrainConfig, fit, kept_epoch, model_stats
 
 
 class CheckpointMismatch(ValueError):
@@ -210,7 +210,9 @@ def train_or_load(
                 f"{name} fine-tunes {init_from}, but {parent_path} does not exist: train it first"
             )
         parent, parent_meta = load_checkpoint(parent_path, model_cfg, data_key, stats, device)
-        key = settings_key(key, parent_meta["key"])
+        # the parent's weights, not only its settings: a parent retrained with the same
+        # settings (another kept epoch) makes this checkpoint stale
+        key = settings_key(key, parent_meta["key"], weights_digest(parent))
         if carry_optimizer:
             if parent_meta["optimizer"] is None:
                 raise CheckpointMismatch(
@@ -224,12 +226,24 @@ def train_or_load(
         try:
             model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
             kept = meta["optimizer"] is not None or not keep_optimizer
-            if meta["key"] == key and meta["history"] is not None and kept:
+            hist = meta["history"]
+            # the epoch the rule keeps now, from the stored epochs' records (a rule fixed since
+            # the checkpoint was trained retrains it, and only it)
+            rule = hist is not None and kept_epoch(hist["epochs"], train_cfg) == hist["best_epoch"]
+            if meta["key"] == key and hist is not None and kept and rule:
                 if progress:
                     print(f"[checkpoints] {name}: reusing {path.name}")
-                return model, History(**meta["history"])
+                return model, History(**hist)
             if progress:
-                why = "other settings" if kept else "no optimiser state kept"
+                why = "other settings"
+                if meta["key"] == key and hist is not None:
+                    why = (
+                        "no optimiser state kept"
+                        if not kept
+                        else (
+                            f"epoch {hist['best_epoch'] + 1} kept, which train_cfg's rule would not keep"
+                        )
+                    )
                 print(f"[checkpoints] {name}: trained with {why}; retraining")
         except (CheckpointMismatch, CorruptArtifact) as err:
             if progress:

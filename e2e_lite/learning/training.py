@@ -304,7 +304,7 @@ def fit(
         if on_epoch is not None:
             model.eval()
             record.update(on_epoch(epoch, model) or {})
-        score = _selection_score(record, cfg.select_by)
+        score = selection_score(record, cfg)
         epochs.append(record)
         if progress:
             extras = ", ".join(
@@ -342,19 +342,30 @@ def fit(
     return history
 
 
-def _selection_score(record: dict[str, Any], select_by: str) -> tuple[float, ...]:
-    """What ``select_by`` ranks an epoch by, lower is better: a tuple whose later entries break
-    ties (``"val_roads"``: collisions per 100 mi, then the decisive ADE or validation loss)."""
-    if select_by == "val_loss":
+def selection_score(record: dict[str, Any], cfg: TrainConfig) -> tuple[float, ...]:
+    """What ``cfg.select_by`` ranks an epoch's record by, lower is better: a tuple whose later
+    entries break ties. ``"val_roads"``: the collisions of the drive, counted in whole collisions
+    (the rate times ``select_miles``, rounded: drives of one budget end a few metres apart, so
+    equal counts give rates that differ in the third digit and must tie), then the decisive ADE
+    (or the validation loss)."""
+    if cfg.select_by == "val_loss":
         return (record["val_loss"],)
-    if select_by == "decisive_ade":
+    if cfg.select_by == "decisive_ade":
         return (record[DECISIVE],)
     if VAL_ROADS not in record:
         raise ValueError(
             "TrainConfig.select_by='val_roads' needs fit's on_epoch to drive each epoch and "
             f"return {VAL_ROADS!r} (e2e_lite.learning.selection.road_scorer)"
         )
-    return (record[VAL_ROADS], record.get(DECISIVE, record["val_loss"]))
+    collisions = round(record[VAL_ROADS] * float(cfg.select_miles or 0.0) / 100.0)
+    return (collisions, record.get(DECISIVE, record["val_loss"]))
+
+
+def kept_epoch(epochs: list[dict[str, Any]], cfg: TrainConfig) -> int:
+    """The epoch ``fit`` keeps from its epochs' records under ``cfg``: the first with the lowest
+    :func:`selection_score` (early stopping aside)."""
+    scores = [selection_score(r, cfg) for r in epochs]
+    return min(range(len(scores)), key=lambda e: scores[e])
 
 
 def training_curve(history: History, title: str) -> Figure:
