@@ -225,25 +225,20 @@ def train_or_load(
     if path.exists():
         try:
             model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
-            kept = meta["optimizer"] is not None or not keep_optimizer
             hist = meta["history"]
-            # the epoch the rule keeps now, from the stored epochs' records (a rule fixed since
-            # the checkpoint was trained retrains it, and only it)
-            rule = hist is not None and kept_epoch(hist["epochs"], train_cfg) == hist["best_epoch"]
-            if meta["key"] == key and hist is not None and kept and rule:
+            why = None
+            if meta["key"] != key or hist is None:
+                why = "other settings"
+            elif meta["optimizer"] is None and keep_optimizer:
+                why = "no optimiser state kept"
+            elif kept_epoch(hist["epochs"], train_cfg) != hist["best_epoch"]:
+                # a rule fixed since the checkpoint was trained retrains it, and only it
+                why = f"epoch {hist['best_epoch'] + 1} kept, which train_cfg's rule would not keep"
+            if why is None:
                 if progress:
                     print(f"[checkpoints] {name}: reusing {path.name}")
                 return model, History(**hist)
             if progress:
-                why = "other settings"
-                if meta["key"] == key and hist is not None:
-                    why = (
-                        "no optimiser state kept"
-                        if not kept
-                        else (
-                            f"epoch {hist['best_epoch'] + 1} kept, which train_cfg's rule would not keep"
-                        )
-                    )
                 print(f"[checkpoints] {name}: trained with {why}; retraining")
         except (CheckpointMismatch, CorruptArtifact) as err:
             if progress:

@@ -56,13 +56,12 @@ GMM_SIGMA_FLOOR_M = 0.1
 #: sigmas, five training seeds' kept epochs collided far more often than with sigmas held, and
 #: far less alike; chapter 07 trains the learned variant beside it and shows the difference.
 GMM_SIGMA = "held"
-#: How a network trained from scratch keeps an epoch (:class:`~e2e_lite.learning.training.TrainConfig`'s
-#: ``select_by``): the epoch that drives best on validation roads (:mod:`~e2e_lite.learning.selection`),
-#: :data:`SELECT_MILES` each. Chosen on the first Table 1 of record, whose GMM seeds 1 and 4 kept
+#: How a network trained from scratch keeps an epoch: the one that drives best on validation roads,
+#: ``SELECT_MILES`` each (:class:`~e2e_lite.learning.training.TrainConfig`'s ``select_by="val_roads"``,
+#: :mod:`~e2e_lite.learning.selection`). Chosen on the first Table 1 of record, whose GMM seeds 1 and 4 kept
 #: by their decisive ADE an epoch that drove 2-4 times worse than the next (lab note "The GMM's
 #: worst seeds of record, epoch by epoch"). With one epoch (the quick profile) there is nothing to
 #: choose: the single epoch is kept without a drive.
-SELECT_BY = "val_roads"
 SELECT_MILES = 20.0
 #: The rule trajectory models kept epochs by before (and chapter 07's lesson on it).
 TRAJECTORY_SELECT_BY = "decisive_ade"
@@ -79,7 +78,7 @@ def _selecting(
     profile: Profile, kw: dict[str, Any], **changes: Any
 ) -> tuple[TrainConfig, dict[str, Any]]:
     """The training settings of a network trained from scratch (``changes`` on top) that keeps
-    the epoch driving best on validation roads (:data:`SELECT_BY`), and ``kw`` with the drive as
+    the epoch driving best on validation roads (:data:`SELECT_MILES` each), and ``kw`` with the drive as
     its ``on_epoch`` hook (after the caller's own hook, if any)."""
     cfg = _train_cfg(profile, **changes)
     if cfg.epochs < 2:  # one epoch: nothing to choose, nothing to drive
@@ -88,7 +87,7 @@ def _selecting(
     from .selection import road_scorer
 
     scorer = road_scorer(WorldConfig.for_profile(profile), SELECT_MILES, kw.get("on_epoch"))
-    cfg = replace(cfg, select_by=SELECT_BY, select_miles=SELECT_MILES)
+    cfg = replace(cfg, select_by="val_roads", select_miles=SELECT_MILES)
     return cfg, {**kw, "on_epoch": scorer}
 
 
