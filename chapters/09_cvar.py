@@ -170,6 +170,7 @@ def batch_tails(score: np.ndarray) -> np.ndarray:
     return tail
 
 
+# %%
 in_tail = batch_tails(probe_losses)
 in_error_tail = batch_tails(probe_metrics["ADE [m]"])
 tail_rows, error_rows, random_rows = probe_rows[in_tail], probe_rows[in_error_tail], probe_rows
@@ -241,6 +242,7 @@ for label, curve in (("CVaR-90", tuned_curve), ("control (mean)", control_curve)
     print(f"held-out loss before -> after the {label} fine-tune:")
     for name, k in (("mean", 0), ("CVaR-90", 90), ("CVaR-99", 99)):
         print(f"  {name}: {change(base_curve[k], curve[k])}")
+# %%
 fig = Figure(figsize=(8, 4.5))
 ax = fig.subplots()
 ax.plot(100 * alphas, base_curve, label="chapter 08 (mean loss)", color="tab:blue")
@@ -288,7 +290,7 @@ names = {
 }
 seeded = ablation.build_seeded_drivers(profile, keys, train=train, val=val)
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
-closed = ablation.evaluate_drivers(seeded, world_cfg, ev, workers=profile.ablation_workers)
+closed = ablation.evaluate_drivers(seeded, world_cfg, ev)
 rows = [(ablation.BY_KEY[k].label, closed[k]) for k in keys]
 table = results_table(
     rows, extra=[("per seed, per 100 mi", [ablation.per_seed(closed[k]) for k in keys])]
@@ -306,9 +308,10 @@ for what, test in verdicts.items():
     print(f"{what.replace('_', ' ')}: {test['verdict']}; pooled: {pooled_tests[what]['verdict']}")
 
 # %% [markdown]
-# A rate per mile says nothing about how the miles were driven. Section 3 showed that the tail
-# over-represents lane changes and frames with a parked car close ahead, where the expert brakes
-# or swerves; a network fine-tuned on them may learn to hold back. So read the speed and the
+# A rate per mile says nothing about how the miles were driven. Section 3 measured which
+# situations the tail holds; where it holds lane changes and frames with a parked car close ahead,
+# where the expert brakes or swerves, a network fine-tuned on them may learn to hold back. So
+# read the speed and the
 # **stalls** (a car stopped for too long is restarted by the evaluator, an
 # intervention that is not a collision) beside each rate, seed by seed, and compare each
 # fine-tune with its control before crediting the tail: whatever the control also gains is the
@@ -351,23 +354,26 @@ chart_png = save_figure(
 # ## Headline figures
 
 # %%
+control_res = result_dict(closed["gmm_affordance_control"])
+headline = {
+    "GMM + affordance + CVaR collisions/100mi": res["collisions_per_100mi"],
+    "control (mean fine-tune) collisions/100mi": control_res["collisions_per_100mi"],
+    "base collisions/100mi": result_dict(closed["gmm_affordance"])["collisions_per_100mi"],
+    "CVaR mph": res["mean_speed_mph"],
+    "control mph": control_res["mean_speed_mph"],
+    "CVaR stalls": res["stalls"],
+    "val CVaR-90 before": float(base_curve[90]),
+    "val CVaR-90 after": float(tuned_curve[90]),
+    "val CVaR-90 after the control": float(control_curve[90]),
+}
+print("\n".join(f"{name:45s} {value:10.3f}" for name, value in headline.items()))
+
+# %%
 artifacts.write_metrics(
     "09_cvar",
     {
         "profile": profile.name,
-        "headline": {
-            "GMM + affordance + CVaR collisions/100mi": res["collisions_per_100mi"],
-            "control (mean fine-tune) collisions/100mi": result_dict(
-                closed["gmm_affordance_control"]
-            )["collisions_per_100mi"],
-            "base collisions/100mi": result_dict(closed["gmm_affordance"])["collisions_per_100mi"],
-            "CVaR mph": res["mean_speed_mph"],
-            "control mph": result_dict(closed["gmm_affordance_control"])["mean_speed_mph"],
-            "CVaR stalls": res["stalls"],
-            "val CVaR-90 before": float(base_curve[90]),
-            "val CVaR-90 after": float(tuned_curve[90]),
-            "val CVaR-90 after the control": float(control_curve[90]),
-        },
+        "headline": headline,
         "affordance_weight": w,
         "curves": {
             "alpha": alphas.tolist(),

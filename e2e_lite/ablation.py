@@ -27,8 +27,8 @@ from typing import Any
 
 import torch
 
-from .artifacts import artifact_path, cached, load_json, save_json, settings_key
-from .config import FULL, Profile
+from .artifacts import artifact_path, cached, load_json, save_json, settings_key, versioned
+from .config import Profile, precision
 from .control.expert import Expert
 from .control.oracle import Oracle
 from .driving.evaluation import evaluate
@@ -217,9 +217,6 @@ PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
 BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS, *DIAGNOSTICS)}
-#: shards of a full-profile ablation evaluation (part of its settings: see ``evaluate``'s
-#: ``workers``; the chapters pass their profile's ``ablation_workers``).
-WORKERS = FULL.ablation_workers
 
 
 def build_drivers(
@@ -318,16 +315,17 @@ def evaluate_drivers(
     *,
     reuse: bool = True,
     progress: bool = True,
-    workers: int = WORKERS,
+    workers: int | None = None,
 ) -> dict[str, EvalResult | dict[str, Any]]:
     """Every driver on the same tracks with the same seeds (``cfg``).
 
-    Every driver runs in ``workers`` shards. A driver given as a list (one policy per training
+    Every driver runs in ``workers`` shards (default: every core; the results do not depend on
+    it). A driver given as a list (one policy per training
     seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed, each seed on
     tracks of its own (:func:`~e2e_lite.driving.evaluation.disjoint_runs`; seed ``k`` of every driver on
     the same tracks), and its result is :func:`~e2e_lite.driving.evaluation.pool_results`
     of theirs (a dict with ``seeds``). With ``reuse``, a result stored for the same driver
-    (:func:`fingerprint`), world, evaluation settings and shard count is read back instead of
+    (:func:`fingerprint`), world, evaluation settings and precision is read back instead of
     driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other driver is
     evaluated and stored.
     """
@@ -358,12 +356,12 @@ def evaluate_stored(
     *,
     reuse: bool = True,
     progress: bool = True,
-    workers: int = WORKERS,
+    workers: int | None = None,
 ) -> EvalResult | dict[str, Any]:
     """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` with what the
     policy reported (``result.info``, which must be JSON-able; read it back with
     :func:`~e2e_lite.driving.metrics.result_info`), and read back instead of driven again while
-    the driver (:func:`fingerprint`), world, settings and shard count are the same (see
+    the driver (:func:`fingerprint`), world, settings and precision are the same (see
     :func:`evaluate_drivers`)."""
 
     def run() -> EvalResult:
@@ -374,7 +372,9 @@ def evaluate_stored(
 
     if not reuse:
         return run()
-    run_key = settings_key(fingerprint(policy), world_cfg, cfg, workers, torch.__version__)
+    run_key = settings_key(
+        versioned("evaluation"), fingerprint(policy), world_cfg, cfg, precision(), torch.__version__
+    )
     # the settings' key is part of the name: two evaluations of one driver with other settings
     # (chapter 11 drives chapter 10's network over other miles) keep a file each
     path = artifact_path("evaluations", f"{file}-{run_key}.json")

@@ -17,19 +17,12 @@ Names:
     network inference time per frame of the GMM fusion network by batch size, on one torch
             thread and on all of them.
     closed-loop [--agent pilotnet|actuators|gmm]   (default pilotnet)
-            simulated miles per wall-second with camera + CNN in the loop: B = 16 in one thread
-            (chapters 05-09), B = 64 in one thread, two threads (20 miles each) and two processes
-            (chapter 10; 100 miles, the workers' start counted), and that last one against the
-            network alone (``loop_vs_network``), with where each frame's core-milliseconds go
-            (``budget_*``) and the ratio a free camera would leave.
-    pool    the shard pool of ``driving/parallel.py`` against loky's reusable executor (when
-            loky is installed: ``pip install loky``) on chapter 10's drive (64 cars, two
-            processes): the first call (workers started), a second call (workers kept), and
-            Ctrl-C in a child driving 1,000 mi (seconds to exit, lines on stderr, processes
-            left behind).
-    placement [--agent ...]   (default gmm)
-            where the network runs while 64 cars drive: on the CPU in 2 worker processes and in
-            one per core, and with a GPU on it in this process (1 and 2 threads) and in 2 workers.
+            simulated miles per wall-second with camera + CNN in the loop, B = 64 in one shard,
+            two threads and two processes, against the network alone (``loop_vs_network``), and
+            where each frame's core-milliseconds go (``budget_*``).
+    scaling [--agent ...]   (default gmm)
+            driving with 1, 2, 4, ... and all worker processes, collecting with one and all:
+            speed, speed-up, share of the ideal, and whether the results equal one worker's.
 """
 
 from __future__ import annotations
@@ -45,13 +38,13 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from . import bench_pool
 from .artifacts import artifact_path
 from .config import active_profile
 from .control.drivers import LaneChanger, LaneKeeper
 from .control.expert import Expert
 from .control.oracle import Oracle
-from .driving.evaluation import evaluate
+from .driving.evaluation import FORWARD_GROUP, evaluate
+from .driving.parallel import SHARD_TORCH_THREADS
 from .driving.rollout import EvalConfig
 from .learning import recipes
 from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
@@ -269,16 +262,14 @@ def learned_driver(agent: str, device: torch.device) -> tuple[NetworkAgent, str]
 
 def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     """Closed-loop simulated miles per wall-second with camera + CNN in the loop (the chapter's
-    checkpoint when it exists, else an untrained network of the same shape): B = 16 worlds in one
-    thread (chapters 05-09's evaluations), and B = 64 (chapters 10-11) in one thread, in two
-    threads and in two worker processes (evaluate's ``workers=2``; also without the workers'
+    checkpoint when it exists, else an untrained network of the same shape), B = 64 (chapters
+    10-11) in one shard, in two threads and in two worker processes (also without the workers'
     start, which an evaluation pays once)."""
     policy, source = learned_driver(agent, pick_device())
     world_cfg = WorldConfig.for_profile(active_profile([]))
     print(f"closed loop with {agent}: {source}")
     out: dict[str, float] = {}
     runs = (
-        ("b16_1thread", 16, 1, "threads", 20.0),
         ("b64_1thread", 64, 1, "threads", 20.0),
         ("b64_2threads", 64, 2, "threads", 20.0),
         ("b64_2processes", 64, 2, "processes", 100.0),
@@ -309,11 +300,8 @@ def bench_closed_loop(quick: bool, agent: str = "pilotnet") -> dict[str, float]:
     # whole evaluation (workers' start included) against the network alone at the shards' batch
     # on the shards' threads, both in simulated miles per wall-second (the loop's miles per frame)
     workers = 2
-    network_fps = workers * network_frames_per_s(
-        policy.model,
-        64 // workers,
-        reps=10 if quick else 200,
-        threads=max(1, torch.get_num_threads() // workers),
+    network_fps = workers * network_frames_per_s(  # (the agent's groups, one thread a shard)
+        policy.model, FORWARD_GROUP, reps=40 if quick else 800, threads=SHARD_TORCH_THREADS
     )
     miles_per_frame = out["b64_2processes_sim_miles"] / out["b64_2processes_frames"]
     out["network_frames_per_s"] = network_fps
@@ -348,38 +336,6 @@ def frame_budget(out: dict[str, float], workers: int) -> dict[str, float]:
     budget["budget_total_ms_per_frame"] = total
     budget["loop_vs_network_without_render"] = network / (total - parts["render"])
     return budget
-
-
-def placement_eval(quick: bool) -> EvalConfig:
-    """The placement benchmark's drive: 64 cars, 10 simulated miles (quick: 0.5)."""
-    return EvalConfig(miles=0.5 if quick else 10.0, n_worlds=64, n_tracks=16)
-
-
-def bench_placement(quick: bool, agent: str = "gmm") -> dict[str, float]:
-    """Where the network runs while 64 cars drive (10 simulated miles each row; quick: 0.5): on
-    the CPU in 2 worker processes (the course's setting) and in one per core, and with a GPU
-    also on the GPU in this process (1 and 2 threads) and in 2 worker processes. Simulated miles
-    per wall-second with and without the workers' start, and collisions (they differ a little
-    between rows: the shard count changes the start lanes' draws, and GPU arithmetic differs
-    from the CPU's in the last bits)."""
-    world_cfg = WorldConfig.for_profile(active_profile([]))
-    ev = placement_eval(quick)
-    cores = os.cpu_count() or 1
-    rows = [("cpu", 2, "processes")] + ([("cpu", cores, "processes")] if cores > 2 else [])
-    if torch.cuda.is_available():
-        rows += [("cuda", 1, "threads"), ("cuda", 2, "threads"), ("cuda", 2, "processes")]
-    out: dict[str, float] = {"cores": cores}
-    drivers = {d: learned_driver(agent, torch.device(d)) for d in {d for d, _, _ in rows}}
-    for device, workers, parallel in rows:
-        policy, source = drivers[device]
-        res = evaluate(policy, world_cfg, ev, progress=False, workers=workers, parallel=parallel)
-        label = f"{device}_{workers}{parallel}"
-        startup = res.timing_s.get("startup", 0.0)
-        out[f"{label}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
-        out[f"{label}_after_startup_sim_miles_per_wall_s"] = res.miles / (res.wall_time_s - startup)
-        out[f"{label}_collisions"] = res.collisions
-    print(f"closed loop with {agent}: {source}")
-    return out
 
 
 def network_frames_per_s(
@@ -425,6 +381,66 @@ def bench_network(quick: bool) -> dict[str, float]:
     return out
 
 
+def scaling_workers(cores: int) -> list[int]:
+    """1, 2, 4, ... and the core count: the worker counts the scaling benchmark measures."""
+    counts = [1]
+    while counts[-1] * 2 < cores:
+        counts.append(counts[-1] * 2)
+    return sorted({*counts, cores})
+
+
+def bench_scaling(quick: bool, agent: str = "gmm") -> dict[str, float]:
+    """How driving and collecting scale with worker processes here (issue 56). Driving: chapter
+    10's evaluation (64 cars, or FORWARD_GROUP per core if more; 20 mi, quick 1) with 1, 2, 4, ...
+    and all workers: miles per wall-second with and without the workers' start, the speed-up over
+    one worker, its share of the ideal (``efficiency``), and whether the events equal one
+    worker's; with a GPU, the network there in this process and in every worker. Collecting
+    (4,000 samples, quick 400; 16 cars, or one per core) with one process and with all: samples
+    per second, and whether the arrays are the same bytes."""
+    from .config import available_cores
+    from .driving.evaluation import close_shard_workers
+
+    cores = available_cores()
+    policy, source = learned_driver(agent, torch.device("cpu"))
+    print(f"scaling with {agent}: {source}; {cores} cores")
+    prof = active_profile([])
+    world_cfg = WorldConfig.for_profile(prof)
+    ev = EvalConfig(miles=1.0 if quick else 20.0, n_worlds=max(64, FORWARD_GROUP * cores))
+    out: dict[str, float] = {"cores": cores, "eval_cars": ev.n_worlds}
+    first = None
+    for w in scaling_workers(cores):
+        close_shard_workers()  # (every row pays its workers' start)
+        res = evaluate(policy, world_cfg, ev, progress=False, workers=w)
+        rate = res.miles / (res.wall_time_s - res.timing_s.get("startup", 0.0))
+        first = first or (res, rate)
+        out[f"eval_{w}w_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
+        out[f"eval_{w}w_after_startup_sim_miles_per_wall_s"] = rate
+        out[f"eval_{w}w_speedup"], out[f"eval_{w}w_efficiency"] = (
+            rate / first[1],
+            rate / first[1] / w,
+        )
+        out[f"eval_{w}w_same_events"] = float(res.events == first[0].events)
+    if torch.cuda.is_available():  # where the network runs with a GPU: there, in this process
+        gpu, _ = learned_driver(agent, torch.device("cuda"))  # (one shard) or in every worker
+        for w, how in ((1, "threads"), (cores, "processes")):
+            res = evaluate(gpu, world_cfg, ev, progress=False, workers=w, parallel=how)
+            out[f"eval_cuda_{w}{how}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
+    n = 400 if quick else 4_000
+    cfg = DataConfig.for_profile(prof, "train", n_samples=n, n_worlds=max(16, cores))
+    arrays = None
+    for w in sorted({1, cores}):
+        close_shard_workers()
+        t0 = time.perf_counter()
+        data = collect(cfg, progress=False, workers=w)
+        out[f"collect_{w}w_samples_per_s"] = n / (time.perf_counter() - t0)
+        arrays = arrays or data.arrays
+        out[f"collect_{w}w_same_bytes"] = float(
+            all(np.array_equal(arrays[k], data.arrays[k]) for k in arrays)
+        )
+    close_shard_workers()
+    return out
+
+
 BENCHMARKS: dict[str, Callable[..., dict[str, float]]] = {
     "world": bench_world,
     "camera": bench_camera,
@@ -432,8 +448,7 @@ BENCHMARKS: dict[str, Callable[..., dict[str, float]]] = {
     "train": bench_train,
     "closed-loop": bench_closed_loop,
     "network": bench_network,
-    "placement": bench_placement,
-    "pool": lambda quick: bench_pool.bench_pool(quick, learned_driver),
+    "scaling": bench_scaling,
 }
 
 
@@ -449,10 +464,10 @@ def main(argv: list[str] | None = None) -> int:
         "--agent",
         choices=["pilotnet", "actuators", "gmm"],
         default=None,
-        help="closed-loop (default pilotnet) and placement (default gmm): which learned driver",
+        help="closed-loop (default pilotnet) and scaling (default gmm): which driver",
     )
     args = parser.parse_args(argv)
-    if args.name in ("closed-loop", "placement"):
+    if args.name in ("closed-loop", "scaling"):
         default = "pilotnet" if args.name == "closed-loop" else "gmm"
         figures = BENCHMARKS[args.name](args.quick, args.agent or default)
     else:

@@ -12,11 +12,16 @@ import os
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 QUICK_ENV = "E2E_LITE_QUICK"
 QUICK_FLAG = "--quick"
+#: how many worker processes drive and collect (default: every core this process may use)
+WORKERS_ENV = "E2E_LITE_WORKERS"
+#: ``1`` lets a GPU's convolutions and matrix products run in TF32 (off by default: fp32)
+TF32_ENV = "E2E_LITE_TF32"
 
 
 def check_range(
@@ -82,11 +87,10 @@ class Profile:
         ablation_worlds: cars driven in lockstep in chapters 10 and 11 (more than the chapters'
             ``n_worlds``: the network's batches are then large enough to run near its per-frame
             floor; see ``python -m e2e_lite.bench closed-loop``).
-        ablation_workers: shards (processes, or threads) those cars are split into; the quick
-            profile's 4 cars drive in one (a worker's start would cost more than its miles).
-        ablation_seeds: training seeds per learned driver in chapter 10; its miles are shared
-            among them and its row pools them (one training run cannot separate the methods:
-            three trainings of one GMM spanned 179-274 collisions per 100 mi).
+        ablation_seeds: training seeds per learned driver in chapters 09-11; a row's miles are
+            shared among them and the verdicts compare seeds (one training run cannot separate
+            the methods). Five in the full profile: 5 seeds against 5 can reach p = 1/252, where
+            3 against 3 never go below 0.05.
     """
 
     name: str
@@ -98,11 +102,10 @@ class Profile:
     n_val_samples: int
     n_train_tracks: int
     train_epochs: int
-    ablation_miles: float = 500.0
+    ablation_miles: float = 300.0
     replay_s: float = 30.0
     ablation_worlds: int = 64
-    ablation_workers: int = 2
-    ablation_seeds: int = 3
+    ablation_seeds: int = 5
 
     def __post_init__(self) -> None:
         if self.name not in ("quick", "full"):
@@ -118,7 +121,6 @@ class Profile:
         check_range("Profile", "ablation_miles", self.ablation_miles, 0.0, lo_open=True)
         check_range("Profile", "replay_s", self.replay_s, 0.0, lo_open=True)
         check_range("Profile", "ablation_worlds", self.ablation_worlds, 1, integer=True)
-        check_range("Profile", "ablation_workers", self.ablation_workers, 1, integer=True)
         check_range("Profile", "ablation_seeds", self.ablation_seeds, 1, 100, integer=True)
 
     @property
@@ -151,7 +153,6 @@ QUICK = Profile(
     ablation_miles=0.4,
     replay_s=2.0,
     ablation_worlds=8,
-    ablation_workers=1,
     ablation_seeds=2,
 )
 # The full profile's tracks hold the paper's 20-80 parked cars, 50-200 m apart (mean 125 m).
@@ -166,11 +167,10 @@ FULL = Profile(
     n_val_samples=8_000,
     n_train_tracks=32,
     train_epochs=3,
-    ablation_miles=500.0,
+    ablation_miles=300.0,
     replay_s=30.0,
     ablation_worlds=64,
-    ablation_workers=2,
-    ablation_seeds=3,
+    ablation_seeds=5,
 )
 
 
@@ -209,6 +209,54 @@ def quick_requested(argv: Sequence[str] | None = None, environ: dict | None = No
             f"{QUICK_ENV}={raw!r} is invalid: must be one of {accepted} (any case) or empty"
         )
     return QUICK_FLAG in argv or flag in QUICK_ON
+
+
+def available_cores() -> int:
+    """The cores this process may run on (``os.sched_getaffinity`` where the system has it: a
+    container or ``taskset`` may allow fewer than ``os.cpu_count``)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def default_workers(environ: dict | None = None) -> int:
+    """Worker processes for driving and collecting: ``E2E_LITE_WORKERS`` when set (a whole number
+    >= 1; anything else raises ``ValueError`` naming it), else :func:`available_cores`. Results
+    do not depend on it (see :mod:`e2e_lite.driving.parallel`), only the time they take."""
+    environ = os.environ if environ is None else environ
+    raw = environ.get(WORKERS_ENV, "").strip()
+    if not raw:
+        return available_cores()
+    if not raw.isdigit() or int(raw) < 1:
+        raise ValueError(f"{WORKERS_ENV}={raw!r} is invalid: must be a whole number >= 1")
+    return int(raw)
+
+
+def tf32_allowed(environ: dict | None = None) -> bool:
+    """Whether TF32 is asked for (``E2E_LITE_TF32`` in 1/true/yes; 0/false/no/empty: not)."""
+    environ = os.environ if environ is None else environ
+    raw = environ.get(TF32_ENV, "")
+    flag = raw.strip().lower()
+    if flag not in QUICK_ON + QUICK_OFF:
+        accepted = ", ".join(v for v in QUICK_ON + QUICK_OFF if v)
+        raise ValueError(f"{TF32_ENV}={raw!r} is invalid: must be one of {accepted} or empty")
+    return flag in QUICK_ON
+
+
+def precision(environ: dict | None = None) -> str:
+    """The arithmetic the networks train and drive in: ``"fp32"`` (the default, on every device)
+    or ``"tf32"`` (a GPU's tensor cores round inputs to 10 bits of mantissa; asked for with
+    ``E2E_LITE_TF32=1``). Part of every checkpoint's and evaluation's key: on an H100, five GMM
+    seeds trained in TF32 drove worse than the same seeds in fp32 (docs/lab-notes.md)."""
+    return "tf32" if tf32_allowed(environ) else "fp32"
+
+
+def apply_precision(torch: Any) -> None:
+    """Set torch's TF32 switches (cuDNN convolutions and CUDA matrix products) to
+    :func:`precision`. Called where torch is first used: the learning layer and every worker."""
+    allow = precision() == "tf32"
+    torch.backends.cudnn.allow_tf32 = allow
+    torch.backends.cuda.matmul.allow_tf32 = allow
 
 
 def _progress_bar() -> type:

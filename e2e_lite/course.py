@@ -358,6 +358,13 @@ def main(argv: list[str] | None = None) -> int:
         env[QUICK_ENV] = "1"
     profile = "quick" if quick else "full"
     print(f"e2e-lite course: {len(chapters)} chapters, {profile} profile", flush=True)
+    if not quick:
+        from .config import FULL, default_workers
+        from .estimate import course_work, plan_text
+        from .learning.models import pick_device
+
+        work = course_work(FULL)
+        print(plan_text("the course", work, default_workers(), pick_device().type), flush=True)
     ledger = (outputs_dir(quick) / TIMES_FILE).resolve()  # (in-process chapters change the cwd)
     try:
         return _run(chapters, found, quick, in_process, env, profile, ledger)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 
 from e2e_lite import bench
 
@@ -17,7 +16,7 @@ from e2e_lite import bench
         ["network", "--quick"],
         ["closed-loop", "--quick", "--agent", "actuators"],
         ["closed-loop", "--quick", "--agent", "gmm"],
-        ["placement", "--quick"],
+        ["scaling", "--quick"],
     ],
 )
 def test_benchmark_command_prints_json(argv, capsys):
@@ -40,20 +39,11 @@ def test_benchmark_command_prints_json(argv, capsys):
         assert figures[ratio] == pytest.approx(
             figures["loop_samples_per_s"] / figures["bare_samples_per_s"]
         )
-    if argv[0] == "placement":  # the course's setting is always a row; with a GPU, three more
-        rows = {k.removesuffix("_collisions") for k in figures if k.endswith("_collisions")}
-        assert "cpu_2processes" in rows
-        # its collisions are the evaluation's own: the same driver, roads and shards in threads
-        # (processes and threads give the same events)
-        from e2e_lite.config import active_profile
-        from e2e_lite.driving.evaluation import evaluate
-        from e2e_lite.simulation.world import WorldConfig
-
-        policy, _ = bench.learned_driver("gmm", torch.device("cpu"))
-        world, ev = WorldConfig.for_profile(active_profile([])), bench.placement_eval(quick=True)
-        res = evaluate(policy, world, ev, progress=False, workers=2, parallel="threads")
-        assert figures["cpu_2processes_collisions"] == res.collisions
-    elif ratio == "loop_vs_network":
+    if argv[0] == "scaling":  # every worker count drove and collected the same as one
+        same = [v for k, v in figures.items() if k.endswith(("_same_events", "_same_bytes"))]
+        assert len(same) >= 3 and all(v == 1.0 for v in same)
+        assert figures["eval_1w_speedup"] == pytest.approx(1.0)
+    if ratio == "loop_vs_network":
         assert figures[ratio] == pytest.approx(
             figures["loop_miles_per_s"] / figures["network_miles_per_s"]
         )
@@ -71,20 +61,24 @@ def test_benchmark_command_prints_json(argv, capsys):
         )
 
 
-def test_pool_benchmark_measures_the_course_pool(capsys, monkeypatch):
-    """``bench pool`` drives both calls with the course's pool (loky only where installed) and its
-    Ctrl-C trial sees the child stop within a second, one line on stderr, no process left."""
-    import importlib.util
+def test_estimates_count_the_work_and_spread_driving_over_the_workers():
+    """Issue 56: a long run says first how many workers and which device it will use, and how
+    long it should take from the benchmarks' per-part rates."""
+    from e2e_lite.config import FULL
+    from e2e_lite.estimate import RATES, Work, course_work, estimate_s, plan_text
+    from e2e_lite.record import record_work
 
-    real = importlib.util.find_spec
-    monkeypatch.setattr(
-        importlib.util, "find_spec", lambda name, *a: None if name == "loky" else real(name, *a)
-    )
-    assert bench.main(["pool", "--quick", "--json"]) == 0
-    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert not any(k.startswith("loky") for k in figures)
-    assert figures["ours_first_sim_miles_per_wall_s"] > 0
-    assert figures["ours_second_sim_miles_per_wall_s"] > 0
-    assert figures["ours_ctrl_c_exit_s"] < 1.5
-    assert figures["ours_ctrl_c_stderr_lines"] == 1  # the child's own "interrupted"
-    assert figures["ours_ctrl_c_left"] == 0
+    drive = Work(collect_samples=0.0, train_samples=0.0, drive_miles=1_000.0)
+    one, two = estimate_s(drive, 1), estimate_s(drive, 2)
+    assert one == pytest.approx(1_000.0 / RATES["drive_mi_per_s_per_worker"])
+    assert two == pytest.approx(one / (1.0 + RATES["worker_efficiency"]))
+    train = Work(collect_samples=0.0, train_samples=1e6, drive_miles=0.0)
+    assert estimate_s(train, 2, "cuda") < estimate_s(train, 2, "cpu") == estimate_s(train, 16)
+    # the record of 10 seeds drives twice the miles of 5 and trains twice the networks
+    five, ten = record_work(FULL, 5, 100.0), record_work(FULL, 10, 100.0)
+    assert ten.drive_miles == pytest.approx(2 * five.drive_miles)
+    assert ten.train_samples > 1.9 * five.train_samples
+    course = course_work(FULL)
+    assert course.drive_miles > 0 and course.train_samples > 0
+    line = plan_text("the record", ten, 16, "cuda")
+    assert "16 worker processes" in line and "cuda" in line and "fp32" in line and "min" in line

@@ -340,6 +340,7 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
     seed's counts, miles, speed and stalls, the machine, and the render of it (the quick record
     goes to the outputs folder, never to docs/)."""
     from e2e_lite import ablation, artifacts, report
+    from e2e_lite.driving.rollout import ROAD_BLOCKS
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(quick_course[1].parent))  # its networks, trained
     before = (ROOT / "docs" / "results" / "table1.json").read_text()
@@ -353,6 +354,8 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
         assert len(row["seeds"]) == n, row["key"]
         assert sum(s["collisions"] for s in row["seeds"]) == row["car"] + row["rail"]
         assert all(s["miles"] > 0 and s["mph"] > 0 for s in row["seeds"])
-    assert record["roads"] == "test" and record["torch_threads"] == 2
+    assert record["roads"] == "test" and record["precision"] == "fp32"
+    # a smoke run never drives the sealed roads of the record of record
+    assert record["block"]["name"] == "open" and record["block"]["range"] == [*ROAD_BLOCKS["open"]]
     assert "| the paper's step |" in report.table1(record)
     assert "wrote" in capsys.readouterr().out

@@ -245,3 +245,46 @@ def test_a_checkpoint_of_other_settings_names_only_the_fields_that_differ():
         load_checkpoint(path, ModelConfig(head="trajectory", fusion_width=32))
     assert str(err.value).count("fusion_width") == 1 and "16 (asked: 32)" in str(err.value)
     assert len(str(err.value)) < 200 and "head=" not in str(err.value)
+
+
+def test_workers_default_to_the_cores_this_process_may_use_with_an_override():
+    from e2e_lite.config import WORKERS_ENV, available_cores, default_workers
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert available_cores() == cores
+    assert default_workers({}) == cores and default_workers({WORKERS_ENV: " "}) == cores
+    assert default_workers({WORKERS_ENV: "3"}) == 3
+    for bad in ("0", "-1", "2.5", "many"):
+        with pytest.raises(ValueError, match=WORKERS_ENV):
+            default_workers({WORKERS_ENV: bad})
+
+
+def test_tf32_is_off_unless_asked_in_this_process_and_in_a_fresh_worker(monkeypatch):
+    """Issue 56: torch lets cuDNN convolutions run in TF32 by default; the course turns it off
+    where the networks are built (a worker process imports the same module), and the precision
+    is part of a checkpoint's key."""
+    import subprocess
+    import sys
+
+    from e2e_lite.config import TF32_ENV, precision
+    from e2e_lite.learning.checkpoints import checkpoint_key
+    from e2e_lite.learning.losses import Objective
+    from e2e_lite.learning.models import ModelConfig
+    from e2e_lite.learning.training import TrainConfig
+
+    assert not torch.backends.cudnn.allow_tf32 and not torch.backends.cuda.matmul.allow_tf32
+    code = "import e2e_lite.learning.models, torch; print(torch.backends.cudnn.allow_tf32)"
+    env = {k: v for k, v in os.environ.items() if k != TF32_ENV}
+    fresh = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert fresh.stdout.strip() == "False", fresh.stderr
+    asked = subprocess.run(
+        [sys.executable, "-c", code], env={**env, TF32_ENV: "1"}, capture_output=True, text=True
+    )
+    assert asked.stdout.strip() == "True", asked.stderr
+    assert precision({}) == "fp32" and precision({TF32_ENV: "yes"}) == "tf32"
+    with pytest.raises(ValueError, match=TF32_ENV):
+        precision({TF32_ENV: "maybe"})
+    args = (ModelConfig(), TrainConfig(), Objective("trajectory"), "data")
+    fp32 = checkpoint_key(*args)
+    monkeypatch.setenv(TF32_ENV, "1")
+    assert checkpoint_key(*args) != fp32

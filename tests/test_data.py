@@ -18,6 +18,7 @@ from e2e_lite.learning.data import (
     DrivingDataset,
     NoiseConfig,
     affordances,
+    car_quotas,
     collect,
     dataset_path,
     load_or_collect,
@@ -76,6 +77,28 @@ def test_collection_is_deterministic_and_labels_are_clean():
     np.testing.assert_allclose(first[:, 0], a.speed * 0.3, rtol=0.1, atol=0.3)
     # the actuator label is the clean command, within the car's limits
     assert np.all(np.abs(a.actuators[:, 0]) <= VehicleParams().max_steer_rad)
+
+
+def test_one_and_two_collecting_processes_make_the_same_bytes():
+    """Issue 56: each car records its own quota from its own draws, car after car, so the arrays
+    do not depend on how many processes collect them."""
+    from e2e_lite.driving.evaluation import close_shard_workers
+
+    cfg = small_cfg(n_samples=150, n_worlds=5, noise=NoiseConfig(rate_per_s=1.0))
+    one, two = collect(cfg, progress=False, workers=1), collect(cfg, progress=False, workers=2)
+    close_shard_workers()
+    for name in one.arrays:
+        np.testing.assert_array_equal(one.arrays[name], two.arrays[name], err_msg=name)
+    assert one.info["manoeuvres"] == two.info["manoeuvres"]
+    assert one.info["collection"]["miles"] == two.info["collection"]["miles"]
+    assert car_quotas(cfg).tolist() == [30] * 5 and car_quotas(small_cfg(n_samples=7)).tolist() == [
+        2,
+        2,
+        2,
+        1,
+    ]
+    with pytest.raises(ValueError, match="workers"):
+        collect(cfg, progress=False, workers=0)
 
 
 def test_noise_changes_the_states_but_not_what_labels_mean():

@@ -27,12 +27,12 @@ model = prepare(build_model(ModelConfig(head="trajectory", fusion_width=16)), to
 policy = TrajectoryAgent(model.eval())
 try:
     if sys.argv[2] == "idle":  # one short evaluation; its workers are kept, idle
-        evaluate(policy, WorldConfig(), EvalConfig(miles=0.05, n_worlds=8), progress=False,
+        evaluate(policy, WorldConfig(), EvalConfig(miles=0.05, n_worlds=16), progress=False,
                  workers=2, parallel=sys.argv[1])
         print("driving", flush=True)
         time.sleep(600)
     print("driving", flush=True)
-    evaluate(policy, WorldConfig(), EvalConfig(miles=1000.0, n_worlds=8), progress=False,
+    evaluate(policy, WorldConfig(), EvalConfig(miles=1000.0, n_worlds=16), progress=False,
              workers=2, parallel=sys.argv[1])
 except KeyboardInterrupt:
     print("interrupted", file=sys.stderr, flush=True)
@@ -122,7 +122,7 @@ from tests_stuck import Stuck
 
 parallel.DEADLINE_S = 2.0
 try:
-    evaluate(Stuck(), WorldConfig(), EvalConfig(miles=1.0, n_worlds=2), progress=False,
+    evaluate(Stuck(), WorldConfig(), EvalConfig(miles=1.0, n_worlds=16), progress=False,
              workers=2, parallel="processes")
 except RuntimeError as err:
     print(str(err).splitlines()[0])

@@ -141,11 +141,12 @@ LAYERS = ("simulation", "control", "driving", "learning", "safety")
 BASE = ("config", "artifacts")  # used by every layer
 TOP = (
     "ablation",
+    "record",
     "report",
     "viz",
     "course",
+    "estimate",
     "bench",
-    "bench_pool",
 )  # beside the layers, free to import any of them
 
 

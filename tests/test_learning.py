@@ -767,7 +767,8 @@ def test_selection_by_validation_roads_keeps_the_epoch_that_collides_least():
     key = checkpoint_key(cfg, TrainConfig(), obj, "data")
     old = dataclasses.asdict(TrainConfig())
     del old["select_miles"]
-    assert key == settings_key("checkpoint-v2", cfg, {**old, "device": None}, obj.name, "data")
+    expected = settings_key("checkpoint-v3", cfg, {**old, "device": None}, obj.name, "data", "fp32")
+    assert key == expected  # (select_miles left out when unused; the precision is in)
     miles = [TrainConfig(select_by="val_roads", select_miles=m) for m in (10.0, 20.0)]
     assert len({checkpoint_key(cfg, c, obj, "data") for c in miles}) == 2
 

@@ -32,6 +32,13 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
   1 (``recipes.GMM_SIGMA``, issue 50; lab note "Every epoch on the road"). Recorded on the
   project's second machine (AMD EPYC) with the code of the commit that made the change; the other
   entries are the old record's.
+* 2026-11-27, every entry, with ``dataset`` 4, ``checkpoint`` 3 and ``evaluation`` 2 (issue 56:
+  results that do not depend on the worker count): each car now draws its own start lanes (the
+  evaluator drew them per shard), the collector records each car's own quota from its own noise
+  and take-over draws (it drew them for all cars at once, and stopped at a total), a network sees
+  its frames in groups of ``FORWARD_GROUP`` on one thread per shard. So the quick dataset, the
+  scripted drivers' start lanes and the trained networks all changed. Recorded on the project's
+  2-core AMD EPYC with the code of the commit that made the change.
 """
 
 from __future__ import annotations

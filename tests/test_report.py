@@ -6,7 +6,6 @@ from __future__ import annotations
 import copy
 import re
 
-import numpy as np
 import pytest
 
 from e2e_lite import report
@@ -44,14 +43,31 @@ def test_every_lab_note_names_the_commit_of_its_code() -> None:
     assert all(re.search(r"\b[0-9a-f]{7}\b", h) for h in headings), headings
 
 
-def test_the_seed_level_test_gives_the_exact_mann_whitney_p() -> None:
-    # 3 against 3 with no overlap: 1 of the C(6, 3) = 20 orderings, p = 0.05
-    assert report.seed_level_test(np.array([10.0, 11, 12]), np.array([1.0, 2, 3])) == 0.05
-    # 5 against 5 with no overlap: 1 / C(10, 5) = 1 / 252
-    five = report.seed_level_test(np.arange(10.0, 15), np.arange(5.0))
-    assert five == pytest.approx(1 / 252)
-    # the other direction is the mirror
-    assert report.seed_level_test(np.array([1.0, 2, 3]), np.array([10.0, 11, 12])) == 1.0
+def test_each_step_gives_its_p_ratio_interval_and_paired_test_and_the_record_its_power() -> None:
+    """Issue 57: per step, the primary p-value (paired where a fine-tune shares its parent), the
+    rate ratio with its bootstrap interval, the unpaired and paired p-values; and the record's
+    power at its own + affordance rate, stated under the table."""
+    record = copy.deepcopy(report.load())
+    record["rows"] = [
+        row("expert", [0]),
+        row("gmm", [6, 10, 5, 3, 11]),
+        row("gmm_affordance", [6, 5, 3, 2, 3]),
+        row("gmm_affordance_cvar", [5, 4, 4, 3, 6]),
+    ]
+    steps = {s["step"]: s for s in report.steps(record)}
+    aff = steps["GMM -> + affordance"]
+    assert abs(aff["p_better"] - 0.087) < 0.005 and aff["test"] == "rank"
+    assert aff["verdict"] == "not shown at the seed level"
+    assert aff["ratio"] == pytest.approx(19 / 35) and aff["ratio_ci"][0] < aff["ratio"]
+    cvar = steps["+ affordance -> + CVaR"]
+    assert cvar["test"] == "paired sign-flip" and cvar["p_paired"] == cvar["p_better"]
+    table = report.table1(record)
+    assert "0.54 [" in table and "Power: 5 seeds x 100 mi" in table
+    found = report.record_power(record)
+    assert found["rate_per_100mi"] == 3.0 and 0.5 < found["power"] < 0.7
+    # three seeds against three: the verdict says it cannot decide
+    record["rows"] = [row("gmm", [20, 21, 22]), row("gmm_affordance", [1, 2, 3])]
+    assert report.steps(record)[0]["verdict"] == "cannot be decided with these seeds"
 
 
 def test_a_row_with_one_catastrophic_seed_is_not_called_reproduced() -> None:

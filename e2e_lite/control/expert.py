@@ -222,7 +222,8 @@ class Expert:
         cfg: the state machine's settings.
         tracker: the LQR tracker it drives with (None: default weights at ``sim``'s policy period).
         vehicle, sim: the car and time steps of the rollouts (must match the world's).
-        seed: seeds every car's manoeuvre draws (car ``i`` uses ``default_rng([seed, i])``).
+        seed: seeds every car's manoeuvre draws (car ``i`` of the evaluation uses
+            ``default_rng([seed, i])``, in whichever shard it drives; see :meth:`seed_cars`).
 
     Attributes:
         plans: each car's :class:`Plan`.
@@ -251,11 +252,23 @@ class Expert:
         self._front = self.vehicle.length_m - self.vehicle.rear_overhang_m
 
     # ------------------------------------------------------------------ Policy
+    def seed_cars(self, cars: np.ndarray) -> None:
+        """Car ``i`` of the next :meth:`reset` is car ``cars[i]`` of the evaluation: its draws are
+        seeded by that index (see :class:`~e2e_lite.simulation.policy.Policy`)."""
+        self.cars = np.asarray(cars, dtype=np.int64)
+
+    def fork(self, k: int) -> list[Expert]:
+        """``k`` experts for an evaluation's parallel shards (no state is shared)."""
+        return [copy.deepcopy(self) for _ in range(k)]
+
     def reset(self, n_worlds: int) -> None:
         """New plans for ``n_worlds`` cars; counters zeroed."""
         self.plans = []
+        cars = getattr(self, "cars", None)
+        if cars is None or len(cars) != n_worlds:
+            cars = np.arange(n_worlds)
         for i in range(n_worlds):
-            plan = Plan(rng=np.random.default_rng([self.seed, i]))
+            plan = Plan(rng=np.random.default_rng([self.seed, int(cars[i])]))
             plan.draw(self.cfg)
             self.plans.append(plan)
         self.manoeuvres = dict.fromkeys(self.manoeuvres, 0)

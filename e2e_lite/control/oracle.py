@@ -7,9 +7,11 @@ predicts trajectories (chapter 07 adds the network's point noise to it to choose
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
-from ..simulation.policy import Actuation, Observation
+from ..simulation.policy import Actuation, Observation, car_rng
 from .expert import Expert
 from .tracker import (
     check_reading,
@@ -53,18 +55,32 @@ class Oracle:
         self.preview_s, self.speed = preview_s, speed
         self.point_noise_m = None if point_noise_m is None else np.asarray(point_noise_m, float)
         self.seed = seed
-        self.rng = np.random.default_rng([seed, 31])
+        self.rngs: list[np.random.Generator] = []  # each car's noise (see :meth:`reset`)
+
+    def seed_cars(self, cars: np.ndarray) -> None:
+        """Seed each car's draws by its index among the evaluation's cars (see
+        :class:`~e2e_lite.simulation.policy.Policy`)."""
+        self.cars = np.asarray(cars, dtype=np.int64)
+        self.expert.seed_cars(cars)
+
+    def fork(self, k: int) -> list[Oracle]:
+        """``k`` oracles for an evaluation's parallel shards (no state is shared)."""
+        return [copy.deepcopy(self) for _ in range(k)]
 
     def reset(self, n_worlds: int) -> None:
-        """Reset the expert's plans and the noise."""
+        """Reset the expert's plans and each car's noise."""
         self.expert.reset(n_worlds)
-        self.rng = np.random.default_rng([self.seed, 31])
+        cars = getattr(self, "cars", None)
+        if cars is None or len(cars) != n_worlds:
+            cars = np.arange(n_worlds)
+        self.rngs = [car_rng(self.seed, 31, int(c)) for c in cars]
 
     def act(self, obs: Observation) -> Actuation:
         """Follow the expert's trajectory from the current state."""
         points = self.expert.trajectory_label(obs)
         if self.point_noise_m is not None:
-            points = points + self.rng.normal(size=points.shape) * self.point_noise_m
+            noise = np.stack([r.normal(size=points.shape[1:]) for r in self.rngs])  # (B, 5, 2)
+            points = points + noise * self.point_noise_m
         self.expert.act(obs)
         steer, accel = follow_trajectory(
             self.expert.tracker, points, obs.speed, self.preview_s, self.speed

@@ -21,8 +21,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..config import check_range, tqdm
-from ..simulation.policy import Actuation, Observation, Policy, observe  # noqa: F401 (re-exported)
+from ..config import check_range, default_workers, tqdm
+from ..simulation.policy import (  # noqa: F401 (re-exported)
+    FORWARD_GROUP,
+    Actuation,
+    Observation,
+    Policy,
+    observe,
+)
 from ..simulation.world import WorldConfig
 from .metrics import (  # noqa: F401 (re-exported: the chapters read the evaluation's names here)
     COLLISION_KINDS,
@@ -32,7 +38,6 @@ from .metrics import (  # noqa: F401 (re-exported: the chapters read the evaluat
     EvalResult,
     collision_kinds,
     compare_rates,
-    compare_seeds,
     merge_shards,
     miles_text,
     poisson_ci,
@@ -50,7 +55,7 @@ from .parallel import (  # noqa: F401 (close_shard_workers re-exported, as above
     drive_in_threads,
     pinned_threads,
     processes_ok,
-    shard_threads,
+    shard_job,
     shard_worker,
 )
 from .rollout import (  # noqa: F401 (re-exported, as above)
@@ -61,9 +66,27 @@ from .rollout import (  # noqa: F401 (re-exported, as above)
     drive_shard,
     restart_state,
     roll_out,
+    start_lane,
     start_state,
     track_index,
 )
+from .verdicts import compare_seeds, power, seed_counts  # noqa: F401 (re-exported, as above)
+
+#: the least road a worker process is started for by default [mi]: a worker's start (an
+#: interpreter, torch) costs about as much as driving 3-5 mi on one core
+MIN_MILES_PER_WORKER = 5.0
+
+
+def shard_cars(n_cars: int, workers: int) -> list[np.ndarray]:
+    r"""The cars ``0 .. n_cars - 1`` cut into at most ``workers`` shards of whole
+    :data:`~e2e_lite.simulation.policy.FORWARD_GROUP`\ s, in order (so a network sees every frame
+    in the same group of frames whatever the count: the events do not depend on it)."""
+    n_groups = -(-n_cars // FORWARD_GROUP)  # the last group may be short
+    split = np.array_split(np.arange(n_groups), min(workers, n_groups))
+    return [
+        np.arange(part[0] * FORWARD_GROUP, min(n_cars, (part[-1] + 1) * FORWARD_GROUP))
+        for part in split
+    ]
 
 
 def evaluate(
@@ -81,20 +104,17 @@ def evaluate(
     """Drive ``policy`` closed-loop until ``cfg.miles`` are driven; return the metrics.
 
     Car ``i`` drives tracks ``f + i, f + i + B, ...`` (:func:`track_index`) until it has driven
-    ``miles / B``. With
-    ``workers > 1`` the cars are split into that many shards, each driven with its own copy of
-    the policy: a policy that can be split has a ``fork(k)`` method returning ``k`` independent
-    copies. The shards run in worker processes (interpreters of their own, ``python -m
-    e2e_lite.driving.shard_worker``, the job pickled to them; started once and kept for the next
-    evaluations, see :func:`close_shard_workers`) unless the policy's class cannot be unpickled
-    there (:func:`processes_ok`); then in threads (the network's forward
-    pass releases the GIL, so one shard renders and steps physics while the other runs
-    convolutions, but their Python still takes turns). What a policy reports with its actuations
-    (``Actuation.info``) is added up over the decisions and shards into ``result.info``. Either way the torch threads
-    are shared out (one core per shard on two cores) and the results are the same. Each shard
-    draws its cars' start lanes from its own generator (shard 0's is the one a single thread
-    uses), so ``workers`` is part of the settings: compare drivers evaluated with the same value
-    (chapter 10 uses 2 for every driver).
+    ``miles / B``. The cars are cut into shards (:func:`shard_cars`), each driven with its own
+    copy of the policy (a policy that can be split has a ``fork(k)`` method returning ``k``
+    independent copies) in a worker process (an interpreter of its own, ``python -m
+    e2e_lite.driving.shard_worker``, the job pickled to it; started once and kept for the next
+    evaluations, see :func:`close_shard_workers`), or in threads where the policy's class cannot
+    be unpickled there (:func:`processes_ok`). What a policy reports with its actuations
+    (``Actuation.info``) is added up over the decisions and shards into ``result.info``.
+
+    The result does not depend on ``workers``: each car draws its own start lanes, a network sees
+    its frames in the same groups, and every shard's torch runs on one thread (see
+    :mod:`e2e_lite.driving.parallel`). So the default is every core.
 
     Args:
         policy: the driver (see :class:`Policy`).
@@ -106,9 +126,10 @@ def evaluate(
             ``result.traces["<split>-<track>"] = [[x, y], ...]``.
         stop_when: called after every decision; the drive ends early when it returns True (the
             data collector stops at a sample count this way). The metrics cover what was driven.
-        workers: shards of cars (threads or processes, see ``parallel``), default 1; a policy
-            without ``fork``, or a call with ``stop_when``, always runs in one. The network then sees batches of
-            ``B / workers`` frames on ``1 / workers`` of the cores.
+        workers: shards (threads or processes, see ``parallel``); default
+            :func:`~e2e_lite.config.default_workers` (every core, or ``E2E_LITE_WORKERS``), at
+            most one per :data:`MIN_MILES_PER_WORKER`; always capped by the groups of cars. A
+            policy without ``fork``, or a call with ``stop_when``, runs in one.
         parallel: how shards run: ``"auto"`` (processes where possible, see above),
             ``"threads"`` or ``"processes"`` (the policy must pickle; its forks' state stays in
             the workers: report what the caller needs through ``Actuation.info``).
@@ -116,13 +137,13 @@ def evaluate(
     t_wall = time.perf_counter()
     n = cfg.n_worlds
     check_policy_rate(policy, world_cfg)
-    workers = 1 if workers is None else workers
+    if workers is None:  # every core, but no worker for less road than its start is worth
+        workers = min(default_workers(), max(1, int(cfg.miles // MIN_MILES_PER_WORKER)))
     check_range("evaluate", "workers", workers, 1, integer=True)
     if parallel not in ("auto", "threads", "processes"):
         raise ValueError(f"parallel must be 'auto', 'threads' or 'processes', not {parallel!r}")
     if stop_when is not None or not hasattr(policy, "fork"):
         workers = 1
-    workers = min(workers, n)
     bar = tqdm(
         total=round(cfg.miles, 2),
         desc=desc,
@@ -138,22 +159,20 @@ def evaluate(
         with lock:  # (the shards' rounded sums may overshoot the total by a hair)
             bar.update(max(0.0, min(miles, bar.total - bar.n)))
 
-    cars = np.array_split(np.arange(n), workers)
-    if workers == 1:
-        with pinned_threads(1):  # (as in the shards: parallel.EVAL_TORCH_THREADS)
-            shards = [
-                drive_shard(policy, world_cfg, cfg, cars[0], 0, advance, record_traces, stop_when)
-            ]
-    else:
-        policies = policy.fork(workers)  # type: ignore[attr-defined]
-        jobs = [
-            (p, world_cfg, cfg, c, k, record_traces) for k, (p, c) in enumerate(zip(policies, cars))
-        ]
-        if parallel == "auto":
-            parallel = "processes" if processes_ok(policy) else "threads"
-        if parallel == "processes":
-            shards = drive_in_processes(jobs, advance)
+    cars = shard_cars(n, workers)
+    try:
+        if len(cars) == 1:
+            with pinned_threads():  # (as in the shards: parallel.SHARD_TORCH_THREADS)
+                shards = [
+                    drive_shard(policy, world_cfg, cfg, cars[0], advance, record_traces, stop_when)
+                ]
         else:
-            shards = drive_in_threads(jobs, advance)
-    bar.close()
+            policies = policy.fork(len(cars))  # type: ignore[attr-defined]
+            jobs = [shard_job(p, world_cfg, cfg, c, record_traces) for p, c in zip(policies, cars)]
+            if parallel == "auto":
+                parallel = "processes" if processes_ok(policy) else "threads"
+            run = drive_in_processes if parallel == "processes" else drive_in_threads
+            shards = run(jobs, advance)
+    finally:
+        bar.close()
     return merge_shards(shards, cfg.intervention_cost_s, time.perf_counter() - t_wall)

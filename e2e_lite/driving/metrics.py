@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -290,38 +291,6 @@ def seed_rates(result: EvalResult | dict[str, Any]) -> np.ndarray:
     return np.array([100.0 * s["collisions"] / s["miles"] for s in (r.get("seeds") or [r])])
 
 
-def compare_seeds(
-    a: EvalResult | dict[str, Any], b: EvalResult | dict[str, Any], level: float = 0.95
-) -> dict[str, Any]:
-    """Does driver a collide less than b, or more, with the training seed as the unit?
-
-    The exact one-sided Mann-Whitney test on the per-seed rates (:func:`seed_rates`), each way:
-    with 3 seeds against 3 the smallest p is 0.05, so three seeds cannot show a step; 5 against 5
-    can reach 1 / 252. The pooled Poisson test (:func:`compare_rates`) treats a row's miles as one
-    draw and is secondary.
-
-    Returns:
-        ``{"p_fewer", "p_more", "fewer", "more", "verdict": one line}``: ``fewer`` (``more``)
-        when its p-value is below ``1 - level`` (with a margin for rounding: 3 seeds against 3
-        give exactly 0.05, which is not below 0.05).
-    """
-    from scipy.stats import mannwhitneyu  # (here: see poisson_ci)
-
-    ra, rb = seed_rates(a), seed_rates(b)
-    p_fewer = float(mannwhitneyu(ra, rb, alternative="less", method="exact").pvalue)
-    p_more = float(mannwhitneyu(ra, rb, alternative="greater", method="exact").pvalue)
-    med = f"median {np.median(ra):.1f} vs {np.median(rb):.1f} per 100 mi ({len(ra)} vs {len(rb)} seeds)"
-    cut = 1.0 - level - 1e-9
-    fewer, more = p_fewer < cut, p_more < cut
-    if fewer:
-        verdict = f"{med}: fewer collisions, seed by seed (p = {p_fewer:.2g})"
-    elif more:
-        verdict = f"{med}: more collisions, seed by seed (p = {p_more:.2g})"
-    else:
-        verdict = f"{med}: not shown at the seed level (p = {min(p_fewer, p_more):.2g})"
-    return {"p_fewer": p_fewer, "p_more": p_more, "fewer": fewer, "more": more, "verdict": verdict}
-
-
 SPEED_BINS = 41  # 1 m/s bins of EvalResult.speed_hist: 0-1, ..., 39-40, >= 40 m/s
 
 
@@ -337,8 +306,8 @@ class ShardResult:
     :func:`merge_shards`)."""
 
     def __init__(self) -> None:
-        self.miles_m = 0.0
-        self.sim_s = 0.0
+        self.car_miles_m = np.zeros(0)  # each car's distance [m]
+        self.car_sim_s = np.zeros(0)  # each car's driven time [s]
         self.ttc: list[float] = []
         self.censored = 0
         self.interventions = 0
@@ -374,11 +343,12 @@ def add_info(total: dict[str, Any], info: dict[str, Any]) -> dict[str, Any]:
 def merge_shards(shards: list[ShardResult], intervention_cost_s: float, wall: float) -> EvalResult:
     """One :class:`EvalResult` from the shards' sums (events in car order, then time);
     ``intervention_cost_s`` [s] of autonomy per intervention, ``wall`` [s] the wall time."""
-    total_m = sum(sh.miles_m for sh in shards)
-    total_t = sum(sh.sim_s for sh in shards)
+    # exactly rounded sums (math.fsum) and sorted lists: the same numbers for any sharding
+    total_m = math.fsum(m for sh in shards for m in sh.car_miles_m.tolist())
+    total_t = math.fsum(t for sh in shards for t in sh.car_sim_s.tolist())
     miles = total_m / M_PER_MILE
     events = sorted((e for sh in shards for e in sh.events), key=lambda e: e["world"])
-    ttc = [t for sh in shards for t in sh.ttc]
+    ttc = sorted(t for sh in shards for t in sh.ttc)
     traces: dict[str, list[list[float]]] = {}
     for sh in shards:
         for key, pts in sh.traces.items():
@@ -398,7 +368,7 @@ def merge_shards(shards: list[ShardResult], intervention_cost_s: float, wall: fl
         collisions_per_100mi=100.0 * n_col / miles,
         ci95_per_100mi=(lo, hi),
         mean_speed_mph=total_m / total_t * MPS_TO_MPH,
-        time_to_collision_s=float(np.mean(ttc)) if ttc else None,
+        time_to_collision_s=math.fsum(ttc) / len(ttc) if ttc else None,
         episodes_censored=sum(sh.censored for sh in shards),
         miles_per_collision=miles / n_col if n_col else None,
         autonomy_pct=max(0.0, 1.0 - interventions * intervention_cost_s / total_t) * 100.0,

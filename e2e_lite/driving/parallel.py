@@ -1,8 +1,9 @@
-"""Shards of one evaluation, driven side by side: in threads, or in worker processes
-(``python -m e2e_lite.driving.shard_worker``) that are started once and kept for the next evaluations of
-the same interpreter (:func:`close_shard_workers` ends them; also done at exit). A job is pickled
-to its worker, which drives it with :func:`~e2e_lite.driving.rollout.drive_shard` and sends back its
-progress and its :class:`~e2e_lite.driving.rollout.ShardResult`.
+"""Shards of one evaluation (or of one data collection), driven side by side: in threads, or in
+worker processes (``python -m e2e_lite.driving.shard_worker``) that are started once and kept for
+the next jobs of the same interpreter (:func:`close_shard_workers` ends them; also done at exit). A
+job ``(function, args, kwargs)`` is pickled to its worker, which calls ``function(*args,
+advance=..., **kwargs)`` (for an evaluation, :func:`~e2e_lite.driving.rollout.drive_shard`) and
+sends back its progress and its result.
 
 Why a small pool of our own rather than the field's (joblib's loky, ``concurrent.futures``):
 the workers must be fresh interpreters (a fork of a process whose torch threads ran can deadlock,
@@ -23,9 +24,12 @@ flag that the threads' shard loops check, the worker processes killed), and idle
 quietly on Ctrl-C and when their parent's pipe closes. A worker that sends nothing for
 :data:`DEADLINE_S` while it owes a result is killed, with one line naming it.
 
-The network's threads are pinned (:data:`EVAL_TORCH_THREADS` over an evaluation's shards), so an
-evaluation's result does not depend on the machine's core count: torch's kernels round
-differently with other thread counts, and a closed loop amplifies the difference.
+Results do not depend on the number of shards: every random choice is a car's own
+(:func:`~e2e_lite.simulation.policy.car_rng`), a network sees its frames in the same groups
+(:data:`~e2e_lite.simulation.policy.FORWARD_GROUP`) in every shard, and each shard's torch runs on
+:data:`SHARD_TORCH_THREADS` thread (torch's kernels round differently with other thread counts,
+and a closed loop amplifies the difference). So an evaluation uses every core
+(:func:`~e2e_lite.config.default_workers`) and still gives the same events on any machine.
 """
 
 from __future__ import annotations
@@ -47,29 +51,24 @@ from ..simulation.policy import Policy
 from .metrics import ShardResult
 from .rollout import drive_shard
 
-#: torch threads for an evaluation's networks, shared out over its shards (2: the course's 2-core
-#: machine; every stored result was driven so). Part of every result: see the module docstring.
-EVAL_TORCH_THREADS = 2
+#: torch threads of every shard of an evaluation, in a worker or in this process. One: a shard per
+#: core, and the same rounding in every shard (see the module docstring).
+SHARD_TORCH_THREADS = 1
 #: a worker that owes a result and sends nothing for this long is killed [s] (a shard sends
 #: progress at least every 0.25 s while it drives)
 DEADLINE_S = 60.0
 
 
-def shard_threads(n_shards: int) -> int:
-    """Torch threads for each of ``n_shards`` shards of one evaluation (at least 1)."""
-    return max(1, EVAL_TORCH_THREADS // n_shards)
-
-
 @contextlib.contextmanager
-def pinned_threads(n_shards: int) -> Iterator[None]:
-    """Torch (when loaded: the policy is a network) on :func:`shard_threads` threads for the
-    ``n_shards`` shards driven in this process, the caller's count given back after."""
+def pinned_threads() -> Iterator[None]:
+    """Torch (when loaded: the policy is a network) on :data:`SHARD_TORCH_THREADS` threads for the
+    shards driven in this process, the caller's count given back after."""
     torch = sys.modules.get("torch")
     if torch is None:
         yield
         return
     threads = torch.get_num_threads()
-    torch.set_num_threads(shard_threads(n_shards))
+    torch.set_num_threads(SHARD_TORCH_THREADS)
     try:
         yield
     finally:
@@ -85,14 +84,14 @@ def processes_ok(policy: Policy) -> bool:
     class is not defined in a script run as ``__main__``. A network on a GPU goes too: each
     worker is a fresh interpreter (never a fork of one that started CUDA) and loads the network
     onto the device itself, which drove faster than threads sharing it in this process (the
-    README's GPU section, ``python -m e2e_lite.bench placement``). What a policy's shards count
+    docs/benchmarks.md, ``python -m e2e_lite.bench scaling`` measures both on a GPU). What a policy's shards count
     comes home in their results (``Actuation.info``), so a policy never needs to know where it
     runs."""
     return type(policy).__module__ != "__main__"
 
 
-def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[ShardResult]:
-    """Drive each job's shard in its own thread (torch on :func:`shard_threads` threads). An
+def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[Any]:
+    """Run each job in its own thread (torch on :data:`SHARD_TORCH_THREADS` thread). An
     exception in the caller's thread (Ctrl-C) stops every shard at its next decision."""
     interval = sys.getswitchinterval()
     stop = threading.Event()
@@ -104,8 +103,8 @@ def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> lis
 
     try:
         sys.setswitchinterval(5e-4)  # hand the GIL over soon after a forward pass ends
-        with pinned_threads(len(jobs)), ThreadPoolExecutor(len(jobs)) as pool:
-            futures = [pool.submit(_drive_job, job, guarded) for job in jobs]
+        with pinned_threads(), ThreadPoolExecutor(len(jobs)) as pool:
+            futures = [pool.submit(run_job, job, guarded) for job in jobs]
             try:
                 return [f.result() for f in futures]
             except BaseException:
@@ -115,10 +114,15 @@ def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> lis
         sys.setswitchinterval(interval)
 
 
-def _drive_job(job: tuple, advance: Callable[[float], None]) -> ShardResult:
-    """Drive one shard's job ``(policy, world_cfg, cfg, cars, shard, record_traces)``."""
-    policy, world_cfg, cfg, cars, shard, record_traces = job
-    return drive_shard(policy, world_cfg, cfg, cars, shard, advance, record_traces, None)
+def run_job(job: tuple, advance: Callable[[float], None]) -> Any:
+    """Run one job ``(function, args, kwargs)``: ``function(*args, advance=advance, **kwargs)``."""
+    function, args, kwargs = job
+    return function(*args, advance=advance, **kwargs)
+
+
+def shard_job(policy: Policy, world_cfg: Any, cfg: Any, cars: Any, record_traces: bool) -> tuple:
+    """The job that drives one shard of an evaluation (:func:`drive_shard` on ``cars``)."""
+    return (drive_shard, (policy, world_cfg, cfg, cars), {"record_traces": record_traces})
 
 
 def _send(stream: Any, message: Any) -> None:
@@ -171,10 +175,10 @@ def _serve(inbox: Any, outbox: Any) -> None:
                     _send(outbox, ("miles", last[1]))
                     last[:] = [time.perf_counter(), 0.0]
 
-            shard = _drive_job(job, advance)
+            result = run_job(job, advance)
             _send(outbox, ("miles", last[1]))
-            _send(outbox, ("ok", shard))
-            del job, shard  # the next job's policy replaces this one's
+            _send(outbox, ("ok", result))
+            del job, result  # the next job's policy replaces this one's
         except (BrokenPipeError, ConnectionError):
             raise  # the parent is gone (handled by shard_worker)
         except BaseException:  # everything goes back to the parent, which then ends the pool
@@ -241,7 +245,7 @@ def close_shard_workers() -> None:
 atexit.register(close_shard_workers)
 
 
-def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[ShardResult]:
+def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[Any]:
     """Drive each job's shard in a worker process: no shared GIL, so one shard's rendering and
     physics never wait on the other's Python, and no ``fork`` of a process whose torch threads are
     running (that can deadlock the child). The workers are fresh interpreters (``python -m
@@ -250,7 +254,7 @@ def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> l
     model included) and sends its :class:`ShardResult` back, with what the policy reported
     (``info``)."""
     torch = sys.modules.get("torch")
-    per_shard = 0 if torch is None else shard_threads(len(jobs))
+    per_shard = 0 if torch is None else SHARD_TORCH_THREADS
     started, ready, startup_s = time.perf_counter(), 0, 0.0
     with _WORKERS_LOCK:  # one evaluation at a time uses a pool
         workers = _WORKERS.pop(len(jobs), None)
@@ -258,7 +262,7 @@ def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> l
         if workers is not None:
             workers.close()
         workers = _Workers(len(jobs))
-    results: dict[int, ShardResult] = {}
+    results: dict[int, Any] = {}
     try:
         for k, job in enumerate(jobs):
             _send(workers.procs[k].stdin, list(sys.path))
@@ -301,6 +305,7 @@ def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> l
         spare = _WORKERS.setdefault(len(jobs), workers)
     if spare is not workers:  # another thread kept a pool of this size meanwhile
         workers.close()
-    for shard in results.values():  # the workers' start, counted once in the merged timing
-        shard.timing["startup"] = startup_s / len(jobs)
+    for result in results.values():  # the workers' start, counted once in the merged timing
+        if isinstance(result, ShardResult):
+            result.timing["startup"] = startup_s / len(jobs)
     return [results[k] for k in range(len(jobs))]

@@ -16,13 +16,14 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 
 from ..config import check_range
 from ..simulation.camera import Camera
 from ..simulation.geometry import SPLITS
-from ..simulation.policy import Actuation, Observation, Policy, observe
+from ..simulation.policy import Actuation, Observation, Policy, car_rng, observe
 from ..simulation.vehicle import H, V
 from ..simulation.world import Fleet, World, WorldConfig, make_world
 from .metrics import (
@@ -33,6 +34,14 @@ from .metrics import (
     merge_shards,
     speed_histogram,
 )
+
+#: Blocks of test tracks, by name: ``[first, end)`` track indices. "open" holds every road the
+#: course, the lab scripts, the benchmarks and the tests drive; "record" is sealed: only the
+#: numbers of record (:func:`e2e_lite.ablation.record_table1`) drive it, after every recipe
+#: choice is frozen, so no choice was ever made while looking at its roads (issue 57; a test
+#: checks that no other code names it, and :func:`track_index` keeps every other drive out).
+SEALED_BLOCK = "record"
+ROAD_BLOCKS = {"open": (0, 1_000_000), SEALED_BLOCK: (1_000_000, 2_000_000)}
 
 
 @dataclass(frozen=True)
@@ -57,7 +66,10 @@ class EvalConfig:
         offcentre_grace_s: an off-centre episode longer than this is an intervention [s].
         intervention_cost_s: time charged per intervention in the autonomy metric [s].
         stall_speed_mps, stall_time_s: below this speed for this long is a stall [m/s, s].
-        seed: seeds the start lanes.
+        seed: seeds the start lanes (each car's own: :func:`start_lane`).
+        block: which block of test tracks (:data:`ROAD_BLOCKS`): ``"open"`` (the default; every
+            drive of the course) or ``"record"`` (sealed: the numbers of record alone). Track
+            indices count from the block's first track; a drive never leaves its block.
 
     Where cars (re)start is one rule, :func:`start_state` and :func:`restart_state`, shared with
     the data collector. A restart is at ``start_speed_mps`` (20 m/s), below the roads' 25 m/s
@@ -86,6 +98,10 @@ class EvalConfig:
     stall_speed_mps: float = 0.5
     stall_time_s: float = 20.0
     seed: int = 0
+    block: str = "open"
+
+    #: added after evaluations were stored: at its default it stays out of their keys
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("block",)
 
     def __post_init__(self) -> None:
         o = "EvalConfig"
@@ -107,6 +123,14 @@ class EvalConfig:
         check_range(o, "stall_speed_mps", self.stall_speed_mps, 0.0)
         check_range(o, "stall_time_s", self.stall_time_s, 0.0, lo_open=True)
         check_range(o, "seed", self.seed, 0, integer=True)
+        if self.block not in ROAD_BLOCKS:
+            raise ValueError(
+                f"EvalConfig.block={self.block!r} is invalid: must be one of {sorted(ROAD_BLOCKS)}"
+            )
+        if self.block != "open" and self.split != "test":
+            raise ValueError(
+                f"EvalConfig.block={self.block!r} is a block of test roads: split='test'"
+            )
 
 
 def drive(
@@ -223,10 +247,28 @@ def check_policy_rate(policy: Policy, world_cfg: WorldConfig) -> None:
         policy = getattr(policy, "agent", None) or getattr(policy, "expert", None)
 
 
+def start_lane(cfg: EvalConfig, car: int, visit: int, n_lanes: int) -> int:
+    """The lane car ``car`` starts in on its ``visit``-th track (before :func:`start_state` moves
+    it off a parked car): drawn from the car's own generator, so no other car's draws and no
+    shard change it."""
+    return int(car_rng(cfg.seed, 7, car, visit).integers(0, n_lanes))
+
+
 def track_index(cfg: EvalConfig, car: int, visit: int) -> int:
-    """Index (in ``cfg.split``) of the ``visit``-th track car ``car`` drives (see :class:`EvalConfig`)."""
+    """Index (in ``cfg.split``) of the ``visit``-th track car ``car`` drives (see :class:`EvalConfig`),
+    inside the block ``cfg.block`` of test roads (:data:`ROAD_BLOCKS`; a drive that would leave
+    its block raises ``ValueError``)."""
     index = cfg.first_track + car + visit * cfg.n_worlds
-    return index if cfg.n_tracks is None else index % cfg.n_tracks
+    index = index if cfg.n_tracks is None else index % cfg.n_tracks
+    if cfg.split != "test":
+        return index
+    first, end = ROAD_BLOCKS[cfg.block]
+    if first + index >= end:
+        raise ValueError(
+            f"test track {first + index} is past the {cfg.block!r} block of test roads "
+            f"[{first}, {end}): the {'sealed ' if cfg.block != 'open' else ''}block ends there"
+        )
+    return first + index
 
 
 def disjoint_runs(cfg: EvalConfig, world_cfg: WorldConfig, n: int) -> list[EvalConfig]:
@@ -250,17 +292,18 @@ def drive_shard(
     world_cfg: WorldConfig,
     cfg: EvalConfig,
     cars: np.ndarray,
-    shard: int,
     advance: Callable[[float], None],
-    record_traces: bool,
-    stop_when: Callable[[], bool] | None,
+    record_traces: bool = False,
+    stop_when: Callable[[], bool | np.ndarray] | None = None,
 ) -> ShardResult:
-    """Drive the cars ``cars`` (their indices among ``cfg.n_worlds``) to their shares; start
-    lanes come from shard ``shard``'s generator."""
+    """Drive the cars ``cars`` (their indices among ``cfg.n_worlds``) to their shares.
+
+    Every random choice is the car's own (:func:`start_lane`, the camera's jitter, the policy's
+    ``seed_cars``), so a car drives the same in any shard of any size. ``stop_when`` is called
+    after every decision: True stops every car, an array of bools the cars it marks."""
     out = ShardResult()
     n = len(cars)
     pool = _WorldPool(world_cfg, cfg.split)
-    rng = np.random.default_rng([cfg.seed, 7] if shard == 0 else [cfg.seed, 7, shard])
     visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
     fleet = Fleet([pool.get(j, track_index(cfg, int(c), 0)) for j, c in enumerate(cars)], world_cfg)
     dt_pol = world_cfg.sim.policy_period_s
@@ -273,7 +316,8 @@ def drive_shard(
 
     def spawn_new_track(i: int) -> None:
         w = fleet.worlds[i]
-        fleet.place(i, *start_state(w, int(rng.integers(0, w.track.n_lanes)), cfg))
+        lane = start_lane(cfg, int(cars[i]), int(visit[i]), w.track.n_lanes)
+        fleet.place(i, *start_state(w, lane, cfg))
 
     def respawn(i: int, s_obstacle: float, d_now: float) -> None:
         fleet.place(i, *restart_state(fleet.worlds[i], s_obstacle, d_now, cfg))
@@ -287,6 +331,9 @@ def drive_shard(
 
     for i in range(n):
         spawn_new_track(i)
+    seed_cars = getattr(policy, "seed_cars", None)
+    if seed_cars is not None:
+        seed_cars(cars)
     policy.reset(n)
 
     episode_t = np.zeros(n)
@@ -299,8 +346,8 @@ def drive_shard(
     cam_cfg = getattr(policy, "camera", None)
     camera = None if cam_cfg is None else Camera(cam_cfg)
     images = None if camera is None else np.empty((n, *camera.shape), dtype=np.uint8)
-    # used only if the camera augments
-    cam_rng = np.random.default_rng([cfg.seed, 11] if shard == 0 else [cfg.seed, 11, shard])
+    # used only if the camera augments: each car's jitter from its own generator
+    cam_rngs = [car_rng(cfg.seed, 11, int(c)) for c in cars]
     lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
     lengths = np.array([w.track.length for w in fleet.worlds])  # of each car's current track [m]
     while active.any():
@@ -324,7 +371,7 @@ def drive_shard(
                 [w.cars for w in fleet.worlds],
                 fleet.state[:, :3],
                 s,
-                rng=cam_rng,
+                rng=cam_rngs,
                 out=images,
             )
             out.timing["frames"] += n
@@ -403,13 +450,13 @@ def drive_shard(
                     episode_t[i] = 0.0
                     respawn(i, *position(i))
         active &= odometer < share_m
-        if stop_when is not None and stop_when():
-            active[:] = False
+        if stop_when is not None:
+            active &= ~np.broadcast_to(np.asarray(stop_when(), dtype=bool), (n,))
         done = float(np.minimum(odometer, share_m).sum() / M_PER_MILE)
         advance(max(0.0, done - reported))
         reported = max(reported, done)
-    out.miles_m = float(odometer.sum())
-    out.sim_s = float(sim_time.sum())
+    out.car_miles_m = odometer
+    out.car_sim_s = sim_time
     out.censored = int(np.count_nonzero(episode_t > 0))
     out.tracks = int((visit + 1).sum())
     return out
@@ -430,7 +477,7 @@ def roll_out(
     t_wall = time.perf_counter()
     check_policy_rate(policy, world_cfg)
     cars = np.arange(cfg.n_worlds)
-    shard = drive_shard(policy, world_cfg, cfg, cars, 0, _ignore, record_traces, stop_when)
+    shard = drive_shard(policy, world_cfg, cfg, cars, _ignore, record_traces, stop_when)
     return merge_shards([shard], cfg.intervention_cost_s, time.perf_counter() - t_wall)
 
 

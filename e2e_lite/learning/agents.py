@@ -35,7 +35,7 @@ from ..control.tracker import (
     follow_trajectory,
 )
 from ..simulation.camera import CameraConfig
-from ..simulation.policy import Actuation, Observation
+from ..simulation.policy import FORWARD_GROUP, Actuation, Observation
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import SimConfig
 from .heads import GMM, HEADS, Trajectory
@@ -97,7 +97,15 @@ class NetworkAgent:
         image = images_to_tensor(images, self.device)
         speed = torch.as_tensor(speed_mps, dtype=torch.float32, device=self.device)[:, None]
         with torch.inference_mode():
-            return self.model(image, speed, **kw)
+            # one pass per group of FORWARD_GROUP frames: a frame's outputs are then the same bits
+            # in any shard of an evaluation (see simulation.policy.FORWARD_GROUP)
+            parts = [
+                self.model(image[i : i + FORWARD_GROUP], speed[i : i + FORWARD_GROUP], **kw)
+                for i in range(0, len(image), FORWARD_GROUP)
+            ]
+            if len(parts) == 1:
+                return parts[0]
+            return {name: torch.cat([p[name] for p in parts]) for name in parts[0]}
 
     def act(self, obs: Observation) -> Actuation:  # pragma: no cover - abstract
         raise NotImplementedError

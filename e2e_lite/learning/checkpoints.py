@@ -27,6 +27,7 @@ from ..artifacts import (
     settings_key,
     versioned,
 )
+from ..config import precision
 from .dataset import DrivingData, DrivingDataset
 from .losses import Objective
 from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
@@ -52,7 +53,8 @@ def weights_digest(model: torch.nn.Module) -> str:
 def checkpoint_key(
     model_cfg: ModelConfig, train_cfg: TrainConfig, objective: Objective, data_key: str
 ) -> str:
-    """The settings key of a training run (the device is left out: CPU and GPU runs share it)."""
+    """The settings key of a training run (the device is left out: CPU and GPU runs share it;
+    the precision, :func:`~e2e_lite.config.precision`, is in)."""
     train = {**asdict(train_cfg), "device": None}
     if train["select_miles"] is None:  # (added later: left out when unused, so keys stay)
         del train["select_miles"]
@@ -62,6 +64,7 @@ def checkpoint_key(
         train,
         objective.name,
         data_key,
+        precision(),
     )
 
 

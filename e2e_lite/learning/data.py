@@ -18,6 +18,9 @@ chapter reads the data's names from one module. The recovery views of seed 003 a
 
 from __future__ import annotations
 
+import time
+from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -25,7 +28,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..artifacts import artifact_path, cached, settings_key, versioned
-from ..config import Profile, check_pair, check_range, tqdm
+from ..config import Profile, check_pair, check_range, default_workers, tqdm
 from ..control.expert import Expert, ExpertConfig
 from ..control.labels import (  # noqa: F401 (re-exported, as above)
     AFFORDANCE_NAMES,
@@ -34,10 +37,11 @@ from ..control.labels import (  # noqa: F401 (re-exported, as above)
     N_POINTS,
     throttle_brake,
 )
-from ..driving.metrics import EvalResult
-from ..driving.rollout import EvalConfig, roll_out
+from ..driving.metrics import ShardResult, merge_shards
+from ..driving.parallel import drive_in_processes
+from ..driving.rollout import EvalConfig, drive_shard
 from ..simulation.camera import CameraConfig
-from ..simulation.policy import Actuation, Observation
+from ..simulation.policy import Actuation, Observation, car_rng
 from ..simulation.world import World, WorldConfig
 from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's names here)
     CHANGE_START_M,
@@ -213,91 +217,112 @@ class DataConfig:
         return settings_key(versioned("dataset"), self)
 
 
-class _Recorder:
-    """A policy: the expert plus noise bursts, recording every decision until ``n`` samples."""
+#: the fewest samples a collecting process is started for by default: a worker's start costs
+#: about as much as collecting 1,000-2,000 samples on one core
+MIN_SAMPLES_PER_WORKER = 2_000
 
-    def __init__(self, cfg: DataConfig, progress: bool) -> None:
-        self.cfg = cfg
+
+def car_quotas(cfg: DataConfig) -> np.ndarray:
+    """Samples each car records, ``(n_worlds,)``: ``n_samples`` shared out, the first cars one
+    more when it does not divide. The dataset holds car 0's samples, then car 1's, and so on."""
+    base, extra = divmod(cfg.n_samples, cfg.n_worlds)
+    return base + (np.arange(cfg.n_worlds) < extra)
+
+
+class _Recorder:
+    """A policy: the expert plus noise bursts, recording every decision of cars ``cars`` until
+    each has recorded its quota (:func:`car_quotas`). Every draw is the car's own (seeded by its
+    index among all ``cfg.n_worlds`` cars), so a car records the same samples in any process."""
+
+    #: uniforms each car draws per decision (a fixed count, so one draw never shifts another):
+    #: restart, burst start, duration, sign, steering, brake?, size, deep?, deep target speed
+    DRAWS = 9
+
+    def __init__(self, cfg: DataConfig, cars: np.ndarray, advance: Callable[[float], None]) -> None:
+        self.cfg, self.advance = cfg, advance
         self.camera = cfg.camera
         self.expert = Expert(
             cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed
         )
-        self.rng = np.random.default_rng([cfg.seed, 23])
-        n = cfg.n_samples
+        self.quota = car_quotas(cfg)[cars]
+        self.offset = np.concatenate([[0], np.cumsum(self.quota)[:-1]])  # car i's first row
+        self.count = np.zeros(len(cars), dtype=np.int64)
+        self.rngs = [car_rng(cfg.seed, 23, int(c)) for c in cars]
         h, w = cfg.camera.height_px, cfg.camera.width_px
-        self.a = allocate(n, (h, w))
-        self.count = 0
-        self.bar = tqdm(
-            total=n,
-            desc=f"collect {cfg.split}",
-            unit="sample",
-            disable=not progress,
-            leave=False,
-            mininterval=0.5,
-        )
+        self.a = allocate(int(self.quota.sum()), (h, w))
+
+    def seed_cars(self, cars: np.ndarray) -> None:
+        self.expert.seed_cars(cars)
 
     def reset(self, n_worlds: int) -> None:
         self.expert.reset(n_worlds)
         self.burst_left = np.zeros(n_worlds)  # seconds of burst left per car
-        self.offset = np.zeros((n_worlds, 2))  # (steer, accel) offsets of the current bursts
+        self.offset_cmd = np.zeros((n_worlds, 2))  # (steer, accel) offsets of the bursts
         self.slow_to = np.zeros(n_worlds)  # a deep braking burst's target speed, 0: none [m/s]
 
-    def done(self) -> bool:
-        return self.count >= self.cfg.n_samples
+    def done(self) -> np.ndarray:
+        """Which cars have recorded their quota (the rollout stops them)."""
+        return self.count >= self.quota
 
     def act(self, obs: Observation) -> Actuation:
         traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
         clean = self.expert.act(obs)
-        n = len(obs.s)
-        self._update_noise(n, obs.speed)
-        take = min(n, self.cfg.n_samples - self.count)
-        if take > 0:
-            self._record(obs, clean, traj, take)
+        u = np.stack([r.random(self.DRAWS) for r in self.rngs])  # (B, DRAWS) in [0, 1)
+        self._update_noise(u, obs.speed)
+        rows = np.flatnonzero(self.count < self.quota)
+        if len(rows):
+            self._record(obs, clean, traj, rows)
         period = self.cfg.world.sim.policy_period_s
         deep = self.slow_to > 0  # braked whatever the expert commands
         return Actuation(
-            steer_rad=clean.steer_rad + self.offset[:, 0],
-            accel_mps2=np.where(deep, 0.0, clean.accel_mps2) + self.offset[:, 1],
-            restart=self.rng.random(n) < self.cfg.restart_rate_per_s * period,
+            steer_rad=clean.steer_rad + self.offset_cmd[:, 0],
+            accel_mps2=np.where(deep, 0.0, clean.accel_mps2) + self.offset_cmd[:, 1],
+            restart=u[:, 0] < self.cfg.restart_rate_per_s * period,
         )
 
-    def _update_noise(self, n: int, speed: np.ndarray) -> None:
+    def _update_noise(self, u: np.ndarray, speed: np.ndarray) -> None:
         """Continue the bursts, end finished ones (deep braking ones at their speed [m/s]), maybe
-        start new ones."""
+        start new ones, each car from its own uniforms ``u`` (:data:`DRAWS`)."""
         period = self.cfg.world.sim.policy_period_s
         nz = self.cfg.noise
+
+        def between(lo_hi: tuple[float, float], x: np.ndarray) -> np.ndarray:
+            return lo_hi[0] + (lo_hi[1] - lo_hi[0]) * x
+
         self.burst_left = np.maximum(self.burst_left - period, 0.0)
         self.burst_left[(self.slow_to > 0) & (speed <= self.slow_to)] = 0.0
-        self.offset[self.burst_left <= 0] = 0.0
+        self.offset_cmd[self.burst_left <= 0] = 0.0
         self.slow_to[self.burst_left <= 0] = 0.0
-        start = (self.burst_left <= 0) & (self.rng.random(n) < nz.rate_per_s * period)
-        k = int(start.sum())
-        if k:
-            self.burst_left[start] = self.rng.uniform(*nz.duration_s, k)
-            sign = self.rng.choice([-1.0, 1.0], k)
-            self.offset[start, 0] = sign * self.rng.uniform(*nz.steer_rad, k)
-            brake = self.rng.random(k) < nz.brake_share
-            self.offset[start, 1] = np.where(
-                brake,
-                -self.rng.uniform(*nz.brake_mps2, k),
-                self.rng.uniform(-nz.accel_mps2, nz.accel_mps2, k),
-            )
-            if nz.slow_share > 0:  # (no extra draws without: the default data stays the same)
-                deep = brake & (self.rng.random(k) < nz.slow_share)
-                cars = np.flatnonzero(start)[deep]
-                self.slow_to[cars] = self.rng.uniform(*nz.slow_to_mps, len(cars))
-                self.burst_left[cars] = nz.SLOW_MAX_S
+        start = (self.burst_left <= 0) & (u[:, 1] < nz.rate_per_s * period)
+        if not start.any():
+            return
+        us = u[start]
+        sign = np.where(us[:, 3] < 0.5, -1.0, 1.0)
+        brake = us[:, 5] < nz.brake_share
+        self.burst_left[start] = between(nz.duration_s, us[:, 2])
+        self.offset_cmd[start, 0] = sign * between(nz.steer_rad, us[:, 4])
+        self.offset_cmd[start, 1] = np.where(
+            brake,
+            -between(nz.brake_mps2, us[:, 6]),
+            between((-nz.accel_mps2, nz.accel_mps2), us[:, 6]),
+        )
+        deep = brake & (us[:, 7] < nz.slow_share)
+        cars = np.flatnonzero(start)[deep]
+        self.slow_to[cars] = between(nz.slow_to_mps, us[deep, 8])
+        self.burst_left[cars] = nz.SLOW_MAX_S
 
-    def _record(self, obs: Observation, clean: Actuation, traj: np.ndarray, take: int) -> None:
-        sl = slice(self.count, self.count + take)
-        a, plans, t = self.a, self.expert.plans[:take], slice(0, take)
+    def _record(self, obs: Observation, clean: Actuation, traj: np.ndarray, t: np.ndarray) -> None:
+        """Record cars ``t`` (rows of ``obs``), each at its next row of the arrays."""
+        sl = self.offset[t] + self.count[t]
+        a, plans = self.a, [self.expert.plans[i] for i in t.tolist()]
+        worlds = [obs.worlds[i] for i in t.tolist()]
         a["images"][sl] = obs.images[t]
         a["speed"][sl] = obs.speed[t]
         a["actuators"][sl, 0] = clean.steer_rad[t]
         a["actuators"][sl, 1] = clean.accel_mps2[t]
         a["trajectory"][sl] = traj[t]
-        a["affordances"][sl] = affordances(obs.worlds[t], obs.s[t], obs.d[t], obs.heading_error[t])
-        a["track"][sl] = [w.track.track_id[1] for w in obs.worlds[t]]
+        a["affordances"][sl] = affordances(worlds, obs.s[t], obs.d[t], obs.heading_error[t])
+        a["track"][sl] = [w.track.track_id[1] for w in worlds]
         a["s"][sl], a["d"][sl] = obs.s[t], obs.d[t]
         a["lane"][sl] = obs.lane[t]
         a["curvature"][sl] = obs.curvature[t]
@@ -308,32 +333,77 @@ class _Recorder:
         ]
         a["overtaking"][sl] = [p.state == CHANGE and p.overtaking for p in plans]
         a["noise"][sl] = self.burst_left[t] > 0
-        self.count += take
-        self.bar.update(take)
+        self.count[t] += 1
+        self.advance(len(t))
 
 
-def collect(cfg: DataConfig, progress: bool = True) -> DrivingData:
-    """Drive the noisy expert until ``cfg.n_samples`` samples are recorded (no caching)."""
-    rec = _Recorder(cfg, progress)
+def collect_cars(
+    cfg: DataConfig, cars: np.ndarray, advance: Callable[[float], None]
+) -> tuple[dict[str, np.ndarray], ShardResult, dict[str, int]]:
+    """Drive cars ``cars`` (indices among ``cfg.n_worlds``) until each has its quota: their
+    samples (car after car), what the drive measured and the expert's manoeuvres. One process's
+    share of :func:`collect` (``advance(k)``: k more samples recorded)."""
+    rec = _Recorder(cfg, cars, advance)
     ev = EvalConfig(
-        miles=1e6,
-        n_worlds=cfg.n_worlds,
-        split=cfg.split,
-        n_tracks=cfg.n_tracks,
-        seed=cfg.seed,
+        miles=1e6, n_worlds=cfg.n_worlds, split=cfg.split, n_tracks=cfg.n_tracks, seed=cfg.seed
     )
-    result: EvalResult = roll_out(rec, cfg.world, ev, stop_when=rec.done)
-    rec.bar.close()
+    shard = drive_shard(rec, cfg.world, ev, cars, _no_miles, stop_when=rec.done)
+    return rec.a, shard, dict(rec.expert.manoeuvres)
+
+
+def _no_miles(miles: float) -> None:
+    """Collection counts samples, not miles."""
+
+
+def collect(cfg: DataConfig, progress: bool = True, workers: int | None = None) -> DrivingData:
+    """Drive the noisy expert until ``cfg.n_samples`` samples are recorded (no caching).
+
+    The cars are shared out over ``workers`` processes (default: every core,
+    :func:`~e2e_lite.config.default_workers`, at most one per :data:`MIN_SAMPLES_PER_WORKER`);
+    the arrays are the same bytes for any count."""
+    t_wall = time.perf_counter()
+    if workers is None:  # every core, but no worker for fewer samples than its start is worth
+        workers = min(default_workers(), max(1, cfg.n_samples // MIN_SAMPLES_PER_WORKER))
+    check_range("collect", "workers", workers, 1, integer=True)
+    bar = tqdm(
+        total=cfg.n_samples,
+        desc=f"collect {cfg.split}",
+        unit="sample",
+        disable=not progress,
+        leave=False,
+        mininterval=0.5,
+    )
+    cars = np.array_split(np.arange(cfg.n_worlds), min(workers, cfg.n_worlds))
+    try:
+        if len(cars) == 1:
+            parts = [collect_cars(cfg, cars[0], lambda k: bar.update(int(k)))]
+        else:
+            jobs = [(collect_cars, (cfg, c), {}) for c in cars]
+            parts = drive_in_processes(jobs, lambda k: bar.update(int(k)))
+    finally:
+        bar.close()
+    h, w = cfg.camera.height_px, cfg.camera.width_px
+    a = allocate(cfg.n_samples, (h, w))
+    row = 0
+    for arrays, _, _ in parts:  # car after car: the parts are blocks of cars in order
+        n = len(arrays["speed"])
+        for name in a:
+            a[name][row : row + n] = arrays[name]
+        row += n
+    result = merge_shards([shard for _, shard, _ in parts], 0.0, time.perf_counter() - t_wall)
+    manoeuvres: Counter = Counter()
+    for _, _, counts in parts:
+        manoeuvres.update(counts)
     info = {
         "key": cfg.key,
         "split": cfg.split,
         "n_samples": cfg.n_samples,
-        "shares": situation_shares(rec.a),
-        "manoeuvres": dict(rec.expert.manoeuvres),
+        "shares": situation_shares(a),
+        "manoeuvres": {k: int(manoeuvres[k]) for k in parts[0][2]},
         "collection": result.to_dict(with_events=False),
         "collision_events": result.events,
     }
-    return DrivingData(rec.a, dataset_stats(rec.a), info)
+    return DrivingData(a, dataset_stats(a), info)
 
 
 def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:

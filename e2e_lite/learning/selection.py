@@ -33,8 +33,6 @@ from .training import VAL_ROADS
 #: Cars driven in lockstep by a selection drive (the ablation's batch: the network runs near its
 #: per-frame floor). Part of the checkpoint's settings through its version (``"checkpoint"``).
 SELECT_WORLDS = 64
-#: Shards of a selection drive (two worker processes on two cores).
-SELECT_WORKERS = 2
 
 
 def driver_for(model: DrivingModel) -> Policy:
@@ -58,12 +56,12 @@ class RoadScorer:
     Attributes:
         world: roads, traffic and car of the drive (the profile's).
         miles: miles per epoch [mi].
-        workers: shards of the drive.
+        workers: shards of the drive (None: every core; the result does not depend on it).
     """
 
     world: WorldConfig
     miles: float
-    workers: int = SELECT_WORKERS
+    workers: int | None = None
 
     def __call__(self, epoch: int, model: DrivingModel) -> dict[str, float]:
         net = copy.deepcopy(model).cpu().eval()
@@ -80,7 +78,7 @@ def road_scorer(
     world: WorldConfig,
     miles: float,
     also: Callable[[int, DrivingModel], dict[str, float] | None] | None = None,
-    workers: int = SELECT_WORKERS,
+    workers: int | None = None,
 ) -> Callable[[int, DrivingModel], dict[str, float]]:
     """The ``on_epoch`` hook that drives each epoch ``miles`` on validation roads; ``also``: a
     caller's own hook (e.g. keeping every epoch's weights), called first, its record joined."""

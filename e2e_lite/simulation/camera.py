@@ -37,6 +37,7 @@ simulation never drives backwards).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -269,7 +270,7 @@ class Camera:
         cars: list[ParkedCars | None],
         poses: np.ndarray,
         s: np.ndarray | None = None,
-        rng: np.random.Generator | None = None,
+        rng: np.random.Generator | Sequence[np.random.Generator] | None = None,
         out: np.ndarray | None = None,
     ) -> np.ndarray:
         """Draw B views at once (the evaluator's and the data collector's way): (B, H, W, 3) RGB.
@@ -277,7 +278,8 @@ class Camera:
         Frame ``b`` shows ``tracks[b]`` and ``cars[b]`` from a car at ``poses[b] = (x, y, heading)``
         (rear axle), with arc length ``s[b]`` if given. The geometry of all frames is computed in
         a few array operations; only the polygon fills are per frame. ``rng`` as in :meth:`render`
-        (one generator draws for every frame, in order).
+        (one generator draws for every frame, in order; or one generator per frame, as the
+        evaluator gives each car its own).
         """
         cfg = self.cfg
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
@@ -294,12 +296,15 @@ class Camera:
                 raise ValueError("Camera.render: rng is required when CameraConfig.augment is on")
             brights = []
             for b in range(n_frames):
-                heights[b] += rng.uniform(-cfg.height_jitter_m, cfg.height_jitter_m)
-                pitches[b] += math.radians(rng.uniform(-cfg.pitch_jitter_deg, cfg.pitch_jitter_deg))
-                tint = 1.0 + rng.uniform(-cfg.tint_jitter, cfg.tint_jitter, 6)
+                rng_b = rng[b] if isinstance(rng, Sequence) else rng  # (one per frame, or shared)
+                heights[b] += rng_b.uniform(-cfg.height_jitter_m, cfg.height_jitter_m)
+                pitches[b] += math.radians(
+                    rng_b.uniform(-cfg.pitch_jitter_deg, cfg.pitch_jitter_deg)
+                )
+                tint = 1.0 + rng_b.uniform(-cfg.tint_jitter, cfg.tint_jitter, 6)
                 road_cols[b] = tuple(int(min(255, c * t)) for c, t in zip(ROAD, tint[:3]))
                 grass = tuple(int(min(255, c * t)) for c, t in zip(GRASS, tint[3:]))
-                brights.append(1.0 + rng.uniform(-cfg.brightness_jitter, cfg.brightness_jitter))
+                brights.append(1.0 + rng_b.uniform(-cfg.brightness_jitter, cfg.brightness_jitter))
                 np.copyto(out[b], self._make_background(pitches[b], SKY, grass))
         else:
             out[:] = self._background

@@ -1,8 +1,11 @@
-"""``python -m e2e_lite.bench pool``: the course's shard pool (:mod:`e2e_lite.driving.parallel`)
-against loky's reusable executor, when loky is installed (``pip install loky``), on chapter 10's
-drive: the first call (workers started), a second call (workers kept), and Ctrl-C in a child
-driving 1,000 mi (seconds to exit, lines on stderr, processes left behind). Its figures and the
-choice they led to are in docs/benchmarks.md and the pool's module docstring.
+"""The course's shard pool (:mod:`e2e_lite.driving.parallel`) against loky's reusable executor,
+when loky is installed (``pip install loky``), on chapter 10's drive: the first call (workers
+started), a second call (workers kept), and Ctrl-C in a child driving 1,000 mi (seconds to exit,
+lines on stderr, processes left behind). Its figures and the choice they led to are in
+docs/benchmarks.md and the pool's module docstring. (Was ``python -m e2e_lite.bench pool`` until
+the choice was made; a one-off experiment, so it lives in lab/.)
+
+    python lab/pool_vs_loky.py [--quick]
 """
 
 from __future__ import annotations
@@ -14,13 +17,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from .config import active_profile
-from .driving.metrics import M_PER_MILE
-from .driving.rollout import EvalConfig
-from .simulation.world import WorldConfig
+from e2e_lite.config import active_profile
+from e2e_lite.driving import parallel
+from e2e_lite.driving.evaluation import shard_cars
+from e2e_lite.driving.metrics import M_PER_MILE
+from e2e_lite.driving.rollout import EvalConfig
+from e2e_lite.simulation.world import WorldConfig
 
 
 def _pool_jobs(miles: float, driver: Callable) -> list[tuple]:
@@ -29,29 +33,25 @@ def _pool_jobs(miles: float, driver: Callable) -> list[tuple]:
     policy, _ = driver("gmm", torch.device("cpu"))
     world_cfg = WorldConfig.for_profile(active_profile([]))
     ev = EvalConfig(miles=miles, n_worlds=64, n_tracks=16)
-    cars = np.array_split(np.arange(ev.n_worlds), 2)
-    return [(p, world_cfg, ev, c, k, False) for k, (p, c) in enumerate(zip(policy.fork(2), cars))]
+    cars = shard_cars(ev.n_worlds, 2)
+    return [parallel.shard_job(p, world_cfg, ev, c, False) for p, c in zip(policy.fork(2), cars)]
 
 
 def _loky_shard(job: tuple, threads: int) -> object:
     """One shard in a loky worker, torch on ``threads`` threads (no progress stream: loky has
     none, so the caller hears of a shard only when it ends)."""
-    from .driving.parallel import _drive_job
-
     torch.set_num_threads(threads)
-    return _drive_job(job, lambda miles: None)
+    return parallel.run_job(job, lambda miles: None)
 
 
 def _drive_with(pool: str, jobs: list[tuple]) -> list:
     """Drive ``jobs`` with the course's pool (``"ours"``) or loky's reusable executor."""
-    from .driving import parallel
-
     if pool == "ours":
         return parallel.drive_in_processes(jobs, lambda miles: None)
     import loky
 
     executor = loky.get_reusable_executor(max_workers=len(jobs))
-    threads = parallel.shard_threads(len(jobs))
+    threads = parallel.SHARD_TORCH_THREADS
     futures = [executor.submit(_loky_shard, job, threads) for job in jobs]
     try:
         return [f.result() for f in futures]
@@ -82,8 +82,9 @@ def _ctrl_c(pool: str, after_s: float = 3.0) -> dict[str, float]:
     token = uuid.uuid4().hex
     with tempfile.TemporaryFile("w+") as err:  # (a file: workers left behind may hold a pipe)
         child = subprocess.Popen(
-            [sys.executable, "-c", "from e2e_lite.bench import learned_driver; from "
-             f"e2e_lite.bench_pool import _pool_child; _pool_child({pool!r}, learned_driver)"],
+            [sys.executable, "-c", f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+             "from e2e_lite.bench import learned_driver; from pool_vs_loky import _pool_child; "
+             f"_pool_child({pool!r}, learned_driver)"],
             stdout=subprocess.PIPE, stderr=err, text=True,
             env={**os.environ, "E2E_POOL_TRIAL": token},
         )  # fmt: skip
@@ -118,8 +119,6 @@ def bench_pool(quick: bool, driver: Callable) -> dict[str, float]:
     bench's ``learned_driver``."""
     import importlib.util
 
-    from .driving import parallel
-
     pools = ["ours"] + (["loky"] if importlib.util.find_spec("loky") else [])
     if len(pools) == 1:
         print("loky is not installed (pip install loky): the course's pool alone")
@@ -131,7 +130,7 @@ def bench_pool(quick: bool, driver: Callable) -> dict[str, float]:
             t0 = time.perf_counter()
             shards = _drive_with(pool, jobs)
             wall = time.perf_counter() - t0
-            miles = sum(s.miles_m for s in shards) / M_PER_MILE
+            miles = sum(float(s.car_miles_m.sum()) for s in shards) / M_PER_MILE
             out[f"{pool}_{call}_call_s"] = wall
             out[f"{pool}_{call}_sim_miles_per_wall_s"] = miles / wall
         out[f"{pool}_collisions"] = sum(len(s.events) for s in shards)
@@ -139,3 +138,10 @@ def bench_pool(quick: bool, driver: Callable) -> dict[str, float]:
             out[f"{pool}_ctrl_c_{k}"] = v
     parallel.close_shard_workers()
     return out
+
+
+if __name__ == "__main__":
+    from e2e_lite.bench import learned_driver
+
+    for key, value in bench_pool("--quick" in sys.argv, learned_driver).items():
+        print(f"  {key:36s} {value:,.2f}")

@@ -1,0 +1,243 @@
+"""Seed-level verdicts: does one recipe collide less than another, with the training seed as the
+unit of replication, and how likely was the record to see it?
+
+Every seed of a row drives the same budget of miles (:func:`~e2e_lite.driving.rollout.disjoint_runs`),
+so a seed's result is a whole number of collisions. Two rows are compared on those counts:
+
+* :func:`rank_test`: the exact permutation test of the midrank sum (Mann-Whitney with ties
+  kept as ties): every split of the pooled seeds into two rows of the same sizes is equally
+  likely under "no difference", and the p-value counts the splits whose rank sum is at least as
+  extreme. Equal counts share their rank: a step that rests on ties is not claimed.
+* :func:`sign_flip_test`: the paired version, where seed ``k`` of both rows drove the same
+  roads and start lanes and (for a fine-tune and its control) grew from the same parent network:
+  the per-seed differences' signs are flipped in every way.
+* :func:`ratio_interval`: the effect size, the rows' pooled rate ratio, with a bootstrap
+  interval over the seeds.
+* :func:`power`: how often a record of its seeds and miles finds a true step of a given size,
+  and the smallest p-value it can reach at all (3 seeds against 3: 0.05, never below it).
+
+Counts of seeds whose miles differ (a drive ends a few metres after its budget) are first
+brought to the row's common budget and rounded (:func:`seed_counts`), so a tie stays a tie.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from .metrics import EvalResult, result_dict
+
+#: two-decimal midranks are doubled to integers for the exact distributions
+_TWICE = 2
+
+
+def seed_counts(result: EvalResult | dict[str, Any]) -> tuple[np.ndarray, float]:
+    """Each training seed's collisions over the row's common budget, and that budget [mi].
+
+    The budget is the median of the seeds' miles; a seed's count is its rate at that budget,
+    rounded to a whole collision (a seed that drove 100.004 mi and collided 6 times counts 6, as
+    one that drove 99.998 mi and collided 6 times), so equal counts stay equal."""
+    r = result_dict(result)
+    seeds = r.get("seeds") or [r]
+    miles = np.array([s["miles"] for s in seeds], dtype=float)
+    budget = float(np.median(miles))
+    counts = np.array([s["collisions"] for s in seeds], dtype=float)
+    return np.rint(counts * budget / np.maximum(miles, 1e-9)), budget
+
+
+def _midranks(values: np.ndarray) -> np.ndarray:
+    """Ranks 1..N with tied values sharing the mean of their ranks, doubled (integers)."""
+    order = np.argsort(values, kind="stable")
+    ranks = np.empty(len(values), dtype=np.int64)
+    sorted_v = values[order]
+    i = 0
+    while i < len(values):
+        j = i
+        while j + 1 < len(values) and sorted_v[j + 1] == sorted_v[i]:
+            j += 1
+        ranks[order[i : j + 1]] = (i + 1) + (j + 1)  # twice the mean of ranks i+1 .. j+1
+        i = j + 1
+    return ranks
+
+
+def _subset_sum_counts(weights: np.ndarray, k: int) -> np.ndarray:
+    """``out[s]``: how many subsets of ``k`` of the integer ``weights`` sum to ``s`` (exact)."""
+    total = int(weights.sum())
+    dp = np.zeros((k + 1, total + 1), dtype=object)  # Python ints: C(20, 10) and beyond, exact
+    dp[0, 0] = 1
+    for w in weights.tolist():
+        for j in range(k, 0, -1):
+            dp[j, w:] = dp[j, w:] + dp[j - 1, : total + 1 - w]
+    return dp[k]
+
+
+def rank_test(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
+    """Exact one-sided permutation tests of the midrank sum of ``a`` against ``b``.
+
+    Returns ``{"p_fewer": P(a's rank sum <= observed), "p_more": P(>= observed), "min_p": the
+    smallest p-value this many seeds can reach}`` under every split of the pooled values into
+    groups of ``len(a)`` and ``len(b)`` being equally likely (ties kept)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    ranks = _midranks(np.concatenate([a, b]))
+    observed = int(ranks[: len(a)].sum())
+    dist = _subset_sum_counts(ranks, len(a))
+    splits = math.comb(len(a) + len(b), len(a))
+    below = int(sum(dist[: observed + 1]))
+    above = int(sum(dist[observed:]))
+    return {"p_fewer": below / splits, "p_more": above / splits, "min_p": 1.0 / splits}
+
+
+def sign_flip_test(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
+    """Exact one-sided sign-flip tests on the paired differences ``a[k] - b[k]``.
+
+    Under "no difference" each seed's difference is as likely negative as positive; the p-value
+    counts the ``2^n`` sign patterns whose sum is at least as extreme (zero differences flip to
+    themselves: a tie counts for neither row). Returns ``{"p_fewer", "p_more", "min_p"}``."""
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    if len(d) != len(np.asarray(b)):
+        raise ValueError("sign_flip_test: both rows need the same seeds (paired)")
+    observed = d.sum()
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=len(d))))  # (2^n, n)
+    sums = signs @ np.abs(d)
+    eps = 1e-9 * max(1.0, float(np.abs(d).sum()))
+    return {
+        "p_fewer": float(np.mean(sums <= observed + eps)),
+        "p_more": float(np.mean(sums >= observed - eps)),
+        "min_p": 0.5 ** len(d),
+    }
+
+
+def ratio_interval(
+    a: Sequence[float],
+    b: Sequence[float],
+    level: float = 0.95,
+    paired: bool = False,
+    n_boot: int = 4_000,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """The rate ratio ``sum(a) / sum(b)`` of two rows' counts (equal budgets per seed) with a
+    percentile bootstrap interval over the training seeds: ``(ratio, low, high)``.
+
+    The seeds of each row are resampled with replacement (``paired``: seed pairs together); a
+    resample whose ``b`` row never collided gives ``inf``. A ratio below 1: ``a`` collides less."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    rng = np.random.default_rng(seed)
+    ia = rng.integers(0, len(a), (n_boot, len(a)))
+    ib = ia if paired else rng.integers(0, len(b), (n_boot, len(b)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        boot = a[ia].sum(1) / b[ib].sum(1)
+        ratio = a.sum() / b.sum() if b.sum() else math.inf
+    boot = np.where(np.isnan(boot), 1.0, boot)  # 0 / 0: no evidence either way
+    tail = (1.0 - level) / 2.0 * 100.0
+    low, high = np.percentile(boot, [tail, 100.0 - tail])
+    return float(ratio), float(low), float(high)
+
+
+def compare_seeds(
+    a: EvalResult | dict[str, Any],
+    b: EvalResult | dict[str, Any],
+    level: float = 0.95,
+    paired: bool = False,
+) -> dict[str, Any]:
+    """Does driver ``a`` collide less than ``b``, or more, with the training seed as the unit?
+
+    The primary test is :func:`rank_test` on the seeds' counts (:func:`seed_counts`), or with
+    ``paired`` (seed ``k`` of both rows drove the same roads, and a fine-tune shares its parent's
+    seed) :func:`sign_flip_test`; the other is reported beside it. The pooled Poisson test
+    (:func:`~e2e_lite.driving.metrics.compare_rates`) treats a row's miles as one draw and is
+    secondary.
+
+    Returns:
+        ``{"p_fewer", "p_more", "fewer", "more", "min_p", "test", "p_unpaired", "p_paired",
+        "ratio", "ratio_ci", "counts_a", "counts_b", "verdict": one line}``. ``fewer``
+        (``more``) when its p-value is below ``1 - level``; ``min_p`` is the smallest p-value
+        these seeds could give, so a verdict that could not have been reached says so.
+    """
+    ca, budget_a = seed_counts(a)
+    cb, _ = seed_counts(b)
+    paired = paired and len(ca) == len(cb)
+    unpaired = rank_test(ca, cb)
+    flip = sign_flip_test(ca, cb) if len(ca) == len(cb) else None
+    main = flip if paired and flip is not None else unpaired
+    cut = 1.0 - level - 1e-9  # (3 seeds against 3 give exactly 0.05, which is not below 0.05)
+    fewer, more = main["p_fewer"] < cut, main["p_more"] < cut
+    ratio, lo, hi = ratio_interval(ca, cb, level, paired=paired)
+    scale = 100.0 / budget_a if budget_a > 0 else 0.0
+    med = (
+        f"median {np.median(ca) * scale:.1f} vs {np.median(cb) * scale:.1f} per 100 mi "
+        f"({len(ca)} vs {len(cb)} seeds), ratio {ratio:.2f} [{lo:.2f}, {hi:.2f}]"
+    )
+    test = "paired sign-flip" if main is flip else "rank"
+    if fewer:
+        verdict = f"{med}: fewer collisions, seed by seed ({test} p = {main['p_fewer']:.2g})"
+    elif more:
+        verdict = f"{med}: more collisions, seed by seed ({test} p = {main['p_more']:.2g})"
+    else:
+        p = min(main["p_fewer"], main["p_more"])
+        reach = "" if main["min_p"] < cut else f"; {len(ca)} seeds cannot reach p < {1 - level:.2g}"
+        verdict = f"{med}: not shown at the seed level ({test} p = {p:.2g}{reach})"
+    return {
+        "p_fewer": main["p_fewer"],
+        "p_more": main["p_more"],
+        "fewer": bool(fewer),
+        "more": bool(more),
+        "min_p": main["min_p"],
+        "test": test,
+        "p_unpaired": unpaired["p_fewer"],
+        "p_paired": None if flip is None else flip["p_fewer"],
+        "ratio": ratio,
+        "ratio_ci": (lo, hi),
+        "counts_a": ca.astype(int).tolist(),
+        "counts_b": cb.astype(int).tolist(),
+        "verdict": verdict,
+    }
+
+
+def power(
+    seeds: int,
+    miles_per_seed: float,
+    rate_per_100mi: float,
+    step: float = 2.0,
+    level: float = 0.95,
+    n_sim: int = 2_000,
+    seed: int = 0,
+) -> dict[str, float]:
+    """How often a record of ``seeds`` seeds per row, each driving ``miles_per_seed``, finds a
+    true step: the better row colliding ``rate_per_100mi``, the worse ``step`` times that.
+
+    Simulated: each seed's count is a Poisson draw of its row's rate (no seed-to-seed spread, so
+    this is an upper bound: real seeds spread more), and the record "finds" the step when
+    :func:`rank_test` gives ``p_fewer < 1 - level``. Returns ``{"power", "min_p"}``: the share
+    of simulated records that find it, and the smallest p-value these seeds can reach."""
+    rng = np.random.default_rng(seed)
+    lam = rate_per_100mi * miles_per_seed / 100.0
+    better = rng.poisson(lam, (n_sim, seeds))
+    worse = rng.poisson(lam * step, (n_sim, seeds))
+    cut = 1.0 - level - 1e-9
+    cache: dict[tuple, bool] = {}
+    found = 0
+    for a, b in zip(better, worse):
+        key = (tuple(sorted(a.tolist())), tuple(sorted(b.tolist())))
+        if key not in cache:
+            cache[key] = rank_test(a, b)["p_fewer"] < cut
+        found += cache[key]
+    return {"power": found / n_sim, "min_p": 1.0 / math.comb(2 * seeds, seeds)}
+
+
+def seeds_for_power(
+    miles_per_seed: float,
+    rate_per_100mi: float,
+    target: float = 0.9,
+    step: float = 2.0,
+    most: int = 20,
+) -> int:
+    """The fewest seeds per row whose record finds a ``step`` with at least ``target`` power
+    (:func:`power`), up to ``most`` (returned when none reaches it)."""
+    for n in range(2, most + 1):
+        if power(n, miles_per_seed, rate_per_100mi, step, n_sim=1_000)["power"] >= target:
+            return n
+    return most

@@ -1,0 +1,91 @@
+"""How long a run should take on this machine: the parts the benchmarks measure (:class:`Work`),
+their rates on the reference machine (:data:`RATES`, from docs/benchmarks.md), and the line a long
+run prints first (:func:`plan_text`: the workers, the device, the precision and the estimate).
+``python -m e2e_lite.course`` and ``python -m e2e_lite.report --record`` print it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from .config import Profile
+
+
+class Work(NamedTuple):
+    """What a run does, in the parts ``python -m e2e_lite.bench`` measures (for estimates).
+
+    Attributes:
+        collect_samples: expert samples collected (chapter 04's data).
+        train_samples: samples passed through training (samples x epochs, every network).
+        drive_miles: closed-loop miles (evaluations and the selection drives).
+        other_s: everything else, as timed on the reference machine [s].
+    """
+
+    collect_samples: float
+    train_samples: float
+    drive_miles: float
+    other_s: float = 0.0
+
+
+#: Per-part rates on the reference machine (a 2-core AMD EPYC, torch 2.13 on CPU), measured by
+#: ``python -m e2e_lite.bench scaling`` and ``train`` (docs/benchmarks.md, "Every core"):
+#: closed-loop miles per second of one worker process driving chapter 10's 64 cars, expert
+#: samples per second of one collecting process, training samples per second (the training loop
+#: on the machine's threads; on a GPU, the H100's ratio measured in docs/benchmarks.md), and the
+#: share of the ideal speed-up that each further worker adds.
+RATES = {
+    "drive_mi_per_s_per_worker": 2.6,
+    "collect_samples_per_s_per_worker": 330.0,
+    "train_samples_per_s": {"cpu": 1_100.0, "cuda": 25_000.0},
+    "worker_efficiency": 0.85,
+}
+
+
+def estimate_s(work: Work, workers: int, device: str = "cpu") -> float:
+    """Seconds ``work`` should take with ``workers`` worker processes and training on ``device``
+    (``"cpu"`` or ``"cuda"``), from :data:`RATES`: each part's amount over its rate, the workers
+    counted at :data:`RATES`' efficiency beyond the first. An estimate: the networks, the roads'
+    traffic and the machine's cores all move it."""
+    effective = 1.0 + RATES["worker_efficiency"] * (max(1, workers) - 1)
+    train_rate = RATES["train_samples_per_s"].get(device, RATES["train_samples_per_s"]["cpu"])
+    return (
+        work.collect_samples / (RATES["collect_samples_per_s_per_worker"] * effective)
+        + work.drive_miles / (RATES["drive_mi_per_s_per_worker"] * effective)
+        + work.train_samples / train_rate
+        + work.other_s
+    )
+
+
+def plan_text(what: str, work: Work, workers: int, device: str) -> str:
+    """The line a long run prints first: the workers and device it will use, and its estimate."""
+    from .config import WORKERS_ENV, available_cores, precision
+
+    minutes = estimate_s(work, workers, device) / 60.0
+    return (
+        f"{what}: {workers} worker processes ({available_cores()} cores; {WORKERS_ENV} to change),"
+        f" training on {device} in {precision()}; estimate about {minutes:.0f} min "
+        f"({work.drive_miles:,.0f} mi driven, {work.train_samples / 1e6:.1f} M training samples,"
+        f" {work.collect_samples:,.0f} samples collected; rates of docs/benchmarks.md)"
+    )
+
+
+def course_work(profile: Profile) -> Work:
+    """What the full course does from an empty outputs folder, in :class:`Work`'s parts (counted
+    from the chapters: chapter 04's data; chapters 05-08's networks, chapter 08's weight grid,
+    chapters 09-10's further seeds, the w = 0 control and the fine-tunes; every evaluation and
+    every selection drive). Chapters 01-03, the figures and the replays are ``other_s``."""
+    from .learning.recipes import SELECT_MILES
+
+    s, n, epochs = profile.ablation_seeds, profile.n_train_samples, profile.train_epochs
+    scratch = 6 + 5 * (s - 1) + s  # seed 0 of 05-08 (07: two), seeds 1.. of five rows, w = 0
+    tuned = 2 * s  # the CVaR fine-tune and its control, every seed
+    grid = 5 * 2 * n / 4  # chapter 08's weight grid: 5 weights, 2 epochs, a quarter of the data
+    selecting = scratch * epochs * SELECT_MILES if epochs > 1 else 0.0
+    chapters_05_08 = 6 * profile.eval_miles  # their evaluations (05: 2, 06: 1, 07: 2, 08: 1)
+    rows_09_11 = (3 + 7 + 2 + 3) * profile.ablation_miles  # 09: 3 rows, 10: 7 + 2, 11: 3
+    return Work(
+        collect_samples=profile.n_train_samples + profile.n_val_samples,
+        train_samples=n * (scratch * epochs + tuned) + grid,
+        drive_miles=selecting + chapters_05_08 + rows_09_11,
+        other_s=300.0,
+    )
