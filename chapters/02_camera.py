@@ -162,6 +162,7 @@ scenes = {
         math.radians(-6.0),
     ),
 }
+# %%
 fig = Figure(figsize=(12, 13))
 axes = fig.subplots(len(scenes), 2, gridspec_kw={"width_ratios": [3.2, 1]})
 for (name, (track, cars, s, d, yaw)), (ax_cam, ax_top) in zip(scenes.items(), axes):

@@ -108,6 +108,7 @@ def expert_drive(seed: int, world: World = scene, seconds: float = 26.0):
     return path, np.array(states), contacts
 
 
+# %%
 colours = {0: "#1f77b4", 1: "#ff7f0e", 2: "#2ca02c", 3: "#d62728"}
 fig = Figure(figsize=(12, 4.6))
 axes = fig.subplots(2, 1)
@@ -288,9 +289,9 @@ hist_png = save_figure(fig, artifacts.artifact_path("figures", "04_label_tails.p
 # visits. The two differ. The evaluator starts every car at 20 m/s and, after every collision,
 # puts it back 15 m past the obstacle at 20 m/s (the roads' cruise speed is 25 m/s): a driver that
 # collides every half mile spends much of its time getting back to speed, in states an expert that
-# never collides rarely shows. In the course's first run only 2.7 % of the training samples were
-# below 22 m/s, and the GMM of chapter 07, restarted there over and over, picked the "slow, keep
-# lane" mode and never got back to speed.
+# never collides rarely shows. In the course's first run the training data held almost no
+# sample below 22 m/s, and the GMM of chapter 07, restarted there over and over, picked the
+# "slow, keep lane" mode and never got back to speed (lab notes).
 #
 # The classic answer is DAgger (let the learner drive, label what it visits with the expert,
 # retrain). The cheaper one used here: the collector **takes the car over** now and then (once per

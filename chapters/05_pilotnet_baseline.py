@@ -176,8 +176,9 @@ assert gap < 1e-6, gap
 # One loop for every chapter (`e2e_lite.learning.training.fit`): Adam at 1e-3 without weight decay (the
 # paper), batches of 64, per-epoch metrics JSON and a training curve in
 # `outputs/figures/train_<name>.png`. Of several epochs, the one kept is the one that collides
-# least when it drives 20 mi on validation roads (chapter 07 says why; with one epoch, as in
-# the quick profile, there is nothing to choose). A checkpoint carries the model's settings,
+# least when it drives 20 mi on validation roads (held-out errors do not predict the driving:
+# chapter 07 shows it epoch by epoch; with one epoch, as in the quick profile, there is nothing
+# to choose). A checkpoint carries the model's settings,
 # its normalisation statistics and the dataset's key; running the chapter again reuses it. The
 # settings of each trained driver live in `e2e_lite/learning/recipes.py`, so chapter 10 retrains or reuses
 # exactly these models.

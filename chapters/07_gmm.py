@@ -143,19 +143,14 @@ print(f"line by line: equal to the library on a random batch; far target {far_st
 assert abs(far_stable - far_nll) < 1e-9
 
 # %% [markdown]
-# ## 2. Training with sigma held at 1, and which epoch to keep
+# ## 2. Training with sigma held at 1
 #
 # With sigma held at 1 (its layer never trained) the loss is each mode's squared error,
 # soft-minimised over the modes by the learned weights: the modes learn *where*, and the weights
-# learn *which*, but no mode learns *how sure*.
-#
-# **Which epoch is kept is not decided by the NLL**, which with learned sigmas keeps falling as
-# they sharpen. Each epoch we also measure the error (ADE) of the trajectory the car would
-# *follow* on the held-out frames that decide collisions: overtake starts, slow frames and curves
-# (`data.situations`). Even that does not predict the driving (the paper's own point; lab note
-# "The GMM's worst seeds of record, epoch by epoch"). So every epoch **drives** 20 mi on
-# validation roads, never the test roads; the one that collides least is kept, ties to the lower
-# decisive ADE (`TrainConfig(select_by="val_roads")`, every network of the course).
+# learn *which*, but no mode learns *how sure*. Per epoch, the table shows the NLL, the error
+# (ADE) of the trajectory the car would *follow* on the held-out frames that decide collisions
+# (overtake starts, slow frames, curves), and the validation-road drive that keeps the epoch
+# (chapter 05): neither held-out number predicts the driving (the paper's own point).
 
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
@@ -241,6 +236,7 @@ uni = {k: v.copy() for k, v in agent.last.items()}
 left_img = draw_modes(human.render(w_val.track, w_val.cars, pose), uni)
 draw_trajectory(left_img, val.trajectory[i], human, colour=EXPERT_RGB)
 
+# %%
 # bimodal: chapter 06's scene
 scene, fleet = two_answers_scene(world_cfg, gap_m=44.0, speed_mps=25.0)
 straight = scene.track
@@ -469,8 +465,9 @@ artifacts.write_metrics(
 #   agrees with the textbook formula where that does not underflow.
 # * The course holds every sigma at 1: the modes and their weights are learned, their spreads
 #   are not. The paper's learned sigmas are trained beside it and driven on the same roads.
-# * The epoch kept is the one whose *followed* trajectory errs least on the situations that decide
-#   collisions, not the one with the lowest NLL (which keeps falling as sigmas sharpen).
+# * The epoch kept is the one that collides least when it drives a few miles on validation
+#   roads (ties: the lower error of its *followed* trajectory on the decisive frames), not the one
+#   with the lowest NLL (which keeps falling as sigmas sharpen).
 # * Where the expert's behaviour splits (overtake left or right), the modes split too, and the
 #   followed mode takes one side instead of the average (Fig. 3, and its scenes in closed loop).
 # * Whether the mixture lowers collisions is measured against L2 on the same roads, with an exact

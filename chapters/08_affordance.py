@@ -204,6 +204,7 @@ situation = {  # each frame in the first that applies
     "curve": curved & ~changing & ~gap_ahead,
     "other": ~(curved | changing | gap_ahead),
 }
+# %%
 fig = Figure(figsize=(12, 10.5), layout="constrained")
 axes = fig.subplots(3, 3).ravel()
 for j, (ax, name) in enumerate(zip(axes, AFFORDANCE_NAMES)):
@@ -289,7 +290,7 @@ print(
 # ## 6. Closed loop
 #
 # Same test tracks and seeds as chapters 05-07; the speed comes from the trajectory, as in
-# chapter 07's headline.
+# chapter 07.
 
 # %%
 ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
