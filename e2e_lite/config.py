@@ -76,7 +76,10 @@ class Profile:
         track_length_m: length of each procedural track [m].
         n_val_tracks: how many validation tracks closed-loop evaluation cycles through.
         eval_miles: closed-loop distance budget per driver in the chapters [mi].
-        n_worlds: worlds driven in lockstep by the evaluator (the batch B).
+        n_worlds: worlds driven in lockstep by the evaluator (the batch B; two groups of the
+            networks' forward passes at least, so an evaluation can use two cores).
+        collect_worlds: cars the data collector drives in lockstep (each records its share of
+            the samples, so few samples need few cars).
         n_train_samples: expert samples collected on training tracks (chapter 04).
         n_val_samples: expert samples collected on validation tracks (for validation losses).
         n_train_tracks: how many training tracks the collector cycles through.
@@ -98,6 +101,7 @@ class Profile:
     n_val_tracks: int
     eval_miles: float
     n_worlds: int
+    collect_worlds: int
     n_train_samples: int
     n_val_samples: int
     n_train_tracks: int
@@ -114,6 +118,7 @@ class Profile:
         check_range("Profile", "n_val_tracks", self.n_val_tracks, 1, integer=True)
         check_range("Profile", "eval_miles", self.eval_miles, 0.0, lo_open=True)
         check_range("Profile", "n_worlds", self.n_worlds, 1, integer=True)
+        check_range("Profile", "collect_worlds", self.collect_worlds, 1, integer=True)
         check_range("Profile", "n_train_samples", self.n_train_samples, 1, integer=True)
         check_range("Profile", "n_val_samples", self.n_val_samples, 1, integer=True)
         check_range("Profile", "n_train_tracks", self.n_train_tracks, 1, integer=True)
@@ -145,7 +150,8 @@ QUICK = Profile(
     track_length_m=2_000.0,
     n_val_tracks=4,
     eval_miles=1.0,
-    n_worlds=8,
+    n_worlds=16,
+    collect_worlds=8,
     n_train_samples=400,
     n_val_samples=160,
     n_train_tracks=4,
@@ -163,6 +169,7 @@ FULL = Profile(
     n_val_tracks=16,
     eval_miles=100.0,
     n_worlds=16,
+    collect_worlds=16,
     n_train_samples=48_000,
     n_val_samples=8_000,
     n_train_tracks=32,

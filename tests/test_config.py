@@ -33,7 +33,7 @@ from e2e_lite.simulation.world import SimConfig, TrafficConfig
         (lambda: SimConfig(dt_s=-0.02), "SimConfig.dt_s"),
         (lambda: SimConfig(dt_s=0.02, policy_period_s=0.05), "SimConfig.policy_period_s"),
         (lambda: TrafficConfig(car_length_m=0.0), "TrafficConfig.car_length_m"),
-        (lambda: Profile("medium", 1000.0, 1, 1.0, 1, 10, 10, 1, 1), "Profile.name"),
+        (lambda: Profile("medium", 1000.0, 1, 1.0, 1, 1, 10, 10, 1, 1), "Profile.name"),
         (lambda: dataclasses.replace(QUICK, n_train_samples=0), "Profile.n_train_samples"),
     ],
 )

@@ -72,8 +72,9 @@ from .rollout import (  # noqa: F401 (re-exported, as above)
 )
 from .verdicts import compare_seeds, power, seed_counts  # noqa: F401 (re-exported, as above)
 
-#: the least road a worker process is started for by default [mi]: a worker's start (an
-#: interpreter, torch) costs about as much as driving 3-5 mi on one core
+#: the least road per shard that ``parallel="auto"`` starts worker processes for [mi]: a worker's
+#: start (an interpreter, torch) costs about as much as driving 3-5 mi on one core; shorter drives
+#: run their shards in threads
 MIN_MILES_PER_WORKER = 5.0
 
 
@@ -127,18 +128,18 @@ def evaluate(
         stop_when: called after every decision; the drive ends early when it returns True (the
             data collector stops at a sample count this way). The metrics cover what was driven.
         workers: shards (threads or processes, see ``parallel``); default
-            :func:`~e2e_lite.config.default_workers` (every core, or ``E2E_LITE_WORKERS``), at
-            most one per :data:`MIN_MILES_PER_WORKER`; always capped by the groups of cars. A
-            policy without ``fork``, or a call with ``stop_when``, runs in one.
-        parallel: how shards run: ``"auto"`` (processes where possible, see above),
+            :func:`~e2e_lite.config.default_workers` (every core, or ``E2E_LITE_WORKERS``),
+            capped by the groups of cars. A policy without ``fork``, or a call with
+            ``stop_when``, runs in one.
+        parallel: how shards run: ``"auto"`` (processes where possible, see above, and where
+            each shard drives at least :data:`MIN_MILES_PER_WORKER`; else threads),
             ``"threads"`` or ``"processes"`` (the policy must pickle; its forks' state stays in
             the workers: report what the caller needs through ``Actuation.info``).
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
     check_policy_rate(policy, world_cfg)
-    if workers is None:  # every core, but no worker for less road than its start is worth
-        workers = min(default_workers(), max(1, int(cfg.miles // MIN_MILES_PER_WORKER)))
+    workers = default_workers() if workers is None else workers
     check_range("evaluate", "workers", workers, 1, integer=True)
     if parallel not in ("auto", "threads", "processes"):
         raise ValueError(f"parallel must be 'auto', 'threads' or 'processes', not {parallel!r}")
@@ -169,8 +170,9 @@ def evaluate(
         else:
             policies = policy.fork(len(cars))  # type: ignore[attr-defined]
             jobs = [shard_job(p, world_cfg, cfg, c, record_traces) for p, c in zip(policies, cars)]
-            if parallel == "auto":
-                parallel = "processes" if processes_ok(policy) else "threads"
+            if parallel == "auto":  # (a drive too short to pay a worker's start: threads)
+                short = cfg.miles / len(cars) < MIN_MILES_PER_WORKER
+                parallel = "processes" if processes_ok(policy) and not short else "threads"
             run = drive_in_processes if parallel == "processes" else drive_in_threads
             shards = run(jobs, advance)
     finally:

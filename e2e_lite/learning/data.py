@@ -203,7 +203,7 @@ class DataConfig:
             "split": split,
             "n_samples": profile.n_train_samples if train else profile.n_val_samples,
             "n_tracks": profile.n_train_tracks if train else profile.n_val_tracks,
-            "n_worlds": profile.n_worlds,
+            "n_worlds": profile.collect_worlds,
             "world": WorldConfig.for_profile(profile),
             "seed": 0 if train else 1,
         }
