@@ -191,7 +191,8 @@ ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 expert = Expert()
 res_expert = evaluate(expert, world_cfg, ev, desc="expert")
 print("expert:", res_expert.summary())
-print(f"  manoeuvres: {expert.manoeuvres}")
+manoeuvres = {k: int(res_expert.info.get("manoeuvres", {}).get(k, 0)) for k in expert.manoeuvres}
+print(f"  manoeuvres: {manoeuvres}")
 oracle = Oracle()
 res_oracle = evaluate(oracle, world_cfg, ev, desc="oracle")
 print("oracle:", res_oracle.summary())
@@ -354,7 +355,7 @@ artifacts.write_metrics(
         },
         "expert": res_expert.to_dict(),
         "oracle": res_oracle.to_dict(),
-        "expert_manoeuvres": expert.manoeuvres,
+        "expert_manoeuvres": manoeuvres,
         "scene_sides": {"left": sides.count(1), "right": sides.count(-1)},
         "slow_shares": slow_shares,
         "train": {k: v for k, v in train.info.items() if k != "collision_events"},

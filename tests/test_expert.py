@@ -229,3 +229,25 @@ def test_bad_expert_settings_raise():
         ExpertConfig(trigger_m=(60.0, 40.0))
     with pytest.raises(ValueError, match=r"ExpertConfig\.top_speed_mps"):
         ExpertConfig(top_speed_mps=0.0)
+
+
+def test_the_expert_and_the_oracle_drive_alike_in_any_shards_and_count_their_manoeuvres():
+    """Issue 56: each car's manoeuvre draws are its own, so the expert and the oracle drive the
+    same events in one shard or in three worker processes; the manoeuvres started in the
+    workers come back through the results' info."""
+    from e2e_lite.driving.evaluation import close_shard_workers
+
+    world = WorldConfig(road=RoadConfig(length_m=3_000.0))
+    ev = EvalConfig(miles=3.0, n_worlds=24, n_tracks=6)
+    for policy in (Expert(), Oracle(point_noise_m=0.3)):
+        one = evaluate(policy, world, ev, progress=False, workers=1)
+        three = evaluate(policy, world, ev, progress=False, workers=3, parallel="processes")
+        assert one.events == three.events and one.miles == three.miles
+        assert one.mean_speed_mph == three.mean_speed_mph
+    close_shard_workers()
+    expert = Expert()
+    res = evaluate(expert, world, ev, progress=False, workers=3, parallel="processes")
+    close_shard_workers()
+    alone = evaluate(Expert(), world, ev, progress=False, workers=1)
+    assert res.info["manoeuvres"] == alone.info["manoeuvres"]
+    assert res.info["manoeuvres"]["left"] + res.info["manoeuvres"]["right"] > 0

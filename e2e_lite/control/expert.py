@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -274,13 +275,17 @@ class Expert:
         self.manoeuvres = dict.fromkeys(self.manoeuvres, 0)
 
     def act(self, obs: Observation) -> Actuation:
-        """The expert's (clean) commands; advances every car's plan."""
+        """The expert's (clean) commands; advances every car's plan. The manoeuvres it starts are
+        reported in ``info["manoeuvres"]`` (summed over an evaluation's decisions and shards: a
+        copy in a worker process counts them there)."""
         for i in np.flatnonzero(obs.respawned).tolist():
             self._restart(self.plans[i], int(obs.lane[i]))
+        before = dict(self.manoeuvres)
         steer, accel = self._decide(
             self.plans, obs.state, obs.s, obs.d, obs.heading_error, obs.curvature, obs.worlds, True
         )
-        return Actuation(steer_rad=steer, accel_mps2=accel)
+        started = Counter({k: n - before[k] for k, n in self.manoeuvres.items() if n > before[k]})
+        return Actuation(steer, accel, info={"manoeuvres": started} if started else None)
 
     def states(self) -> np.ndarray:
         """Each car's state-machine state (``KEEP`` ...), ``(B,)`` int."""
