@@ -51,6 +51,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from e2e_lite import ablation, artifacts
+from e2e_lite.control.labels import POINT_DT_S, interpolated_path
 from e2e_lite.driving.evaluation import (
     EvalConfig,
     compare_rates,
@@ -137,6 +138,50 @@ print(
     f"the expert's trajectories on {len(rows)} validation samples: accepted {accept['true']:.1f} % "
     f"with the true affordances, {accept['predicted']:.1f} % with the network's"
 )
+
+# %% [markdown]
+# ### The rule in code
+#
+# The library's `check` (`e2e_lite/safety/rule.py`) also says *why* a proposal fails and where;
+# its decision is these lines, one per step of the rule above. Written out here, it must agree
+# with `check` on every validation frame just judged, with the true affordances and the
+# predicted ones.
+
+
+# %%
+def rule(points: np.ndarray, aff: np.ndarray, kappa: float, how: SafetyConfig) -> bool:
+    """Steps 1-4 of the rule: is following ``points`` (5, 2) [m] safe with affordances ``aff``?"""
+    f = dict(zip(AFFORDANCE_NAMES, aff))
+    x, y, _ = interpolated_path(points)  # the path between the points, car frame [m]
+    delta = y + f["heading_rad"] * x - kappa * x**2 / 2  # 1. Delta = y + h x - kappa x^2 / 2
+    half = how.car_width_m / 2
+    if np.any(delta + half > f["left_edge_m"] + how.edge_margin_m):  # 2. on the road
+        return False
+    if np.any(-delta + half > f["right_edge_m"] + how.edge_margin_m):
+        return False
+    width = max(2.0, f["left_marking_m"] + f["right_marking_m"])
+    lateral = f["center_offset_m"] + delta  # the body's centre across the lanes [m]
+    v_end = float(np.hypot(*(points[-1] - points[-2]))) / POINT_DT_S
+    for lane, centre in (("ego", 0.0), ("left", width), ("right", -width)):
+        inside = np.minimum(lateral + half, centre + width / 2)
+        inside = inside - np.maximum(lateral - half, centre - width / 2)
+        occupied = inside > (0.0 if lane == "ego" else how.lane_overlap_m)  # 3. lanes entered
+        g = f[f"gap_{lane}_m"]
+        if not occupied.any() or g >= how.free_from_m(lane):
+            continue
+        reach = (x > g - how.margin_m) & (x - how.car_length_m < g + how.parked_length_m)
+        if np.any(occupied & reach):  # 4a. the body reaches the parked car
+            return False
+        ends_here = abs(lateral[-1] - centre) <= width / 2  # 4b. can it still stop?
+        if ends_here and x[-1] < g and g - x[-1] < how.stopping_m(v_end):
+            return False
+    return True
+
+
+for pts, seen, ok in ((expert_pts, true_aff, expert_true), (proposed, predicted, network_pred)):
+    mine = [rule(p, s, float(a["curvature"][r]), cfg) for p, s, r in zip(pts, seen, rows)]
+    assert mine == ok.tolist()
+print(f"the rule written out agrees with `check` on all {2 * len(rows)} verdicts")
 
 # %% [markdown]
 # Which errors make the perceived check go wrong? By the true distance to a parked car ahead in
@@ -252,16 +297,13 @@ for name, how in (("uncalibrated", cfg), ("calibrated", calibrated[0])):
 #
 # * **without** the module (chapter 10's stored evaluation, reused);
 # * the module **on the truth** (the world's affordances): the rule's ceiling;
-# * the module **on perception**: each seed's own head, with its calibrated thresholds, and the
-#   fallback that survives perception: braking along the network's own path when a parked car is
-#   the reason (`fallback="path"`). The lane fallback steers to a lane centre drawn from the
-#   perceived heading, offset and lane width, the very affordances that are wrong when the
-#   module intervenes (`docs/lab-notes.md`; exercise 2 drives it);
+# * the module **on perception**: each seed's own head, with its calibrated thresholds; its
+#   fallback brakes along the network's own path (`fallback="path"`), because a lane fallback
+#   would steer by the very perceived offsets that are wrong when the module intervenes
+#   (exercise 2 drives it);
 # * the same **with an emergency brake**: a car the module falls back for is braked at the car's
 #   full deceleration (`VehicleParams.max_brake_mps2`), while the rule still plans with the
-#   tracker's gentler `brake_mps2`. A fallback that comes late may then still stop short; the
-#   extra braking is headroom the rule does not count on. In the lab notes it did not help on
-#   perception (`docs/lab-notes.md`); this row measures it again.
+#   tracker's gentler `brake_mps2`: headroom the rule does not count on.
 #
 # The module audits one intervention in four: would a fresh expert, from the same state, have
 # driven what the network proposed (then it was a **false alarm**)? And would the rule on the

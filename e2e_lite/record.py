@@ -13,7 +13,6 @@ theirs, so a cut run goes on where it stopped.
 from __future__ import annotations
 
 import os
-import platform
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,7 @@ from .driving.metrics import result_dict
 from .driving.rollout import ROAD_BLOCKS, SEALED_BLOCK, EvalConfig
 from .estimate import Work, plan_text
 from .learning.models import pick_device
+from .report import cpu_name
 from .simulation.world import WorldConfig
 
 
@@ -97,10 +97,7 @@ def record_table1(
         print(plan_text("the record", work, workers, device.type), flush=True)
     drivers = build_seeded_drivers(profile, keys, seeds=seeds, progress=progress)
     results = evaluate_drivers(drivers, world_cfg, ev, progress=progress)
-    cpu = next(
-        (ln.split(":", 1)[1].strip() for ln in _cpuinfo() if ln.startswith("model name")),
-        platform.processor() or platform.machine(),
-    )
+    cpu = cpu_name()
     rows = []
     for key in keys:
         r = result_dict(results[key])
@@ -136,11 +133,3 @@ def record_table1(
         "paper_mph": PAPER_MPH,
         "rows": rows,
     }
-
-
-def _cpuinfo() -> list[str]:
-    """The lines of ``/proc/cpuinfo`` (empty where there is none)."""
-    try:
-        return Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:
-        return []

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -42,6 +43,11 @@ README = ROOT / "README.md"
 BEGIN, END = "<!-- table1: rendered by python -m e2e_lite.report -->", "<!-- /table1 -->"
 CHAPTERS_BEGIN = "<!-- chapters: rendered by python -m e2e_lite.report -->"
 CHAPTERS_END = "<!-- /chapters -->"
+#: what the chapters printed in a full-profile run (``--course-run``), and the page it renders into
+COURSE_RUN = ROOT / "docs" / "results" / "course_run.json"
+TEACHING = ROOT / "docs" / "teaching.md"
+RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.report -->"
+RUN_END = "<!-- /course run -->"
 #: the paper's steps: (before, after, what, paired); each goes "better" in the paper (seed 000).
 #: ``paired``: the rows share a parent network seed by seed (a fine-tune, its control and their
 #: parent), so the paired sign-flip test is the primary one.
@@ -338,6 +344,69 @@ def chapters_table() -> str:
     return "\n".join(lines)
 
 
+def course_run_record(outputs: Path) -> dict[str, Any]:
+    """A full-profile run of the course, read from its outputs folder: each chapter's wall time
+    (``course_times.json``) and the headline figures it wrote (``metrics/<chapter>.json``), with
+    the machine and torch (the record of ``--course-run``, rendered into docs/teaching.md)."""
+    import torch
+
+    from .course import TIMES_FILE
+
+    times = json.loads((outputs / TIMES_FILE).read_text())
+    chapters = {}
+    for stem, entry in sorted(times.items()):
+        path = outputs / "metrics" / f"{stem}.json"
+        metrics = json.loads(path.read_text()) if path.exists() else {}
+        if metrics.get("profile") not in (None, "full"):
+            raise ValueError(f"{path}: not a full-profile run ({metrics.get('profile')})")
+        headline = {k: v for k, v in metrics.get("headline", {}).items() if v is not None}
+        chapters[stem] = {
+            "minutes": round(entry["seconds"] / 60.0, 1),
+            "complete": entry.get("complete", False),
+            "headline": headline,
+        }
+    return {"machine": f"{cpu_name()}, {os.cpu_count()} cores", "torch": torch.__version__,
+            "chapters": chapters}  # fmt: skip
+
+
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; else what ``platform`` says)."""
+    import platform
+
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    return next(
+        (ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")),
+        platform.processor() or platform.machine(),
+    )
+
+
+def _figure(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:,.3g}" if abs(value) < 100 else f"{value:,.0f}"
+    return str(value)
+
+
+def course_run_table(run: dict[str, Any] | None) -> str:
+    """docs/teaching.md's table of what each chapter printed in a full-profile run."""
+    if run is None:
+        return (
+            "*No full-profile run is recorded yet: run `python -m e2e_lite.course`, then "
+            "`python -m e2e_lite.report --course-run outputs` to record and render it.*"
+        )
+    lines = ["| chapter | minutes | what it printed (its headline figures) |", "|---|---:|---|"]
+    for stem, ch in run["chapters"].items():
+        figures = "; ".join(f"{k}: {_figure(v)}" for k, v in ch["headline"].items()) or "-"
+        cut = "" if ch["complete"] else " (cut)"
+        lines.append(f"| {stem} | {ch['minutes']:g}{cut} | {figures} |")
+    total = sum(ch["minutes"] for ch in run["chapters"].values())
+    lines += ["", f"*The full course, {total:.0f} min on {run['machine']}, torch {run['torch']}"
+              f"{'; ' + run['note'] if run.get('note') else ''}.*"]  # fmt: skip
+    return "\n".join(lines)
+
+
 def _replace(text: str, begin: str, end: str, block: str) -> str:
     pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
     if not pattern.search(text):
@@ -369,7 +438,16 @@ def main(argv: list[str] | None = None) -> int:
         "--quick", action="store_true", help="with --record: the quick profile (a smoke test; "
         "written to the outputs folder, never to docs/)",
     )  # fmt: skip
+    parser.add_argument(
+        "--course-run", type=Path, metavar="OUTPUTS",
+        help="record what a full-profile course run in OUTPUTS printed (docs/results/"
+        "course_run.json, rendered into docs/teaching.md)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.course_run:
+        with atomic_write(COURSE_RUN, "w") as f:
+            json.dump(course_run_record(args.course_run), f, indent=1)
+        print(f"wrote {COURSE_RUN.relative_to(ROOT)}")
     if args.record:
         from .artifacts import outputs_dir
         from .config import FULL, QUICK
@@ -389,6 +467,9 @@ def main(argv: list[str] | None = None) -> int:
         README: readme_with(README.read_text(), table1(record)),
         RESULTS_MD: results_md(record),
     }
+    if TEACHING.exists():
+        run = json.loads(COURSE_RUN.read_text()) if COURSE_RUN.exists() else None
+        wanted[TEACHING] = _replace(TEACHING.read_text(), RUN_BEGIN, RUN_END, course_run_table(run))
     stale = [p for p, text in wanted.items() if not p.exists() or p.read_text() != text]
     if args.check:
         for p in stale:

@@ -80,3 +80,30 @@ def test_a_chapter_teaches_within_its_budget(path: Path) -> None:
 def test_no_chapter_types_a_result_into_its_prose(path: Path) -> None:
     typed = [ln for kind, text in cells(path) if kind == "markdown" for ln in typed_rates(text)]
     assert not typed, f"{path.name} types results the run prints:\n" + "\n".join(typed)
+
+
+def exercises(path: Path) -> list[int]:
+    """The numbers of a chapter's exercises (``# 1. ...`` lines under ``## Exercises``)."""
+    text = path.read_text()
+    section = text[text.index("# ## Exercises") :]
+    return [int(n) for n in re.findall(r"^# (\d+)\. ", section, flags=re.M)]
+
+
+def test_every_exercise_has_an_expected_outcome_or_a_solution_for_teachers() -> None:
+    """Issue 58: docs/solutions.md has one entry per exercise of every chapter, in order, and the
+    README's section for teachers links the kit (docs/teaching.md, which links the solutions)."""
+    solutions = (ROOT / "docs" / "solutions.md").read_text()
+    parts = re.split(r"^## (\d\d) · .*$", solutions, flags=re.M)
+    by_chapter = {num: body for num, body in zip(parts[1::2], parts[2::2])}
+    for path in CHAPTERS:
+        wanted = exercises(path)
+        assert wanted == list(range(1, len(wanted) + 1)), path.name
+        got = [
+            int(n) for n in re.findall(r"^(\d+)\. \*\*", by_chapter.get(path.name[:2], ""), re.M)
+        ]
+        assert got == wanted, f"{path.name}: exercises {wanted}, solutions {got}"
+    readme = (ROOT / "README.md").read_text()
+    teaching = (ROOT / "docs" / "teaching.md").read_text()
+    assert "(docs/teaching.md)" in readme and "(solutions.md)" in teaching
+    for paper in ("arXiv:1901.00114", "arXiv:1604.07316", "Arain"):
+        assert paper in teaching
