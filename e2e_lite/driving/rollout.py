@@ -287,6 +287,195 @@ def disjoint_runs(cfg: EvalConfig, world_cfg: WorldConfig, n: int) -> list[EvalC
     return [replace(share, first_track=cfg.first_track + k * cfg.n_worlds * laps) for k in range(n)]
 
 
+class _Shard:
+    """One shard's cars in lockstep: their worlds, odometers and clocks, and the named steps of
+    a decision period (:func:`drive_shard` runs them in order)."""
+
+    def __init__(
+        self, policy: Policy, world_cfg: WorldConfig, cfg: EvalConfig, cars: np.ndarray
+    ) -> None:
+        self.policy, self.world_cfg, self.cfg, self.cars = policy, world_cfg, cfg, cars
+        self.out = ShardResult()
+        n = self.n = len(cars)
+        self.pool = _WorldPool(world_cfg, cfg.split)
+        self.visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
+        self.fleet = Fleet(
+            [self.pool.get(j, track_index(cfg, int(c), 0)) for j, c in enumerate(cars)], world_cfg
+        )
+        self.dt = world_cfg.sim.policy_period_s  # [s]
+        self.share_m = cfg.miles * M_PER_MILE / cfg.n_worlds  # each car's share [m]
+        self.odometer, self.sim_time = np.zeros(n), np.zeros(n)  # [m], [s]
+        self.active = np.ones(n, dtype=bool)
+        self.respawned = np.ones(n, dtype=bool)
+        self.collided = np.zeros(n, dtype=bool)
+        for i in range(n):
+            self.spawn_new_track(i)
+        seed_cars = getattr(policy, "seed_cars", None)
+        if seed_cars is not None:
+            seed_cars(cars)
+        policy.reset(n)
+        self.episode_t, self.offcentre_t, self.slow_t = np.zeros(n), np.zeros(n), np.zeros(n)
+        self.offcentre_counted = np.zeros(n, dtype=bool)
+        self.t_sim = 0.0
+        track0 = self.fleet.worlds[0].track  # every track shares the cross-section
+        self.lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
+        cam_cfg = getattr(policy, "camera", None)
+        self.camera = None if cam_cfg is None else Camera(cam_cfg)
+        self.images = (
+            None if self.camera is None else np.empty((n, *self.camera.shape), dtype=np.uint8)
+        )
+        # used only if the camera augments: each car's jitter from its own generator
+        self.cam_rngs = [car_rng(cfg.seed, 11, int(c)) for c in cars]
+        self.lengths = np.array([w.track.length for w in self.fleet.worlds])  # current tracks [m]
+
+    # ------------------------------------------------------------------ placing cars
+    def spawn_new_track(self, i: int) -> None:
+        w = self.fleet.worlds[i]
+        lane = start_lane(self.cfg, int(self.cars[i]), int(self.visit[i]), w.track.n_lanes)
+        self.fleet.place(i, *start_state(w, lane, self.cfg))
+
+    def respawn(self, i: int, s_obstacle: float, d_now: float) -> None:
+        self.fleet.place(i, *restart_state(self.fleet.worlds[i], s_obstacle, d_now, self.cfg))
+        self.respawned[i] = True
+
+    def position(self, i: int) -> tuple[float, float]:
+        fleet = self.fleet
+        s_i, d_i, _ = fleet.worlds[i].track.to_frenet_hint(
+            fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
+        )
+        return s_i, d_i
+
+    # ------------------------------------------------------------------ a decision period
+    def move_on(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Cars near their track's end move on to their next track; the lane frame after."""
+        cfg, fleet = self.cfg, self.fleet
+        frame = fleet.lane_frame()
+        moving_on = np.flatnonzero(self.active & (frame[0] > self.lengths - cfg.end_margin_m))
+        for i in moving_on.tolist():
+            car = int(self.cars[i])
+            if cfg.n_tracks is None:  # never driven again
+                self.pool.release(i, track_index(cfg, car, int(self.visit[i])))
+            self.visit[i] += 1
+            fleet.worlds[i] = self.pool.get(i, track_index(cfg, car, int(self.visit[i])))
+            self.lengths[i] = fleet.worlds[i].track.length
+            self.spawn_new_track(i)
+            self.respawned[i] = True
+        return fleet.lane_frame() if len(moving_on) else frame
+
+    def render(self, s: np.ndarray) -> None:
+        """Every car's camera frame into ``self.images`` (a policy with a camera only)."""
+        tick = time.perf_counter()
+        if self.camera is not None:
+            worlds = self.fleet.worlds
+            self.camera.render_batch(
+                [w.track for w in worlds],
+                [w.cars for w in worlds],
+                self.fleet.state[:, :3],
+                s,
+                rng=self.cam_rngs,
+                out=self.images,
+            )
+            self.out.timing["frames"] += self.n
+        self.out.timing["render"] += time.perf_counter() - tick
+
+    def decide(self, frame: tuple[np.ndarray, ...], record_traces: bool) -> Actuation:
+        """What the policy sees and answers (its info added up; traces kept if asked)."""
+        out, fleet = self.out, self.fleet
+        tick = time.perf_counter()
+        obs = observe(fleet, self.respawned, self.t_sim, self.images, frame, self.collided)
+        self.respawned[:] = self.collided[:] = False
+        out.speed_hist += speed_histogram(fleet.state[self.active, V])
+        act = self.policy.act(obs)
+        if act.info:
+            add_info(out.info, act.info)
+        out.timing["policy"] += time.perf_counter() - tick
+        if record_traces:
+            for i in np.flatnonzero(self.active).tolist():
+                key = "-".join(map(str, fleet.worlds[i].track.track_id))
+                out.traces.setdefault(key, []).append(
+                    [float(fleet.state[i, 0]), float(fleet.state[i, 1])]
+                )
+        return act
+
+    def step(self, act: Actuation, d: np.ndarray) -> list:
+        """Physics for one period, the odometers and clocks, and the off-centre episodes
+        (autonomy metric only; ``d`` is the cars' offset before the step). Returns the contacts."""
+        cfg, fleet, active, dt = self.cfg, self.fleet, self.active, self.dt
+        tick = time.perf_counter()
+        xy_before = fleet.state[:, :2].copy()
+        contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2), active)
+        self.out.timing["physics"] += time.perf_counter() - tick
+        self.odometer += np.where(active, np.hypot(*(fleet.state[:, :2] - xy_before).T), 0.0)
+        dt_active = np.where(active, dt, 0.0)
+        self.sim_time += dt_active
+        self.episode_t += dt_active
+        self.t_sim += dt
+        off = np.min(np.abs(d[:, None] - self.lane_centers[None, :]), axis=1) > cfg.offcentre_m
+        self.offcentre_t = np.where(active & off, self.offcentre_t + dt, 0.0)
+        new_int = (self.offcentre_t > cfg.offcentre_grace_s) & ~self.offcentre_counted
+        self.out.interventions += int(new_int.sum())
+        self.offcentre_counted = (self.offcentre_counted | new_int) & (self.offcentre_t > 0)
+        return contacts
+
+    def count_collisions(self, contacts: list) -> None:
+        """One event per car per period, then the car is put back past the obstacle."""
+        fleet, out = self.fleet, self.out
+        for i, c in enumerate(contacts):
+            if not c:
+                continue
+            w = fleet.worlds[i]
+            s_i, d_i = self.position(i)
+            car_idx = next((j for kind, j in c if kind == "car"), None)
+            s_obst = (
+                s_i if car_idx is None else max(s_i, float(w.cars.s[car_idx]) + w.cars.length_m / 2)
+            )
+            out.events.append(
+                {
+                    "world": int(self.cars[i]),
+                    "track": list(w.track.track_id),
+                    "kind": "rail" if car_idx is None else "car",
+                    "car": car_idx,
+                    "s_m": round(s_i, 2),
+                    "d_m": round(d_i, 3),
+                    "x_m": round(float(fleet.state[i, 0]), 2),
+                    "y_m": round(float(fleet.state[i, 1]), 2),
+                    "heading_rad": round(float(fleet.state[i, H]), 4),
+                    "speed_mps": round(float(fleet.state[i, V]), 2),
+                    "time_s": round(float(self.sim_time[i]), 2),
+                    "miles": round(float(self.odometer[i] / M_PER_MILE), 4),
+                }
+            )
+            self.collided[i] = True
+            out.ttc.append(float(self.episode_t[i]))
+            self.episode_t[i] = 0.0
+            out.interventions += 1
+            self.respawn(i, s_obst, d_i)
+
+    def restart_stalled_and_taken_over(self, act: Actuation, contacts: list) -> None:
+        """A car slow for too long is a stall, put back; a car the policy asks to have taken over
+        (the data collector's restarts, not collisions) is put back the same way."""
+        slow = self.active & (self.fleet.state[:, V] < self.cfg.stall_speed_mps)
+        self.slow_t = np.where(slow, self.slow_t + self.dt, 0.0)
+        for i in np.flatnonzero(self.slow_t > self.cfg.stall_time_s).tolist():
+            self.out.stalls += 1
+            self.out.interventions += 1
+            self.slow_t[i] = 0.0
+            self.respawn(i, *self.position(i))
+        if act.restart is not None:
+            for i in np.flatnonzero(act.restart & self.active).tolist():
+                if not contacts[i] and not self.respawned[i]:
+                    self.episode_t[i] = 0.0
+                    self.respawn(i, *self.position(i))
+
+    def result(self) -> ShardResult:
+        """What the shard measured, once every car is done."""
+        out = self.out
+        out.car_miles_m, out.car_sim_s = self.odometer, self.sim_time
+        out.censored = int(np.count_nonzero(self.episode_t > 0))
+        out.tracks = int((self.visit + 1).sum())
+        return out
+
+
 def drive_shard(
     policy: Policy,
     world_cfg: WorldConfig,
@@ -301,165 +490,22 @@ def drive_shard(
     Every random choice is the car's own (:func:`start_lane`, the camera's jitter, the policy's
     ``seed_cars``), so a car drives the same in any shard of any size. ``stop_when`` is called
     after every decision: True stops every car, an array of bools the cars it marks."""
-    out = ShardResult()
-    n = len(cars)
-    pool = _WorldPool(world_cfg, cfg.split)
-    visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
-    fleet = Fleet([pool.get(j, track_index(cfg, int(c), 0)) for j, c in enumerate(cars)], world_cfg)
-    dt_pol = world_cfg.sim.policy_period_s
-    share_m = cfg.miles * M_PER_MILE / cfg.n_worlds
-    odometer = np.zeros(n)
-    sim_time = np.zeros(n)
-    active = np.ones(n, dtype=bool)
-    respawned = np.ones(n, dtype=bool)
-    collided = np.zeros(n, dtype=bool)
-
-    def spawn_new_track(i: int) -> None:
-        w = fleet.worlds[i]
-        lane = start_lane(cfg, int(cars[i]), int(visit[i]), w.track.n_lanes)
-        fleet.place(i, *start_state(w, lane, cfg))
-
-    def respawn(i: int, s_obstacle: float, d_now: float) -> None:
-        fleet.place(i, *restart_state(fleet.worlds[i], s_obstacle, d_now, cfg))
-        respawned[i] = True
-
-    def position(i: int) -> tuple[float, float]:
-        s_i, d_i, _ = fleet.worlds[i].track.to_frenet_hint(
-            fleet.state[i, 0], fleet.state[i, 1], int(fleet.seg[i])
-        )
-        return s_i, d_i
-
-    for i in range(n):
-        spawn_new_track(i)
-    seed_cars = getattr(policy, "seed_cars", None)
-    if seed_cars is not None:
-        seed_cars(cars)
-    policy.reset(n)
-
-    episode_t = np.zeros(n)
-    offcentre_t = np.zeros(n)
-    offcentre_counted = np.zeros(n, dtype=bool)
-    slow_t = np.zeros(n)
-    t_sim = 0.0
+    shard = _Shard(policy, world_cfg, cfg, cars)
     reported = 0.0
-    track0 = fleet.worlds[0].track  # every track shares the cross-section
-    cam_cfg = getattr(policy, "camera", None)
-    camera = None if cam_cfg is None else Camera(cam_cfg)
-    images = None if camera is None else np.empty((n, *camera.shape), dtype=np.uint8)
-    # used only if the camera augments: each car's jitter from its own generator
-    cam_rngs = [car_rng(cfg.seed, 11, int(c)) for c in cars]
-    lane_centers = np.asarray(track0.lane_center(np.arange(track0.n_lanes)))
-    lengths = np.array([w.track.length for w in fleet.worlds])  # of each car's current track [m]
-    while active.any():
-        s, d, road_h, kappa = fleet.lane_frame()
-        # a car near its track's end moves on to its next track
-        moving_on = np.flatnonzero(active & (s > lengths - cfg.end_margin_m)).tolist()
-        for i in moving_on:
-            if cfg.n_tracks is None:  # never driven again
-                pool.release(i, track_index(cfg, int(cars[i]), int(visit[i])))
-            visit[i] += 1
-            fleet.worlds[i] = pool.get(i, track_index(cfg, int(cars[i]), int(visit[i])))
-            lengths[i] = fleet.worlds[i].track.length
-            spawn_new_track(i)
-            respawned[i] = True
-        if moving_on:
-            s, d, road_h, kappa = fleet.lane_frame()
-        tick = time.perf_counter()
-        if camera is not None:
-            camera.render_batch(
-                [w.track for w in fleet.worlds],
-                [w.cars for w in fleet.worlds],
-                fleet.state[:, :3],
-                s,
-                rng=cam_rngs,
-                out=images,
-            )
-            out.timing["frames"] += n
-        tock = time.perf_counter()
-        out.timing["render"] += tock - tick
-        obs = observe(fleet, respawned, t_sim, images, (s, d, road_h, kappa), collided)
-        respawned[:] = collided[:] = False
-        out.speed_hist += speed_histogram(fleet.state[active, V])
-        act = policy.act(obs)
-        if act.info:
-            add_info(out.info, act.info)
-        tick = time.perf_counter()
-        out.timing["policy"] += tick - tock
-        if record_traces:
-            for i in np.flatnonzero(active).tolist():
-                key = "-".join(map(str, fleet.worlds[i].track.track_id))
-                out.traces.setdefault(key, []).append(
-                    [float(fleet.state[i, 0]), float(fleet.state[i, 1])]
-                )
-        xy_before = fleet.state[:, :2].copy()
-        contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2), active)
-        out.timing["physics"] += time.perf_counter() - tick
-        odometer += np.where(active, np.hypot(*(fleet.state[:, :2] - xy_before).T), 0.0)
-        dt_active = np.where(active, dt_pol, 0.0)
-        sim_time += dt_active
-        episode_t += dt_active
-        t_sim += dt_pol
-        # off-centre episodes (autonomy metric only; the car is not moved)
-        off = np.min(np.abs(d[:, None] - lane_centers[None, :]), axis=1) > cfg.offcentre_m
-        offcentre_t = np.where(active & off, offcentre_t + dt_pol, 0.0)
-        new_int = (offcentre_t > cfg.offcentre_grace_s) & ~offcentre_counted
-        out.interventions += int(new_int.sum())
-        offcentre_counted = (offcentre_counted | new_int) & (offcentre_t > 0)
-        # collisions: one event per car per period, then a re-spawn
-        for i, c in enumerate(contacts):
-            if not c:
-                continue
-            w = fleet.worlds[i]
-            s_i, d_i = position(i)
-            car_idx = next((j for kind, j in c if kind == "car"), None)
-            s_obst = (
-                s_i if car_idx is None else max(s_i, float(w.cars.s[car_idx]) + w.cars.length_m / 2)
-            )
-            out.events.append(
-                {
-                    "world": int(cars[i]),
-                    "track": list(w.track.track_id),
-                    "kind": "rail" if car_idx is None else "car",
-                    "car": car_idx,
-                    "s_m": round(s_i, 2),
-                    "d_m": round(d_i, 3),
-                    "x_m": round(float(fleet.state[i, 0]), 2),
-                    "y_m": round(float(fleet.state[i, 1]), 2),
-                    "heading_rad": round(float(fleet.state[i, H]), 4),
-                    "speed_mps": round(float(fleet.state[i, V]), 2),
-                    "time_s": round(float(sim_time[i]), 2),
-                    "miles": round(float(odometer[i] / M_PER_MILE), 4),
-                }
-            )
-            collided[i] = True
-            out.ttc.append(float(episode_t[i]))
-            episode_t[i] = 0.0
-            out.interventions += 1
-            respawn(i, s_obst, d_i)
-        # stalls
-        slow_t = np.where(active & (fleet.state[:, V] < cfg.stall_speed_mps), slow_t + dt_pol, 0.0)
-        for i in np.flatnonzero(slow_t > cfg.stall_time_s).tolist():
-            out.stalls += 1
-            out.interventions += 1
-            slow_t[i] = 0.0
-            respawn(i, *position(i))
-        # take-overs the policy asked for (the data collector's restarts; not collisions)
-        if act.restart is not None:
-            for i in np.flatnonzero(act.restart & active).tolist():
-                if not contacts[i] and not respawned[i]:
-                    episode_t[i] = 0.0
-                    respawn(i, *position(i))
-        active &= odometer < share_m
+    while shard.active.any():
+        frame = shard.move_on()
+        shard.render(frame[0])
+        act = shard.decide(frame, record_traces)
+        contacts = shard.step(act, frame[1])
+        shard.count_collisions(contacts)
+        shard.restart_stalled_and_taken_over(act, contacts)
+        shard.active &= shard.odometer < shard.share_m
         if stop_when is not None:
-            active &= ~np.broadcast_to(np.asarray(stop_when(), dtype=bool), (n,))
-        done = float(np.minimum(odometer, share_m).sum() / M_PER_MILE)
+            shard.active &= ~np.broadcast_to(np.asarray(stop_when(), dtype=bool), (shard.n,))
+        done = float(np.minimum(shard.odometer, shard.share_m).sum() / M_PER_MILE)
         advance(max(0.0, done - reported))
         reported = max(reported, done)
-    out.car_miles_m = odometer
-    out.car_sim_s = sim_time
-    out.censored = int(np.count_nonzero(episode_t > 0))
-    out.tracks = int((visit + 1).sum())
-    return out
+    return shard.result()
 
 
 def roll_out(
