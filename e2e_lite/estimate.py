@@ -27,16 +27,15 @@ class Work(NamedTuple):
     other_s: float = 0.0
 
 
-#: Per-part rates on the reference machine (a 2-core AMD EPYC, torch 2.13 on CPU), measured by
-#: ``python -m e2e_lite.bench scaling`` and ``train`` (docs/benchmarks.md, "Every core"):
-#: closed-loop miles per second of one worker process driving chapter 10's 64 cars, expert
-#: samples per second of one collecting process, training samples per second (the training loop
-#: on the machine's threads; on a GPU, the H100's ratio measured in docs/benchmarks.md), and the
-#: share of the ideal speed-up that each further worker adds.
+#: Per-part rates on the reference machine (a 2-core AMD EPYC, torch 2.13 on CPU; docs/benchmarks.md,
+#: "Every core"): closed-loop miles per second of one worker process driving chapter 10's 64 cars
+#: (two drove about 5 mi/s), expert samples per second of one collecting process, training
+#: samples per second (the training loop on the machine's threads; on a GPU, a lent H200's loop),
+#: and the share of the ideal speed-up that each further worker adds.
 RATES = {
     "drive_mi_per_s_per_worker": 2.6,
-    "collect_samples_per_s_per_worker": 330.0,
-    "train_samples_per_s": {"cpu": 1_100.0, "cuda": 25_000.0},
+    "collect_samples_per_s_per_worker": 900.0,
+    "train_samples_per_s": {"cpu": 700.0, "cuda": 16_000.0},
     "worker_efficiency": 0.85,
 }
 
@@ -77,12 +76,14 @@ def course_work(profile: Profile) -> Work:
     from .learning.recipes import SELECT_MILES
 
     s, n, epochs = profile.ablation_seeds, profile.n_train_samples, profile.train_epochs
-    scratch = 6 + 5 * (s - 1) + s  # seed 0 of 05-08 (07: two), seeds 1.. of five rows, w = 0
+    # seed 0 of chapters 05-08 (05: three, 07: two), then seeds 1.. of the actuators, the GMM and
+    # + affordance (chapters 09-10; PilotNet and L2 keep seed 0), and every seed of w = 0
+    scratch = 7 + 3 * (s - 1) + s
     tuned = 2 * s  # the CVaR fine-tune and its control, every seed
     grid = 5 * 2 * n / 4  # chapter 08's weight grid: 5 weights, 2 epochs, a quarter of the data
     selecting = scratch * epochs * SELECT_MILES if epochs > 1 else 0.0
     chapters_05_08 = 6 * profile.eval_miles  # their evaluations (05: 2, 06: 1, 07: 2, 08: 1)
-    rows_09_11 = (3 + 7 + 2 + 3) * profile.ablation_miles  # 09: 3 rows, 10: 7 + 2, 11: 3
+    rows_09_11 = (3 + 7 + 3) * profile.ablation_miles  # 09: 3 rows, 10: 7 new, 11: 3 variants
     return Work(
         collect_samples=profile.n_train_samples + profile.n_val_samples,
         train_samples=n * (scratch * epochs + tuned) + grid,

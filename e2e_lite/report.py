@@ -230,10 +230,10 @@ def table1(record: dict[str, Any]) -> str:
     for st in steps(record):
         paired = "-" if st["p_paired"] is None else f"{st['p_paired']:.2g}"
         lo, hi = st["ratio_ci"]
+        ratio = "-" if np.isnan(st["ratio"]) else f"{st['ratio']:.2f} [{lo:.2f}, {hi:.2f}]"
         lines.append(
             f"| {st['step']} | {st['seeds'][0]} vs {st['seeds'][1]} | {st['p_better']:.2g} "
-            f"({st['test']}) | {st['ratio']:.2f} [{lo:.2f}, {hi:.2f}] | {paired} "
-            f"| {st['verdict']} |"
+            f"({st['test']}) | {ratio} | {paired} | {st['verdict']} |"
         )
     threads = record.get("torch_threads")
     where = f"torch {record['torch']}" + (f" on {threads} threads" if threads else "")

@@ -120,7 +120,8 @@ def ratio_interval(
     seed: int = 0,
 ) -> tuple[float, float, float]:
     """The rate ratio ``sum(a) / sum(b)`` of two rows' counts (equal budgets per seed) with a
-    percentile bootstrap interval over the training seeds: ``(ratio, low, high)``.
+    percentile bootstrap interval over the training seeds: ``(ratio, low, high)`` (all NaN when
+    neither row collided).
 
     The seeds of each row are resampled with replacement (``paired``: seed pairs together); a
     resample whose ``b`` row never collided gives ``inf``. A ratio below 1: ``a`` collides less."""
@@ -128,10 +129,12 @@ def ratio_interval(
     rng = np.random.default_rng(seed)
     ia = rng.integers(0, len(a), (n_boot, len(a)))
     ib = ia if paired else rng.integers(0, len(b), (n_boot, len(b)))
+    if a.sum() == 0 and b.sum() == 0:  # 0 / 0: no ratio to estimate
+        return math.nan, math.nan, math.nan
     with np.errstate(divide="ignore", invalid="ignore"):
         boot = a[ia].sum(1) / b[ib].sum(1)
         ratio = a.sum() / b.sum() if b.sum() else math.inf
-    boot = np.where(np.isnan(boot), 1.0, boot)  # 0 / 0: no evidence either way
+    boot = np.where(np.isnan(boot), 1.0, boot)  # a resample of 0 / 0: no evidence either way
     tail = (1.0 - level) / 2.0 * 100.0
     low, high = np.percentile(boot, [tail, 100.0 - tail])
     return float(ratio), float(low), float(high)
@@ -167,9 +170,12 @@ def compare_seeds(
     fewer, more = main["p_fewer"] < cut, main["p_more"] < cut
     ratio, lo, hi = ratio_interval(ca, cb, level, paired=paired)
     scale = 100.0 / budget_a if budget_a > 0 else 0.0
+    ratio_text = (
+        "no collision in either" if math.isnan(ratio) else f"{ratio:.2f} [{lo:.2f}, {hi:.2f}]"
+    )
     med = (
         f"median {np.median(ca) * scale:.1f} vs {np.median(cb) * scale:.1f} per 100 mi "
-        f"({len(ca)} vs {len(cb)} seeds), ratio {ratio:.2f} [{lo:.2f}, {hi:.2f}]"
+        f"({len(ca)} vs {len(cb)} seeds), ratio {ratio_text}"
     )
     test = "paired sign-flip" if main is flip else "rank"
     if fewer:
@@ -178,7 +184,7 @@ def compare_seeds(
         verdict = f"{med}: more collisions, seed by seed ({test} p = {main['p_more']:.2g})"
     else:
         p = min(main["p_fewer"], main["p_more"])
-        reach = "" if main["min_p"] < cut else f"; {len(ca)} seeds cannot reach p < {1 - level:.2g}"
+        reach = "" if main["min_p"] < cut else f"; these seeds cannot reach p < {1 - level:.2g}"
         verdict = f"{med}: not shown at the seed level ({test} p = {p:.2g}{reach})"
     return {
         "p_fewer": main["p_fewer"],
