@@ -209,6 +209,43 @@ def evaluate_loss(
     return np.concatenate(losses), {k: np.concatenate(v) for k, v in metrics.items()}
 
 
+def train_epoch(
+    model: DrivingModel,
+    objective: Objective,
+    train: DrivingDataset,
+    opt: torch.optim.Optimizer,
+    cfg: TrainConfig,
+    epoch: int,
+    desc: str = "epoch",
+    progress: bool = True,
+) -> tuple[float, int]:
+    """One pass over ``train`` in ``cfg.seed``'s shuffled batches (:func:`epoch_batches`): forward,
+    the objective's batch loss, backward, clipping, Adam. Returns the summed loss (each batch's
+    mean times its size) and the samples seen."""
+    device = next(model.parameters()).device
+    model.train()
+    batches = epoch_batches(len(train), cfg.batch_size, cfg.seed, epoch)
+    # batch norm needs two samples, a CVaR batch enough for its tail
+    if len(batches) > 1 and len(batches[-1]) < getattr(objective, "min_batch", 2):
+        batches = batches[:-1]
+    total, count = 0.0, 0
+    bar = tqdm(batches, desc=desc, unit="batch", disable=not progress, leave=False, mininterval=0.5)
+    for rows in bar:
+        batch = _to(train.batch(train.indices[rows]), device)
+        out = model(batch["image"], batch["speed"])
+        loss = objective.batch_loss(out, batch, model, epoch=epoch)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip is not None:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt.step()
+        total += float(loss.detach()) * len(rows)
+        count += len(rows)
+        bar.set_postfix(loss=f"{total / count:.4f}", refresh=False)
+    bar.close()
+    return total, count
+
+
 def fit(
     model: DrivingModel,
     objective: Objective,
@@ -255,33 +292,8 @@ def fit(
         )
         for pname, param in params.items():
             param.requires_grad_(not any(pname.startswith(p) for p in frozen))
-        model.train()
-        batches = epoch_batches(len(train), cfg.batch_size, cfg.seed, epoch)
-        # batch norm needs two samples, a CVaR batch enough for its tail
-        if len(batches) > 1 and len(batches[-1]) < getattr(objective, "min_batch", 2):
-            batches = batches[:-1]
-        total, count = 0.0, 0
-        bar = tqdm(
-            batches,
-            desc=f"{name} epoch {epoch + 1}/{cfg.epochs}",
-            unit="batch",
-            disable=not progress,
-            leave=False,
-            mininterval=0.5,
-        )
-        for rows in bar:
-            batch = _to(train.batch(train.indices[rows]), device)
-            out = model(batch["image"], batch["speed"])
-            loss = objective.batch_loss(out, batch, model, epoch=epoch)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            opt.step()
-            total += float(loss.detach()) * len(rows)
-            count += len(rows)
-            bar.set_postfix(loss=f"{total / count:.4f}", refresh=False)
-        bar.close()
+        desc = f"{name} epoch {epoch + 1}/{cfg.epochs}"
+        total, count = train_epoch(model, objective, train, opt, cfg, epoch, desc, progress)
         t_train += time.perf_counter() - t0
         n_seen += count
         val_losses, val_metrics = evaluate_loss(
