@@ -395,8 +395,8 @@ def bench_scaling(quick: bool, agent: str = "gmm") -> dict[str, float]:
     and all workers: miles per wall-second with and without the workers' start, the speed-up over
     one worker, its share of the ideal (``efficiency``), and whether the events equal one
     worker's; with a GPU, the network there in this process and in every worker. Collecting
-    (4,000 samples, quick 400; 16 cars, or one per core) with one process and with all: samples
-    per second, and whether the arrays are the same bytes."""
+    (16,000 samples, quick 400; 16 cars, or one per core) with one process and with all: samples
+    per second (the workers' start included), and whether the arrays are the same bytes."""
     from .config import available_cores
     from .driving.evaluation import close_shard_workers
 
@@ -425,7 +425,7 @@ def bench_scaling(quick: bool, agent: str = "gmm") -> dict[str, float]:
         for w, how in ((1, "threads"), (cores, "processes")):
             res = evaluate(gpu, world_cfg, ev, progress=False, workers=w, parallel=how)
             out[f"eval_cuda_{w}{how}_sim_miles_per_wall_s"] = res.sim_miles_per_wall_s
-    n = 400 if quick else 4_000
+    n = 400 if quick else 16_000
     cfg = DataConfig.for_profile(prof, "train", n_samples=n, n_worlds=max(16, cores))
     arrays = None
     for w in sorted({1, cores}):

@@ -27,16 +27,17 @@ class Work(NamedTuple):
     other_s: float = 0.0
 
 
-#: Per-part rates on the reference machine (a 2-core AMD EPYC, torch 2.13 on CPU; docs/benchmarks.md,
-#: "Every core"): closed-loop miles per second of one worker process driving chapter 10's 64 cars
-#: (two drove about 5 mi/s), expert samples per second of one collecting process, training
-#: samples per second (the training loop on the machine's threads; on a GPU, a lent H200's loop),
-#: and the share of the ideal speed-up that each further worker adds.
+#: Per-part rates on the reference machine (the project's 2-core AMD EPYC, torch 2.13 on CPU;
+#: docs/benchmarks.md, "Every core"): closed-loop miles per second of one worker process driving
+#: chapter 10's 64 cars (``bench scaling``: 1.46, two workers 2.72 once started), expert samples
+#: per second of one collecting process (1,177), training samples per second (about 600 on the
+#: machine's threads; on a GPU, a lent H200's training loop), and the share of the ideal
+#: speed-up each further worker adds (0.86 for the second here).
 RATES = {
-    "drive_mi_per_s_per_worker": 2.6,
-    "collect_samples_per_s_per_worker": 900.0,
-    "train_samples_per_s": {"cpu": 700.0, "cuda": 16_000.0},
-    "worker_efficiency": 0.85,
+    "drive_mi_per_s_per_worker": 1.46,
+    "collect_samples_per_s_per_worker": 1_177.0,
+    "train_samples_per_s": {"cpu": 600.0, "cuda": 16_000.0},
+    "worker_efficiency": 0.86,
 }
 
 
