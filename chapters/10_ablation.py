@@ -26,9 +26,8 @@
 # here or in chapter 09. PilotNet and L2, not rows of the paper's Table 1, drive with their
 # chapter's network alone (`ablation.SEED_ZERO_ONLY`: the 2 h has no room for their seeds; the
 # record decides their steps). Seed k of every row drives the same roads; each result is stored
-# under a key of the driver's weights and the settings, and reused.
-#
-# Run it with `python chapters/10_ablation.py` (add `--quick` for a run of seconds).
+# under a key of the driver's weights and the settings, and reused. Run it with
+# `python chapters/10_ablation.py` (add `--quick` for a run of seconds).
 
 # %%
 from e2e_lite.course import start_chapter

@@ -6,6 +6,7 @@ run prints first (:func:`plan_text`: the workers, the device, the precision and 
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import NamedTuple
 
 from .config import Profile
@@ -90,4 +91,18 @@ def course_work(profile: Profile) -> Work:
         train_samples=n * (scratch * epochs + tuned) + grid,
         drive_miles=selecting + chapters_05_08 + rows_09_11,
         other_s=300.0,
+    )
+
+
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; else what ``platform`` says), for records."""
+    import platform
+
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    return next(
+        (ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")),
+        platform.processor() or platform.machine(),
     )

@@ -1,6 +1,6 @@
 """The numbers of record: every paper row, L2 and the two controls, each learned row trained with
 several seeds, every seed driving its miles on the sealed block of test roads
-(:data:`~e2e_lite.driving.rollout.SEALED_BLOCK` of :data:`~e2e_lite.driving.rollout.ROAD_BLOCKS`),
+(:data:`~e2e_lite.driving.roads.SEALED_BLOCK` of :data:`~e2e_lite.driving.roads.ROAD_BLOCKS`),
 which nothing else drives (a quick smoke run of the record drives open roads).
 
 ``python -m e2e_lite.report --record`` runs :func:`record_table1`, writes
@@ -30,10 +30,10 @@ from .ablation import (
 )
 from .config import Profile, check_range, default_workers, precision
 from .driving.metrics import result_dict
-from .driving.rollout import ROAD_BLOCKS, SEALED_BLOCK, EvalConfig
-from .estimate import Work, plan_text
+from .driving.roads import ROAD_BLOCKS, SEALED_BLOCK
+from .driving.rollout import EvalConfig
+from .estimate import Work, cpu_name, plan_text
 from .learning.models import pick_device
-from .report import cpu_name
 from .simulation.world import WorldConfig
 
 
@@ -66,7 +66,7 @@ def record_table1(
 ) -> dict[str, Any]:
     """Table 1 of record: every row of :data:`DRIVERS` and :data:`CONTROLS`, each learned row
     trained with ``seeds`` training seeds, each seed driving ``miles_per_seed`` on test roads of
-    its own inside the sealed block of test roads (:data:`~e2e_lite.driving.rollout.SEALED_BLOCK`:
+    its own inside the sealed block of test roads (:data:`~e2e_lite.driving.roads.SEALED_BLOCK`:
     no chapter, lab script, selection, benchmark or test drives it; the quick profile's smoke
     run drives open roads). Trainings and evaluations are stored, so
     a cut run goes on where it stopped. Returns the record :mod:`e2e_lite.report` renders (per

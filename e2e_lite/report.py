@@ -351,6 +351,7 @@ def course_run_record(outputs: Path) -> dict[str, Any]:
     import torch
 
     from .course import TIMES_FILE
+    from .estimate import cpu_name
 
     times = json.loads((outputs / TIMES_FILE).read_text())
     chapters = {}
@@ -367,20 +368,6 @@ def course_run_record(outputs: Path) -> dict[str, Any]:
         }
     return {"machine": f"{cpu_name()}, {os.cpu_count()} cores", "torch": torch.__version__,
             "chapters": chapters}  # fmt: skip
-
-
-def cpu_name() -> str:
-    """The CPU's model name (``/proc/cpuinfo``; else what ``platform`` says)."""
-    import platform
-
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:
-        lines = []
-    return next(
-        (ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")),
-        platform.processor() or platform.machine(),
-    )
 
 
 def _figure(value: Any) -> str:

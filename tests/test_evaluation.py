@@ -620,7 +620,7 @@ def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reache
     import re
     from pathlib import Path
 
-    from e2e_lite.driving.rollout import ROAD_BLOCKS, SEALED_BLOCK
+    from e2e_lite.driving.roads import ROAD_BLOCKS, SEALED_BLOCK
 
     first = ROAD_BLOCKS[SEALED_BLOCK][0]
     assert ROAD_BLOCKS["open"][1] <= first
@@ -639,7 +639,7 @@ def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reache
     for path in [*root.glob("chapters/*.py"), *root.glob("lab/*.py"), *root.glob("e2e_lite/**/*.py"),
                  *root.glob("tests/*.py")]:  # fmt: skip
         text = path.read_text()
-        if path.name != "rollout.py" and re.search(
+        if path.name != "roads.py" and re.search(
             rf"""SEALED_BLOCK|block\s*=\s*["']{SEALED_BLOCK}["']|ROAD_BLOCKS\[["']{SEALED_BLOCK}""",
             text,
         ):

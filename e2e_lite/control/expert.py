@@ -23,12 +23,11 @@ state       what it does, and when it leaves
 ==========  =====================================================================================
 
 The trigger and finish distances, the lane change's duration and the side coin are drawn per
-manoeuvre from the car's own seeded generator, so the same scene is overtaken on the left in one
-run and on the right in another, and the moment it starts and ends varies, like human driving.
+manoeuvre from the car's own seeded generator: the same scene is overtaken on either side, and
+the moment it starts and ends varies, like human driving.
 
-Trajectory labels (:meth:`Expert.trajectory_label`) are the expert's noise-free rollout from the
-current state: a copy of the car and of its plan driven for 1.5 s with the same rules, no physics
-and no rendering, recorded every 0.3 s in the car frame.
+Trajectory labels (:meth:`Expert.trajectory_label`) are the expert's noise-free rollout: a copy of
+the car and its plan driven 1.5 s by the same rules (no physics), every 0.3 s in the car frame.
 """
 
 from __future__ import annotations

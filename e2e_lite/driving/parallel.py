@@ -83,8 +83,8 @@ def processes_ok(policy: Policy) -> bool:
     """Shards may run in worker processes when a fresh interpreter can unpickle the policy: its
     class is not defined in a script run as ``__main__``. A network on a GPU goes too: each
     worker is a fresh interpreter (never a fork of one that started CUDA) and loads the network
-    onto the device itself, which drove faster than threads sharing it in this process (the
-    docs/benchmarks.md, ``python -m e2e_lite.bench scaling`` measures both on a GPU). What a policy's shards count
+    onto the device itself, which drove faster than threads sharing it in this process on a lent
+    H200 (docs/benchmarks.md; ``python -m e2e_lite.bench scaling`` measures both on a GPU). What a policy's shards count
     comes home in their results (``Actuation.info``), so a policy never needs to know where it
     runs."""
     return type(policy).__module__ != "__main__"

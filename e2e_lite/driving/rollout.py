@@ -25,7 +25,7 @@ from ..simulation.camera import Camera
 from ..simulation.geometry import SPLITS
 from ..simulation.policy import Actuation, Observation, Policy, car_rng, observe
 from ..simulation.vehicle import H, V
-from ..simulation.world import Fleet, World, WorldConfig, make_world
+from ..simulation.world import Fleet, World, WorldConfig
 from .metrics import (
     M_PER_MILE,
     EvalResult,
@@ -34,14 +34,7 @@ from .metrics import (
     merge_shards,
     speed_histogram,
 )
-
-#: Blocks of test tracks, by name: ``[first, end)`` track indices. "open" holds every road the
-#: course, the lab scripts, the benchmarks and the tests drive; "record" is sealed: only the
-#: numbers of record (:func:`e2e_lite.ablation.record_table1`) drive it, after every recipe
-#: choice is frozen, so no choice was ever made while looking at its roads (issue 57; a test
-#: checks that no other code names it, and :func:`track_index` keeps every other drive out).
-SEALED_BLOCK = "record"
-ROAD_BLOCKS = {"open": (0, 1_000_000), SEALED_BLOCK: (1_000_000, 2_000_000)}
+from .roads import ROAD_BLOCKS, WorldPool
 
 
 @dataclass(frozen=True)
@@ -205,34 +198,6 @@ def restart_state(
     return s_new, float(world.track.lane_center(lane)), cfg.start_speed_mps
 
 
-class _WorldPool:
-    """Worlds of the evaluation split: a road and its cars are made once per track, and every car
-    gets its own pymunk world of it (two cars on one track must not share an ego body)."""
-
-    def __init__(self, world_cfg: WorldConfig, split: str) -> None:
-        self.world_cfg, self.split = world_cfg, split
-        self._roads: dict[int, World] = {}
-        self._worlds: dict[tuple[int, int], World] = {}
-
-    def release(self, car: int, index: int) -> None:
-        """Forget car ``car``'s world of track ``index`` (it moved on and never comes back)."""
-        self._worlds.pop((car, index), None)
-        if not any(k[1] == index for k in self._worlds):
-            self._roads.pop(index, None)
-
-    def get(self, car: int, index: int) -> World:
-        if (car, index) not in self._worlds:
-            if index not in self._roads:
-                self._roads[index] = make_world(self.world_cfg, self.split, index)
-            road = self._roads[index]
-            self._worlds[(car, index)] = (
-                road
-                if not any(k[1] == index for k in self._worlds)
-                else World(road.track, road.cars, self.world_cfg.vehicle)
-            )
-        return self._worlds[(car, index)]
-
-
 def check_policy_rate(policy: Policy, world_cfg: WorldConfig) -> None:
     """Raise when ``policy`` (or the driver it wraps, ``policy.agent`` or ``policy.expert``) was
     built for other time steps than the world's: its trackers would be discretised at the wrong
@@ -297,7 +262,7 @@ class _Shard:
         self.policy, self.world_cfg, self.cfg, self.cars = policy, world_cfg, cfg, cars
         self.out = ShardResult()
         n = self.n = len(cars)
-        self.pool = _WorldPool(world_cfg, cfg.split)
+        self.pool = WorldPool(world_cfg, cfg.split)
         self.visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
         self.fleet = Fleet(
             [self.pool.get(j, track_index(cfg, int(c), 0)) for j, c in enumerate(cars)], world_cfg

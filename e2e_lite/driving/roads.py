@@ -1,0 +1,45 @@
+"""The roads an evaluation drives: the blocks of test tracks (:data:`ROAD_BLOCKS`: every drive of
+the course drives the open block, the numbers of record alone the sealed one), and the worlds the
+cars drive them in (:class:`WorldPool`: a road and its parked cars made once per track, a pymunk
+world per car). Which track each car drives next is :func:`~e2e_lite.driving.rollout.track_index`.
+"""
+
+from __future__ import annotations
+
+from ..simulation.world import World, WorldConfig, make_world
+
+#: Blocks of test tracks, by name: ``[first, end)`` track indices. "open" holds every road the
+#: course, the lab scripts, the benchmarks and the tests drive; "record" is sealed: only the
+#: numbers of record (:func:`e2e_lite.record.record_table1`) drive it, after every recipe
+#: choice is frozen, so no choice was ever made while looking at its roads (issue 57; a test
+#: checks that no other code names it, and `rollout.track_index` keeps every other drive out).
+SEALED_BLOCK = "record"
+ROAD_BLOCKS = {"open": (0, 1_000_000), SEALED_BLOCK: (1_000_000, 2_000_000)}
+
+
+class WorldPool:
+    """Worlds of the evaluation split: a road and its cars are made once per track, and every car
+    gets its own pymunk world of it (two cars on one track must not share an ego body)."""
+
+    def __init__(self, world_cfg: WorldConfig, split: str) -> None:
+        self.world_cfg, self.split = world_cfg, split
+        self._roads: dict[int, World] = {}
+        self._worlds: dict[tuple[int, int], World] = {}
+
+    def release(self, car: int, index: int) -> None:
+        """Forget car ``car``'s world of track ``index`` (it moved on and never comes back)."""
+        self._worlds.pop((car, index), None)
+        if not any(k[1] == index for k in self._worlds):
+            self._roads.pop(index, None)
+
+    def get(self, car: int, index: int) -> World:
+        if (car, index) not in self._worlds:
+            if index not in self._roads:
+                self._roads[index] = make_world(self.world_cfg, self.split, index)
+            road = self._roads[index]
+            self._worlds[(car, index)] = (
+                road
+                if not any(k[1] == index for k in self._worlds)
+                else World(road.track, road.cars, self.world_cfg.vehicle)
+            )
+        return self._worlds[(car, index)]
