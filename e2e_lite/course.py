@@ -87,8 +87,8 @@ CHAPTERS: dict[int, ChapterInfo] = {
     6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 5, 3),
     7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 6, 14),
     8: ChapterInfo("the affordance auxiliary loss", "3.5", 7, 6),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 15),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 37),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 18),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 29),
     11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 8),
 }
 

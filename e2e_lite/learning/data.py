@@ -386,11 +386,12 @@ def collect(cfg: DataConfig, progress: bool = True, workers: int | None = None) 
     h, w = cfg.camera.height_px, cfg.camera.width_px
     a = allocate(cfg.n_samples, (h, w))
     row = 0
-    for arrays, _, _ in parts:  # car after car: the parts are blocks of cars in order
+    for k, (arrays, shard, counts) in enumerate(parts):  # car after car: blocks of cars in order
         n = len(arrays["speed"])
         for name in a:
             a[name][row : row + n] = arrays[name]
         row += n
+        parts[k] = ({}, shard, counts)  # (the part's frames are copied: free them now)
     result = merge_shards([shard for _, shard, _ in parts], 0.0, time.perf_counter() - t_wall)
     manoeuvres: Counter = Counter()
     for _, _, counts in parts:
