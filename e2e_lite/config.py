@@ -76,8 +76,9 @@ class Profile:
         track_length_m: length of each procedural track [m].
         n_val_tracks: how many validation tracks closed-loop evaluation cycles through.
         eval_miles: closed-loop distance budget per driver in the chapters [mi].
-        n_worlds: worlds driven in lockstep by the evaluator (the batch B; two groups of the
-            networks' forward passes at least, so an evaluation can use two cores).
+        n_worlds: worlds driven in lockstep by the evaluator (the batch B). The evaluator shares
+            them out in groups of 8 (``policy.FORWARD_GROUP``), so B / 8 cores at most drive
+            one evaluation: 64 in the full profile, for 8 cores; 16 in the quick one, for 2.
         collect_worlds: cars the data collector drives in lockstep (each records its share of
             the samples, so few samples need few cars).
         n_train_samples: expert samples collected on training tracks (chapter 04).
@@ -87,9 +88,7 @@ class Profile:
         ablation_miles: closed-loop distance per driver in chapter 10's ablation [mi] (the
             paper: more than 480).
         replay_s: length of chapter 10's replays [s].
-        ablation_worlds: cars driven in lockstep in chapters 10 and 11 (more than the chapters'
-            ``n_worlds``: the network's batches are then large enough to run near its per-frame
-            floor; see ``python -m e2e_lite.bench closed-loop``).
+        ablation_worlds: cars driven in lockstep in chapters 09-11 and by the record.
         ablation_seeds: training seeds per learned driver in chapters 09-11; a row's miles are
             shared among them and the verdicts compare seeds (one training run cannot separate
             the methods). Four in the full profile: 4 seeds against 4 can reach p = 1/70, where
@@ -168,7 +167,7 @@ FULL = Profile(
     track_length_m=8_000.0,
     n_val_tracks=16,
     eval_miles=100.0,
-    n_worlds=16,
+    n_worlds=64,
     collect_worlds=16,
     n_train_samples=48_000,
     n_val_samples=8_000,

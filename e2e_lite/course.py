@@ -363,8 +363,10 @@ def main(argv: list[str] | None = None) -> int:
         from .estimate import course_work, plan_text
         from .learning.models import pick_device
 
+        reference_s = 60.0 * sum(CHAPTERS[n].full_min for n, _ in chapters)
         work = course_work(FULL)
-        print(plan_text("the course", work, default_workers(), pick_device().type), flush=True)
+        line = plan_text("the course", work, default_workers(), pick_device().type, reference_s)
+        print(line, flush=True)
     ledger = (outputs_dir(quick) / TIMES_FILE).resolve()  # (in-process chapters change the cwd)
     try:
         return _run(chapters, found, quick, in_process, env, profile, ledger)

@@ -45,28 +45,48 @@ RATES = {
 def estimate_s(work: Work, workers: int, device: str = "cpu") -> float:
     """Seconds ``work`` should take with ``workers`` worker processes and training on ``device``
     (``"cpu"`` or ``"cuda"``), from :data:`RATES`: each part's amount over its rate, the workers
-    counted at :data:`RATES`' efficiency beyond the first. An estimate: the networks, the roads'
-    traffic and the machine's cores all move it."""
-    effective = 1.0 + RATES["worker_efficiency"] * (max(1, workers) - 1)
+    counted at :data:`RATES`' efficiency beyond the first, at most one per group of cars to share
+    (the full profile's 64 cars in groups of 8 for driving, its 16 cars for collecting). An
+    estimate: the networks, the roads' traffic and the machine's cores all move it."""
+
+    def effective(most: int) -> float:
+        return 1.0 + RATES["worker_efficiency"] * (min(max(1, workers), most) - 1)
+
     train_rate = RATES["train_samples_per_s"].get(device, RATES["train_samples_per_s"]["cpu"])
     return (
-        work.collect_samples / (RATES["collect_samples_per_s_per_worker"] * effective)
-        + work.drive_miles / (RATES["drive_mi_per_s_per_worker"] * effective)
+        work.collect_samples / (RATES["collect_samples_per_s_per_worker"] * effective(16))
+        + work.drive_miles / (RATES["drive_mi_per_s_per_worker"] * effective(8))
         + work.train_samples / train_rate
         + work.other_s
     )
 
 
-def plan_text(what: str, work: Work, workers: int, device: str) -> str:
-    """The line a long run prints first: the workers and device it will use, and its estimate."""
+def scaled_estimate_s(reference_s: float, work: Work, workers: int, device: str = "cpu") -> float:
+    """A run measured at ``reference_s`` on the reference machine (2 workers, CPU), on this one:
+    the parts of ``work`` are timed with :data:`RATES` at 2 workers and at ``workers`` on
+    ``device``, and the measured time is scaled by their ratio (the rates set the shares, the
+    measurement the scale)."""
+    return reference_s * estimate_s(work, workers, device) / estimate_s(work, 2, "cpu")
+
+
+def plan_text(
+    what: str, work: Work, workers: int, device: str, reference_s: float | None = None
+) -> str:
+    """The line a long run prints first: the workers and device it will use, and its estimate
+    (from :data:`RATES`, or scaled from ``reference_s`` measured on the reference machine)."""
     from .config import WORKERS_ENV, available_cores, precision
 
-    minutes = estimate_s(work, workers, device) / 60.0
+    seconds = (
+        estimate_s(work, workers, device)
+        if reference_s is None
+        else scaled_estimate_s(reference_s, work, workers, device)
+    )
+    minutes = seconds / 60.0
     return (
         f"{what}: {workers} worker processes ({available_cores()} cores; {WORKERS_ENV} to change),"
         f" training on {device} in {precision()}; estimate about {minutes:.0f} min "
         f"({work.drive_miles:,.0f} mi driven, {work.train_samples / 1e6:.1f} M training samples,"
-        f" {work.collect_samples:,.0f} samples collected; rates of docs/benchmarks.md)"
+        f" {work.collect_samples:,.0f} samples collected; docs/benchmarks.md's rates)"
     )
 
 
