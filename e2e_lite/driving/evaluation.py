@@ -72,9 +72,9 @@ from .rollout import (  # noqa: F401 (re-exported, as above)
 )
 from .verdicts import compare_seeds, power, seed_counts  # noqa: F401 (re-exported, as above)
 
-#: the least road per shard that ``parallel="auto"`` starts worker processes for [mi]: a worker's
-#: start (an interpreter, torch) costs about as much as driving 3-5 mi on one core; shorter drives
-#: run their shards in threads
+#: the least road that ``parallel="auto"`` starts worker processes for [mi]: the workers' start
+#: (an interpreter and torch each, in parallel) costs about as much as driving 3-5 mi on one core,
+#: and they are kept for the next evaluations; shorter drives run their shards in threads
 MIN_MILES_PER_WORKER = 5.0
 
 
@@ -131,8 +131,8 @@ def evaluate(
             :func:`~e2e_lite.config.default_workers` (every core, or ``E2E_LITE_WORKERS``),
             capped by the groups of cars. A policy without ``fork``, or a call with
             ``stop_when``, runs in one.
-        parallel: how shards run: ``"auto"`` (processes where possible, see above, and where
-            each shard drives at least :data:`MIN_MILES_PER_WORKER`; else threads),
+        parallel: how shards run: ``"auto"`` (processes where possible, see above, for a drive
+            of at least :data:`MIN_MILES_PER_WORKER`; else threads),
             ``"threads"`` or ``"processes"`` (the policy must pickle; its forks' state stays in
             the workers: report what the caller needs through ``Actuation.info``).
     """
@@ -170,8 +170,8 @@ def evaluate(
         else:
             policies = policy.fork(len(cars))  # type: ignore[attr-defined]
             jobs = [shard_job(p, world_cfg, cfg, c, record_traces) for p, c in zip(policies, cars)]
-            if parallel == "auto":  # (a drive too short to pay a worker's start: threads)
-                short = cfg.miles / len(cars) < MIN_MILES_PER_WORKER
+            if parallel == "auto":  # (a drive too short to pay its workers' start: threads)
+                short = cfg.miles < MIN_MILES_PER_WORKER
                 parallel = "processes" if processes_ok(policy) and not short else "threads"
             run = drive_in_processes if parallel == "processes" else drive_in_threads
             shards = run(jobs, advance)
