@@ -389,7 +389,14 @@ def course_run_table(run: dict[str, Any] | None) -> str:
         cut = "" if ch["complete"] else " (cut)"
         lines.append(f"| {stem} | {ch['minutes']:g}{cut} | {figures} |")
     total = sum(ch["minutes"] for ch in run["chapters"].values())
-    lines += ["", f"*The full course, {total:.0f} min on {run['machine']}, torch {run['torch']}"
+    done = [stem[:2] for stem, ch in run["chapters"].items() if ch["complete"]]
+    what = (
+        f"The full course, {total:.0f} min"
+        if len(done) == 11
+        else f"A run cut after chapter {done[-1] if done else '-'} (chapters {', '.join(done)} "
+        f"complete, {total:.0f} min)"
+    )
+    lines += ["", f"*{what} on {run['machine']}, torch {run['torch']}"
               f"{'; ' + run['note'] if run.get('note') else ''}.*"]  # fmt: skip
     return "\n".join(lines)
 

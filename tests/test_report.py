@@ -122,3 +122,27 @@ def test_the_spread_is_the_worst_seed_over_the_median_and_a_paper_row_over_the_g
     md = report.results_md(record)
     line = next(ln for ln in md.splitlines() if ln.startswith(f"| {paper['label']} | 82"))
     assert line.endswith("| 5.0 (over the goal) |")
+
+
+def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp_path) -> None:
+    """Issue 58: docs/teaching.md's per-chapter block is rendered from what a full-profile run
+    wrote (its chapter times and headline figures), never typed; a cut run says so."""
+    import json
+
+    (tmp_path / "metrics").mkdir()
+    times = {
+        "01_highway": {"seconds": 6.0, "complete": True},
+        "02_camera": {"seconds": 90.0, "complete": False},
+    }
+    (tmp_path / "course_times.json").write_text(json.dumps(times))
+    metrics = {"profile": "full", "headline": {"lane keeper collisions/100mi": 0.0}}
+    (tmp_path / "metrics" / "01_highway.json").write_text(json.dumps(metrics))
+    run = report.course_run_record(tmp_path)
+    assert run["chapters"]["01_highway"]["headline"] == {"lane keeper collisions/100mi": 0.0}
+    table = report.course_run_table(run)
+    assert "| 01_highway | 0.1 | lane keeper collisions/100mi: 0 |" in table
+    assert "| 02_camera | 1.5 (cut) | - |" in table and "cut after chapter 01" in table
+    assert "No full-profile run" in report.course_run_table(None)
+    (tmp_path / "metrics" / "02_camera.json").write_text(json.dumps({"profile": "quick"}))
+    with pytest.raises(ValueError, match="not a full-profile run"):
+        report.course_run_record(tmp_path)
