@@ -388,8 +388,8 @@ def course_run_table(run: dict[str, Any] | None) -> str:
         figures = "; ".join(f"{k}: {_figure(v)}" for k, v in ch["headline"].items()) or "-"
         cut = "" if ch["complete"] else " (cut)"
         lines.append(f"| {stem} | {ch['minutes']:g}{cut} | {figures} |")
-    total = sum(ch["minutes"] for ch in run["chapters"].values())
     done = [stem[:2] for stem, ch in run["chapters"].items() if ch["complete"]]
+    total = sum(ch["minutes"] for ch in run["chapters"].values() if ch["complete"])
     what = (
         f"The full course, {total:.0f} min"
         if len(done) == 11
