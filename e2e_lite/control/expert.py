@@ -41,7 +41,7 @@ import numpy as np
 
 from ..config import check_pair, check_range
 from ..simulation.geometry import Track, wrap_angle
-from ..simulation.policy import Actuation, Observation
+from ..simulation.policy import Actuation, Observation, seeded_cars
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
 from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S
@@ -264,9 +264,7 @@ class Expert:
     def reset(self, n_worlds: int) -> None:
         """New plans for ``n_worlds`` cars; counters zeroed."""
         self.plans = []
-        cars = getattr(self, "cars", None)
-        if cars is None or len(cars) != n_worlds:
-            cars = np.arange(n_worlds)
+        cars = seeded_cars(self, n_worlds)
         for i in range(n_worlds):
             plan = Plan(rng=np.random.default_rng([self.seed, int(cars[i])]))
             plan.draw(self.cfg)

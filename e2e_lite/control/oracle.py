@@ -11,7 +11,7 @@ import copy
 
 import numpy as np
 
-from ..simulation.policy import Actuation, Observation, car_rng
+from ..simulation.policy import Actuation, Observation, car_rng, seeded_cars
 from .expert import Expert
 from .tracker import (
     check_reading,
@@ -70,10 +70,7 @@ class Oracle:
     def reset(self, n_worlds: int) -> None:
         """Reset the expert's plans and each car's noise."""
         self.expert.reset(n_worlds)
-        cars = getattr(self, "cars", None)
-        if cars is None or len(cars) != n_worlds:
-            cars = np.arange(n_worlds)
-        self.rngs = [car_rng(self.seed, 31, int(c)) for c in cars]
+        self.rngs = [car_rng(self.seed, 31, int(c)) for c in seeded_cars(self, n_worlds)]
 
     def act(self, obs: Observation) -> Actuation:
         """Follow the expert's trajectory from the current state."""

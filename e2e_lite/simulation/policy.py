@@ -24,6 +24,14 @@ from .world import Fleet, World
 FORWARD_GROUP = 8
 
 
+def seeded_cars(policy: object, n_worlds: int) -> np.ndarray:
+    """The evaluation's indices of the ``n_worlds`` cars a policy is about to drive: those its
+    ``seed_cars`` was last given when they are that many, else ``0 .. n_worlds - 1`` (a policy
+    driven without the evaluator, e.g. in a hand-made scene)."""
+    cars = getattr(policy, "cars", None)
+    return np.arange(n_worlds) if cars is None or len(cars) != n_worlds else cars
+
+
 def car_rng(seed: int, stream: int, car: int, *more: int) -> np.random.Generator:
     """The generator of one car's draws of one kind (``stream``): seeded by the car's index among
     the evaluation's (or the collection's) cars, never by its place in a shard, so the draws do
