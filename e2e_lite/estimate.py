@@ -32,12 +32,13 @@ class Work(NamedTuple):
 #: docs/benchmarks.md, "Every core"): closed-loop miles per second of one worker process driving
 #: chapter 10's 64 cars (``bench scaling``: 1.46, two workers 2.72 once started), expert samples
 #: per second of one collecting process (1,177), training samples per second (about 600 on the
-#: machine's threads; on a GPU, a lent H200's training loop), and the share of the ideal
-#: speed-up each further worker adds (0.86 for the second here).
+#: machine's threads; on a GPU, a lent H100's training loop in float32: 13,907), and the share of
+#: the ideal speed-up each further worker adds (0.86 for the second here; 0.80-0.98 up to 16
+#: workers on the lent H100's cores, which drive as fast as these).
 RATES = {
     "drive_mi_per_s_per_worker": 1.46,
     "collect_samples_per_s_per_worker": 1_177.0,
-    "train_samples_per_s": {"cpu": 600.0, "cuda": 16_000.0},
+    "train_samples_per_s": {"cpu": 600.0, "cuda": 14_000.0},
     "worker_efficiency": 0.86,
 }
 
