@@ -253,9 +253,9 @@ def build_drivers(
     return out
 
 
-#: rows chapter 10 drives with the chapters' own networks (training seed 0) alone: they are not
-#: steps of the paper's Table 1, and training them with every seed would take the full course
-#: past its 2 h on 2 cores (issue 57). The record trains every seed of every row.
+#: rows chapter 10 and the record drive with the chapters' own networks (training seed 0) alone:
+#: they are not steps of the paper's Table 1, and training them with every seed would take the
+#: full course past its 2 h on 2 cores and the record past a sitting (issue 57).
 SEED_ZERO_ONLY = ("pilotnet", "trajectory_l2")
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ from .ablation import (
     CONTROLS,
     DRIVERS,
     PAPER_MPH,
+    SEED_ZERO_ONLY,
     UNTRAINED,
     build_seeded_drivers,
     evaluate_drivers,
@@ -37,23 +39,26 @@ from .learning.models import pick_device
 from .simulation.world import WorldConfig
 
 
-def record_work(profile: Profile, seeds: int, miles_per_seed: float) -> Work:
+def record_work(
+    profile: Profile, seeds: int, miles_per_seed: float, single: Sequence[str] = SEED_ZERO_ONLY
+) -> Work:
     """What :func:`record_table1` does from an empty outputs folder, in the parts the benchmarks
     measure: the data, chapter 08's weight grid (5 weights, 2 epochs, a quarter of the data),
     every training (from scratch: the profile's epochs and a selection drive per epoch; the two
-    fine-tunes: one epoch), and every row's drive."""
+    fine-tunes: one epoch; the rows of ``single``: seed 0 alone), and every row's drive."""
     from .learning.recipes import SELECT_MILES
 
-    learned = [d for d in (*DRIVERS, *CONTROLS) if d.key not in UNTRAINED]
-    tuned = sum(1 for d in learned if d.key in ("gmm_affordance_cvar", "gmm_affordance_control"))
-    scratch = len(learned) - tuned
+    learned = [d.key for d in (*DRIVERS, *CONTROLS) if d.key not in UNTRAINED]
+    tuned = sum(k in ("gmm_affordance_cvar", "gmm_affordance_control") for k in learned)
+    trainings = sum(1 if k in single else seeds for k in learned)  # (no fine-tune is single)
+    scratch = trainings - seeds * tuned
     epochs = profile.train_epochs
     return Work(
         collect_samples=profile.n_train_samples + profile.n_val_samples,
-        train_samples=seeds * profile.n_train_samples * (scratch * epochs + tuned)
+        train_samples=profile.n_train_samples * (scratch * epochs + seeds * tuned)
         + 5 * 2 * profile.n_train_samples / 4,
-        drive_miles=seeds * (scratch * epochs * SELECT_MILES + miles_per_seed * len(learned))
-        + miles_per_seed * seeds * len(UNTRAINED),
+        drive_miles=scratch * epochs * SELECT_MILES
+        + miles_per_seed * seeds * (len(learned) + len(UNTRAINED)),
     )
 
 
@@ -62,14 +67,18 @@ def record_table1(
     seeds: int = 10,
     miles_per_seed: float = 100.0,
     *,
+    single: Sequence[str] = SEED_ZERO_ONLY,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Table 1 of record: every row of :data:`DRIVERS` and :data:`CONTROLS`, each learned row
-    trained with ``seeds`` training seeds, each seed driving ``miles_per_seed`` on test roads of
-    its own inside the sealed block of test roads (:data:`~e2e_lite.driving.roads.SEALED_BLOCK`:
+    trained with ``seeds`` training seeds (those of ``single``: one), each seed driving
+    ``miles_per_seed`` on test roads of its own inside the sealed block of test roads
+    (:data:`~e2e_lite.driving.roads.SEALED_BLOCK`:
     no chapter, lab script, selection, benchmark or test drives it; the quick profile's smoke
-    run drives open roads). Trainings and evaluations are stored, so
-    a cut run goes on where it stopped. Returns the record :mod:`e2e_lite.report` renders (per
+    run drives open roads). The rows of ``single`` (PilotNet and L2: no step of the paper's
+    Table 1 is theirs) train seed 0 alone, which drives every seed's miles in one run; the
+    verdicts' rows train every seed. Trainings and evaluations are stored, so a cut run goes on
+    where it stopped. Returns the record :mod:`e2e_lite.report` renders (per
     row: each seed's collisions, miles, mph and stalls; the recipes' commit, the CPU, torch, the
     precision, the workers and the block).
 
@@ -93,9 +102,9 @@ def record_table1(
     ev = EvalConfig(miles=miles_per_seed * seeds, n_worlds=profile.ablation_worlds, block=block)
     workers, device = default_workers(), pick_device()
     if progress:
-        work = record_work(profile, seeds, miles_per_seed)
+        work = record_work(profile, seeds, miles_per_seed, single)
         print(plan_text("the record", work, workers, device.type), flush=True)
-    drivers = build_seeded_drivers(profile, keys, seeds=seeds, progress=progress)
+    drivers = build_seeded_drivers(profile, keys, seeds=seeds, single=single, progress=progress)
     results = evaluate_drivers(drivers, world_cfg, ev, progress=progress)
     cpu = cpu_name()
     rows = []
@@ -122,6 +131,11 @@ def record_table1(
         "title": f"Table 1 of record ({profile.name} profile, {seeds} training seeds)",
         "status": (
             f"Of record: {seeds} training seeds per learned row, {miles_per_seed:g} mi each"
+            + (
+                f" ({', '.join(single)}: seed 0 alone, {miles_per_seed * seeds:g} mi)"
+                if single
+                else ""
+            )
         ),
         "machine": f"{cpu}, {os.cpu_count()} cores, {workers} workers, {device.type}",
         "torch": torch.__version__,
@@ -130,6 +144,7 @@ def record_table1(
         "block": {"name": ev.block, "range": list(ROAD_BLOCKS[ev.block]), "recipes_commit": commit},
         "commits": {commit: "every row"},
         "miles_note": "each seed drove its miles on test roads of its own (evaluation.disjoint_runs)",
+        "single_seed_rows": list(single),
         "paper_mph": PAPER_MPH,
         "rows": rows,
     }
