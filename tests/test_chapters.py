@@ -350,11 +350,16 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
     record = json.loads((artifacts.outputs_dir(quick=True) / "table1.json").read_text())
     keys = [r["key"] for r in record["rows"]]
     assert keys == [d.key for d in (*ablation.DRIVERS, *ablation.CONTROLS)]
+    # PilotNet and L2 (no verdict step is theirs) train seed 0 alone, which drives both seeds' miles
+    assert record["single_seed_rows"] == list(ablation.SEED_ZERO_ONLY)
+    single = {*ablation.UNTRAINED, *ablation.SEED_ZERO_ONLY}
     for row in record["rows"]:
-        n = 1 if row["key"] in ablation.UNTRAINED else 2
+        n = 1 if row["key"] in single else 2
         assert len(row["seeds"]) == n, row["key"]
         assert sum(s["collisions"] for s in row["seeds"]) == row["car"] + row["rail"]
         assert all(s["miles"] > 0 and s["mph"] > 0 for s in row["seeds"])
+    miles = {r["key"]: sum(s["miles"] for s in r["seeds"]) for r in record["rows"]}
+    assert miles["pilotnet"] == pytest.approx(miles["gmm"], abs=0.05)
     assert record["roads"] == "test" and record["precision"] == "fp32"
     # a smoke run never drives the sealed roads of the record of record
     assert record["block"]["name"] == "open" and record["block"]["range"] == [*ROAD_BLOCKS["open"]]
