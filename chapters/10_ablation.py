@@ -27,9 +27,9 @@
 # chapter's network alone (`ablation.SEED_ZERO_ONLY`), and they and the two ceilings drive the
 # chapters' own budget (`profile.eval_miles`): the course's 2 h on 2 cores has room for the
 # seeds of the paper's rows only; the record (`docs/results.md`) drives every row over ten
-# seeds' miles, on roads of its own. Seed k of every row drives the same roads; each result is stored under a key of the
-# driver's weights and the settings, and reused. Run it with `python chapters/10_ablation.py`
-# (add `--quick` for a run of seconds).
+# seeds' miles, on roads of its own. Seed k of every row drives the same roads; each result is
+# stored under a key of the driver's weights and the settings, and reused. Run it with
+# `python chapters/10_ablation.py` (add `--quick` for a run of seconds).
 
 # %%
 from e2e_lite.course import start_chapter
