@@ -73,14 +73,13 @@ def record_table1(
     """Table 1 of record: every row of :data:`DRIVERS` and :data:`CONTROLS`, each learned row
     trained with ``seeds`` training seeds (those of ``single``: one), each seed driving
     ``miles_per_seed`` on test roads of its own inside the sealed block of test roads
-    (:data:`~e2e_lite.driving.roads.SEALED_BLOCK`:
-    no chapter, lab script, selection, benchmark or test drives it; the quick profile's smoke
-    run drives open roads). The rows of ``single`` (PilotNet and L2: no step of the paper's
-    Table 1 is theirs) train seed 0 alone, which drives every seed's miles in one run; the
-    verdicts' rows train every seed. Trainings and evaluations are stored, so a cut run goes on
-    where it stopped. Returns the record :mod:`e2e_lite.report` renders (per
-    row: each seed's collisions, miles, mph and stalls; the recipes' commit, the CPU, torch, the
-    precision, the workers and the block).
+    (:data:`~e2e_lite.driving.roads.SEALED_BLOCK`: no chapter, lab script, selection, benchmark
+    or test drives it; the quick profile's smoke run drives open roads). The rows of ``single``
+    (PilotNet and L2: no step of the paper's Table 1 is theirs) train seed 0 alone, which drives
+    every seed's miles in one run; the verdicts' rows train every seed. Trainings and
+    evaluations are stored, so a cut run goes on where it stopped. Returns the record
+    :mod:`e2e_lite.report` renders (per row: each seed's collisions, miles, mph and stalls; the
+    recipes' commit, the CPU, torch, the precision, the workers and the block).
 
     The default, 10 seeds x 100 mi, finds a true 2x step at 3 collisions per 100 mi about 90 %
     of the time (:func:`~e2e_lite.driving.verdicts.power`; 5 x 100 mi: about 60 %)."""

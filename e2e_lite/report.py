@@ -378,6 +378,8 @@ def _figure(value: Any) -> str:
 
 def course_run_table(run: dict[str, Any] | None) -> str:
     """docs/teaching.md's table of what each chapter printed in a full-profile run."""
+    from .course import CHAPTERS
+
     if run is None:
         return (
             "*No full-profile run is recorded yet: run `python -m e2e_lite.course`, then "
@@ -392,7 +394,7 @@ def course_run_table(run: dict[str, Any] | None) -> str:
     total = sum(ch["minutes"] for ch in run["chapters"].values() if ch["complete"])
     what = (
         f"The full course, {total:.0f} min"
-        if len(done) == 11
+        if len(done) == len(CHAPTERS)
         else f"A run cut after chapter {done[-1] if done else '-'} (chapters {', '.join(done)} "
         f"complete, {total:.0f} min)"
     )
