@@ -146,3 +146,19 @@ def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp
     (tmp_path / "metrics" / "02_camera.json").write_text(json.dumps({"profile": "quick"}))
     with pytest.raises(ValueError, match="not a full-profile run"):
         report.course_run_record(tmp_path)
+
+
+def test_the_committed_record_drives_a_sealed_block_and_states_its_power() -> None:
+    """Issue 57: the record of record names its block of test roads (not the open one), the
+    block's range and the commit of its frozen recipes, and docs/results.md states its power at
+    its own + affordance rate."""
+    from e2e_lite.driving.roads import ROAD_BLOCKS
+
+    record = report.load()
+    block = record["block"]
+    assert block["name"] != "open" and block["range"] == list(ROAD_BLOCKS[block["name"]])
+    assert re.fullmatch(r"[0-9a-f]{7,40}", block["recipes_commit"])
+    found = report.record_power(record)
+    assert found is not None and found["seeds"] >= 10
+    results = (ROOT / "docs" / "results.md").read_text()
+    assert f"Power: {found['seeds']} seeds x {found['miles_per_seed']:.0f} mi" in results
