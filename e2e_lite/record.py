@@ -94,6 +94,15 @@ def record_table1(
         ).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
+    from .report import FAMILIES, STEPS  # (report runs this module's record; no import cycle)
+
+    # the family of tests, declared before anything is trained or driven (issue 64)
+    family = {
+        "families": FAMILIES,
+        "tests": {st.what: st.family for st in STEPS},
+        "adjustment": "holm",
+        "declared": f"before this record ran, in the recipes of {commit}",
+    }
     keys = [d.key for d in (*DRIVERS, *CONTROLS)]
     world_cfg = WorldConfig.for_profile(profile)
     # the sealed roads are for the record alone: a quick smoke run drives open roads
@@ -144,6 +153,7 @@ def record_table1(
         "commits": {commit: "every row"},
         "miles_note": "each seed drove its miles on test roads of its own (evaluation.disjoint_runs)",
         "single_seed_rows": list(single),
+        "family": family,
         "paper_mph": PAPER_MPH,
         "rows": rows,
     }

@@ -645,3 +645,59 @@ def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reache
         ):
             named.add(path.relative_to(root).as_posix())
     assert named == {"e2e_lite/record.py", "tests/test_evaluation.py"}, named
+
+
+def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p():
+    """Issue 64: the sign-flip test counts the 2^n sign patterns by subset sums (checked against
+    listing them), runs for 30 seeds, and its min_p counts zero differences (3 zeros in 10:
+    1/128, not 1/1024); the float rank test used by power() equals the exact one."""
+    import itertools
+
+    from e2e_lite.driving.verdicts import rank_test, sign_flip_test
+
+    rng = np.random.default_rng(3)
+    for _ in range(150):
+        n = int(rng.integers(1, 9))
+        a, b = rng.poisson(3.0, n), rng.poisson(3.0, n)
+        d = a - b
+        sums = np.array([np.dot(s, np.abs(d)) for s in itertools.product((-1, 1), repeat=n)])
+        got = sign_flip_test(a, b)
+        assert got["p_fewer"] == pytest.approx(np.mean(sums <= d.sum()), abs=1e-12)
+        assert got["p_more"] == pytest.approx(np.mean(sums >= d.sum()), abs=1e-12)
+        assert rank_test(a, b, exact=False)["p_fewer"] == pytest.approx(
+            rank_test(a, b)["p_fewer"], abs=1e-12
+        )
+    zeros = sign_flip_test([0, 0, 0, 1, 1, 1, 1, 1, 1, 1], [0, 0, 0, 2, 2, 2, 2, 2, 2, 2])
+    assert zeros["min_p"] == pytest.approx(1 / 128) and zeros["p_fewer"] == pytest.approx(1 / 128)
+    # fractional differences are listed, and a zero among them is still a zero
+    assert sign_flip_test([0.5, 1.0, 2.0], [0.5, 2.0, 3.0])["min_p"] == pytest.approx(1 / 4)
+    thirty = sign_flip_test(np.zeros(30), np.ones(30))
+    assert thirty["p_fewer"] == pytest.approx(0.5**30) and thirty["p_more"] == 1.0
+    # tied values: 3 seeds against 3 of one count cannot give anything but p = 1
+    assert rank_test([2, 2, 2], [2, 2, 2])["min_p"] == 1.0
+
+
+def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():
+    """Issue 64: the seeds' dispersion is fitted by maximum likelihood (a Poisson record fits
+    about 0; simulated seeds of dispersion 0.4 fit an interval that holds 0.4), and a record
+    whose seeds spread so finds a 2x step far less often than Poisson seeds would (the issue's
+    simulation: 10 x 100 mi at 3 per 100 mi, 0.90 without spread, about 0.57 at 0.32)."""
+    from e2e_lite.driving.verdicts import fit_dispersion, holm, power
+
+    rng = np.random.default_rng(5)
+    poisson = [rng.poisson(mu, 10) for mu in (2.0, 5.0, 9.0, 30.0) * 5]
+    assert fit_dispersion(poisson)["dispersion"] < 0.05
+    spread = [rng.poisson(mu * rng.gamma(2.5, 0.4, 10)) for mu in (2.0, 5.0, 9.0, 30.0) * 5]
+    fitted = fit_dispersion(spread)
+    assert fitted["low"] < 0.4 < fitted["high"] and fitted["seeds"] == 200
+    with pytest.raises(ValueError, match="two seeds"):
+        fit_dispersion([[3]])
+    flat = power(10, 100.0, 3.0, n_sim=1_000)["power"]
+    spread_power = power(10, 100.0, 3.0, n_sim=1_000, dispersion=0.32)["power"]
+    paired = power(10, 100.0, 3.0, n_sim=1_000, dispersion=0.32, test="sign-flip")
+    assert 0.85 < flat < 0.95 and 0.5 < spread_power < 0.65 and 0.45 < paired["power"] < 0.65
+    assert paired["min_p"] == pytest.approx(0.5**10)
+    with pytest.raises(ValueError, match="dispersion"):
+        power(10, 100.0, 3.0, dispersion=-0.1)
+    # Holm: 0.01, 0.04, 0.03 in a family of three -> 0.03, 0.06, 0.06
+    assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])

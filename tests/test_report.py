@@ -162,3 +162,53 @@ def test_the_committed_record_drives_a_sealed_block_and_states_its_power() -> No
     assert found is not None and found["seeds"] >= 10
     results = (ROOT / "docs" / "results.md").read_text()
     assert f"Power: {found['seeds']} seeds x {found['miles_per_seed']:.0f} mi" in results
+
+
+def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_papers_ratio() -> None:
+    """Issue 64: the record names its families of tests; each step's p is Holm-adjusted within
+    its family and the verdict word reads the adjusted p; the table shows raw and adjusted p, the
+    paper's ratio beside ours, and a line on what each control found."""
+    record = copy.deepcopy(report.load())
+    assert set(record["family"]["tests"].values()) <= set(record["family"]["families"])
+    record["rows"] = [
+        row("actuators", [60, 70, 80, 65, 75]),
+        row("gmm", [6, 10, 5, 9, 11]),
+        row("gmm_affordance", [5, 4, 6, 3, 5]),
+        row("gmm_affordance_w0", [6, 4, 5, 3, 4]),
+    ]
+    record["rows"][0]["paper_per_100mi"], record["rows"][1]["paper_per_100mi"] = 183.3, 12.7
+    steps = {s["step"]: s for s in report.steps(record)}
+    aff = steps["GMM -> + affordance"]
+    # raw p = 7/252 (0.028); in the paper's family of two (beside the Baseline step's 1/252)
+    # Holm leaves it at max(2/252, 7/252): still "reproduces"
+    assert aff["p_better"] == pytest.approx(7 / 252) and aff["p_holm"] == pytest.approx(7 / 252)
+    assert aff["verdict"] == "reproduces"
+    assert steps["Baseline E2E -> trajectory GMM"]["paper_ratio"] == pytest.approx(12.7 / 183.3)
+    assert aff["paper_ratio"] is None  # the hand-made row has no paper figure
+    # a family that holds every test in one: Holm over three (the control's p is about 0.5)
+    # takes it to 2 x 7/252 = 0.056, and the same seeds no longer read "reproduces"
+    record["family"] = {
+        **record["family"],
+        "tests": dict.fromkeys(record["family"]["tests"], "paper"),
+    }
+    one = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
+    assert one["p_holm"] == pytest.approx(14 / 252) and one["p_better"] == aff["p_better"]
+    assert one["verdict"] == "not shown at the seed level"
+    table = report.table1(report.load())
+    assert "| Holm p |" in table and "the paper's ratio" in table
+    assert "**What the controls found.**" in table and "not credited to its method" in table
+    assert "declared after this record ran" in table
+
+
+def test_the_committed_record_states_its_power_under_its_seeds_spread() -> None:
+    """Issue 64: power is simulated under the dispersion fitted to the record's own rows (about
+    0.3 across its rows), with the Poisson figure beside as an upper bound."""
+    found = report.record_power(report.load())
+    k = found["dispersion"]
+    assert 0.15 < k["dispersion"] < 0.6 and k["low"] < k["dispersion"] < k["high"]
+    assert (
+        found["power"] < found["power_poisson"] and found["power_paired"] < found["power_poisson"]
+    )
+    results = (ROOT / "docs" / "results.md").read_text()
+    assert f"in {100 * found['power']:.0f} % of records under the seeds' spread" in results
+    assert f"{100 * found['power_poisson']:.0f} % if seeds did not differ" in results

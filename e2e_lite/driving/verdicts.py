@@ -28,7 +28,10 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from scipy.special import gammaln
+from scipy.stats import chi2
 
+from ..config import check_range
 from .metrics import EvalResult, result_dict
 
 #: two-decimal midranks are doubled to integers for the exact distributions
@@ -64,50 +67,84 @@ def _midranks(values: np.ndarray) -> np.ndarray:
     return ranks
 
 
-def _subset_sum_counts(weights: np.ndarray, k: int) -> np.ndarray:
-    """``out[s]``: how many subsets of ``k`` of the integer ``weights`` sum to ``s`` (exact)."""
+def _subset_sum_counts(weights: np.ndarray, k: int | None, exact: bool = True) -> np.ndarray:
+    """``out[s]``: how many subsets of the non-negative integer ``weights`` sum to ``s``; of
+    exactly ``k`` of them, or of any size with ``k=None`` (the ``2^n`` sign patterns of a paired
+    test). ``exact``: Python integers (C(60, 30) and beyond, exact); else float64 (relative
+    error about 1e-16, for the thousands of draws of :func:`power`)."""
+    weights = np.asarray(weights, dtype=np.int64)
     total = int(weights.sum())
-    dp = np.zeros((k + 1, total + 1), dtype=object)  # Python ints: C(20, 10) and beyond, exact
+    rows = 1 if k is None else k + 1
+    dp = np.zeros((rows, total + 1), dtype=object if exact else np.float64)
     dp[0, 0] = 1
     for w in weights.tolist():
-        for j in range(k, 0, -1):
-            dp[j, w:] = dp[j, w:] + dp[j - 1, : total + 1 - w]
-    return dp[k]
+        # 0/1 knapsack: the right side is evaluated from the counts before this weight
+        if k is None:
+            dp[0, w:] = dp[0, w:] + dp[0, : total + 1 - w]
+        else:
+            dp[1:, w:] = dp[1:, w:] + dp[:-1, : total + 1 - w]
+    return dp[-1] if k is not None else dp[0]
 
 
-def rank_test(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
+def _tails(dist: np.ndarray, observed: int, total: float) -> dict[str, float]:
+    """One-sided p-values of ``observed`` under the exact distribution ``dist`` (counts per
+    value, ``total`` in all), and the smallest p-value these data could give in either tail."""
+    support = np.flatnonzero(dist != 0)
+    return {
+        "p_fewer": float(sum(dist[: observed + 1]) / total),
+        "p_more": float(sum(dist[observed:]) / total),
+        "min_p": float(min(dist[support[0]], dist[support[-1]]) / total),
+    }
+
+
+def rank_test(a: Sequence[float], b: Sequence[float], exact: bool = True) -> dict[str, float]:
     """Exact one-sided permutation tests of the midrank sum of ``a`` against ``b``.
 
     Returns ``{"p_fewer": P(a's rank sum <= observed), "p_more": P(>= observed), "min_p": the
-    smallest p-value this many seeds can reach}`` under every split of the pooled values into
-    groups of ``len(a)`` and ``len(b)`` being equally likely (ties kept)."""
+    smallest p-value these values can reach}`` under every split of the pooled values into
+    groups of ``len(a)`` and ``len(b)`` being equally likely (ties kept: tied values share a
+    rank, so a split that only moves tied seeds changes nothing, and ``min_p`` grows with the
+    ties). ``exact=False`` counts in float64 (for :func:`power`)."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     ranks = _midranks(np.concatenate([a, b]))
     observed = int(ranks[: len(a)].sum())
-    dist = _subset_sum_counts(ranks, len(a))
-    splits = math.comb(len(a) + len(b), len(a))
-    below = int(sum(dist[: observed + 1]))
-    above = int(sum(dist[observed:]))
-    return {"p_fewer": below / splits, "p_more": above / splits, "min_p": 1.0 / splits}
+    dist = _subset_sum_counts(ranks, len(a), exact)
+    return _tails(dist, observed, math.comb(len(a) + len(b), len(a)))
 
 
 def sign_flip_test(a: Sequence[float], b: Sequence[float]) -> dict[str, float]:
-    """Exact one-sided sign-flip tests on the paired differences ``a[k] - b[k]``.
+    """Exact one-sided sign-flip tests on the paired differences ``d[k] = a[k] - b[k]``.
 
     Under "no difference" each seed's difference is as likely negative as positive; the p-value
-    counts the ``2^n`` sign patterns whose sum is at least as extreme (zero differences flip to
-    themselves: a tie counts for neither row). Returns ``{"p_fewer", "p_more", "min_p"}``."""
+    counts the ``2^n`` sign patterns whose sum is at least as extreme. A zero difference flips
+    to itself: a tie counts for neither row, and ``min_p`` (the smallest p-value these
+    differences can give) is ``2^-(n - zeros)``, not ``2^-n``. Returns ``{"p_fewer", "p_more",
+    "min_p"}``.
+
+    The sum of a sign pattern is ``2 P - A``, with ``A = sum |d|`` and ``P`` the sum of the
+    ``|d|`` given a plus sign, so whole-number differences are counted by subset sums of
+    ``|d|`` (30 seeds in milliseconds); others by listing the patterns (up to 20 seeds)."""
     d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
     if len(d) != len(np.asarray(b)):
         raise ValueError("sign_flip_test: both rows need the same seeds (paired)")
-    observed = d.sum()
-    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=len(d))))  # (2^n, n)
+    observed, n = float(d.sum()), len(d)
+    if np.all(d == np.rint(d)):
+        size = np.abs(d).astype(np.int64)
+        dist = _subset_sum_counts(size, None, exact=True)
+        # S = 2 P - A <= observed  <=>  P <= (observed + A) / 2 (a whole number: S and A agree
+        # in parity); the tails of S are those of P
+        plus = round((observed + int(size.sum())) / 2)
+        return _tails(dist, plus, 2**n)
+    if n > 20:
+        raise ValueError(f"sign_flip_test: {n} seeds of fractional differences (at most 20)")
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))  # (2^n, n)
     sums = signs @ np.abs(d)
     eps = 1e-9 * max(1.0, float(np.abs(d).sum()))
+    nonzero = int(np.sum(np.abs(d) > eps))
     return {
         "p_fewer": float(np.mean(sums <= observed + eps)),
         "p_more": float(np.mean(sums >= observed - eps)),
-        "min_p": 0.5 ** len(d),
+        "min_p": 0.5**nonzero,
     }
 
 
@@ -211,27 +248,49 @@ def power(
     level: float = 0.95,
     n_sim: int = 2_000,
     seed: int = 0,
+    *,
+    dispersion: float = 0.0,
+    test: str = "rank",
 ) -> dict[str, float]:
     """How often a record of ``seeds`` seeds per row, each driving ``miles_per_seed``, finds a
     true step: the better row colliding ``rate_per_100mi``, the worse ``step`` times that.
 
-    Simulated: each seed's count is a Poisson draw of its row's rate (no seed-to-seed spread, so
-    this is an upper bound: real seeds spread more), and the record "finds" the step when
-    :func:`rank_test` gives ``p_fewer < 1 - level``. Returns ``{"power", "min_p"}``: the share
-    of simulated records that find it, and the smallest p-value these seeds can reach."""
+    Simulated with the seeds' spread: seed ``k``'s own rate is its row's rate times a gamma draw
+    of mean 1 and variance ``dispersion``, and its count a Poisson draw of that rate (a negative
+    binomial: ``Var = mu + dispersion mu^2``; :func:`fit_dispersion` fits it to a record's rows).
+    ``dispersion=0``, no spread between seeds, is an upper bound. The record "finds" the step
+    when ``test`` ("rank": :func:`rank_test`; "sign-flip": :func:`sign_flip_test` on seed pairs
+    drawn independently, so a shared parent's correlation is not counted) gives ``p_fewer < 1 -
+    level``. Returns ``{"power", "min_p"}``: the share of simulated records that find it, and
+    the smallest p-value these seeds can reach."""
+    check_range("power", "dispersion", dispersion, 0.0)
+    if test not in ("rank", "sign-flip"):
+        raise ValueError(f"power: test must be 'rank' or 'sign-flip', got {test!r}")
     rng = np.random.default_rng(seed)
     lam = rate_per_100mi * miles_per_seed / 100.0
-    better = rng.poisson(lam, (n_sim, seeds))
-    worse = rng.poisson(lam * step, (n_sim, seeds))
+
+    def draw(mean: float) -> np.ndarray:
+        if dispersion == 0.0:
+            return rng.poisson(mean, (n_sim, seeds))
+        # (n_sim, seeds): each seed's rate, gamma(shape 1/k, scale k) times the row's
+        return rng.poisson(mean * rng.gamma(1.0 / dispersion, dispersion, (n_sim, seeds)))
+
+    better, worse = draw(lam), draw(lam * step)
     cut = 1.0 - level - 1e-9
     cache: dict[tuple, bool] = {}
     found = 0
     for a, b in zip(better, worse):
-        key = (tuple(sorted(a.tolist())), tuple(sorted(b.tolist())))
-        if key not in cache:
-            cache[key] = rank_test(a, b)["p_fewer"] < cut
+        if test == "rank":
+            key = (tuple(sorted(a.tolist())), tuple(sorted(b.tolist())))
+            if key not in cache:
+                cache[key] = rank_test(a, b, exact=False)["p_fewer"] < cut
+        else:
+            key = tuple(sorted((a - b).tolist()))
+            if key not in cache:
+                cache[key] = sign_flip_test(a, b)["p_fewer"] < cut
         found += cache[key]
-    return {"power": found / n_sim, "min_p": 1.0 / math.comb(2 * seeds, seeds)}
+    min_p = 1.0 / math.comb(2 * seeds, seeds) if test == "rank" else 0.5**seeds
+    return {"power": found / n_sim, "min_p": min_p}
 
 
 def seeds_for_power(
@@ -240,10 +299,73 @@ def seeds_for_power(
     target: float = 0.9,
     step: float = 2.0,
     most: int = 20,
+    *,
+    dispersion: float = 0.0,
+    test: str = "rank",
 ) -> int:
     """The fewest seeds per row whose record finds a ``step`` with at least ``target`` power
-    (:func:`power`), up to ``most`` (returned when none reaches it)."""
+    (:func:`power`, under the seeds' ``dispersion``), up to ``most`` (returned when none
+    reaches it)."""
     for n in range(2, most + 1):
-        if power(n, miles_per_seed, rate_per_100mi, step, n_sim=1_000)["power"] >= target:
+        found = power(
+            n, miles_per_seed, rate_per_100mi, step, n_sim=1_000, dispersion=dispersion, test=test
+        )
+        if found["power"] >= target:
             return n
     return most
+
+
+def _nb_loglik(counts: Sequence[np.ndarray], dispersion: float) -> float:
+    """Log-likelihood of rows of counts under a negative binomial with each row's own mean (its
+    maximum-likelihood estimate, the row's mean count) and one shared ``dispersion`` k:
+    ``log P(y) = lnG(y + r) - lnG(r) - lnG(y + 1) + r ln(r / (r + mu)) + y ln(mu / (r + mu))``,
+    ``r = 1/k``."""
+    r = 1.0 / max(dispersion, 1e-8)
+    total = 0.0
+    for y in counts:
+        mu = float(np.mean(y))
+        if mu == 0.0:
+            continue  # a row of zeros is as likely under every k
+        total += float(
+            np.sum(gammaln(y + r) - gammaln(r) - gammaln(y + 1.0))
+            + np.sum(r * np.log(r / (r + mu)) + y * np.log(mu / (r + mu)))
+        )
+    return total
+
+
+def fit_dispersion(counts: Sequence[Sequence[float]], level: float = 0.95) -> dict[str, float]:
+    """The seeds' spread beyond Poisson, fitted to rows of per-seed counts (each row one
+    recipe, its seeds driving one common budget): the maximum-likelihood dispersion k of a
+    negative binomial (``Var = mu + k mu^2``, each row its own mean, every row one k) and its
+    profile-likelihood interval (``2 (l_max - l(k)) <=`` the chi-square quantile of 1 df).
+    Returns ``{"dispersion", "low", "high", "rows", "seeds"}``; k = 0 is Poisson."""
+    rows = [np.asarray(c, dtype=float) for c in counts if len(c) >= 2]
+    if not rows:
+        raise ValueError("fit_dispersion: needs a row of at least two seeds")
+    grid = np.concatenate([[0.0], np.geomspace(1e-3, 20.0, 400)])
+    ll = np.array([_nb_loglik(rows, k) for k in grid])
+    best = int(np.argmax(ll))
+    drop = chi2.ppf(level, 1) / 2.0
+    inside = grid[ll >= ll[best] - drop]
+    return {
+        "dispersion": float(grid[best]),
+        "low": float(inside.min()),
+        "high": float(inside.max()),
+        "rows": len(rows),
+        "seeds": int(sum(len(r) for r in rows)),
+    }
+
+
+def holm(p_values: Sequence[float]) -> list[float]:
+    """Holm's step-down adjustment of a family of p-values (in their order): the ``i``-th
+    smallest is multiplied by ``m - i`` (``i`` from 0), made non-decreasing, capped at 1.
+    Reading each adjusted p at 0.05 keeps the chance of any false "reproduces" in the family at
+    most 5 %."""
+    p = np.asarray(p_values, dtype=float)
+    order = np.argsort(p, kind="stable")
+    adjusted = np.empty_like(p)
+    running = 0.0
+    for i, j in enumerate(order):
+        running = max(running, min(1.0, (len(p) - i) * p[j]))
+        adjusted[j] = running
+    return adjusted.tolist()
