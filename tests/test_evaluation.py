@@ -632,6 +632,19 @@ def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reache
         EvalConfig(block=SEALED_BLOCK, split="val")
     with pytest.raises(ValueError, match="block"):
         EvalConfig(block="sealed")
+    # refused where roads are made, not only where tracks are indexed (issue 64): a sealed road
+    # made by any caller but the record's drive of its block raises before it exists
+    from e2e_lite.driving.roads import WorldPool
+    from e2e_lite.simulation.world import WorldConfig, make_world
+
+    cfg = WorldConfig()
+    with pytest.raises(ValueError, match="sealed block"):
+        make_world(cfg, "test", first + 123)
+    with pytest.raises(ValueError, match="sealed block"):
+        WorldPool(cfg, "test").get(0, first)
+    assert make_world(cfg, "test", first - 1).track is not None  # the open block's last road
+    assert make_world(cfg, "train", first + 123).track is not None  # only test tracks are sealed
+    assert WorldPool(cfg, "test", SEALED_BLOCK).get(0, first).track is not None
     # the only code that names the block: the record (and its definition, and this test); the
     # quick record of tests/test_chapters.py drives open roads (it checks so)
     root = Path(__file__).resolve().parents[1]

@@ -6,7 +6,7 @@ world per car). Which track each car drives next is :func:`~e2e_lite.driving.rol
 
 from __future__ import annotations
 
-from ..simulation.world import World, WorldConfig, make_world
+from ..simulation.world import SEALED_TEST_TRACKS, World, WorldConfig, make_world
 
 #: Blocks of test tracks, by name: ``[first, end)`` track indices. "open" holds every road the
 #: course, the lab scripts, the benchmarks and the tests drive; "record" is sealed: only the
@@ -14,15 +14,21 @@ from ..simulation.world import World, WorldConfig, make_world
 #: choice is frozen, so no choice was ever made while looking at its roads (issue 57; a test
 #: checks that no other code names it, and `rollout.track_index` keeps every other drive out).
 SEALED_BLOCK = "record"
-ROAD_BLOCKS = {"open": (0, 1_000_000), SEALED_BLOCK: (1_000_000, 2_000_000)}
+ROAD_BLOCKS = {
+    "open": (0, SEALED_TEST_TRACKS.start),
+    SEALED_BLOCK: (SEALED_TEST_TRACKS.start, SEALED_TEST_TRACKS.stop),
+}
 
 
 class WorldPool:
     """Worlds of the evaluation split: a road and its cars are made once per track, and every car
-    gets its own pymunk world of it (two cars on one track must not share an ego body)."""
+    gets its own pymunk world of it (two cars on one track must not share an ego body). Only a
+    pool of the sealed block (``block``) may make a sealed road (:func:`make_world` refuses
+    every other caller)."""
 
-    def __init__(self, world_cfg: WorldConfig, split: str) -> None:
+    def __init__(self, world_cfg: WorldConfig, split: str, block: str = "open") -> None:
         self.world_cfg, self.split = world_cfg, split
+        self.sealed = block == SEALED_BLOCK
         self._roads: dict[int, World] = {}
         self._worlds: dict[tuple[int, int], World] = {}
 
@@ -35,7 +41,9 @@ class WorldPool:
     def get(self, car: int, index: int) -> World:
         if (car, index) not in self._worlds:
             if index not in self._roads:
-                self._roads[index] = make_world(self.world_cfg, self.split, index)
+                self._roads[index] = make_world(
+                    self.world_cfg, self.split, index, sealed=self.sealed
+                )
             road = self._roads[index]
             self._worlds[(car, index)] = (
                 road

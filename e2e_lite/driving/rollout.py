@@ -262,7 +262,7 @@ class _Shard:
         self.policy, self.world_cfg, self.cfg, self.cars = policy, world_cfg, cfg, cars
         self.out = ShardResult()
         n = self.n = len(cars)
-        self.pool = WorldPool(world_cfg, cfg.split)
+        self.pool = WorldPool(world_cfg, cfg.split, cfg.block)
         self.visit = np.zeros(n, dtype=np.int64)  # how many tracks each car has started
         self.fleet = Fleet(
             [self.pool.get(j, track_index(cfg, int(c), 0)) for j, c in enumerate(cars)], world_cfg

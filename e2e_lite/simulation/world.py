@@ -355,8 +355,23 @@ class World:
         raise RuntimeError("no free lane found within 1 km after the obstacle")
 
 
-def make_world(cfg: WorldConfig, split: str, index: int) -> World:
-    """The world of track ``(split, index)``: deterministic in ``(cfg, split, index)``."""
+#: test tracks sealed for the numbers of record (the block "record" of
+#: :data:`e2e_lite.driving.roads.ROAD_BLOCKS`): only a drive of that block may make their worlds
+SEALED_TEST_TRACKS = range(1_000_000, 2_000_000)
+
+
+def make_world(cfg: WorldConfig, split: str, index: int, *, sealed: bool = False) -> World:
+    """The world of track ``(split, index)``: deterministic in ``(cfg, split, index)``.
+
+    A test track of :data:`SEALED_TEST_TRACKS` is made only with ``sealed=True``, which the
+    record's drive of its sealed block alone passes (:class:`~e2e_lite.driving.roads.WorldPool`):
+    any other code that reaches for one raises ``ValueError`` before a road exists."""
+    if split == "test" and index in SEALED_TEST_TRACKS and not sealed:
+        raise ValueError(
+            f"make_world: test track {index} lies in the sealed block of test roads "
+            f"[{SEALED_TEST_TRACKS.start}, {SEALED_TEST_TRACKS.stop}): only the record's drive of "
+            "that block makes its roads (e2e_lite.record)"
+        )
     track = generate_track(cfg.road, split, index)
     cars = place_parked_cars(track, cfg.traffic, track_rng(cfg.road.seed, split, index, stream=1))
     return World(track, cars, cfg.vehicle)
