@@ -177,7 +177,7 @@ print(f"figure: {png}")
 # (Garwood) 95 % interval of the rate uses the chi-square quantiles
 # `[χ²(0.025; 2k) / 2, χ²(0.975; 2k + 2) / 2] / m`. Even **zero collisions in 100 miles** leaves
 # an interval reaching several collisions per 100 miles (the cell below prints it): this is why
-# the ablation (chapter 10) drives 500.
+# the ablation (chapter 10) drives hundreds of miles per row, over several training seeds.
 
 # %%
 for k_col, m in ((0, 100.0), (0, 500.0), (1, 100.0), (10, 100.0)):

@@ -385,8 +385,9 @@ print(
 #
 # * A privileged state machine on the LQR tracker drives the test tracks without a
 #   collision: that is the ceiling every learned driver is compared with.
-# * The oracle, the tracker following the expert's own 5-point trajectories, also drives them:
-#   predicting the trajectory loses nothing a controller cannot recover.
+# * The oracle, the tracker following the expert's own 5-point trajectories, drives them too, with
+#   the few collisions printed above: what a 5-point plan and a controller lose, the least that
+#   any network predicting such a plan loses.
 # * Randomised triggers, finishes and sides make the data multi-modal: the same parked car is
 #   passed on the left in some samples and on the right in others.
 # * Noise bursts put off-centre states and recoveries into the data; the labels stay what the

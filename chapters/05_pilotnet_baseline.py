@@ -332,8 +332,9 @@ artifacts.write_metrics(
 #   rows to see whether they help on top of the expert's own noise recoveries.
 # * The all-actuators network must also learn *when to brake and accelerate* from one frame and
 #   the speed; PilotNet leaves that to a cruise control that knows the road.
-# * Every collision is an overtake gone wrong or missed: the next chapters change the output
-#   (a trajectory), the loss (a mixture), the features (affordances) and the emphasis (CVaR).
+# * A collision is a parked car (an overtake gone wrong or missed) or a guard rail (the car left
+#   its road: chapter 10 counts each kind per driver). The next chapters change the output (a
+#   trajectory), the loss (a mixture), the features (affordances) and the emphasis (CVaR).
 #
 # ## Exercises
 #

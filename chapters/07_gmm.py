@@ -467,7 +467,7 @@ artifacts.write_metrics(
 #   are not. The paper's learned sigmas are trained beside it and driven on the same roads.
 # * The epoch kept is the one that collides least when it drives a few miles on validation
 #   roads (ties: the lower error of its *followed* trajectory on the decisive frames), not the one
-#   with the lowest NLL (which keeps falling as sigmas sharpen).
+#   with the lowest held-out NLL: a loss on recorded frames does not say how the network drives.
 # * Where the expert's behaviour splits (overtake left or right), the modes split too, and the
 #   followed mode takes one side instead of the average (Fig. 3, and its scenes in closed loop).
 # * Whether the mixture lowers collisions is measured against L2 on the same roads, with an exact

@@ -117,8 +117,8 @@ print(
 # from 0 to 99 % (the paper's Fig. 5). That loss is the trajectory NLL with **every sigma held at
 # 1**, plus `w` x the affordance error. With unit sigmas a mode's NLL is half its squared error
 # (in target units) plus a constant, so a sample's loss says how far its best modes are from the
-# expert's trajectory. Section 6 shows what goes wrong when the fine-tune trains the learned
-# sigmas instead, as the paper's NLL does.
+# expert's trajectory. Section 6 explains what could go wrong if the fine-tune trained the learned
+# sigmas instead, as the paper's NLL does (exercise 2 drives it).
 
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
