@@ -494,8 +494,9 @@ def _figure(value: Any) -> str:
     return str(value)
 
 
-def course_run_table(run: dict[str, Any] | None) -> str:
-    """docs/teaching.md's table of what each chapter printed in a full-profile run."""
+def course_run_table(run: dict[str, Any] | None, record: dict[str, Any] | None = None) -> str:
+    """docs/teaching.md's table of what each chapter printed in a full-profile run, and (with
+    ``record``) what the record of many seeds says of the same rows."""
     from .course import CHAPTERS
 
     if run is None:
@@ -518,7 +519,30 @@ def course_run_table(run: dict[str, Any] | None) -> str:
     )
     lines += ["", f"*{what} on {run['machine']}, torch {run['torch']}"
               f"{'; ' + run['note'] if run.get('note') else ''}.*"]  # fmt: skip
+    if record is not None:
+        lines += ["", _one_run_against_the_record(record)]
     return "\n".join(lines)
+
+
+def _one_run_against_the_record(record: dict[str, Any]) -> str:
+    """What one course run's seed 0 is worth beside the record: each paper row's pooled rate of
+    record and the verdicts of the controls, so a single run's "CVaR 2, control 5" is not read
+    as a result."""
+    rows = {r["key"]: r for r in record["rows"]}
+    rates = ", ".join(
+        f"{rows[k]['label']} {pooled(rows[k])[0]:.1f}"
+        for k in ("gmm_affordance", "gmm_affordance_cvar", "gmm_affordance_control")
+        if k in rows
+    )
+    controls = "; ".join(
+        f"{st['step']}: {st['verdict']} (Holm p = {st['p_holm']:.2g})"
+        for st in steps(record)
+        if st["credits"] is not None
+    )
+    return (
+        f"*One run is one training seed. The record ({len(rows['gmm']['seeds'])} seeds per row,"
+        f" docs/results.md), pooled per 100 mi: {rates}; {controls}.*"
+    )
 
 
 def _replace(text: str, begin: str, end: str, block: str) -> str:
@@ -583,7 +607,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     if TEACHING.exists():
         run = json.loads(COURSE_RUN.read_text()) if COURSE_RUN.exists() else None
-        wanted[TEACHING] = _replace(TEACHING.read_text(), RUN_BEGIN, RUN_END, course_run_table(run))
+        wanted[TEACHING] = _replace(
+            TEACHING.read_text(), RUN_BEGIN, RUN_END, course_run_table(run, record)
+        )
     stale = [p for p, text in wanted.items() if not p.exists() or p.read_text() != text]
     if args.check:
         for p in stale:
