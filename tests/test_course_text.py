@@ -107,3 +107,31 @@ def test_every_exercise_has_an_expected_outcome_or_a_solution_for_teachers() -> 
     assert "(docs/teaching.md)" in readme and "(solutions.md)" in teaching
     for paper in ("arXiv:1901.00114", "arXiv:1604.07316", "Arain"):
         assert paper in teaching
+
+
+def test_every_exercise_is_marked_core_or_stretch_with_its_cost_and_sessions_have_outcomes() -> (
+    None
+):
+    """Issue 64: docs/teaching.md marks each exercise of every chapter once, core or stretch, with
+    the minutes it costs on the reference machine; each session states what a student brings and
+    can do afterwards; the kit has a rubric and a path for a slow laptop."""
+    teaching = (ROOT / "docs" / "teaching.md").read_text()
+    table = re.search(r"\| chapter \| core: .*?\n((?:\|.*\n)+)", teaching).group(1)
+    rows = {}
+    for line in table.splitlines()[1:]:
+        chapter, core, stretch = (cell.strip() for cell in line.strip("|").split("|"))
+        marks = [
+            (int(n), kind)
+            for kind, cell in (("core", core), ("stretch", stretch))
+            for n, _minutes in re.findall(r"(\d+) \((\d+)\)", cell)
+        ]
+        assert len(marks) == len(re.findall(r"\d+ \(", core + stretch)), line
+        rows[chapter] = marks
+    for path in CHAPTERS:
+        marked = sorted(n for n, _ in rows.get(path.name[:2], []))
+        assert marked == exercises(path), f"{path.name}: {marked}"
+        assert any(kind == "core" for _, kind in rows[path.name[:2]]), path.name
+    outcomes = re.search(r"\| session \| a student should bring .*?\n((?:\|.*\n)+)", teaching)
+    assert len(outcomes.group(1).splitlines()) - 1 == 5  # one row per session
+    for heading in ("### Grading", "### A student on a slow laptop"):
+        assert heading in teaching
