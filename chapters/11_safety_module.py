@@ -66,7 +66,7 @@ from e2e_lite.driving.evaluation import (
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
-from e2e_lite.safety.agent import SafeAgent, SafetyStats
+from e2e_lite.safety.agent import IMPACT_CAUSES, SafeAgent, SafetyStats
 from e2e_lite.safety.rule import SafetyConfig, calibrate_gap_free, check
 from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
 from e2e_lite.simulation.world import WorldConfig, make_world
@@ -377,23 +377,41 @@ print(f"saved {rows_png}")
 
 # %% [markdown]
 # A safer row that drives slower is not the same claim: read the mph column beside each rate.
-# And whose collisions are they? For every collision, who drove the car's last decision (the
-# network, another of its modes, or the module's fallback), and the speed at impact. A module
-# that brakes hands the car back at speeds the expert's data rarely shows (chapter 04), and the
-# network drives those worst.
+# And whose collisions are they? Each collision has a cause (`safety.agent.IMPACT_CAUSES`): the
+# module's own manoeuvre (its fallback or the other mode drove the last decision), the network
+# within 2 s of the module handing the car back (often slowed, at speeds the expert's data rarely
+# shows, chapter 04), or the network with the module silent (it saw nothing wrong, or too late).
+# Without the module every collision is the network's. The difference between a row and the
+# driver alone, cause by cause, is what the module added or removed.
 
 # %%
 speed_bins = ((0.0, 10.0), (10.0, 20.0), (20.0, np.inf))
-by_speed = {}
-print("| row | collisions | under 10 m/s | 10-20 m/s | 20+ m/s | last decision by |")
-print("|---|---:|---:|---:|---:|---|")
+by_speed, causes = {}, {}
+print("| row | collisions (car / rail) | under 10 m/s | 10-20 m/s | 20+ m/s | "
+      + " | ".join(IMPACT_CAUSES) + " |")  # fmt: skip
+print("|---|---:|---:|---:|---:|" + "---:|" * len(IMPACT_CAUSES))
 for name, res in rows_of:
+    r = result_dict(res)
     impact = [e["speed_mps"] for e in result_events(res)]
-    counts = [sum(lo <= v < hi for v in impact) for lo, hi in speed_bins]
-    by_speed[name] = counts
-    who = stats.get(name.removeprefix("with the module "), {}).get("at_impact", {})
-    who_text = ", ".join(f"{k} {n}" for k, n in sorted(who.items(), key=lambda kv: -kv[1]))
-    print(f"| {name} | {len(impact)} | " + " | ".join(map(str, counts)) + f" | {who_text or '-'} |")
+    by_speed[name] = [sum(lo <= v < hi for v in impact) for lo, hi in speed_bins]
+    who = stats.get(name.removeprefix("with the module "), {}).get("at_impact")
+    causes[name] = [who.get(c, 0) for c in IMPACT_CAUSES] if who else [0, 0, 0, len(impact)]
+    print(f"| {name} | {len(impact)} ({r['car_collisions']} / {r['rail_collisions']}) | "
+          + " | ".join(map(str, by_speed[name] + causes[name])) + " |")  # fmt: skip
+
+# %%
+fig = Figure(figsize=(8, 0.5 * len(causes) + 1.6), layout="constrained")
+ax = fig.subplots()
+left = np.zeros(len(causes))
+for j, (cause, color) in enumerate(zip(IMPACT_CAUSES, ("C3", "C1", "C4", "0.6"))):
+    counts = np.array([c[j] for c in causes.values()])
+    ax.barh(list(causes), counts, left=left, color=color, label=cause)
+    left += counts
+ax.invert_yaxis()
+ax.set_xlabel(f"collisions in {ev.miles:g} mi per row ({n_seeds} seeds pooled), by cause")
+ax.legend(fontsize=8, loc="lower right")
+causes_png = save_figure(fig, artifacts.artifact_path("figures", "11_causes.png"))
+print(f"saved {causes_png}")
 
 # %% [markdown]
 # ## 4. Interventions, frame by frame
@@ -462,9 +480,10 @@ artifacts.write_metrics(
         "module": stats,
         "verdicts": verdicts,
         "collisions_by_speed": by_speed,
+        "collisions_by_cause": {n: dict(zip(IMPACT_CAUSES, c)) for n, c in causes.items()},
         "table_md": table,
     },
-    figures=(rows_png, grid_png),
+    figures=(rows_png, causes_png, grid_png),
 )
 
 # %% [markdown]
@@ -482,9 +501,13 @@ artifacts.write_metrics(
 #   by seed, with the speed beside each rate.
 # * A fallback is a driver too: who drove the last decision before each collision, and at what
 #   speed, says whether the collisions left are the network's or the module's own.
+# * A safety layer is only as good as its perception. On the truth it shows what the rule can
+#   buy; on perceived affordances it can add collisions of its own, through its fallback and
+#   through the network after a hand-back, and then drives worse than no module at all: the
+#   verdict lines and the causes above say which it did in this run.
 # * A fallback is only as good as what it reads: braking to a lane centre needs the perceived
-#   lane geometry, braking along the network's own path does not. The car's full brake, kept as
-#   headroom by a rule that plans with a gentler one, can only help a stop that comes late.
+#   lane geometry, braking along the network's own path does not. Whether the car's full brake,
+#   kept as headroom, helps a stop that comes late is a measured verdict (its row), not a given.
 #
 # ## Exercises
 #

@@ -16,7 +16,7 @@ from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.driving.metrics import add_info
 from e2e_lite.learning.data import AFFORDANCE_NAMES, affordances
-from e2e_lite.safety.agent import SafeAgent, SafetyStats
+from e2e_lite.safety.agent import IMPACT_CAUSES, SafeAgent, SafetyStats, impact_cause
 from e2e_lite.safety.rule import (
     SafetyConfig,
     brake_along,
@@ -304,7 +304,17 @@ def test_the_module_makes_a_scripted_unsafe_driver_collide_less():
     assert periods <= stats["decisions"] <= 2 * periods
     # every collision is told to the policy with the next decision: who drove into it
     assert sum(stats["at_impact"].values()) == safe.collisions
-    assert set(stats["at_impact"]) <= {"network", "other mode", "fallback"}
+    assert set(stats["at_impact"]) <= set(IMPACT_CAUSES)
+
+
+def test_a_collision_is_classified_by_who_drove_and_how_long_after_an_intervention():
+    """Issue 64: the module's own manoeuvre, the network within 2 s of a hand-back, or the
+    network with the module silent (never intervened, or long ago)."""
+    assert impact_cause("fallback", 0.0) == "fallback"
+    assert impact_cause("other mode", 5.0) == "other mode"
+    assert impact_cause("network", 20.0, 0.1) == "network after a hand-back"  # 2.0 s
+    assert impact_cause("network", 21.0, 0.1) == "network, module silent"
+    assert impact_cause("network", np.inf) == "network, module silent"
 
 
 class Watched(SafeAgent):

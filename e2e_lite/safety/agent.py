@@ -21,7 +21,30 @@ from ..config import check_range
 from ..control.expert import ExpertConfig, SpeedLimits, fresh_labels
 from ..learning.data import affordances
 from ..simulation.policy import Actuation, Observation
+from ..simulation.world import SimConfig
 from .rule import RESULTS_VERSION, SafetyConfig, check, choose
+
+#: a collision within this long after the module last intervened for the car, with the network
+#: driving, counts as after a hand-back [s]
+HANDBACK_S = 2.0
+#: the causes of a collision (:attr:`SafetyStats.at_impact`): the module's own manoeuvre (its
+#: other mode or its fallback drove the last decision), the network within ``HANDBACK_S`` of an
+#: intervention (the module handed the car back, often slowed), or the network with the module
+#: silent (a miss: it saw nothing wrong, or saw it too late)
+IMPACT_CAUSES = ("fallback", "other mode", "network after a hand-back", "network, module silent")
+
+
+def impact_cause(source: str, decisions_since: float, period_s: float | None = None) -> str:
+    """The cause of a collision (one of :data:`IMPACT_CAUSES`): ``source`` drove the car's last
+    decision, ``decisions_since`` decisions after the module last intervened for it (``inf``:
+    never, since the car's start); ``period_s``, the policy's period [s] (the simulator's
+    default)."""
+    if source != "network":
+        return source
+    period = SimConfig().policy_period_s if period_s is None else period_s
+    handed_back = decisions_since * period <= HANDBACK_S + 1e-9
+    return IMPACT_CAUSES[2] if handed_back else IMPACT_CAUSES[3]
+
 
 #: the counters a :class:`SafeAgent` reports with each decision (``Actuation.info``)
 COUNTS = ("decisions", "audited", "false_alarms", "perception_only")
@@ -39,9 +62,9 @@ class SafetyStats:
             ``fallback``).
         kinds: why the followed mode was rejected (``road edge``, ``collision course``,
             ``cannot stop``).
-        at_impact: for every collision, who drove the car's last decision before it
-            (``network``, ``other mode``, ``fallback``): the module's own fallback, or the
-            network it let through.
+        at_impact: every collision by its cause (:data:`IMPACT_CAUSES`): who drove the car's
+            last decision before it, and for the network whether the module had intervened for
+            that car within :data:`HANDBACK_S` (it handed the car back) or not (it was silent).
         audited: interventions audited (all, or one in ``audit_every``).
         false_alarms: audited interventions where a fresh expert, from the same state, would have driven
             what the network proposed (its trajectory within 1 m sideways and 5 m along at 1.5 s).
@@ -140,6 +163,7 @@ class SafeAgent:
         self._seen = 0  # interventions met by this copy (for audit_every)
         self._kept = 0  # examples reported since the last reset
         self._driven: list[str] = []  # each car's last source
+        self._since = np.zeros(0)  # each car's decisions since the module last intervened
         self._limits = SpeedLimits(ExpertConfig())  # the audits' speed limits, once per track
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
@@ -149,6 +173,7 @@ class SafeAgent:
         self.agent.reset(n_worlds)
         self._kept = 0
         self._driven = [""] * n_worlds
+        self._since = np.full(n_worlds, np.inf)
         self._limits = SpeedLimits(ExpertConfig())  # (one evaluation's tracks)
 
     def fork(self, k: int) -> list[SafeAgent]:
@@ -158,7 +183,7 @@ class SafeAgent:
             twin = type(self).__new__(type(self))
             twin.__dict__.update(self.__dict__)
             twin.agent, twin._seen, twin._kept, twin.last = inner, 0, 0, {}
-            twin._driven = []
+            twin._driven, twin._since = [], np.zeros(0)
             twin._limits = SpeedLimits(ExpertConfig())
             out.append(twin)
         return out
@@ -167,7 +192,13 @@ class SafeAgent:
         """Propose, check, follow."""
         at_impact = Counter()
         if obs.collided is not None and self._driven:
-            at_impact.update(self._driven[i] for i in np.flatnonzero(obs.collided).tolist())
+            at_impact.update(
+                impact_cause(self._driven[i], self._since[i])
+                for i in np.flatnonzero(obs.collided).tolist()
+            )
+        if len(self._since) != len(obs.s):
+            self._since = np.full(len(obs.s), np.inf)
+        self._since[np.asarray(obs.respawned, dtype=bool)] = np.inf  # a new start: no history
         proposal = self.agent.trajectories(obs)
         last = self.agent.last
         modes = last.get("modes", proposal[:, None])
@@ -219,6 +250,8 @@ class SafeAgent:
         }
         self.last = {"chosen": chosen, "sources": sources, "seen": seen}
         self._driven = sources
+        self._since += 1.0
+        self._since[np.array(sources) != "network"] = 0.0
         out = self.agent.follow(chosen, obs)
         if self.cfg.emergency_brake_mps2 is not None:  # the fallback brakes at it
             accel = np.array(out.accel_mps2, dtype=np.float64)

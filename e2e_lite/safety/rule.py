@@ -70,7 +70,7 @@ FALLBACKS = ("lanes", "path", "keep-lane")
 #: The version of what the module computes: part of every stored guarded evaluation's key
 #: (:func:`e2e_lite.ablation.fingerprint`). Bump it when a change to the rule, its fallback or
 #: the driver's reports changes what a stored result would hold.
-RESULTS_VERSION = 2
+RESULTS_VERSION = 3  # 3: a collision's cause splits the network's (a hand-back, or silent)
 
 
 @dataclass(frozen=True)
