@@ -140,11 +140,13 @@ table = results_table([*earlier, ("trajectory L2 + LQR", res)])
 print(table + profile.caveat)
 
 # %% [markdown]
-# ## 5. The failure: averaging two answers
+# ## 5. The question: does L2 average two answers?
 #
 # Chapter 04 showed one frame with two right answers: a parked car in the middle lane, passed on
 # the left by some seeds of the expert and on the right by others. L2 regression is minimised by
-# the conditional **mean**, and the mean of "left" and "right" is "straight on", into the car.
+# the conditional **mean**, and for one image with two equally likely answers the mean of "left"
+# and "right" is "straight on", into the car: the paper's reason for a mixture (chapter 07). A
+# trained network need not find that mean: it may read cues in the image that break the tie.
 # Here is that frame with the expert's answers and the L2 prediction, then the same question over
 # the validation set: overtakes started from the middle lane, left vs right.
 
@@ -165,9 +167,14 @@ for seed in range(8):
     draw_trajectory(img, pts, human, colour=(40, 200, 40))
 draw_trajectory(img, pred, human, colour=(255, 40, 40), label="L2")
 scene_png = save_image(artifacts.artifact_path("figures", "06_l2_averages.png"), img)
+mean_y, lane_w = float(np.mean(expert_y)), world_cfg.road.lane_width_m
+between = abs(pred[-1, 1]) < lane_w / 2 and min(expert_y) < pred[-1, 1] < max(expert_y)
 print(
-    f"expert end points y5: {np.round(expert_y, 2).tolist()} m; L2 prediction y5 {pred[-1, 1]:+.2f} m"
-)
+    f"expert end points y5: {np.round(expert_y, 2).tolist()} m (mean {mean_y:+.2f}); L2 "
+    f"prediction y5 {pred[-1, 1]:+.2f} m: "
+    + ("between the answers, in the parked car's lane: it averages" if between
+       else "not in the parked car's lane: it commits to a side here")
+)  # fmt: skip
 print(f"saved {scene_png}")
 
 starts = np.flatnonzero(
@@ -225,9 +232,10 @@ artifacts.write_metrics(
 # * Normalising each coordinate keeps the lateral centimetres from drowning under the
 #   longitudinal metres.
 # * The table compares it with chapter 05's actuator baselines on the same tracks and seeds.
-# * L2 regresses to the mean: where the expert's answers split left and right, the prediction
-#   lies between them, pointing at the obstacle it should avoid. Chapter 07 replaces the single
-#   prediction by a mixture.
+# * L2 is minimised by the conditional mean: where one image has two right answers, the mean
+#   points between them, at the obstacle. Whether this network does is measured, not assumed:
+#   section 5 prints where its prediction lands. Chapter 07 replaces the single prediction by a
+#   mixture and drives both through many such scenes.
 #
 # ## Exercises
 #
