@@ -177,6 +177,7 @@ print(
 )  # fmt: skip
 print(f"saved {scene_png}")
 
+# %%
 starts = np.flatnonzero(
     (val.expert_state == CHANGE) & val.overtaking & (val.lane == 1) & (np.abs(val.d) < 0.5)
 )
