@@ -166,6 +166,7 @@ def train_or_load(
     *,
     train_rows: np.ndarray | None = None,
     init_from: str | None = None,
+    parent_data_key: str | None = None,
     carry_optimizer: bool = False,
     keep_optimizer: bool = False,
     progress: bool = True,
@@ -186,6 +187,9 @@ def train_or_load(
         init_from: fine-tune: start from the weights of checkpoint ``<init_from>.pt`` (same model
             settings and data; its key joins this checkpoint's, so a retrained parent makes this
             one stale). Raises :class:`CheckpointMismatch` when it is missing or does not fit.
+        parent_data_key: with ``init_from``, the parent was trained on this other dataset (DAgger's
+            fine-tune on the aggregate, chapter 12); the normalisation must still be the parent's
+            (an aggregate keeps its first part's statistics, :func:`~e2e_lite.learning.dataset.concat`).
         carry_optimizer: with ``init_from``, continue the parent's Adam state (at this run's
             learning rate) instead of a fresh Adam; the parent must have kept it
             (``keep_optimizer``), else :class:`CheckpointMismatch`.
@@ -212,7 +216,9 @@ def train_or_load(
             raise CheckpointMismatch(
                 f"{name} fine-tunes {init_from}, but {parent_path} does not exist: train it first"
             )
-        parent, parent_meta = load_checkpoint(parent_path, model_cfg, data_key, stats, device)
+        parent, parent_meta = load_checkpoint(
+            parent_path, model_cfg, parent_data_key or data_key, stats, device
+        )
         # the parent's weights, not only its settings: a parent retrained with the same
         # settings (another kept epoch) makes this checkpoint stale
         key = settings_key(key, parent_meta["key"], weights_digest(parent))

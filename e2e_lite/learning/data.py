@@ -18,6 +18,7 @@ chapter reads the data's names from one module. The recovery views of seed 003 a
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -37,8 +38,9 @@ from ..control.labels import (  # noqa: F401 (re-exported, as above)
     N_POINTS,
     throttle_brake,
 )
+from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
-from ..driving.parallel import drive_in_processes
+from ..driving.parallel import drive_in_processes, pinned_threads
 from ..driving.rollout import EvalConfig, drive_shard
 from ..simulation.camera import CameraConfig
 from ..simulation.policy import Actuation, Observation, car_rng
@@ -160,7 +162,8 @@ class DataConfig:
     Attributes:
         split: ``"train"`` or ``"val"`` tracks.
         n_samples: samples to record.
-        n_tracks: tracks of the split the cars cycle through.
+        n_tracks: tracks of the split the cars cycle through (None: every car drives roads no
+            other car and no earlier lap drove, from ``first_track`` on: fresh roads).
         n_worlds: cars driven in lockstep.
         world: roads, traffic, car, time steps.
         expert: the expert's settings.
@@ -172,11 +175,16 @@ class DataConfig:
             per 39 s of driving) and doubles the share of samples between 20 and 24 m/s (7.6 % ->
             17.8 % on 16,000 training samples); chapter 04 measures it.
         seed: seeds the expert's draws, the noise and the start lanes.
+        first_track: index of the split's first track the cars drive (DAgger's rounds and their
+            control drive fresh training roads, chapter 12).
     """
+
+    #: added after the course's datasets were keyed: at their defaults those keys stay
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("first_track",)
 
     split: str = "train"
     n_samples: int = 48_000
-    n_tracks: int = 32
+    n_tracks: int | None = 32
     n_worlds: int = 16
     world: WorldConfig = field(default_factory=WorldConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
@@ -184,13 +192,16 @@ class DataConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     restart_rate_per_s: float = 0.05
     seed: int = 0
+    first_track: int = 0
 
     def __post_init__(self) -> None:
         o = "DataConfig"
         if self.split not in ("train", "val"):
             raise ValueError(f"{o}.split={self.split!r} is invalid: must be 'train' or 'val'")
         check_range(o, "n_samples", self.n_samples, 1, integer=True)
-        check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
+        if self.n_tracks is not None:
+            check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
+        check_range(o, "first_track", self.first_track, 0, integer=True)
         check_range(o, "n_worlds", self.n_worlds, 1, 1024, integer=True)
         check_range(o, "restart_rate_per_s", self.restart_rate_per_s, 0.0, 1.0)
         check_range(o, "seed", self.seed, 0, integer=True)
@@ -233,14 +244,28 @@ def car_quotas(cfg: DataConfig) -> np.ndarray:
 class _Recorder:
     """A policy: the expert plus noise bursts, recording every decision of cars ``cars`` until
     each has recorded its quota (:func:`car_quotas`). Every draw is the car's own (seeded by its
-    index among all ``cfg.n_worlds`` cars), so a car records the same samples in any process."""
+    index among all ``cfg.n_worlds`` cars), so a car records the same samples in any process.
+
+    With a ``learner`` (DAgger, chapter 12) the learner drives instead: at each decision the
+    expert executes with probability ``beta`` (each car's own draw), the learner otherwise, and
+    the sample is labelled by the expert at the state the car is in, whoever drives."""
 
     #: uniforms each car draws per decision (a fixed count, so one draw never shifts another):
     #: restart, burst start, duration, sign, steering, brake?, size, deep?, deep target speed
     DRAWS = 9
 
-    def __init__(self, cfg: DataConfig, cars: np.ndarray, advance: Callable[[float], None]) -> None:
+    def __init__(
+        self,
+        cfg: DataConfig,
+        cars: np.ndarray,
+        advance: Callable[[float], None],
+        learner: Any = None,
+        beta: float = 1.0,
+    ) -> None:
         self.cfg, self.advance = cfg, advance
+        self.learner, self.beta = learner, beta
+        # the mixing draws: a stream of their own, so the expert's and the noise's are untouched
+        self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
         self.expert = Expert(
             cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed
@@ -257,6 +282,8 @@ class _Recorder:
 
     def reset(self, n_worlds: int) -> None:
         self.expert.reset(n_worlds)
+        if self.learner is not None:
+            self.learner.reset(n_worlds)
         self.burst_left = np.zeros(n_worlds)  # seconds of burst left per car
         self.offset_cmd = np.zeros((n_worlds, 2))  # (steer, accel) offsets of the bursts
         self.slow_to = np.zeros(n_worlds)  # a deep braking burst's target speed, 0: none [m/s]
@@ -275,9 +302,15 @@ class _Recorder:
             self._record(obs, clean, traj, rows)
         period = self.cfg.world.sim.policy_period_s
         deep = self.slow_to > 0  # braked whatever the expert commands
+        steer, accel = clean.steer_rad, clean.accel_mps2
+        if self.learner is not None:  # DAgger: the learner drives, but on the expert's turns
+            learned = self.learner.act(obs)
+            expert_turn = np.array([r.random() for r in self.mix_rngs]) < self.beta  # (B,)
+            steer = np.where(expert_turn, steer, learned.steer_rad)
+            accel = np.where(expert_turn, accel, learned.accel_mps2)
         return Actuation(
-            steer_rad=clean.steer_rad + self.offset_cmd[:, 0],
-            accel_mps2=np.where(deep, 0.0, clean.accel_mps2) + self.offset_cmd[:, 1],
+            steer_rad=steer + self.offset_cmd[:, 0],
+            accel_mps2=np.where(deep, 0.0, accel) + self.offset_cmd[:, 1],
             restart=u[:, 0] < self.cfg.restart_rate_per_s * period,
         )
 
@@ -339,15 +372,20 @@ class _Recorder:
 
 
 def collect_cars(
-    cfg: DataConfig, cars: np.ndarray, advance: Callable[[float], None]
+    cfg: DataConfig,
+    cars: np.ndarray,
+    advance: Callable[[float], None],
+    learner: Any = None,
+    beta: float = 1.0,
 ) -> tuple[dict[str, np.ndarray], ShardResult, dict[str, int]]:
     """Drive cars ``cars`` (indices among ``cfg.n_worlds``) until each has its quota: their
     samples (car after car), what the drive measured and the expert's manoeuvres. One process's
     share of :func:`collect` (``advance(k)``: k more samples recorded)."""
-    rec = _Recorder(cfg, cars, advance)
+    rec = _Recorder(cfg, cars, advance, learner, beta)
     ev = EvalConfig(
-        miles=1e6, n_worlds=cfg.n_worlds, split=cfg.split, n_tracks=cfg.n_tracks, seed=cfg.seed
-    )
+        miles=1e6, n_worlds=cfg.n_worlds, split=cfg.split, n_tracks=cfg.n_tracks, seed=cfg.seed,
+        first_track=cfg.first_track,
+    )  # fmt: skip
     shard = drive_shard(rec, cfg.world, ev, cars, _no_miles, stop_when=rec.done)
     return rec.a, shard, dict(rec.expert.manoeuvres)
 
@@ -356,12 +394,25 @@ def _no_miles(miles: float) -> None:
     """Collection counts samples, not miles."""
 
 
-def collect(cfg: DataConfig, progress: bool = True, workers: int | None = None) -> DrivingData:
+def collect(
+    cfg: DataConfig,
+    progress: bool = True,
+    workers: int | None = None,
+    *,
+    learner: Any = None,
+    beta: float = 1.0,
+) -> DrivingData:
     """Drive the noisy expert until ``cfg.n_samples`` samples are recorded (no caching).
 
     The cars are shared out over ``workers`` processes (default: every core,
     :func:`~e2e_lite.config.default_workers`, at most one per :data:`MIN_SAMPLES_PER_WORKER`);
-    the arrays are the same bytes for any count."""
+    the arrays are the same bytes for any count.
+
+    ``learner`` (a network agent; DAgger, chapter 12): it drives, the expert executing a share
+    ``beta`` of the decisions, and every sample is the expert's label of the state the car is
+    in. The cars are then cut in whole groups of :data:`~e2e_lite.simulation.policy.FORWARD_GROUP`
+    on one torch thread each, so the network, and so the samples, do not depend on the count."""
+    check_range("collect", "beta", beta, 0.0, 1.0)
     t_wall = time.perf_counter()
     if workers is None:  # every core, but no worker for fewer samples than its start is worth
         workers = min(default_workers(), max(1, cfg.n_samples // MIN_SAMPLES_PER_WORKER))
@@ -374,12 +425,17 @@ def collect(cfg: DataConfig, progress: bool = True, workers: int | None = None) 
         leave=False,
         mininterval=0.5,
     )
-    cars = np.array_split(np.arange(cfg.n_worlds), min(workers, cfg.n_worlds))
+    if learner is None:
+        cars = np.array_split(np.arange(cfg.n_worlds), min(workers, cfg.n_worlds))
+    else:
+        cars = shard_cars(cfg.n_worlds, workers)
+    mixing = {} if learner is None else {"learner": learner, "beta": beta}
     try:
         if len(cars) == 1:
-            parts = [collect_cars(cfg, cars[0], lambda k: bar.update(int(k)))]
+            with pinned_threads() if learner is not None else contextlib.nullcontext():
+                parts = [collect_cars(cfg, cars[0], lambda k: bar.update(int(k)), **mixing)]
         else:
-            jobs = [(collect_cars, (cfg, c), {}) for c in cars]
+            jobs = [(collect_cars, (cfg, c), mixing) for c in cars]
             parts = drive_in_processes(jobs, lambda k: bar.update(int(k)))
     finally:
         bar.close()

@@ -1,0 +1,263 @@
+"""DAgger (Ross, Gordon & Bagnell 2011, "A reduction of imitation learning and structured
+prediction to no-regret online learning"): the learner drives, the expert labels what it visits,
+the data is aggregated and the network fine-tuned (chapter 12).
+
+Behaviour cloning trains on the expert's states; a learner that errs by a little drifts into
+states the expert never showed, where it errs more: over a horizon of T decisions its mistakes
+can grow as ``eps T^2``. Training on the learner's own states, labelled by the expert, bounds
+them by ``eps T`` (their Theorem 3.1).
+
+A **round** (:func:`run`): the current network drives closed loop on fresh *training* roads (never
+validation or test roads), the expert executing a share ``beta`` of the decisions
+(:func:`~e2e_lite.learning.data.collect` with a learner); the expert labels every state visited,
+in the dataset's schema; collisions and stalls re-place the car as the evaluator does. The round's
+samples join the aggregate, and the network is fine-tuned on them plus as many samples replayed
+from the earlier data (:func:`finetune_set`), with chapter 09's control fine-tune (the chapter-08
+loss reduced by the mean, one epoch, its parent's Adam carried at a tenth of the rate:
+:func:`~e2e_lite.learning.recipes.finetune_settings`).
+
+The **control** (:data:`ARMS`): the same rounds with the same number of samples from the expert's
+own driving (chapter 04's collector, noise and take-overs included) on the same fresh roads, and
+the same fine-tunes from the same parent. DAgger against it asks whether the learner's *states*
+help, not merely more data and more epochs.
+
+The **covariate shift** (:func:`covariate_shift`): the share of a round's visited states that lie
+outside the 1-99 % range of the data the network was trained on, per feature of
+:data:`SHIFT_FEATURES`. It should fall round by round if DAgger works.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..artifacts import artifact_path, cached, settings_key
+from ..config import Profile, check_range
+from ..control.labels import AFFORDANCE_INDEX
+from . import recipes
+from .agents import TrajectoryAgent
+from .checkpoints import train_or_load, weights_digest
+from .data import DataConfig, NoiseConfig, collect, load_dataset, save_dataset
+from .dataset import DrivingData, allocate
+from .models import DrivingModel
+
+#: the two arms: DAgger (the learner drives) and its control (the expert drives)
+ARMS = ("dagger", "control")
+#: each seed's rounds drive training tracks from here on, far from the data's own (0 .. 31)
+FIRST_TRACK = 100_000
+#: tracks a round may use (cars x laps); seeds and rounds are this far apart
+TRACK_STRIDE = 1_000
+#: the features of a state whose shift is measured: (name, where the dataset holds it)
+SHIFT_FEATURES = {
+    "lateral offset [m]": ("affordances", AFFORDANCE_INDEX["center_offset_m"]),
+    "heading error [rad]": ("affordances", AFFORDANCE_INDEX["heading_rad"]),
+    "speed [m/s]": ("speed", None),
+    "gap ahead [m]": ("affordances", AFFORDANCE_INDEX["gap_ego_m"]),
+}
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    """DAgger's rounds.
+
+    Attributes:
+        rounds: rounds of driving, labelling and fine-tuning.
+        samples: samples each round adds [samples].
+        betas: per round, the share of decisions the expert executes (Ross et al.'s beta_i;
+            the paper's best was beta = 1 in the first round and 0 after).
+        replay: earlier samples replayed per new sample in a round's fine-tune.
+    """
+
+    rounds: int = 2
+    samples: int = 8_000
+    betas: tuple[float, ...] = (0.5, 0.0)
+    replay: float = 1.0
+
+    def __post_init__(self) -> None:
+        o = "DaggerConfig"
+        check_range(o, "rounds", self.rounds, 1, 20, integer=True)
+        check_range(o, "samples", self.samples, 1, integer=True)
+        check_range(o, "replay", self.replay, 0.0, 100.0)
+        if len(self.betas) != self.rounds:
+            raise ValueError(
+                f"{o}.betas={self.betas!r} is invalid: one beta per round ({self.rounds})"
+            )
+        for k, beta in enumerate(self.betas):
+            check_range(o, f"betas[{k}]", beta, 0.0, 1.0)
+
+    @classmethod
+    def for_profile(cls, profile: Profile, **changes: Any) -> DaggerConfig:
+        """The profile's rounds: a sixth of the training data per round in the full profile."""
+        samples = max(profile.collect_worlds * 8, profile.n_train_samples // 6)
+        return cls(**{"samples": samples, **changes})
+
+
+def round_data(profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str) -> DataConfig:
+    """What round ``r`` (0-based) of training ``seed`` collects: ``cfg.samples`` on fresh
+    training roads of its own (the same roads and start lanes in both arms); DAgger's learner
+    drives without noise or take-overs (its own errors are the point), the control's expert as
+    chapter 04's collector does."""
+    if arm not in ARMS:
+        raise ValueError(f"arm={arm!r} is invalid: must be one of {ARMS}")
+    base = DataConfig.for_profile(
+        profile, "train", n_samples=cfg.samples, n_tracks=None,
+        first_track=FIRST_TRACK + (seed * cfg.rounds + r) * TRACK_STRIDE, seed=1_000 + seed,
+    )  # fmt: skip
+    if arm == "control":
+        return base
+    return dataclasses.replace(base, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
+
+
+def samples_key(
+    profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str, learner: DrivingModel | None
+) -> str:
+    """The key of round ``r``'s samples: the collection's settings and, for DAgger, the
+    learner's weights and the round's beta (so a retrained learner or another beta collects
+    anew, and the fine-tunes on them retrain: their data key holds this one)."""
+    dcfg = round_data(profile, cfg, seed, r, arm)
+    if arm == "control":
+        return dcfg.key
+    if learner is None:
+        raise ValueError("samples_key: DAgger's round needs the learner that drives it")
+    return settings_key(dcfg.key, "dagger", weights_digest(learner), cfg.betas[r])
+
+
+def round_samples(
+    profile: Profile,
+    cfg: DaggerConfig,
+    seed: int,
+    r: int,
+    arm: str,
+    learner: DrivingModel | None = None,
+    progress: bool = True,
+) -> DrivingData:
+    """Round ``r``'s samples of ``arm``, stored under ``<outputs>/data/`` and reused while the
+    settings, the learner's weights and its beta are the same: DAgger's are the ``learner``'s
+    drive, labelled by the expert; the control's the expert's own."""
+    dcfg = round_data(profile, cfg, seed, r, arm)
+    key = samples_key(profile, cfg, seed, r, arm, learner)
+    if arm == "dagger":
+
+        def make() -> DrivingData:
+            agent = TrajectoryAgent(learner.cpu().eval())
+            data = collect(dcfg, progress, learner=agent, beta=cfg.betas[r])
+            data.info["key"] = key
+            return data
+
+    else:
+
+        def make() -> DrivingData:
+            return collect(dcfg, progress)
+
+    name = f"12_{arm}_seed{seed}_round{r + 1}.npz"
+    return cached(artifact_path("data", name), key, make, save_dataset, load_dataset)
+
+
+def covariate_shift(visited: DrivingData, trained_on: list[DrivingData]) -> dict[str, float]:
+    """How far the states ``visited`` lie from the data the network was trained on: per feature
+    of :data:`SHIFT_FEATURES`, the share of visited states outside that data's 1-99 % range, and
+    ``"any"``, the share outside in at least one feature (about 2 % x features for the same
+    distribution; more when the visits leave the data)."""
+    out, outside_any = {}, np.zeros(len(visited), dtype=bool)
+    for name, (field, col) in SHIFT_FEATURES.items():
+
+        def column(d: DrivingData, field: str = field, col: int | None = col) -> np.ndarray:
+            x = d.arrays[field]
+            return x if col is None else x[:, col]
+
+        ref = np.concatenate([column(d) for d in trained_on])
+        lo, hi = np.percentile(ref, [1.0, 99.0])
+        x = column(visited)
+        outside = (x < lo) | (x > hi)
+        out[name] = float(outside.mean())
+        outside_any |= outside
+    out["any"] = float(outside_any.mean())
+    return out
+
+
+def finetune_set(
+    earlier: list[DrivingData], new: DrivingData, replay: float, seed: int, r: int
+) -> DrivingData:
+    """A round's fine-tune data: its ``new`` samples and ``replay`` x as many rows drawn (seeded,
+    without replacement) from the ``earlier`` data; the normalisation of the first part (the
+    network's own). Its key names every part and the rows drawn."""
+    sizes = np.array([len(d) for d in earlier])
+    n_old = min(round(replay * len(new)), int(sizes.sum()))
+    rows = np.sort(np.random.default_rng([seed, r, 53]).choice(sizes.sum(), n_old, replace=False))
+    arrays = allocate(n_old + len(new), new.arrays["images"].shape[1:3])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    at = 0
+    for d, first, end in zip(earlier, starts[:-1], starts[1:]):
+        mine = rows[(rows >= first) & (rows < end)] - first
+        for name in arrays:
+            arrays[name][at : at + len(mine)] = d.arrays[name][mine]
+        at += len(mine)
+    for name in arrays:
+        arrays[name][at:] = new.arrays[name]
+    key = settings_key(
+        new.info["key"], [d.info["key"] for d in earlier], rows.tobytes().hex()[:64], len(rows)
+    )
+    info = {"key": key, "split": "train", "parts": [d.info["key"] for d in earlier]}
+    return DrivingData(arrays, dict(earlier[0].stats), info)
+
+
+@dataclass
+class Round:
+    """One round of one arm: its beta, its samples, the aggregate's size after it, their
+    covariate shift, its fine-tuned network and the drive that collected them (closed-loop
+    metrics of the learner, or of the noisy expert)."""
+
+    arm: str
+    round: int
+    beta: float | None
+    samples: int
+    aggregate: int
+    shift: dict[str, float]
+    name: str
+    model: DrivingModel
+    collection: dict[str, Any]
+
+
+def run(
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    weight: float,
+    seed: int,
+    cfg: DaggerConfig | None = None,
+    *,
+    arms: tuple[str, ...] = ARMS,
+    progress: bool = True,
+) -> tuple[DrivingModel, dict[str, list[Round]]]:
+    """DAgger and its control for training ``seed``, from chapter 09's CVaR network of that seed
+    (the start network, trained first if missing): ``(start, {arm: [Round, ...]})``. Every
+    round's samples and fine-tune are stored and reused (:func:`round_samples`,
+    :func:`~e2e_lite.learning.checkpoints.train_or_load`)."""
+    cfg = cfg or DaggerConfig.for_profile(profile)
+    start, _, _ = recipes.gmm_affordance_cvar(profile, train, val, weight, seed)
+    start_name = recipes.seeded_name("09_gmm_affordance_cvar", seed)
+    objective, tcfg = recipes.finetune_settings(profile, weight, seed, "mean")
+    out: dict[str, list[Round]] = {}
+    for arm in arms:
+        earlier, parent, model = [train], start_name, start
+        parent_key = settings_key(train.info["key"], val.info["key"], None)
+        rounds = []
+        for r in range(cfg.rounds):
+            new = round_samples(profile, cfg, seed, r, arm, model, progress)
+            shift = covariate_shift(new, earlier)
+            data = finetune_set(earlier, new, cfg.replay, seed, r)
+            name = f"12_{arm}_round{r + 1}" + (f"_seed{seed}" if seed else "")
+            model, _ = train_or_load(
+                name, recipes.AFFORDANCE_CFG, tcfg, objective, data, val, init_from=parent,
+                parent_data_key=parent_key, carry_optimizer=True, progress=progress,
+            )  # fmt: skip
+            beta = cfg.betas[r] if arm == "dagger" else None
+            earlier.append(new)
+            rounds.append(Round(arm, r + 1, beta, len(new), sum(len(d) for d in earlier), shift,
+                                name, model, new.info.get("collection", {})))  # fmt: skip
+            parent, parent_key = name, settings_key(data.info["key"], val.info["key"], None)
+        out[arm] = rounds
+    return start, out
