@@ -36,6 +36,7 @@ from .driving.roads import ROAD_BLOCKS, SEALED_BLOCK
 from .driving.rollout import EvalConfig
 from .estimate import Work, cpu_name, plan_text
 from .learning.models import pick_device
+from .record_tests import FAMILIES, STEPS
 from .simulation.world import WorldConfig
 
 
@@ -94,8 +95,6 @@ def record_table1(
         ).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
-    from .report import FAMILIES, STEPS  # (report runs this module's record; no import cycle)
-
     # the family of tests, declared before anything is trained or driven (issue 64)
     family = {
         "families": FAMILIES,

@@ -26,13 +26,28 @@ import os
 import re
 import sys
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from .artifacts import atomic_write, save_figure
 from .driving.metrics import poisson_ci, seed_rates
-from .driving.verdicts import compare_seeds, fit_dispersion, holm, power, seed_counts
+from .record_tests import (  # noqa: F401 (re-exported: chapter 10 and the tests read them here)
+    FAMILIES,
+    POWER_ROW,
+    POWER_STEP,
+    SLOW_SHARE,
+    STEPS,
+    Step,
+    controls_line,
+    declared_family,
+    family_line,
+    power_line,
+    record_dispersion,
+    record_power,
+    steps,
+    verdict,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORD = ROOT / "docs" / "results" / "table1.json"
@@ -48,50 +63,6 @@ COURSE_RUN = ROOT / "docs" / "results" / "course_run.json"
 TEACHING = ROOT / "docs" / "teaching.md"
 RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.report -->"
 RUN_END = "<!-- /course run -->"
-
-
-class Step(NamedTuple):
-    """A test of the record: does row ``after`` collide less than row ``before``?
-
-    Attributes:
-        before, after: row keys.
-        what: its name in the table.
-        paired: the rows share a parent network seed by seed (a fine-tune, its control and their
-            parent), so the paired sign-flip test is the primary one.
-        family: the key in :data:`FAMILIES` whose p-values are Holm-adjusted together.
-        credits: for a control's test, the paper's step whose method it tests (``what`` of it).
-    """
-
-    before: str
-    after: str
-    what: str
-    paired: bool
-    family: str
-    credits: str | None = None
-
-
-#: the families of tests, declared before a record runs (issue 64): the p-values of one family
-#: are Holm-adjusted together and the verdict reads the adjusted p. Two questions, two families:
-#: does each of the paper's steps reproduce, and is each step the method's rather than the extra
-#: training it came with?
-FAMILIES = {
-    "paper": "the paper's steps: does each reproduce?",
-    "controls": "each method against its control: is the step the method's?",
-}
-#: the record's tests; the paper's steps each go "better" in the paper (seed 000)
-STEPS = (
-    Step("actuators", "gmm", "Baseline E2E -> trajectory GMM", False, "paper"),
-    Step("gmm", "gmm_affordance", "GMM -> + affordance", False, "paper"),
-    Step("gmm_affordance", "gmm_affordance_cvar", "+ affordance -> + CVaR", True, "paper"),
-    Step("gmm_affordance_control", "gmm_affordance_cvar", "CVaR against its control (the mean)",
-         True, "controls", "+ affordance -> + CVaR"),
-    Step("gmm_affordance_w0", "gmm_affordance", "affordance loss against its control (w = 0)",
-         False, "controls", "GMM -> + affordance"),
-)  # fmt: skip
-#: the row whose rate the record's power is stated at (issue 57), and the step it must find
-POWER_ROW, POWER_STEP = "gmm_affordance", 2.0
-#: a row slower than this share of the expert's speed is marked
-SLOW_SHARE = 0.9
 
 
 def load(path: Path = RECORD) -> dict[str, Any]:
@@ -140,154 +111,6 @@ def spread(row: dict[str, Any]) -> float | None:
     if median == 0.0:
         return 1.0 if worst == 0.0 else float("inf")
     return worst / median
-
-
-def verdict(test: dict[str, Any], slow_mph: float | None) -> str:
-    """A step's verdict from its seed-level test (:func:`~e2e_lite.driving.verdicts.compare_seeds`
-    of the later row against the earlier), read at its family's Holm-adjusted p-values
-    (``p_holm_fewer``, ``p_holm_more``; the raw ones where absent), with the later row's speed
-    when it is slow."""
-    fewer = test.get("p_holm_fewer", test["p_fewer"]) < 0.05 - 1e-9
-    more = test.get("p_holm_more", test["p_more"]) < 0.05 - 1e-9
-    if fewer:
-        text = "reproduces"
-    elif more:
-        text = "the opposite"
-    elif test["min_p"] >= 0.05:
-        text = "cannot be decided with these seeds"
-    else:
-        text = "not shown at the seed level"
-    return text + (f", at {slow_mph:.1f} mph" if slow_mph is not None else "")
-
-
-def declared_family(record: dict[str, Any]) -> dict[str, Any]:
-    """The record's families of tests: as its JSON declares them, or (a record from before the
-    declaration, issue 64) :data:`FAMILIES` with the steps' own, marked as declared after it
-    ran."""
-    if "family" in record:
-        return record["family"]
-    return {
-        "families": FAMILIES,
-        "tests": {st.what: st.family for st in STEPS},
-        "adjustment": "holm",
-        "declared": "after this record ran (issue 64), so its Holm p is a reading, not a plan",
-    }
-
-
-def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
-    """Each of :data:`STEPS` present in the record, tested on the seeds' counts: the primary
-    p-value and its test, the unpaired and paired p-values, the p-value Holm-adjusted within its
-    declared family (:func:`declared_family`), the rate ratio (after / before) with its 95 %
-    bootstrap interval, the paper's ratio, and the verdict (read at the adjusted p)."""
-    rows = {r["key"]: r for r in record["rows"]}
-    expert_mph = rows["expert"]["mph"] if "expert" in rows else None
-    family_of = declared_family(record)["tests"]
-    out = []
-    for st in STEPS:
-        if st.before not in rows or st.after not in rows:
-            continue
-        test = compare_seeds(rows[st.after], rows[st.before], paired=st.paired)
-        mph = rows[st.after]["mph"]
-        paper_a, paper_b = rows[st.after]["paper_per_100mi"], rows[st.before]["paper_per_100mi"]
-        out.append(
-            {"step": st.what, "family": family_of.get(st.what, st.family),
-             "credits": st.credits, "p_better": test["p_fewer"], "p_worse": test["p_more"],
-             "min_p": test["min_p"], "test": test["test"], "p_unpaired": test["p_unpaired"],
-             "p_paired": test["p_paired"], "ratio": test["ratio"], "ratio_ci": test["ratio_ci"],
-             "paper_ratio": paper_a / paper_b if paper_a is not None and paper_b else None,
-             "seeds": (len(test["counts_a"]), len(test["counts_b"])),
-             "slow_mph": mph if expert_mph and mph < SLOW_SHARE * expert_mph else None}
-        )  # fmt: skip
-    for family in {o["family"] for o in out}:
-        members = [o for o in out if o["family"] == family]
-        for key, adjusted in (("p_better", "p_holm"), ("p_worse", "p_holm_worse")):
-            for o, p in zip(members, holm([o[key] for o in members])):
-                o[adjusted] = p
-    for o in out:
-        test = {"p_fewer": o["p_better"], "p_more": o["p_worse"], "min_p": o["min_p"],
-                "p_holm_fewer": o["p_holm"], "p_holm_more": o["p_holm_worse"]}  # fmt: skip
-        o["verdict"] = verdict(test, o.pop("slow_mph"))
-    return out
-
-
-def controls_line(record: dict[str, Any]) -> str:
-    """One sentence per control: what its test found, and so whether the paper's step it tests
-    is credited to its method ("" when the record has no control)."""
-    found = []
-    for st in steps(record):
-        if st["credits"] is None:
-            continue
-        credited = st["verdict"].startswith("reproduces")
-        found.append(
-            f"{st['step']}: {'beaten' if credited else 'not beaten'} (Holm p = {st['p_holm']:.2g},"
-            f" ratio {st['ratio']:.2f}), so '{st['credits']}' is "
-            + ("credited to its method" if credited else "not credited to its method")
-        )
-    return "" if not found else "**What the controls found.** " + "; ".join(found) + "."
-
-
-def record_dispersion(record: dict[str, Any]) -> dict[str, float] | None:
-    """The negative-binomial dispersion of the record's seeds
-    (:func:`~e2e_lite.driving.verdicts.fit_dispersion` over every row of two or more seeds, each
-    seed's count at its row's common budget); None without such a row."""
-    counts = [seed_counts(r)[0] for r in record["rows"] if len(r["seeds"]) >= 2]
-    return fit_dispersion(counts) if counts else None
-
-
-def record_power(record: dict[str, Any]) -> dict[str, Any] | None:
-    """The record's power to find a :data:`POWER_STEP`-fold step at its own :data:`POWER_ROW`
-    rate (the median seed's), with its seeds and miles per seed: under the seeds' spread fitted
-    to the record (:func:`record_dispersion`) with the rank test (``power``) and the paired
-    sign-flip test (``power_paired``), and without spread (``power_poisson``, an upper bound);
-    and the smallest p-value its seeds can reach (:func:`~e2e_lite.driving.verdicts.power`).
-    None without that row."""
-    row = next((r for r in record["rows"] if r["key"] == POWER_ROW), None)
-    if row is None or len(row["seeds"]) < 2:
-        return None
-    counts, budget = seed_counts(row)
-    rate = max(float(np.median(counts)) * 100.0 / budget, 0.5)  # (a zero rate has no step)
-    fitted = record_dispersion(record)
-    k = fitted["dispersion"]
-    spread_rank = power(len(counts), budget, rate, POWER_STEP, dispersion=k)
-    spread_pair = power(len(counts), budget, rate, POWER_STEP, dispersion=k, test="sign-flip")
-    poisson = power(len(counts), budget, rate, POWER_STEP)
-    return {"seeds": len(counts), "miles_per_seed": budget, "rate_per_100mi": rate,
-            "label": row["label"], "power": spread_rank["power"],
-            "power_paired": spread_pair["power"], "power_poisson": poisson["power"],
-            "min_p": poisson["min_p"], "dispersion": fitted}  # fmt: skip
-
-
-def _power_line(record: dict[str, Any]) -> str:
-    found = record_power(record)
-    if found is None:
-        return ""
-    k = found["dispersion"]
-    return (
-        f" Power: {found['seeds']} seeds x {found['miles_per_seed']:.0f} mi find a true"
-        f" {POWER_STEP:g}x step at {found['label']}'s median rate"
-        f" ({found['rate_per_100mi']:.1f} per 100 mi) in {100 * found['power']:.0f} % of records"
-        f" under the seeds' spread (rank test; paired sign-flip"
-        f" {100 * found['power_paired']:.0f} %), a negative binomial of dispersion"
-        f" {k['dispersion']:.2f} [{k['low']:.2f}-{k['high']:.2f}] fitted to this record's"
-        f" {k['rows']} rows of seeds; {100 * found['power_poisson']:.0f} % if seeds did not"
-        f" differ (Poisson: an upper bound); at p < 0.05 before Holm's adjustment, which only"
-        f" lowers it. The smallest reachable p is {found['min_p']:.2g}."
-    )
-
-
-def _family_line(record: dict[str, Any]) -> str:
-    fam = declared_family(record)
-    tests = fam["tests"]
-    parts = [
-        f"{text} ({sum(f == key for f in tests.values())} tests)"
-        for key, text in fam["families"].items()
-    ]
-    return (
-        f" The families of tests, declared {fam['declared']}: " + "; ".join(parts) + ". Each"
-        " family's p-values are Holm-adjusted together, and the verdict reads the adjusted p at"
-        " 0.05; 'reproduces' means the direction of the paper's step, whose own ratio is beside"
-        " ours."
-    )
 
 
 def _roads_text(record: dict[str, Any]) -> str:
@@ -362,8 +185,8 @@ def table1(record: dict[str, Any]) -> str:
         f"{where}: "
         + "; ".join(f"{what} at {c}" for c, what in record["commits"].items())
         + f". Ties are ties: a seed's count is its collisions over the row's common budget. A"
-        f" rate ratio below 1: the later row collides less.{_family_line(record)}"
-        f"{_power_line(record)} Slow: more than {100 * (1 - SLOW_SHARE):.0f} % slower than the"
+        f" rate ratio below 1: the later row collides less.{family_line(record)}"
+        f"{power_line(record)} Slow: more than {100 * (1 - SLOW_SHARE):.0f} % slower than the"
         f" expert. The paper's drivers averaged {record['paper_mph']:g} mph.*"
     )
     return "\n".join(lines)

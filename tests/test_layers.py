@@ -142,6 +142,7 @@ BASE = ("config", "artifacts")  # used by every layer
 TOP = (
     "ablation",
     "record",
+    "record_tests",
     "report",
     "viz",
     "course",

@@ -28,8 +28,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from scipy.special import gammaln
-from scipy.stats import chi2
 
 from ..config import check_range
 from .metrics import EvalResult, result_dict
@@ -320,6 +318,8 @@ def _nb_loglik(counts: Sequence[np.ndarray], dispersion: float) -> float:
     maximum-likelihood estimate, the row's mean count) and one shared ``dispersion`` k:
     ``log P(y) = lnG(y + r) - lnG(r) - lnG(y + 1) + r ln(r / (r + mu)) + y ln(mu / (r + mu))``,
     ``r = 1/k``."""
+    from scipy.special import gammaln  # (here: an evaluation worker never loads scipy)
+
     r = 1.0 / max(dispersion, 1e-8)
     total = 0.0
     for y in counts:
@@ -342,6 +342,8 @@ def fit_dispersion(counts: Sequence[Sequence[float]], level: float = 0.95) -> di
     rows = [np.asarray(c, dtype=float) for c in counts if len(c) >= 2]
     if not rows:
         raise ValueError("fit_dispersion: needs a row of at least two seeds")
+    from scipy.stats import chi2  # (here: an evaluation worker never loads scipy.stats)
+
     grid = np.concatenate([[0.0], np.geomspace(1e-3, 20.0, 400)])
     ll = np.array([_nb_loglik(rows, k) for k in grid])
     best = int(np.argmax(ll))
