@@ -78,6 +78,18 @@ def test_chapter_runs_in_quick_profile(path, quick_course):
             "index.html",
             *(f"{d.key}.html" for d in DRIVERS),
         }
+    if path.stem == "12_dagger":  # issue 63: each round grows the aggregate by exactly its samples
+        assert set(metrics["verdicts"]) and metrics["config"]["seeds"] == 2
+        for arms in metrics["rounds"].values():
+            for rounds in arms.values():
+                before = metrics["train_samples"]
+                for r in rounds:
+                    assert (
+                        r["aggregate"]
+                        == before + r["samples"]
+                        == before + metrics["config"]["samples"]
+                    )
+                    before = r["aggregate"]
 
 
 def test_a_chapter_run_again_after_the_later_ones_stores_the_same_metrics(quick_course):

@@ -156,6 +156,19 @@ def load_checkpoint(
     return model, meta
 
 
+def training_data_key(
+    train_data: DrivingData, val_data: DrivingData, train_rows: np.ndarray | None = None
+) -> str:
+    """The key of the data a network is trained on (its checkpoint's ``data_key``): the training
+    and validation sets and, when given, the rows of the training set used."""
+    rows = None if train_rows is None else np.asarray(train_rows, dtype=np.int64).tobytes()
+    return settings_key(
+        train_data.info["key"],
+        val_data.info["key"],
+        None if rows is None else hashlib.sha256(rows).hexdigest(),
+    )
+
+
 def train_or_load(
     name: str,
     model_cfg: ModelConfig,
@@ -201,11 +214,7 @@ def train_or_load(
     """
     device = pick_device(train_cfg.device)
     rows = np.arange(len(train_data)) if train_rows is None else np.asarray(train_rows)
-    data_key = settings_key(
-        train_data.info["key"],
-        val_data.info["key"],
-        None if train_rows is None else hashlib.sha256(rows.astype(np.int64).tobytes()).hexdigest(),
-    )
+    data_key = training_data_key(train_data, val_data, train_rows)
     path = artifact_path("checkpoints", f"{name}.pt")
     stats = model_stats(model_cfg, train_data, objective)
     key = checkpoint_key(model_cfg, train_cfg, objective, data_key)

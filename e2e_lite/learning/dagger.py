@@ -37,9 +37,10 @@ import numpy as np
 from ..artifacts import artifact_path, cached, settings_key
 from ..config import Profile, check_range
 from ..control.labels import AFFORDANCE_INDEX
+from ..driving.rollout import EvalConfig
 from . import recipes
 from .agents import TrajectoryAgent
-from .checkpoints import train_or_load, weights_digest
+from .checkpoints import train_or_load, training_data_key, weights_digest
 from .data import DataConfig, NoiseConfig, collect, load_dataset, save_dataset
 from .dataset import DrivingData, allocate
 from .models import DrivingModel
@@ -93,6 +94,12 @@ class DaggerConfig:
         """The profile's rounds: a sixth of the training data per round in the full profile."""
         samples = max(profile.collect_worlds * 8, profile.n_train_samples // 6)
         return cls(**{"samples": samples, **changes})
+
+
+def val_roads(miles: float, n_worlds: int) -> EvalConfig:
+    """Where chapter 12 drives each round's network for its figure: validation roads (a choice
+    of rounds or beta is made there, so never on the test roads that its verdicts drive)."""
+    return EvalConfig(miles=miles, n_worlds=n_worlds, split="val")
 
 
 def round_data(profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str) -> DataConfig:
@@ -243,7 +250,7 @@ def run(
     out: dict[str, list[Round]] = {}
     for arm in arms:
         earlier, parent, model = [train], start_name, start
-        parent_key = settings_key(train.info["key"], val.info["key"], None)
+        parent_key = training_data_key(train, val)
         rounds = []
         for r in range(cfg.rounds):
             new = round_samples(profile, cfg, seed, r, arm, model, progress)
@@ -258,6 +265,6 @@ def run(
             earlier.append(new)
             rounds.append(Round(arm, r + 1, beta, len(new), sum(len(d) for d in earlier), shift,
                                 name, model, new.info.get("collection", {})))  # fmt: skip
-            parent, parent_key = name, settings_key(data.info["key"], val.info["key"], None)
+            parent, parent_key = name, training_data_key(data, val)
         out[arm] = rounds
     return start, out
