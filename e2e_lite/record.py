@@ -3,15 +3,25 @@ several seeds, every seed driving its miles on the sealed block of test roads
 (:data:`~e2e_lite.driving.roads.SEALED_BLOCK` of :data:`~e2e_lite.driving.roads.ROAD_BLOCKS`),
 which nothing else drives (a quick smoke run of the record drives open roads).
 
-``python -m e2e_lite.report --record`` runs :func:`record_table1`, writes
-``docs/results/table1.json`` and renders it; it says first what it will use (workers, device,
-precision) and how long it should take (:func:`~e2e_lite.estimate.estimate_s`, from the per-part
-rates measured in docs/benchmarks.md). Trainings and drives are stored as the chapters store
+The record is a **pool of shares** (issue 65). ``python -m e2e_lite.report --record --seeds A-B``
+runs :func:`record_share` for training seeds ``A .. B``: every row trained and driven for those
+seeds, each seed on its own run of the block (:func:`seed_run`: the same roads whatever share holds
+it), written as one share file with what a pool needs to check that it belongs (the recipes'
+commit, a key of the settings, the profile, precision, torch, the machine, each seed's first
+track, and a digest of its content). ``python -m e2e_lite.report --pool SHARE...`` merges shares
+(:func:`pool_shares`, which refuses a share that does not belong, naming its file) into the record
+that the report renders. A class, or a cluster's job array, runs one share each; one machine runs
+them all (``--record --seeds N``: seeds ``0 .. N-1`` as one share, pooled).
+
+Every run says first what it will use (workers, device, precision) and how long it should take
+(:func:`~e2e_lite.estimate.estimate_s`). Trainings and drives are stored as the chapters store
 theirs, so a cut run goes on where it stopped.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import subprocess
 from collections.abc import Sequence
@@ -27,14 +37,16 @@ from .ablation import (
     PAPER_MPH,
     SEED_ZERO_ONLY,
     UNTRAINED,
-    build_seeded_drivers,
-    evaluate_drivers,
+    build_drivers,
+    evaluate_stored,
 )
-from .config import Profile, check_range, default_workers, precision
+from .artifacts import settings_key
+from .config import FULL, QUICK, Profile, check_range, default_workers, precision
 from .driving.metrics import result_dict
 from .driving.roads import ROAD_BLOCKS, SEALED_BLOCK
-from .driving.rollout import EvalConfig
+from .driving.rollout import EvalConfig, disjoint_runs
 from .estimate import Work, cpu_name, plan_text
+from .learning.data import DataConfig, load_or_collect
 from .learning.models import pick_device
 from .record_tests import FAMILIES, STEPS
 from .simulation.world import WorldConfig
@@ -63,6 +75,246 @@ def record_work(
     )
 
 
+#: what a share file says it is
+SHARE_FORMAT = "e2e-lite record share"
+
+
+class ShareRefused(ValueError):
+    """A share that does not belong in a pool (the message names its file and why)."""
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"N"``: training seeds ``0 .. N-1`` (the whole record on one machine); ``"A-B"``: seeds
+    ``A .. B`` (one share of it)."""
+    try:
+        if "-" in text:
+            first, last = (int(x) for x in text.split("-"))
+        else:
+            first, last = 0, int(text) - 1
+    except ValueError:
+        raise ValueError(f"--seeds {text!r} is invalid: give N (seeds 0 .. N-1) or A-B") from None
+    if first < 0 or last < first:
+        raise ValueError(f"--seeds {text!r} is invalid: give N >= 1, or A-B with 0 <= A <= B")
+    return list(range(first, last + 1))
+
+
+def _block(profile: Profile) -> str:
+    # the sealed roads are for the record alone: a quick smoke run drives open roads
+    return "open" if profile.quick else SEALED_BLOCK
+
+
+def seed_run(profile: Profile, seed: int, miles_per_seed: float) -> EvalConfig:
+    """Training seed ``seed``'s own run of the record's block: ``miles_per_seed`` on tracks no
+    other seed drives, the same whatever share (and whatever count of seeds) holds it (the run
+    ``seed`` of :func:`~e2e_lite.driving.rollout.disjoint_runs`, whose runs do not depend on how
+    many there are)."""
+    ev = EvalConfig(
+        miles=miles_per_seed * (seed + 1), n_worlds=profile.ablation_worlds, block=_block(profile)
+    )
+    return disjoint_runs(ev, WorldConfig.for_profile(profile), seed + 1)[seed]
+
+
+def _commit() -> str:
+    """The code that trains and drives: the commit at the start (a run takes hours); every recipe
+    choice is frozen in it before the sealed roads are driven."""
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
+            cwd=Path(__file__).resolve().parent,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def share_digest(share: dict[str, Any]) -> str:
+    """A SHA-256 digest of a share's content (everything but the digest itself)."""
+    body = {k: v for k, v in share.items() if k != "digest"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def record_share(
+    profile: Profile,
+    seeds: Sequence[int],
+    miles_per_seed: float = 100.0,
+    *,
+    single: Sequence[str] = SEED_ZERO_ONLY,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """One share of the record: every row of :data:`DRIVERS` and :data:`CONTROLS` for training
+    ``seeds``, each seed driving ``miles_per_seed`` on its own run of the block (:func:`seed_run`;
+    the sealed block of test roads, or open roads in the quick profile's smoke run). Each
+    learned row trains the share's seeds; the rows of ``single`` (PilotNet and L2: no step of the
+    paper is theirs) drive seed 0's network on each seed's run, as the expert and the oracle do.
+    Returns the share: its rows' runs and what a pool checks (:func:`pool_shares`)."""
+    seeds = sorted(int(k) for k in seeds)
+    if not seeds or seeds[0] < 0 or len(set(seeds)) != len(seeds):
+        raise ValueError(f"record_share: seeds {seeds} must be distinct and >= 0")
+    check_range("record_share", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
+    commit, keys = _commit(), [d.key for d in (*DRIVERS, *CONTROLS)]
+    family = {"families": FAMILIES, "tests": {st.what: st.family for st in STEPS},
+              "adjustment": "holm", "declared": f"before this record ran, in the recipes of {commit}"}  # fmt: skip
+    world_cfg = WorldConfig.for_profile(profile)
+    workers, device = default_workers(), pick_device()
+    if progress:
+        work = record_work(profile, len(seeds), miles_per_seed, single)
+        print(plan_text(f"the record's seeds {seeds[0]}-{seeds[-1]}", work, workers, device.type))
+    train = load_or_collect(DataConfig.for_profile(profile, "train"), progress)
+    val = load_or_collect(DataConfig.for_profile(profile, "val"), progress)
+    learned = [k for k in keys if k not in UNTRAINED and k not in single]
+    fixed = build_drivers(profile, [k for k in keys if k not in learned], train, val, seed=0)
+    runs: dict[str, list[dict[str, Any]]] = {k: [] for k in keys}
+    for seed in seeds:
+        run = seed_run(profile, seed, miles_per_seed)
+        mine = {**fixed, **build_drivers(profile, learned, train, val, seed=seed)}
+        for key in keys:
+            label = f"{BY_KEY[key].label} (seed {seed})"
+            r = result_dict(evaluate_stored(f"{key}_seed{seed}", label, mine[key], world_cfg, run,
+                                            progress=progress))  # fmt: skip
+            runs[key].append({"seed": seed, "first_track": run.first_track,
+                              "collisions": r["collisions"], "car": r["car_collisions"],
+                              "rail": r["rail_collisions"], "miles": round(r["miles"], 3),
+                              "mph": round(r["mean_speed_mph"], 2), "stalls": r["stalls"]})  # fmt: skip
+    template = EvalConfig(
+        miles=miles_per_seed, n_worlds=profile.ablation_worlds, block=_block(profile)
+    )
+    share = {
+        "format": SHARE_FORMAT,
+        "profile": profile.name,
+        "seeds": seeds,
+        "miles_per_seed": miles_per_seed,
+        "recipes_commit": commit,
+        "settings_key": settings_key(
+            profile,
+            world_cfg,
+            template,
+            train.info["key"],
+            val.info["key"],
+            precision(),
+            keys,
+            list(single),
+        ),
+        "data": {"train": train.info["key"], "val": val.info["key"]},
+        "precision": precision(),
+        "torch": torch.__version__,
+        "machine": f"{cpu_name()}, {os.cpu_count()} cores, {workers} workers, {device.type}",
+        "block": {"name": template.block, "range": list(ROAD_BLOCKS[template.block])},
+        "single_seed_rows": list(single),
+        "family": family,
+        "rows": [
+            {
+                "key": k,
+                "label": BY_KEY[k].label,
+                "paper_per_100mi": BY_KEY[k].paper_per_100mi,
+                "control": k in {d.key for d in CONTROLS},
+                "runs": runs[k],
+            }
+            for k in keys
+        ],
+    }
+    share["digest"] = share_digest(share)
+    return share
+
+
+def _refuse(name: str, why: str) -> ShareRefused:
+    return ShareRefused(f"{name}: {why}; not pooled")
+
+
+def pool_shares(shares: Sequence[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+    """The record from shares ``[(file name, share), ...]``: each row's runs of every seed (rows
+    without training seeds, :data:`UNTRAINED` and the single-seed rows, as one pooled run), each
+    seed's machine, and how many machines and kinds the record holds.
+
+    Raises :class:`ShareRefused` naming the file for: a share edited after it was written (its
+    digest), another format, profile, recipes commit, settings key, family or miles per seed
+    than the first share's, a training seed in two shares, or a seed's roads off its own run of
+    the block (:func:`seed_run`)."""
+    if not shares:
+        raise ValueError("pool_shares: no share to pool")
+    first_name, first = shares[0]
+    seen: dict[int, str] = {}
+    machines: list[str] = []
+    for name, share in shares:
+        if share.get("format") != SHARE_FORMAT:
+            raise _refuse(name, f"not a record share (format {share.get('format')!r})")
+        if share.get("digest") != share_digest(share):
+            raise _refuse(
+                name, "its content does not match its digest: edited after it was written"
+            )
+        for field in ("profile", "recipes_commit", "settings_key", "miles_per_seed", "family"):
+            if share[field] != first[field]:
+                raise _refuse(name, f"its {field} {share[field]!r} differs from {first_name}'s "
+                                    f"{first[field]!r}")  # fmt: skip
+        profile = QUICK if share["profile"] == QUICK.name else FULL
+        for seed in share["seeds"]:
+            if seed in seen:
+                raise _refuse(name, f"training seed {seed} is in {seen[seed]} too")
+            seen[seed] = name
+            expected = seed_run(profile, seed, share["miles_per_seed"]).first_track
+            drove = {
+                r["first_track"] for row in share["rows"] for r in row["runs"] if r["seed"] == seed
+            }
+            if drove != {expected}:
+                raise _refuse(name, f"seed {seed} drove from tracks {sorted(drove)}, not its own "
+                                    f"run of the block (from track {expected})")  # fmt: skip
+        if share["machine"] not in machines:
+            machines.append(share["machine"])
+    single = set(first["single_seed_rows"]) | set(UNTRAINED)
+    seeds = sorted(seen)
+    rows = []
+    for i, row in enumerate(first["rows"]):
+        runs = sorted(
+            ({**r, "machine": machines.index(share["machine"])}
+             for _, share in shares for r in share["rows"][i]["runs"]), key=lambda r: r["seed"],
+        )  # fmt: skip
+        if row["key"] in single:  # one network (or none) drove every seed's run: one entry
+            hours = sum(r["miles"] / r["mph"] for r in runs if r["mph"] > 0)
+            miles = sum(r["miles"] for r in runs)
+            runs = [{"seed": 0, "collisions": sum(r["collisions"] for r in runs),
+                     "miles": round(miles, 3), "mph": round(miles / hours, 2) if hours else 0.0,
+                     "stalls": sum(r["stalls"] for r in runs)}]  # fmt: skip
+            car = sum(r["car"] for s in shares for r in s[1]["rows"][i]["runs"])
+            rail = sum(r["rail"] for s in shares for r in s[1]["rows"][i]["runs"])
+        else:
+            car, rail = sum(r["car"] for r in runs), sum(r["rail"] for r in runs)
+        miles = sum(r["miles"] for r in runs)
+        hours = sum(r["miles"] / r["mph"] for r in runs if r["mph"] > 0)
+        rows.append({
+            "key": row["key"], "label": row["label"], "paper_per_100mi": row["paper_per_100mi"],
+            "seeds": [{k: r[k] for k in ("seed", "collisions", "miles", "mph", "stalls", "machine")
+                       if k in r} for r in runs],
+            "car": car, "rail": rail, "mph": round(miles / hours, 2) if hours else 0.0,
+            "stalls": sum(r["stalls"] for r in runs), "commit": first["recipes_commit"],
+            "control": row["control"],
+        })  # fmt: skip
+    mps, n = first["miles_per_seed"], len(seeds)
+    kinds = sorted({m.split(",")[0] for m in machines})
+    where = machines[0] if len(machines) == 1 else f"{len(machines)} machines ({', '.join(kinds)})"
+    return {
+        "title": f"Table 1 of record ({first['profile']} profile, {n} training seeds)",
+        "status": (
+            f"Of record: {n} training seeds per learned row (seeds {seeds[0]}-{seeds[-1]}), "
+            f"{mps:g} mi each ({', '.join(first['single_seed_rows'])}: seed 0 alone, {mps * n:g} mi), "
+            f"pooled from {len(shares)} share{'s' * (len(shares) > 1)} on {len(machines)} "
+            f"machine{'s' * (len(machines) > 1)} of {len(kinds)} kind{'s' * (len(kinds) > 1)}"
+        ),
+        "machine": where,
+        "machines": machines,
+        "torch": ", ".join(sorted({s["torch"] for _, s in shares})),
+        "precision": first["precision"],
+        "roads": "test",
+        "block": {**first["block"], "recipes_commit": first["recipes_commit"]},
+        "commits": {first["recipes_commit"]: "every row"},
+        "miles_note": "each seed drove its miles on test roads of its own (record.seed_run)",
+        "single_seed_rows": first["single_seed_rows"],
+        "family": first["family"],
+        "shares": [
+            {"file": name, "seeds": s["seeds"], "digest": s["digest"]} for name, s in shares
+        ],
+        "paper_mph": PAPER_MPH,
+        "rows": rows,
+    }
+
+
 def record_table1(
     profile: Profile,
     seeds: int = 10,
@@ -71,88 +323,8 @@ def record_table1(
     single: Sequence[str] = SEED_ZERO_ONLY,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Table 1 of record: every row of :data:`DRIVERS` and :data:`CONTROLS`, each learned row
-    trained with ``seeds`` training seeds (those of ``single``: one), each seed driving
-    ``miles_per_seed`` on test roads of its own inside the sealed block of test roads
-    (:data:`~e2e_lite.driving.roads.SEALED_BLOCK`: no chapter, lab script, selection, benchmark
-    or test drives it; the quick profile's smoke run drives open roads). The rows of ``single``
-    (PilotNet and L2: no step of the paper's Table 1 is theirs) train seed 0 alone, which drives
-    every seed's miles in one run; the verdicts' rows train every seed. Trainings and
-    evaluations are stored, so a cut run goes on where it stopped. Returns the record
-    :mod:`e2e_lite.report` renders (per row: each seed's collisions, miles, mph and stalls; the
-    recipes' commit, the CPU, torch, the precision, the workers and the block).
-
-    The default, 10 seeds x 100 mi, finds a true 2x step at 3 collisions per 100 mi about 90 %
-    of the time (:func:`~e2e_lite.driving.verdicts.power`; 5 x 100 mi: about 60 %)."""
+    """Table 1 of record on one machine: the share of training seeds ``0 .. seeds-1``
+    (:func:`record_share`), pooled (:func:`pool_shares`)."""
     check_range("record_table1", "seeds", seeds, 1, integer=True)
-    check_range("record_table1", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
-    # the code that trains and drives: the commit at the start (a run takes hours); every recipe
-    # choice is frozen in it before the sealed roads are driven
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
-            cwd=Path(__file__).resolve().parent,
-        ).stdout.strip()  # fmt: skip
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
-    # the family of tests, declared before anything is trained or driven (issue 64)
-    family = {
-        "families": FAMILIES,
-        "tests": {st.what: st.family for st in STEPS},
-        "adjustment": "holm",
-        "declared": f"before this record ran, in the recipes of {commit}",
-    }
-    keys = [d.key for d in (*DRIVERS, *CONTROLS)]
-    world_cfg = WorldConfig.for_profile(profile)
-    # the sealed roads are for the record alone: a quick smoke run drives open roads
-    block = "open" if profile.quick else SEALED_BLOCK
-    ev = EvalConfig(miles=miles_per_seed * seeds, n_worlds=profile.ablation_worlds, block=block)
-    workers, device = default_workers(), pick_device()
-    if progress:
-        work = record_work(profile, seeds, miles_per_seed, single)
-        print(plan_text("the record", work, workers, device.type), flush=True)
-    drivers = build_seeded_drivers(profile, keys, seeds=seeds, single=single, progress=progress)
-    results = evaluate_drivers(drivers, world_cfg, ev, progress=progress)
-    cpu = cpu_name()
-    rows = []
-    for key in keys:
-        r = result_dict(results[key])
-        parts = r.get("seeds") or [r]
-        rows.append({
-            "key": key,
-            "label": BY_KEY[key].label,
-            "paper_per_100mi": BY_KEY[key].paper_per_100mi,
-            "seeds": [
-                {"seed": k, "collisions": p["collisions"], "miles": round(p["miles"], 3),
-                 "mph": round(p["mean_speed_mph"], 2), "stalls": p["stalls"]}
-                for k, p in enumerate(parts)
-            ],
-            "car": r["car_collisions"],
-            "rail": r["rail_collisions"],
-            "mph": round(r["mean_speed_mph"], 2),
-            "stalls": r["stalls"],
-            "commit": commit,
-            "control": key in {d.key for d in CONTROLS},
-        })  # fmt: skip
-    return {
-        "title": f"Table 1 of record ({profile.name} profile, {seeds} training seeds)",
-        "status": (
-            f"Of record: {seeds} training seeds per learned row, {miles_per_seed:g} mi each"
-            + (
-                f" ({', '.join(single)}: seed 0 alone, {miles_per_seed * seeds:g} mi)"
-                if single
-                else ""
-            )
-        ),
-        "machine": f"{cpu}, {os.cpu_count()} cores, {workers} workers, {device.type}",
-        "torch": torch.__version__,
-        "precision": precision(),
-        "roads": ev.split,
-        "block": {"name": ev.block, "range": list(ROAD_BLOCKS[ev.block]), "recipes_commit": commit},
-        "commits": {commit: "every row"},
-        "miles_note": "each seed drove its miles on test roads of its own (evaluation.disjoint_runs)",
-        "single_seed_rows": list(single),
-        "family": family,
-        "paper_mph": PAPER_MPH,
-        "rows": rows,
-    }
+    share = record_share(profile, range(seeds), miles_per_seed, single=single, progress=progress)
+    return pool_shares([("this run", share)])

@@ -393,7 +393,16 @@ def main(argv: list[str] | None = None) -> int:
         help="train and drive Table 1 of record first (hours in the full profile; stop and run "
         "again to go on: trainings and drives are stored), then write docs/results/table1.json",
     )
-    parser.add_argument("--seeds", type=int, default=10, help="training seeds per learned row")
+    parser.add_argument(
+        "--seeds", default="10", metavar="N|A-B",
+        help="with --record: N, training seeds 0 .. N-1 (the whole record, pooled here), or A-B, "
+        "one share of the record (written to <outputs>/shares/ for --pool)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--pool", nargs="+", type=Path, metavar="SHARE",
+        help="pool record shares (from --record --seeds A-B, on any machines) into the record "
+        "and render it; a share that does not belong is refused, naming its file",
+    )  # fmt: skip
     parser.add_argument("--miles", type=float, default=100.0, help="test-road miles per seed")
     parser.add_argument(
         "--quick", action="store_true", help="with --record: the quick profile (a smoke test; "
@@ -409,18 +418,41 @@ def main(argv: list[str] | None = None) -> int:
         with atomic_write(COURSE_RUN, "w") as f:
             json.dump(course_run_record(args.course_run), f, indent=1)
         print(f"wrote {COURSE_RUN.relative_to(ROOT)}")
-    if args.record:
+    if args.record or args.pool:
         from .artifacts import outputs_dir
         from .config import FULL, QUICK
-        from .record import record_table1
+        from .record import ShareRefused, parse_seeds, pool_shares, record_share
 
-        profile = QUICK if args.quick else FULL
-        record = record_table1(profile, args.seeds, args.miles)
-        path = outputs_dir(quick=True) / "table1.json" if args.quick else RECORD
+        if args.record:
+            profile = QUICK if args.quick else FULL
+            seeds = parse_seeds(args.seeds)
+            share = record_share(profile, seeds, args.miles)
+            if "-" in args.seeds:  # one share of the record: its file, to pool with the others
+                path = (
+                    outputs_dir(quick=profile.quick)
+                    / "shares"
+                    / (f"share-seeds-{seeds[0]}-{seeds[-1]}.json")
+                )
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with atomic_write(path, "w") as f:
+                    json.dump(share, f, indent=1)
+                print(f"wrote {path}: pool it with python -m e2e_lite.report --pool SHARE...")
+                return 0
+            shares = [("this run", share)]
+        else:
+            shares = [(p.name, json.loads(p.read_text())) for p in args.pool]
+        try:
+            record = pool_shares(shares)
+        except ShareRefused as err:
+            print(err, file=sys.stderr)
+            return 2
+        quick = record["title"].startswith("Table 1 of record (quick")
+        # a quick-profile pool is a smoke test, never a record of record
+        path = outputs_dir(quick=True) / "table1.json" if quick else RECORD
         with atomic_write(path, "w") as f:
             json.dump(record, f, indent=1)
         print(f"wrote {path}")
-        if args.quick:
+        if quick:
             print(table1(record))
             return 0
     record = load()

@@ -377,3 +377,63 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
     assert record["block"]["name"] == "open" and record["block"]["range"] == [*ROAD_BLOCKS["open"]]
     assert "| the paper's step |" in report.table1(record)
     assert "wrote" in capsys.readouterr().out
+
+
+def test_shares_of_the_record_pool_into_what_one_run_gives_and_what_does_not_belong_is_refused(
+    quick_course, monkeypatch, tmp_path, capsys
+):
+    """Issue 65: two quick shares of different seeds pool into the same rows as one share of
+    both; a pool keeps each seed's machine and says how many it holds; and it refuses, naming
+    the file, a share edited after it was written, a seed twice, another recipes commit or
+    settings key or profile, and a seed's roads off its own run of the block."""
+    import copy
+
+    from e2e_lite import record as rec
+    from e2e_lite import report
+    from e2e_lite.config import QUICK
+
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(quick_course[1].parent))  # its networks, trained
+    a = rec.record_share(QUICK, [0], 0.1, progress=False)
+    b = rec.record_share(QUICK, [1], 0.1, progress=False)
+    both = rec.record_share(QUICK, [0, 1], 0.1, progress=False)
+    pooled, one = rec.pool_shares([("a", a), ("b", b)]), rec.pool_shares([("both", both)])
+    assert pooled["rows"] == one["rows"] and len(pooled["rows"][3]["seeds"]) == 2
+    assert pooled["family"] == one["family"] and "2 shares on 1 machine" in pooled["status"]
+    elsewhere = copy.deepcopy(b)
+    elsewhere["machine"] = "Another CPU, 16 cores, 16 workers, cuda"
+    elsewhere["digest"] = rec.share_digest(elsewhere)
+    two = rec.pool_shares([("a", a), ("b", elsewhere)])
+    assert two["machine"].startswith("2 machines") and len(two["machines"]) == 2
+    assert [s["machine"] for s in two["rows"][3]["seeds"]] == [0, 1]
+
+    def refused(share: dict, match: str, *others: tuple[str, dict]) -> None:
+        with pytest.raises(rec.ShareRefused, match=match):
+            rec.pool_shares([("a", a), *others, ("bad.json", share)])
+
+    edited = copy.deepcopy(b)
+    edited["rows"][3]["runs"][0]["collisions"] += 1
+    refused(edited, r"bad.json: .*edited after it was written")
+    refused(copy.deepcopy(both), "bad.json: training seed 0 is in a too")
+    for field, value in (("recipes_commit", "0000000"), ("settings_key", "other"),
+                         ("profile", "full")):  # fmt: skip
+        other = copy.deepcopy(b)
+        other[field] = value
+        other["digest"] = rec.share_digest(other)
+        refused(other, f"bad.json: its {field}")
+    moved = copy.deepcopy(b)
+    for row in moved["rows"]:
+        row["runs"][0]["first_track"] += 64
+    moved["digest"] = rec.share_digest(moved)
+    refused(moved, "bad.json: seed 1 drove from tracks .* not its own run")
+    # the commands: a share file per seed range, a pool of files, a refusal with exit code 2
+    assert report.main(["--record", "--quick", "--seeds", "1-1", "--miles", "0.1"]) == 0
+    written = quick_course[1] / "shares" / "share-seeds-1-1.json"
+    assert json.loads(written.read_text())["digest"] == b["digest"]
+    first_file = tmp_path / "a.json"
+    first_file.write_text(json.dumps(a))
+    assert report.main(["--pool", str(first_file), str(written)]) == 0
+    assert json.loads((quick_course[1] / "table1.json").read_text())["rows"] == pooled["rows"]
+    bad_file = tmp_path / "edited.json"
+    bad_file.write_text(json.dumps(edited))
+    assert report.main(["--pool", str(first_file), str(bad_file)]) == 2
+    assert "edited.json" in capsys.readouterr().err
