@@ -69,7 +69,7 @@ seeds = list(range(profile.ablation_seeds))  # chapter 10's training seeds
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
 val = load_or_collect(DataConfig.for_profile(profile, "val"))
 weight = recipes.affordance_weight(profile, train, val)
-cfg = dagger.DaggerConfig.for_profile(profile, betas=(0.0, 0.0))
+cfg = dagger.DaggerConfig.for_profile(profile)
 print(f"{len(seeds)} training seeds, {cfg.rounds} rounds of {cfg.samples:,} samples, betas "
       f"{cfg.betas}, {cfg.replay:g} replayed sample per new one")  # fmt: skip
 

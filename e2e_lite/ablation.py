@@ -34,7 +34,7 @@ from .control.oracle import Oracle
 from .driving.evaluation import evaluate
 from .driving.metrics import EvalResult, pool_results, result_dict, result_info, results_table
 from .driving.rollout import EvalConfig, disjoint_runs
-from .learning import recipes
+from .learning import dagger, recipes
 from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
 from .learning.checkpoints import weights_digest
 from .learning.data import DataConfig, DrivingData, load_or_collect
@@ -104,6 +104,13 @@ def _finetune(b: Build, reduction: str, sigma: str = recipes.CVAR_SIGMA) -> Poli
         *b.data, b.weight(), reduction=reduction, sigma=sigma, **b.seeded
     )[0]
     return TrajectoryAgent(model)
+
+
+def _dagger(b: Build, arm: str) -> Policy:
+    """Chapter 12's last round of ``arm`` (DAgger, or its control) from this seed's CVaR network
+    (:func:`~e2e_lite.learning.dagger.run`, the course's :class:`~e2e_lite.learning.dagger.DaggerConfig`)."""
+    rounds = dagger.run(*b.data, b.weight(), b.seed, arms=(arm,), **b.kw)[1][arm]
+    return TrajectoryAgent(rounds[-1].model)
 
 
 def _w0(b: Build) -> Policy:
@@ -181,6 +188,17 @@ CONTROLS = (
         build=lambda b: _finetune(b, "mean"),
     ),
 )
+#: Rows beyond the paper that the record drives (chapter 12): DAgger's last round, and its control
+#: (the same rounds with the expert's own samples): does DAgger step beyond + CVaR, and is it the
+#: learner's states?
+BEYOND = (
+    Driver("dagger", "+ DAgger (chapter 12), its last round", build=lambda b: _dagger(b, "dagger")),
+    Driver(
+        "dagger_control",
+        "+ DAgger's control: the expert's own samples",
+        build=lambda b: _dagger(b, "control"),
+    ),
+)
 #: Drivers of the exercises and the lab notes, which the course does not drive: the affordance
 #: head on the fused features (the paper's Fig. 1) instead of the trunk's; the GMM following the
 #: mixture's mean, with one mode, and with the paper's learned sigmas; CVaR and its control with the
@@ -216,7 +234,7 @@ UNTRAINED = ("expert", "oracle")
 PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
 PAPER_MILES = 480.0
-BY_KEY = {d.key: d for d in (*DRIVERS, *CONTROLS, *DIAGNOSTICS)}
+BY_KEY = {d.key: d for d in (*DRIVERS, *BEYOND, *CONTROLS, *DIAGNOSTICS)}
 
 
 def build_drivers(

@@ -31,6 +31,7 @@ from typing import Any
 import torch
 
 from .ablation import (
+    BEYOND,
     BY_KEY,
     CONTROLS,
     DRIVERS,
@@ -51,6 +52,9 @@ from .learning.models import pick_device
 from .record_tests import FAMILIES, STEPS
 from .simulation.world import WorldConfig
 
+#: every row of the record: the paper's, DAgger's (chapter 12) and the controls
+ROWS = (*DRIVERS, *BEYOND, *CONTROLS)
+
 
 def record_work(
     profile: Profile, seeds: int, miles_per_seed: float, single: Sequence[str] = SEED_ZERO_ONLY
@@ -58,7 +62,9 @@ def record_work(
     """What :func:`record_table1` does from an empty outputs folder, in the parts the benchmarks
     measure: the data, chapter 08's weight grid (5 weights, 2 epochs, a quarter of the data),
     every training (from scratch: the profile's epochs and a selection drive per epoch; the two
-    fine-tunes: one epoch; the rows of ``single``: seed 0 alone), and every row's drive."""
+    fine-tunes: one epoch; the rows of ``single``: seed 0 alone), DAgger's rounds and their
+    control (a collection and a fine-tune each), and every seed's run of every row."""
+    from .learning.dagger import DaggerConfig
     from .learning.recipes import SELECT_MILES
 
     learned = [d.key for d in (*DRIVERS, *CONTROLS) if d.key not in UNTRAINED]
@@ -66,12 +72,14 @@ def record_work(
     trainings = sum(1 if k in single else seeds for k in learned)  # (no fine-tune is single)
     scratch = trainings - seeds * tuned
     epochs = profile.train_epochs
+    rounds = DaggerConfig.for_profile(profile)
+    dagger_samples = seeds * len(BEYOND) * rounds.rounds * rounds.samples  # collected
     return Work(
-        collect_samples=profile.n_train_samples + profile.n_val_samples,
+        collect_samples=profile.n_train_samples + profile.n_val_samples + dagger_samples,
         train_samples=profile.n_train_samples * (scratch * epochs + seeds * tuned)
-        + 5 * 2 * profile.n_train_samples / 4,
-        drive_miles=scratch * epochs * SELECT_MILES
-        + miles_per_seed * seeds * (len(learned) + len(UNTRAINED)),
+        + 5 * 2 * profile.n_train_samples / 4
+        + dagger_samples * (1.0 + rounds.replay),
+        drive_miles=scratch * epochs * SELECT_MILES + miles_per_seed * seeds * len(ROWS),
     )
 
 
@@ -140,7 +148,8 @@ def record_share(
     single: Sequence[str] = SEED_ZERO_ONLY,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """One share of the record: every row of :data:`DRIVERS` and :data:`CONTROLS` for training
+    """One share of the record: every row of :data:`ROWS` (the paper's, DAgger's and the
+    controls) for training
     ``seeds``, each seed driving ``miles_per_seed`` on its own run of the block (:func:`seed_run`;
     the sealed block of test roads, or open roads in the quick profile's smoke run). Each
     learned row trains the share's seeds; the rows of ``single`` (PilotNet and L2: no step of the
@@ -150,7 +159,7 @@ def record_share(
     if not seeds or seeds[0] < 0 or len(set(seeds)) != len(seeds):
         raise ValueError(f"record_share: seeds {seeds} must be distinct and >= 0")
     check_range("record_share", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
-    commit, keys = _commit(), [d.key for d in (*DRIVERS, *CONTROLS)]
+    commit, keys = _commit(), [d.key for d in ROWS]
     family = {"families": FAMILIES, "tests": {st.what: st.family for st in STEPS},
               "adjustment": "holm", "declared": f"before this record ran, in the recipes of {commit}"}  # fmt: skip
     world_cfg = WorldConfig.for_profile(profile)
@@ -328,3 +337,42 @@ def record_table1(
     check_range("record_table1", "seeds", seeds, 1, integer=True)
     share = record_share(profile, range(seeds), miles_per_seed, single=single, progress=progress)
     return pool_shares([("this run", share)])
+
+
+def plan(
+    record: dict[str, Any],
+    target: float = 0.8,
+    most: int = 30,
+    miles_options: Sequence[float] = (100.0, 150.0, 200.0, 300.0),
+    n_sim: int = 500,
+) -> dict[str, Any]:
+    """The record's plan (issue 65): for each budget of miles per seed, the fewest training seeds
+    (10 to ``most``) whose verdicts find a true 2x step at the record's own + affordance rate with
+    at least ``target`` power under the seeds' spread fitted to ``record``
+    (:func:`~e2e_lite.record_tests.record_power`), and what each plan costs on 2 cores and on a
+    16-core machine with a GPU (:func:`record_work`); the chosen plan is the cheapest on 2 cores
+    that reaches ``target`` (else the most powerful at ``most`` seeds)."""
+    from .driving.verdicts import power
+    from .estimate import estimate_s
+    from .record_tests import record_power
+
+    found = record_power(record)
+    k, rate = found["dispersion"]["dispersion"], found["rate_per_100mi"]
+    options = []
+    for miles in miles_options:
+        for seeds in range(10, most + 1):
+            p = power(seeds, miles, rate, dispersion=k, n_sim=n_sim)["power"]
+            if p >= target or seeds == most:
+                work = record_work(FULL, seeds, miles)
+                options.append({"seeds": seeds, "miles_per_seed": miles, "power": p,
+                                "hours_2_cores": estimate_s(work, 2) / 3600.0,
+                                "hours_16_cores_gpu": estimate_s(work, 16, "cuda") / 3600.0})  # fmt: skip
+                break
+    reaching = [o for o in options if o["power"] >= target]
+    chosen = (
+        min(reaching, key=lambda o: o["hours_2_cores"])
+        if reaching
+        else max(options, key=lambda o: o["power"])
+    )
+    return {"dispersion": k, "rate_per_100mi": rate, "target": target, "options": options,
+            "chosen": chosen}  # fmt: skip

@@ -41,6 +41,7 @@ class Step(NamedTuple):
 #: training it came with?
 FAMILIES = {
     "paper": "the paper's steps: does each reproduce?",
+    "beyond": "beyond the paper: does DAgger's step hold?",
     "controls": "each method against its control: is the step the method's?",
 }
 #: the record's tests; the paper's steps each go "better" in the paper (seed 000)
@@ -52,6 +53,9 @@ STEPS = (
          True, "controls", "+ affordance -> + CVaR"),
     Step("gmm_affordance_w0", "gmm_affordance", "affordance loss against its control (w = 0)",
          False, "controls", "GMM -> + affordance"),
+    Step("gmm_affordance_cvar", "dagger", "+ CVaR -> + DAgger", True, "beyond"),
+    Step("dagger_control", "dagger", "DAgger against its control (the expert's samples)",
+         True, "controls", "+ CVaR -> + DAgger"),
 )  # fmt: skip
 #: the row whose rate the record's power is stated at (issue 57), and the step it must find
 POWER_ROW, POWER_STEP = "gmm_affordance", 2.0

@@ -405,6 +405,11 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--miles", type=float, default=100.0, help="test-road miles per seed")
     parser.add_argument(
+        "--plan", action="store_true",
+        help="print the record's plan: the seeds and miles per seed that find a 2x step with "
+        "power 0.8 under the committed record's seed spread, and what each costs",
+    )  # fmt: skip
+    parser.add_argument(
         "--quick", action="store_true", help="with --record: the quick profile (a smoke test; "
         "written to the outputs folder, never to docs/)",
     )  # fmt: skip
@@ -418,6 +423,19 @@ def main(argv: list[str] | None = None) -> int:
         with atomic_write(COURSE_RUN, "w") as f:
             json.dump(course_run_record(args.course_run), f, indent=1)
         print(f"wrote {COURSE_RUN.relative_to(ROOT)}")
+    if args.plan:
+        from .record import plan
+
+        found = plan(load())
+        print(f"seeds' spread (dispersion) {found['dispersion']:.2f}; a 2x step at "
+              f"{found['rate_per_100mi']:.1f} per 100 mi, power {found['target']:.0%}:")  # fmt: skip
+        for o in found["options"]:
+            print(f"  {o['miles_per_seed']:5.0f} mi per seed: {o['seeds']:2d} seeds, power "
+                  f"{o['power']:.2f}, about {o['hours_2_cores']:.1f} h on 2 cores, "
+                  f"{o['hours_16_cores_gpu']:.1f} h on 16 cores and a GPU")  # fmt: skip
+        c = found["chosen"]
+        print(f"plan: {c['seeds']} seeds x {c['miles_per_seed']:.0f} mi (power {c['power']:.2f})")
+        return 0
     if args.record or args.pool:
         from .artifacts import outputs_dir
         from .config import FULL, QUICK

@@ -361,7 +361,7 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
     assert (ROOT / "docs" / "results" / "table1.json").read_text() == before
     record = json.loads((artifacts.outputs_dir(quick=True) / "table1.json").read_text())
     keys = [r["key"] for r in record["rows"]]
-    assert keys == [d.key for d in (*ablation.DRIVERS, *ablation.CONTROLS)]
+    assert keys == [d.key for d in (*ablation.DRIVERS, *ablation.BEYOND, *ablation.CONTROLS)]
     # PilotNet and L2 (no verdict step is theirs) train seed 0 alone, which drives both seeds' miles
     assert record["single_seed_rows"] == list(ablation.SEED_ZERO_ONLY)
     single = {*ablation.UNTRAINED, *ablation.SEED_ZERO_ONLY}

@@ -212,3 +212,22 @@ def test_the_committed_record_states_its_power_under_its_seeds_spread() -> None:
     results = (ROOT / "docs" / "results.md").read_text()
     assert f"in {100 * found['power']:.0f} % of records under the seeds' spread" in results
     assert f"{100 * found['power_poisson']:.0f} % if seeds did not differ" in results
+
+
+def test_the_record_plan_reaches_its_power_at_the_least_time_and_the_class_can_run_it() -> None:
+    """Issue 65: the plan, per budget of miles per seed, the fewest seeds (at most 30) that find
+    a 2x step with the target power under the record's fitted spread, the cheapest chosen; the
+    teacher's kit says how a class runs and pools shares, and a job-array script runs them."""
+    from e2e_lite.record import plan
+
+    found = plan(report.load(), target=0.6, most=14, miles_options=(100.0, 200.0), n_sim=200)
+    assert 0.15 < found["dispersion"] < 0.6 and len(found["options"]) == 2
+    for option in found["options"]:
+        assert (
+            10 <= option["seeds"] <= 14 and option["hours_2_cores"] > option["hours_16_cores_gpu"]
+        )
+    assert found["chosen"]["power"] >= 0.6
+    teaching = (ROOT / "docs" / "teaching.md").read_text()
+    assert "## A class's Table 1" in teaching and "--pool" in teaching and "--plan" in teaching
+    script = (ROOT / "docs" / "record-array.sh").read_text()
+    assert "--record --seeds" in script and "SLURM_ARRAY_TASK_ID" in script and "--pool" in script

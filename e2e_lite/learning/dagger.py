@@ -67,14 +67,15 @@ class DaggerConfig:
     Attributes:
         rounds: rounds of driving, labelling and fine-tuning.
         samples: samples each round adds [samples].
-        betas: per round, the share of decisions the expert executes (Ross et al.'s beta_i;
-            the paper's best was beta = 1 in the first round and 0 after).
+        betas: per round, the share of decisions the expert executes. Ross et al.'s best was
+            beta = 1 in the first round and 0 after; their first round (the expert alone) is
+            chapter 04's data, so the course's rounds all let the learner drive alone.
         replay: earlier samples replayed per new sample in a round's fine-tune.
     """
 
     rounds: int = 2
     samples: int = 8_000
-    betas: tuple[float, ...] = (0.5, 0.0)
+    betas: tuple[float, ...] = (0.0, 0.0)
     replay: float = 1.0
 
     def __post_init__(self) -> None:

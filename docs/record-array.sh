@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# The record of record on a cluster: one SLURM array task per training seed, each writing one
+# share, then one pool. Submit from the repository root:
+#
+#   sbatch --array=10-23 docs/record-array.sh          # one share per seed (the plan's seeds)
+#   sbatch --dependency=afterok:<job id> --wrap \
+#     ".venv/bin/python -m e2e_lite.report --pool outputs-*/shares/share-seeds-*.json"
+#
+# Each task trains every row of the record for its seed and drives its run of the sealed block;
+# the pool refuses a share of another commit, settings or profile, a seed twice, and a share
+# edited after it was written. The scheduler options are examples: set them for your cluster.
+#SBATCH --job-name=e2e-lite-record
+#SBATCH --cpus-per-task=16
+#SBATCH --gres=gpu:1
+#SBATCH --time=04:00:00
+#SBATCH --output=record-%A_%a.log
+set -euo pipefail
+seed="${SLURM_ARRAY_TASK_ID:?submit with sbatch --array=FIRST-LAST}"
+# a folder of outputs per task: tasks on shared storage never write the same files
+export E2E_LITE_OUTPUTS="outputs-seed-${seed}"
+.venv/bin/python -m e2e_lite.report --record --seeds "${seed}-${seed}" --miles "${MILES:-200}"
