@@ -40,7 +40,7 @@ from e2e_lite.control.oracle import Oracle
 from e2e_lite.driving.evaluation import EvalConfig, compare_seeds, power, result_dict, seed_counts
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.checkpoints import train_or_load, training_data_key, weights_digest
+from e2e_lite.learning.checkpoints import train_or_load, training_data_key
 from e2e_lite.learning.data import DataConfig, collect, load_or_collect
 from e2e_lite.report import load, record_dispersion
 from e2e_lite.simulation.world import WorldConfig
@@ -108,8 +108,10 @@ runs = {k: dagger.run(profile, train, val, weight, k, cfg) for k in seeds}
 first = runs[0][1]["dagger"][0]
 library_visited = dagger.round_samples(profile, cfg, 0, 0, "dagger", start0, progress=False)
 assert all(np.array_equal(visited.arrays[f], library_visited.arrays[f]) for f in visited.arrays)
-assert weights_digest(by_hand) == weights_digest(first.model)
-print("the round written out and dagger.run agree: the same samples and the same weights")
+mine, theirs = by_hand.state_dict(), first.model.state_dict()
+apart = max(float((mine[n].float() - theirs[n].float()).abs().max()) for n in mine)
+assert apart < 1e-3, apart  # (0 on a CPU; a GPU's kernels may add float noise)
+print(f"the round written out and dagger.run agree: the same samples, weights {apart:.1g} apart")
 for k, (_, arms) in runs.items():
     for arm, rounds in arms.items():
         for r in rounds:

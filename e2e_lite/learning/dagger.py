@@ -150,7 +150,7 @@ def round_samples(
     if arm == "dagger":
 
         def make() -> DrivingData:
-            agent = TrajectoryAgent(learner.cpu().eval())
+            agent = TrajectoryAgent(learner.eval())
             data = collect(dcfg, progress, learner=agent, beta=cfg.betas[r])
             data.info["key"] = key
             return data
