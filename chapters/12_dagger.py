@@ -110,7 +110,7 @@ library_visited = dagger.round_samples(profile, cfg, 0, 0, "dagger", start0, pro
 assert all(np.array_equal(visited.arrays[f], library_visited.arrays[f]) for f in visited.arrays)
 mine, theirs = by_hand.state_dict(), first.model.state_dict()
 apart = max(float((mine[n].float() - theirs[n].float()).abs().max()) for n in mine)
-assert apart < 1e-3, apart  # (0 on a CPU; a GPU's kernels may add float noise)
+assert apart < 1e-2, apart  # (0 on a CPU; a GPU's kernels are not deterministic)
 print(f"the round written out and dagger.run agree: the same samples, weights {apart:.1g} apart")
 for k, (_, arms) in runs.items():
     for arm, rounds in arms.items():
