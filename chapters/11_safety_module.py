@@ -32,7 +32,7 @@
 # a lane centre that passes (first the lane nearest to where the network was going: a car
 # half-way through a lane change brakes on into the lane it is entering), else the **keep-lane
 # brake**, the last resort. The **ground-truth variant** feeds the world's true affordances into
-# the same rule: the upper bound that better perception would buy.
+# the same rule: what perfect perception gives the same rule and fallbacks.
 #
 # Run it with `python chapters/11_safety_module.py` (add `--quick` for a run of seconds).
 
@@ -296,7 +296,7 @@ for name, how in (("uncalibrated", cfg), ("calibrated", calibrated[0])):
 # The driver on chapter 10's roads (each training seed on roads of its own), four ways:
 #
 # * **without** the module (chapter 10's stored evaluation, reused);
-# * the module **on the truth** (the world's affordances): the rule's ceiling;
+# * the module **on the truth** (the world's affordances): the rule with perfect perception;
 # * the module **on perception**: each seed's own head, with its calibrated thresholds; its
 #   fallback brakes along the network's own path (`fallback="path"`), because a lane fallback
 #   would steer by the very perceived offsets that are wrong when the module intervenes
@@ -496,15 +496,15 @@ artifacts.write_metrics(
 # * A threshold that suits exact inputs ("60 m means nothing seen") does not suit a noisy head:
 #   calibrate it on training frames, per lane, where the head's noise lies, never on the roads
 #   that the evaluation drives.
-# * The check is only as good as what it is fed: the ground-truth row is its ceiling, the
-#   perceived row what the network's own head allows. Compare both with the driver alone, seed
-#   by seed, with the speed beside each rate.
+# * The check is only as good as what it is fed: the ground-truth row is what perfect perception
+#   gives it, the perceived row what the network's own head allows. Compare both with the driver
+#   alone, seed by seed, with the speed beside each rate.
 # * A fallback is a driver too: who drove the last decision before each collision, and at what
 #   speed, says whether the collisions left are the network's or the module's own.
-# * A safety layer is only as good as its perception. On the truth it shows what the rule can
-#   buy; on perceived affordances it can add collisions of its own, through its fallback and
-#   through the network after a hand-back, and then drives worse than no module at all: the
-#   verdict lines and the causes above say which it did in this run.
+# * A safety layer is only as good as its perception and its fallbacks. Even on the truth its
+#   own manoeuvres (the other mode, the fallback) can drive into a rail or a car; on perceived
+#   affordances it adds the network's collisions after each hand-back. It can drive worse than
+#   no module at all: the verdict lines and the causes above say what it did in this run.
 # * A fallback is only as good as what it reads: braking to a lane centre needs the perceived
 #   lane geometry, braking along the network's own path does not. Whether the car's full brake,
 #   kept as headroom, helps a stop that comes late is a measured verdict (its row), not a given.
