@@ -400,7 +400,7 @@ for name, res in rows_of:
           + " | ".join(map(str, by_speed[name] + causes[name])) + " |")  # fmt: skip
 
 # %%
-fig = Figure(figsize=(8, 0.5 * len(causes) + 1.6), layout="constrained")
+fig = Figure(figsize=(9, 0.5 * len(causes) + 1.9), layout="constrained")
 ax = fig.subplots()
 left = np.zeros(len(causes))
 for j, (cause, color) in enumerate(zip(IMPACT_CAUSES, ("C3", "C1", "C4", "0.6"))):
@@ -409,7 +409,7 @@ for j, (cause, color) in enumerate(zip(IMPACT_CAUSES, ("C3", "C1", "C4", "0.6"))
     left += counts
 ax.invert_yaxis()
 ax.set_xlabel(f"collisions in {ev.miles:g} mi per row ({n_seeds} seeds pooled), by cause")
-ax.legend(fontsize=8, loc="lower right")
+fig.legend(fontsize=8, loc="outside lower center", ncols=len(IMPACT_CAUSES))
 causes_png = save_figure(fig, artifacts.artifact_path("figures", "11_causes.png"))
 print(f"saved {causes_png}")
 
