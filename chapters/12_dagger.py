@@ -101,7 +101,8 @@ print(f"round 1 by hand: {len(visited):,} samples, aggregate {len(train) + len(v
 # Now the library's rounds, for every seed and both arms: DAgger, and the control whose samples
 # come from the expert's own noisy driving (chapter 04's collector, take-overs and all) on the
 # same fresh roads, fine-tuned the same way from the same parent. The first round of seed 0 must
-# be the one written out above: the same samples, to the byte, and the same weights.
+# be the one written out above: the same samples, to the byte, and the same weights (to the bit
+# on a CPU; a GPU's kernels are not deterministic).
 
 # %%
 runs = {k: dagger.run(profile, train, val, weight, k, cfg) for k in seeds}
