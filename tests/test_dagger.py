@@ -144,3 +144,27 @@ def test_covariate_shift_counts_the_visits_outside_the_datas_range():
     far = synthetic_data(400, seed=3)
     far.arrays["speed"][:] = 40.0  # nothing in the data drives that fast
     assert dagger.covariate_shift(far, [data])["speed [m/s]"] == 1.0
+
+
+def test_fresh_labels_come_from_an_expert_without_memory_of_its_plans():
+    """Issue 63's lab: with ``labels="fresh"`` each state's trajectory label is what a fresh
+    expert (no plans) drives from it; the key and the stored names say which labels they hold."""
+    from e2e_lite.control.expert import fresh_labels
+
+    cfg = small(n_samples=80, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
+    learner = Shadow()
+    data = collect(cfg, progress=False, workers=1, learner=learner, beta=0.0, fresh_labels=True)
+    quota = cfg.n_samples // cfg.n_worlds
+    for k, obs in enumerate(learner.seen[:quota]):
+        rows = np.arange(cfg.n_worlds) * quota + k
+        want = fresh_labels(obs, list(range(cfg.n_worlds)), cfg.world.sim)
+        np.testing.assert_allclose(data.arrays["trajectory"][rows], want, atol=1e-5)
+    with pytest.raises(ValueError, match="labels"):
+        dagger.DaggerConfig(labels="oracle")
+    torch.manual_seed(0)
+    net = build_model(ModelConfig(head="trajectory", fusion_width=16))
+    expert = dagger.DaggerConfig.for_profile(QUICK)
+    fresh = dagger.DaggerConfig.for_profile(QUICK, labels="fresh")
+    assert dagger.samples_key(QUICK, expert, 0, 0, "dagger", net) != dagger.samples_key(
+        QUICK, fresh, 0, 0, "dagger", net
+    )

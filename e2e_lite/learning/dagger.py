@@ -47,6 +47,8 @@ from .models import DrivingModel
 
 #: the two arms: DAgger (the learner drives) and its control (the expert drives)
 ARMS = ("dagger", "control")
+#: who labels a DAgger round's states (:class:`DaggerConfig`)
+LABELS = ("expert", "fresh")
 #: each seed's rounds drive training tracks from here on, far from the data's own (0 .. 31)
 FIRST_TRACK = 100_000
 #: tracks a round may use (cars x laps); seeds and rounds are this far apart
@@ -71,15 +73,22 @@ class DaggerConfig:
             beta = 1 in the first round and 0 after; their first round (the expert alone) is
             chapter 04's data, so the course's rounds all let the learner drive alone.
         replay: earlier samples replayed per new sample in a round's fine-tune.
+        labels: who labels the learner's states: ``"expert"``, the collector's expert, whose
+            plans remember where it meant the car to be, or ``"fresh"``, an expert planning
+            afresh at every state (a state's label then depends on the state alone, as DAgger
+            assumes).
     """
 
     rounds: int = 2
     samples: int = 8_000
     betas: tuple[float, ...] = (0.0, 0.0)
     replay: float = 1.0
+    labels: str = "expert"
 
     def __post_init__(self) -> None:
         o = "DaggerConfig"
+        if self.labels not in LABELS:
+            raise ValueError(f"{o}.labels={self.labels!r} is invalid: must be one of {LABELS}")
         check_range(o, "rounds", self.rounds, 1, 20, integer=True)
         check_range(o, "samples", self.samples, 1, integer=True)
         check_range(o, "replay", self.replay, 0.0, 100.0)
@@ -130,7 +139,8 @@ def samples_key(
         return dcfg.key
     if learner is None:
         raise ValueError("samples_key: DAgger's round needs the learner that drives it")
-    return settings_key(dcfg.key, "dagger", weights_digest(learner), cfg.betas[r])
+    fresh = () if cfg.labels == "expert" else ("fresh labels",)  # (the expert's keys stay)
+    return settings_key(dcfg.key, "dagger", weights_digest(learner), cfg.betas[r], *fresh)
 
 
 def round_samples(
@@ -151,7 +161,10 @@ def round_samples(
 
         def make() -> DrivingData:
             agent = TrajectoryAgent(learner.eval())
-            data = collect(dcfg, progress, learner=agent, beta=cfg.betas[r])
+            data = collect(
+                dcfg, progress, learner=agent, beta=cfg.betas[r],
+                fresh_labels=cfg.labels == "fresh",
+            )  # fmt: skip
             data.info["key"] = key
             return data
 
@@ -160,7 +173,8 @@ def round_samples(
         def make() -> DrivingData:
             return collect(dcfg, progress)
 
-    name = f"12_{arm}_seed{seed}_round{r + 1}.npz"
+    tag = "_fresh" if arm == "dagger" and cfg.labels == "fresh" else ""
+    name = f"12_{arm}{tag}_seed{seed}_round{r + 1}.npz"
     return cached(artifact_path("data", name), key, make, save_dataset, load_dataset)
 
 
@@ -257,7 +271,8 @@ def run(
             new = round_samples(profile, cfg, seed, r, arm, model, progress)
             shift = covariate_shift(new, earlier)
             data = finetune_set(earlier, new, cfg.replay, seed, r)
-            name = f"12_{arm}_round{r + 1}" + (f"_seed{seed}" if seed else "")
+            tag = "_fresh" if arm == "dagger" and cfg.labels == "fresh" else ""
+            name = f"12_{arm}{tag}_round{r + 1}" + (f"_seed{seed}" if seed else "")
             model, _ = train_or_load(
                 name, recipes.AFFORDANCE_CFG, tcfg, objective, data, val, init_from=parent,
                 parent_data_key=parent_key, carry_optimizer=True, progress=progress,

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..artifacts import artifact_path, cached, settings_key, versioned
 from ..config import Profile, check_pair, check_range, default_workers, tqdm
-from ..control.expert import Expert, ExpertConfig
+from ..control.expert import Expert, ExpertConfig, SpeedLimits, fresh_labels
 from ..control.labels import (  # noqa: F401 (re-exported, as above)
     AFFORDANCE_NAMES,
     CHANGE,
@@ -248,7 +248,10 @@ class _Recorder:
 
     With a ``learner`` (DAgger, chapter 12) the learner drives instead: at each decision the
     expert executes with probability ``beta`` (each car's own draw), the learner otherwise, and
-    the sample is labelled by the expert at the state the car is in, whoever drives."""
+    the sample is labelled by the expert at the state the car is in, whoever drives. With
+    ``fresh``, its trajectory labels come from an expert that plans afresh at every state
+    (:func:`~e2e_lite.control.expert.fresh_labels`), not from the collector's expert, whose plans
+    remember where it meant the car to be (the actuator labels stay the collector's expert's)."""
 
     #: uniforms each car draws per decision (a fixed count, so one draw never shifts another):
     #: restart, burst start, duration, sign, steering, brake?, size, deep?, deep target speed
@@ -261,9 +264,11 @@ class _Recorder:
         advance: Callable[[float], None],
         learner: Any = None,
         beta: float = 1.0,
+        fresh: bool = False,
     ) -> None:
         self.cfg, self.advance = cfg, advance
-        self.learner, self.beta = learner, beta
+        self.learner, self.beta, self.fresh = learner, beta, fresh
+        self.limits = SpeedLimits(ExpertConfig())  # (fresh labels: one profile per track)
         # the mixing draws: a stream of their own, so the expert's and the noise's are untouched
         self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
@@ -294,6 +299,8 @@ class _Recorder:
 
     def act(self, obs: Observation) -> Actuation:
         traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
+        if self.fresh:  # the label of an expert with no memory of its plans
+            traj = fresh_labels(obs, list(range(len(obs.s))), self.cfg.world.sim, self.limits)
         clean = self.expert.act(obs)
         u = np.stack([r.random(self.DRAWS) for r in self.rngs])  # (B, DRAWS) in [0, 1)
         self._update_noise(u, obs.speed)
@@ -377,11 +384,12 @@ def collect_cars(
     advance: Callable[[float], None],
     learner: Any = None,
     beta: float = 1.0,
+    fresh: bool = False,
 ) -> tuple[dict[str, np.ndarray], ShardResult, dict[str, int]]:
     """Drive cars ``cars`` (indices among ``cfg.n_worlds``) until each has its quota: their
     samples (car after car), what the drive measured and the expert's manoeuvres. One process's
     share of :func:`collect` (``advance(k)``: k more samples recorded)."""
-    rec = _Recorder(cfg, cars, advance, learner, beta)
+    rec = _Recorder(cfg, cars, advance, learner, beta, fresh)
     ev = EvalConfig(
         miles=1e6, n_worlds=cfg.n_worlds, split=cfg.split, n_tracks=cfg.n_tracks, seed=cfg.seed,
         first_track=cfg.first_track,
@@ -401,6 +409,7 @@ def collect(
     *,
     learner: Any = None,
     beta: float = 1.0,
+    fresh_labels: bool = False,
 ) -> DrivingData:
     """Drive the noisy expert until ``cfg.n_samples`` samples are recorded (no caching).
 
@@ -429,7 +438,7 @@ def collect(
         cars = np.array_split(np.arange(cfg.n_worlds), min(workers, cfg.n_worlds))
     else:
         cars = shard_cars(cfg.n_worlds, workers)
-    mixing = {} if learner is None else {"learner": learner, "beta": beta}
+    mixing = {} if learner is None else {"learner": learner, "beta": beta, "fresh": fresh_labels}
     try:
         if len(cars) == 1:
             with pinned_threads() if learner is not None else contextlib.nullcontext():

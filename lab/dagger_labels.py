@@ -1,0 +1,72 @@
+"""Who should label DAgger's states (chapter 12): the collector's expert, whose plans remember
+where it meant the car to be, or an expert planning afresh at every state? Runs the DAgger arm
+with fresh labels for chapter 12's seeds and drives each round on chapter 12's validation roads
+(the expert-labelled rounds' drives are chapter 12's, reused), and counts how often each
+variant's labels ask for more than 1.5 m of sideways motion at 1.5 s.
+
+    python lab/dagger_labels.py [--quick]      (after chapter 12; writes docs/results/lab/)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from e2e_lite import ablation
+from e2e_lite.config import FULL, QUICK
+from e2e_lite.driving.evaluation import seed_counts
+from e2e_lite.learning import dagger, recipes
+from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.learning.data import DataConfig, load_or_collect
+from e2e_lite.simulation.world import WorldConfig
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--quick", action="store_true")
+    profile = QUICK if parser.parse_args().quick else FULL
+    world_cfg = WorldConfig.for_profile(profile)
+    train = load_or_collect(DataConfig.for_profile(profile, "train"))
+    val = load_or_collect(DataConfig.for_profile(profile, "val"))
+    weight = recipes.affordance_weight(profile, train, val)
+    seeds = range(profile.ablation_seeds)
+    on_val = dagger.val_roads(profile.eval_miles, profile.ablation_worlds)
+    out = {"profile": profile.name, "variants": {}}
+    for labels in dagger.LABELS:
+        cfg = dagger.DaggerConfig.for_profile(profile, labels=labels)
+        runs = {k: dagger.run(profile, train, val, weight, k, cfg, arms=("dagger",)) for k in seeds}
+        variant = {}
+        for j in range(cfg.rounds):
+            models = [arms["dagger"][j].model for _, arms in runs.values()]
+            key = f"12_dagger_round_{j + 1}" + ("" if labels == "expert" else "_fresh")
+            res = ablation.evaluate_drivers(
+                {key: [TrajectoryAgent(m) for m in models]}, world_cfg, on_val
+            )[key]
+            counts, budget = seed_counts(res)
+            swerve = [
+                float(np.mean(np.abs(dagger.round_samples(
+                    profile, cfg, k, j, "dagger", (runs[k][0] if j == 0 else
+                                                    runs[k][1]["dagger"][j - 1].model),
+                    progress=False).arrays["trajectory"][:, -1, 1]) > 1.5))
+                for k in seeds
+            ]  # fmt: skip
+            variant[f"round {j + 1}"] = {
+                "validation per seed, per 100 mi": (100.0 * counts / budget).tolist(),
+                "labels over 1.5 m sideways": swerve,
+                "visited outside the data": [arms["dagger"][j].shift["any"] for _, arms in runs.values()],
+            }  # fmt: skip
+            print(labels, j + 1, json.dumps(variant[f"round {j + 1}"]))
+        out["variants"][labels] = variant
+    if not profile.quick:
+        path = (
+            Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "dagger_labels.json"
+        )
+        path.write_text(json.dumps(out, indent=1))
+        print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
