@@ -688,6 +688,12 @@ def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p
     assert thirty["p_fewer"] == pytest.approx(0.5**30) and thirty["p_more"] == 1.0
     # tied values: 3 seeds against 3 of one count cannot give anything but p = 1
     assert rank_test([2, 2, 2], [2, 2, 2])["min_p"] == 1.0
+    # a bootstrap resample whose control never collided has an infinite ratio: the interval
+    # says inf, not NaN (percentiles interpolated between infinities)
+    from e2e_lite.driving.verdicts import ratio_interval
+
+    ratio, low, high = ratio_interval([2, 3, 4, 5], [0, 1, 0, 0], paired=True)
+    assert ratio == 14.0 and np.isfinite(low) and high == np.inf
 
 
 def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():

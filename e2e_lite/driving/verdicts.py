@@ -171,7 +171,9 @@ def ratio_interval(
         ratio = a.sum() / b.sum() if b.sum() else math.inf
     boot = np.where(np.isnan(boot), 1.0, boot)  # a resample of 0 / 0: no evidence either way
     tail = (1.0 - level) / 2.0 * 100.0
-    low, high = np.percentile(boot, [tail, 100.0 - tail])
+    # interpolating between two infinite ratios gives NaN: with any, read the order statistics
+    method = "linear" if np.isfinite(boot).all() else "inverted_cdf"
+    low, high = np.percentile(boot, [tail, 100.0 - tail], method=method)
     return float(ratio), float(low), float(high)
 
 
