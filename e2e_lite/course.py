@@ -75,7 +75,7 @@ class ChapterInfo(NamedTuple):
 
 #: ``python -m e2e_lite.course --quick``, every chapter in one interpreter from an empty outputs
 #: folder, on 2 cores with nothing else running [s] (``docs/benchmarks.md``)
-QUICK_COURSE_S = 26
+QUICK_COURSE_S = 35
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 2, 1),
     2: ChapterInfo("the rasterised front camera the networks see", "4.1", 1, 1),
@@ -90,7 +90,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 29),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 28),
     11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 11),
-    12: ChapterInfo("DAgger: the learner drives, the expert labels its states", "", 10, 25),
+    12: ChapterInfo("DAgger: the learner drives, the expert labels its states", "", 11, 11),
 }
 
 
