@@ -277,6 +277,8 @@ artifacts.write_metrics(
 # * A data method needs a data control: the same number of samples from the expert's own
 #   driving, on the same roads, with the same fine-tunes. Only a step that beats it is the
 #   learner's states; the verdict lines above say whether this run's did.
+# * DAgger assumes an expert whose label depends on the state alone. A planner that remembers
+#   its plan labels a learner that lagged it with the rest of that plan: a swerve (exercise 3).
 #
 # ## Exercises
 #
@@ -285,8 +287,9 @@ artifacts.write_metrics(
 #    covariate shift change, and the driving after it?
 # 2. More rounds: `rounds=4` with four betas. Does the shift keep falling, and the collisions?
 #    Prakash et al. (2020) saw plain DAgger get worse after its second round: does ours?
-# 3. Labels from the oracle instead of the expert: what would change in the labels of a state
-#    off the expert's path, and why is the expert's label the one DAgger needs?
+# 3. Labels without memory: run the rounds with `labels="fresh"` (an expert planning afresh at
+#    each state). How often do its labels ask for a swerve, against the collector's expert's, and
+#    how do the rounds drive (lab note "Who labels DAgger's states")?
 # 4. No aggregation: set `replay=0.0`, so each round fine-tunes on its new samples alone. What
 #    does the network forget (drive it, and compare the shift)?
 # 5. DAgger from the GMM (chapter 07) instead of the final network: does a worse start gain more?

@@ -376,3 +376,22 @@ def plan(
     )
     return {"dispersion": k, "rate_per_100mi": rate, "target": target, "options": options,
             "chosen": chosen}  # fmt: skip
+
+
+def plan_lines(found: dict[str, Any]) -> list[str]:
+    """:func:`plan` as the lines ``python -m e2e_lite.report --plan`` prints."""
+    lines = [
+        f"seeds' spread (dispersion) {found['dispersion']:.2f}; a 2x step at "
+        f"{found['rate_per_100mi']:.1f} per 100 mi, power {found['target']:.0%}:"
+    ]
+    for o in found["options"]:
+        lines.append(
+            f"  {o['miles_per_seed']:5.0f} mi per seed: {o['seeds']:2d} seeds, power "
+            f"{o['power']:.2f}, about {o['hours_2_cores']:.1f} h on 2 cores, "
+            f"{o['hours_16_cores_gpu']:.1f} h on 16 cores and a GPU"
+        )
+    c = found["chosen"]
+    lines.append(
+        f"plan: {c['seeds']} seeds x {c['miles_per_seed']:.0f} mi (power {c['power']:.2f})"
+    )
+    return lines

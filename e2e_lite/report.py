@@ -424,17 +424,9 @@ def main(argv: list[str] | None = None) -> int:
             json.dump(course_run_record(args.course_run), f, indent=1)
         print(f"wrote {COURSE_RUN.relative_to(ROOT)}")
     if args.plan:
-        from .record import plan
+        from .record import plan, plan_lines
 
-        found = plan(load())
-        print(f"seeds' spread (dispersion) {found['dispersion']:.2f}; a 2x step at "
-              f"{found['rate_per_100mi']:.1f} per 100 mi, power {found['target']:.0%}:")  # fmt: skip
-        for o in found["options"]:
-            print(f"  {o['miles_per_seed']:5.0f} mi per seed: {o['seeds']:2d} seeds, power "
-                  f"{o['power']:.2f}, about {o['hours_2_cores']:.1f} h on 2 cores, "
-                  f"{o['hours_16_cores_gpu']:.1f} h on 16 cores and a GPU")  # fmt: skip
-        c = found["chosen"]
-        print(f"plan: {c['seeds']} seeds x {c['miles_per_seed']:.0f} mi (power {c['power']:.2f})")
+        print("\n".join(plan_lines(plan(load()))))
         return 0
     if args.record or args.pool:
         from .artifacts import outputs_dir

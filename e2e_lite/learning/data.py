@@ -228,9 +228,8 @@ class DataConfig:
         return settings_key(versioned("dataset"), self)
 
 
-#: the fewest samples a collecting process is started for by default: a worker's start costs
-#: about as much as collecting 3,000 samples on one core (4,000 samples took 3.4 s in this
-#: process and 6.0 s in two workers here; 48,000 took 24.5 s in two)
+#: the fewest samples a collecting process is started for by default: a worker's start costs about
+#: 3,000 samples on one core (4,000 took 3.4 s here in-process, 6.0 s in two workers)
 MIN_SAMPLES_PER_WORKER = 6_000
 
 
@@ -246,12 +245,10 @@ class _Recorder:
     each has recorded its quota (:func:`car_quotas`). Every draw is the car's own (seeded by its
     index among all ``cfg.n_worlds`` cars), so a car records the same samples in any process.
 
-    With a ``learner`` (DAgger, chapter 12) the learner drives instead: at each decision the
-    expert executes with probability ``beta`` (each car's own draw), the learner otherwise, and
-    the sample is labelled by the expert at the state the car is in, whoever drives. With
-    ``fresh``, its trajectory labels come from an expert that plans afresh at every state
-    (:func:`~e2e_lite.control.expert.fresh_labels`), not from the collector's expert, whose plans
-    remember where it meant the car to be (the actuator labels stay the collector's expert's)."""
+    With a ``learner`` (DAgger, chapter 12) the learner drives, the expert executing a share
+    ``beta`` of the decisions (each car's own draw); the expert labels each state, whoever drives.
+    ``fresh``: the trajectory labels of an expert planning afresh at every state
+    (:func:`~e2e_lite.control.expert.fresh_labels`; the actuator labels stay this expert's)."""
 
     #: uniforms each car draws per decision (a fixed count, so one draw never shifts another):
     #: restart, burst start, duration, sign, steering, brake?, size, deep?, deep target speed
@@ -417,10 +414,9 @@ def collect(
     :func:`~e2e_lite.config.default_workers`, at most one per :data:`MIN_SAMPLES_PER_WORKER`);
     the arrays are the same bytes for any count.
 
-    ``learner`` (a network agent; DAgger, chapter 12): it drives, the expert executing a share
-    ``beta`` of the decisions, and every sample is the expert's label of the state the car is
-    in. The cars are then cut in whole groups of :data:`~e2e_lite.simulation.policy.FORWARD_GROUP`
-    on one torch thread each, so the network, and so the samples, do not depend on the count."""
+    ``learner`` (DAgger, chapter 12; see :class:`_Recorder`): the cars are then cut in whole
+    groups of :data:`~e2e_lite.simulation.policy.FORWARD_GROUP` on one torch thread each, so the
+    network, and so the samples, do not depend on the count."""
     check_range("collect", "beta", beta, 0.0, 1.0)
     t_wall = time.perf_counter()
     if workers is None:  # every core, but no worker for fewer samples than its start is worth
