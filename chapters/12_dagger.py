@@ -59,8 +59,10 @@ seeds = list(range(profile.ablation_seeds))  # chapter 10's training seeds
 # * the current network drives fresh **training** roads (never validation or test roads), the
 #   expert executing a share `beta` of the decisions. Ross et al.'s first round (`beta = 1`,
 #   pure expert) is chapter 04's data, so every round here lets the learner drive alone;
-# * the expert labels every state visited, in chapter 04's schema; a collision or a stall
-#   re-places the car as the evaluator does;
+# * an expert labels every state visited, in chapter 04's schema: one that plans afresh at each
+#   state, so that a state's label depends on the state alone, as DAgger assumes (the collector's
+#   expert remembers its plans: exercise 3); a collision or a stall re-places the car as the
+#   evaluator does;
 # * the samples join the aggregate, and the network is fine-tuned on them plus as many replayed
 #   from the earlier data: chapter 09's control fine-tune (the chapter-08 loss with the mean,
 #   one epoch, its Adam carried at a tenth of the rate), so DAgger adds data, not a new loss.
@@ -85,7 +87,8 @@ print(f"{len(seeds)} training seeds, {cfg.rounds} rounds of {cfg.samples:,} samp
 # %%
 start0, _, _ = recipes.gmm_affordance_cvar(profile, train, val, weight, 0)
 drive = dagger.round_data(profile, cfg, 0, 0, "dagger")  # fresh training roads, no noise
-visited = collect(drive, progress=False, learner=TrajectoryAgent(start0), beta=cfg.betas[0])
+visited = collect(drive, progress=False, learner=TrajectoryAgent(start0), beta=cfg.betas[0],
+                  fresh_labels=cfg.labels == "fresh")  # fmt: skip
 shift = dagger.covariate_shift(visited, [train])  # outside the data's 1-99 % range
 ft_data = dagger.finetune_set([train], visited, cfg.replay, 0, 0)  # new + replayed old
 objective, tcfg = recipes.finetune_settings(profile, weight, 0, "mean")
@@ -277,8 +280,9 @@ artifacts.write_metrics(
 # * A data method needs a data control: the same number of samples from the expert's own
 #   driving, on the same roads, with the same fine-tunes. Only a step that beats it is the
 #   learner's states; the verdict lines above say whether this run's did.
-# * DAgger assumes an expert whose label depends on the state alone. A planner that remembers
-#   its plan labels a learner that lagged it with the rest of that plan: a swerve (exercise 3).
+# * DAgger assumes an expert whose label depends on the state alone: the course's labels come
+#   from an expert planning afresh at each state. A planner that remembers its plan labels a
+#   learner that lagged it with the rest of that plan: a swerve (exercise 3).
 #
 # ## Exercises
 #
@@ -287,9 +291,9 @@ artifacts.write_metrics(
 #    covariate shift change, and the driving after it?
 # 2. More rounds: `rounds=4` with four betas. Does the shift keep falling, and the collisions?
 #    Prakash et al. (2020) saw plain DAgger get worse after its second round: does ours?
-# 3. Labels without memory: run the rounds with `labels="fresh"` (an expert planning afresh at
-#    each state). How often do its labels ask for a swerve, against the collector's expert's, and
-#    how do the rounds drive (lab note "Who labels DAgger's states")?
+# 3. Labels with memory: run the rounds with `labels="expert"` (the collector's expert, which
+#    remembers its plans). How often do its labels ask for a swerve, against the fresh expert's,
+#    and how do the rounds drive (lab note "Who labels DAgger's states")?
 # 4. No aggregation: set `replay=0.0`, so each round fine-tunes on its new samples alone. What
 #    does the network forget (drive it, and compare the shift)?
 # 5. DAgger from the GMM (chapter 07) instead of the final network: does a worse start gain more?

@@ -163,8 +163,9 @@ def test_fresh_labels_come_from_an_expert_without_memory_of_its_plans():
         dagger.DaggerConfig(labels="oracle")
     torch.manual_seed(0)
     net = build_model(ModelConfig(head="trajectory", fusion_width=16))
-    expert = dagger.DaggerConfig.for_profile(QUICK)
-    fresh = dagger.DaggerConfig.for_profile(QUICK, labels="fresh")
+    expert = dagger.DaggerConfig.for_profile(QUICK, labels="expert")
+    fresh = dagger.DaggerConfig.for_profile(QUICK)  # the course's labels
+    assert fresh.labels == "fresh"
     assert dagger.samples_key(QUICK, expert, 0, 0, "dagger", net) != dagger.samples_key(
         QUICK, fresh, 0, 0, "dagger", net
     )

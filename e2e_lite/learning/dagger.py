@@ -40,8 +40,8 @@ from ..control.labels import AFFORDANCE_INDEX
 from ..driving.rollout import EvalConfig
 from . import recipes
 from .agents import TrajectoryAgent
-from .checkpoints import train_or_load, training_data_key, weights_digest
-from .data import DataConfig, NoiseConfig, collect, load_dataset, save_dataset
+from .checkpoints import train_or_load, training_data_key
+from .data import DataConfig, NoiseConfig, collect, load_dataset, on_policy_key, save_dataset
 from .dataset import DrivingData, allocate
 from .models import DrivingModel
 
@@ -73,17 +73,18 @@ class DaggerConfig:
             beta = 1 in the first round and 0 after; their first round (the expert alone) is
             chapter 04's data, so the course's rounds all let the learner drive alone.
         replay: earlier samples replayed per new sample in a round's fine-tune.
-        labels: who labels the learner's states: ``"expert"``, the collector's expert, whose
-            plans remember where it meant the car to be, or ``"fresh"``, an expert planning
-            afresh at every state (a state's label then depends on the state alone, as DAgger
-            assumes).
+        labels: who labels the learner's states: ``"fresh"`` (the course's), an expert planning
+            afresh at every state, so a state's label depends on the state alone, as DAgger
+            assumes; or ``"expert"``, the collector's expert, whose plans remember where it meant
+            the car to be: it labels a learner that lagged its lane change with the rest of that
+            plan, a swerve (lab note "Who labels DAgger's states": those rounds drove worse).
     """
 
     rounds: int = 2
     samples: int = 8_000
     betas: tuple[float, ...] = (0.0, 0.0)
     replay: float = 1.0
-    labels: str = "expert"
+    labels: str = "fresh"
 
     def __post_init__(self) -> None:
         o = "DaggerConfig"
@@ -139,8 +140,7 @@ def samples_key(
         return dcfg.key
     if learner is None:
         raise ValueError("samples_key: DAgger's round needs the learner that drives it")
-    fresh = () if cfg.labels == "expert" else ("fresh labels",)  # (the expert's keys stay)
-    return settings_key(dcfg.key, "dagger", weights_digest(learner), cfg.betas[r], *fresh)
+    return on_policy_key(dcfg, learner, cfg.betas[r], cfg.labels == "fresh")
 
 
 def round_samples(
@@ -161,12 +161,10 @@ def round_samples(
 
         def make() -> DrivingData:
             agent = TrajectoryAgent(learner.eval())
-            data = collect(
+            return collect(
                 dcfg, progress, learner=agent, beta=cfg.betas[r],
                 fresh_labels=cfg.labels == "fresh",
             )  # fmt: skip
-            data.info["key"] = key
-            return data
 
     else:
 

@@ -1,19 +1,15 @@
 """The expert's dataset (chapter 04): camera frames with clean labels, collected under noise.
 
-The collector drives the :class:`~e2e_lite.control.expert.Expert` through the lockstep rollout
-(:func:`~e2e_lite.driving.rollout.roll_out`, the closed-loop evaluator's loop) on
-the training (or validation) tracks, with random steering and acceleration *bursts* added to the
-commands it executes, so the recording also holds off-centre and off-heading states and the
-expert's recovery from them. Some bursts brake hard, and now and then a car is taken over and
-re-placed exactly as the evaluator re-places a car after a collision
-(:func:`~e2e_lite.driving.rollout.restart_state`: 20 m/s, below the cruise speed), so the data shows
-the expert getting back to speed from the states a learned driver restarts in (covariate shift;
-chapter 04 compares the two speed distributions). One sample per policy step (10 Hz).
+The collector drives the :class:`~e2e_lite.control.expert.Expert` through the evaluator's
+lockstep loop (:func:`~e2e_lite.driving.rollout.drive_shard`) on the training (or validation)
+tracks, with random steering and acceleration *bursts* added to the commands it executes, so the
+data also holds off-centre states and the expert's recovery; now and then a car is taken over and
+re-placed as the evaluator re-places it after a collision (20 m/s, below cruise speed), so the
+expert is shown getting back to speed from where a learned driver restarts (chapter 04). With a
+learner it collects DAgger's rounds (chapter 12). One sample per policy step (10 Hz).
 
-What one sample holds is :mod:`e2e_lite.learning.dataset`'s schema; the labels (trajectory format,
-affordances, throttle and brake) are :mod:`e2e_lite.control.labels`. Both are re-exported here, so a
-chapter reads the data's names from one module. The recovery views of seed 003 are
-:mod:`e2e_lite.learning.recovery`.
+What one sample holds is :mod:`e2e_lite.learning.dataset`'s schema, re-exported here with the
+labels of :mod:`e2e_lite.control.labels`; seed 003's recovery views are :mod:`e2e_lite.learning.recovery`.
 """
 
 from __future__ import annotations
@@ -107,15 +103,13 @@ def affordances(
 class NoiseConfig:
     """Random bursts added to the executed commands (never to the labels).
 
-    A car not in a burst starts one with probability ``rate_per_s * policy period`` per decision.
-    A burst holds a steering offset of random sign and magnitude, and an acceleration offset, for
-    a random duration. A share ``brake_share`` of the bursts brake instead (acceleration offset
-    ``-brake_mps2``), taking 1-6 m/s off the speed, so the expert's recovery to its cruise speed
-    is labelled too. A share ``slow_share`` of the braking bursts brake *deep*: the car is braked
-    at ``brake_mps2`` until it is down to a speed drawn from ``slow_to_mps`` (or for at most 12 s),
-    whatever the expert commands, then handed back. The expert's data otherwise holds almost no
-    sample under 15 m/s (25 of 48,000), the speeds a braking driver or safety module leaves a
-    learned driver at; chapter 11 (section 5) trains on data with ``slow_share=0.5``.
+    A car not in a burst starts one with probability ``rate_per_s * policy period`` per decision:
+    a steering offset of random sign and size and an acceleration offset, for a random duration.
+    A share ``brake_share`` of the bursts brake instead (``-brake_mps2``, 1-6 m/s off the speed),
+    so the expert's recovery to cruise speed is labelled too; a share ``slow_share`` of those
+    brake *deep*, down to a speed drawn from ``slow_to_mps`` (at most 12 s), whatever the expert
+    commands: the speeds a braking driver or safety module leaves a learned driver at, which the
+    expert's data otherwise hardly holds (chapter 11, section 5, trains with ``slow_share=0.5``).
 
     Attributes:
         rate_per_s: bursts per second of driving [1/s] (0 turns noise off).
@@ -169,11 +163,9 @@ class DataConfig:
         expert: the expert's settings.
         noise: the noise bursts.
         camera: the camera (66 x 200 by default).
-        restart_rate_per_s: take-overs per second of driving [1/s]: the car is re-placed as the
-            evaluator re-places it after a collision (:func:`~e2e_lite.driving.rollout.restart_state`).
-            The default, one per 20 s, is about twice as often as chapter 10's GMM collided (once
-            per 39 s of driving) and doubles the share of samples between 20 and 24 m/s (7.6 % ->
-            17.8 % on 16,000 training samples); chapter 04 measures it.
+        restart_rate_per_s: take-overs per second of driving [1/s], re-placing the car as the
+            evaluator does after a collision (:func:`~e2e_lite.driving.rollout.restart_state`); one
+            per 20 s doubles the samples between 20 and 24 m/s (chapter 04 measures it).
         seed: seeds the expert's draws, the noise and the start lanes.
         first_track: index of the split's first track the cars drive (DAgger's rounds and their
             control drive fresh training roads, chapter 12).
@@ -383,9 +375,8 @@ def collect_cars(
     beta: float = 1.0,
     fresh: bool = False,
 ) -> tuple[dict[str, np.ndarray], ShardResult, dict[str, int]]:
-    """Drive cars ``cars`` (indices among ``cfg.n_worlds``) until each has its quota: their
-    samples (car after car), what the drive measured and the expert's manoeuvres. One process's
-    share of :func:`collect` (``advance(k)``: k more samples recorded)."""
+    """Drive cars ``cars`` (of ``cfg.n_worlds``) to their quotas: their samples (car after car),
+    the drive's metrics and the expert's manoeuvres; one process's share of :func:`collect`."""
     rec = _Recorder(cfg, cars, advance, learner, beta, fresh)
     ev = EvalConfig(
         miles=1e6, n_worlds=cfg.n_worlds, split=cfg.split, n_tracks=cfg.n_tracks, seed=cfg.seed,
@@ -458,7 +449,7 @@ def collect(
     for _, _, counts in parts:
         manoeuvres.update(counts)
     info = {
-        "key": cfg.key,
+        "key": cfg.key if learner is None else on_policy_key(cfg, learner, beta, fresh_labels),
         "split": cfg.split,
         "n_samples": cfg.n_samples,
         "shares": situation_shares(a),
@@ -469,10 +460,19 @@ def collect(
     return DrivingData(a, dataset_stats(a), info)
 
 
+def on_policy_key(cfg: DataConfig, learner: Any, beta: float, fresh: bool) -> str:
+    """The key of samples a learner (a network or its agent) drove: the settings, its weights
+    (a scripted one: its class), beta and the labeller, so nothing trained on them serves another."""
+    from .checkpoints import weights_digest
+
+    net = getattr(learner, "model", learner)
+    who = weights_digest(net) if hasattr(net, "state_dict") else type(net).__name__
+    return settings_key(cfg.key, "dagger", who, beta, *(("fresh labels",) * fresh))
+
+
 def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:
     """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz``, or
-    ``<outputs>/data/<name>.npz`` for a variant kept beside it (e.g. chapter 07's data collected
-    the old way)."""
+    ``<outputs>/data/<name>.npz`` for a variant kept beside it."""
     return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}'}.npz")
 
 
