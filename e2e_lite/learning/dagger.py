@@ -41,7 +41,7 @@ from ..driving.rollout import EvalConfig
 from . import recipes
 from .agents import TrajectoryAgent
 from .checkpoints import train_or_load, training_data_key
-from .data import DataConfig, NoiseConfig, collect, load_dataset, on_policy_key, save_dataset
+from .data import DataConfig, NoiseConfig, OnPolicy, collect, load_dataset, save_dataset
 from .dataset import DrivingData, allocate
 from .models import DrivingModel
 
@@ -140,7 +140,7 @@ def samples_key(
         return dcfg.key
     if learner is None:
         raise ValueError("samples_key: DAgger's round needs the learner that drives it")
-    return on_policy_key(dcfg, learner, cfg.betas[r], cfg.labels == "fresh")
+    return OnPolicy(learner, cfg.betas[r], cfg.labels == "fresh").key(dcfg)
 
 
 def round_samples(

@@ -215,8 +215,7 @@ class DataConfig:
 
     @property
     def key(self) -> str:
-        """Settings key of the dataset these settings make (v3: the gap labels of the fixed
-        :meth:`~e2e_lite.simulation.world.World.gap_ahead`, 2026-11-24)."""
+        """Settings key of the dataset these settings make (v3: the fixed ``World.gap_ahead``)."""
         return settings_key(versioned("dataset"), self)
 
 
@@ -232,15 +231,30 @@ def car_quotas(cfg: DataConfig) -> np.ndarray:
     return base + (np.arange(cfg.n_worlds) < extra)
 
 
+@dataclass(frozen=True)
+class OnPolicy:
+    """A DAgger collection (chapter 12): ``learner`` drives, the expert executing a share ``beta``
+    of the decisions and labelling every state; ``fresh``: trajectory labels of an expert planning
+    afresh at each state (:func:`~e2e_lite.control.expert.fresh_labels`)."""
+
+    learner: Any
+    beta: float = 1.0
+    fresh: bool = False
+
+    def key(self, cfg: DataConfig) -> str:
+        """Its samples' key: the settings, the learner's weights (or class), beta, the labeller."""
+        from .checkpoints import weights_digest
+
+        net = getattr(self.learner, "model", self.learner)
+        who = weights_digest(net) if hasattr(net, "state_dict") else type(net).__name__
+        return settings_key(cfg.key, "dagger", who, self.beta, *(("fresh labels",) * self.fresh))
+
+
 class _Recorder:
     """A policy: the expert plus noise bursts, recording every decision of cars ``cars`` until
     each has recorded its quota (:func:`car_quotas`). Every draw is the car's own (seeded by its
     index among all ``cfg.n_worlds`` cars), so a car records the same samples in any process.
-
-    With a ``learner`` (DAgger, chapter 12) the learner drives, the expert executing a share
-    ``beta`` of the decisions (each car's own draw); the expert labels each state, whoever drives.
-    ``fresh``: the trajectory labels of an expert planning afresh at every state
-    (:func:`~e2e_lite.control.expert.fresh_labels`; the actuator labels stay this expert's)."""
+    With ``on_policy`` its learner drives instead (:class:`OnPolicy`)."""
 
     #: uniforms each car draws per decision (a fixed count, so one draw never shifts another):
     #: restart, burst start, duration, sign, steering, brake?, size, deep?, deep target speed
@@ -251,13 +265,11 @@ class _Recorder:
         cfg: DataConfig,
         cars: np.ndarray,
         advance: Callable[[float], None],
-        learner: Any = None,
-        beta: float = 1.0,
-        fresh: bool = False,
+        on_policy: OnPolicy | None = None,
     ) -> None:
-        self.cfg, self.advance = cfg, advance
-        self.learner, self.beta, self.fresh = learner, beta, fresh
-        self.limits = SpeedLimits(ExpertConfig())  # (fresh labels: one profile per track)
+        self.cfg, self.advance, self.on_policy = cfg, advance, on_policy
+        fresh = on_policy is not None and on_policy.fresh
+        self.limits = SpeedLimits(ExpertConfig()) if fresh else None  # (one profile per track)
         # the mixing draws: a stream of their own, so the expert's and the noise's are untouched
         self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
@@ -276,8 +288,8 @@ class _Recorder:
 
     def reset(self, n_worlds: int) -> None:
         self.expert.reset(n_worlds)
-        if self.learner is not None:
-            self.learner.reset(n_worlds)
+        if self.on_policy is not None:
+            self.on_policy.learner.reset(n_worlds)
         self.burst_left = np.zeros(n_worlds)  # seconds of burst left per car
         self.offset_cmd = np.zeros((n_worlds, 2))  # (steer, accel) offsets of the bursts
         self.slow_to = np.zeros(n_worlds)  # a deep braking burst's target speed, 0: none [m/s]
@@ -287,9 +299,10 @@ class _Recorder:
         return self.count >= self.quota
 
     def act(self, obs: Observation) -> Actuation:
-        traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
-        if self.fresh:  # the label of an expert with no memory of its plans
+        if self.limits is not None:  # the label of an expert with no memory of its plans
             traj = fresh_labels(obs, list(range(len(obs.s))), self.cfg.world.sim, self.limits)
+        else:
+            traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
         clean = self.expert.act(obs)
         u = np.stack([r.random(self.DRAWS) for r in self.rngs])  # (B, DRAWS) in [0, 1)
         self._update_noise(u, obs.speed)
@@ -299,9 +312,9 @@ class _Recorder:
         period = self.cfg.world.sim.policy_period_s
         deep = self.slow_to > 0  # braked whatever the expert commands
         steer, accel = clean.steer_rad, clean.accel_mps2
-        if self.learner is not None:  # DAgger: the learner drives, but on the expert's turns
-            learned = self.learner.act(obs)
-            expert_turn = np.array([r.random() for r in self.mix_rngs]) < self.beta  # (B,)
+        if self.on_policy is not None:  # DAgger: the learner drives, but on the expert's turns
+            learned = self.on_policy.learner.act(obs)
+            expert_turn = np.array([r.random() for r in self.mix_rngs]) < self.on_policy.beta
             steer = np.where(expert_turn, steer, learned.steer_rad)
             accel = np.where(expert_turn, accel, learned.accel_mps2)
         return Actuation(
@@ -371,13 +384,11 @@ def collect_cars(
     cfg: DataConfig,
     cars: np.ndarray,
     advance: Callable[[float], None],
-    learner: Any = None,
-    beta: float = 1.0,
-    fresh: bool = False,
+    on_policy: OnPolicy | None = None,
 ) -> tuple[dict[str, np.ndarray], ShardResult, dict[str, int]]:
     """Drive cars ``cars`` (of ``cfg.n_worlds``) to their quotas: their samples (car after car),
     the drive's metrics and the expert's manoeuvres; one process's share of :func:`collect`."""
-    rec = _Recorder(cfg, cars, advance, learner, beta, fresh)
+    rec = _Recorder(cfg, cars, advance, on_policy)
     ev = EvalConfig(
         miles=1e6, n_worlds=cfg.n_worlds, split=cfg.split, n_tracks=cfg.n_tracks, seed=cfg.seed,
         first_track=cfg.first_track,
@@ -405,9 +416,8 @@ def collect(
     :func:`~e2e_lite.config.default_workers`, at most one per :data:`MIN_SAMPLES_PER_WORKER`);
     the arrays are the same bytes for any count.
 
-    ``learner`` (DAgger, chapter 12; see :class:`_Recorder`): the cars are then cut in whole
-    groups of :data:`~e2e_lite.simulation.policy.FORWARD_GROUP` on one torch thread each, so the
-    network, and so the samples, do not depend on the count."""
+    ``learner`` (:class:`OnPolicy`): the cars are cut in whole forward groups on one torch
+    thread each, so the network, and so the samples, do not depend on the count."""
     check_range("collect", "beta", beta, 0.0, 1.0)
     t_wall = time.perf_counter()
     if workers is None:  # every core, but no worker for fewer samples than its start is worth
@@ -425,13 +435,13 @@ def collect(
         cars = np.array_split(np.arange(cfg.n_worlds), min(workers, cfg.n_worlds))
     else:
         cars = shard_cars(cfg.n_worlds, workers)
-    mixing = {} if learner is None else {"learner": learner, "beta": beta, "fresh": fresh_labels}
+    on_policy = None if learner is None else OnPolicy(learner, beta, fresh_labels)
     try:
         if len(cars) == 1:
             with pinned_threads() if learner is not None else contextlib.nullcontext():
-                parts = [collect_cars(cfg, cars[0], lambda k: bar.update(int(k)), **mixing)]
+                parts = [collect_cars(cfg, cars[0], lambda k: bar.update(int(k)), on_policy)]
         else:
-            jobs = [(collect_cars, (cfg, c), mixing) for c in cars]
+            jobs = [(collect_cars, (cfg, c), {"on_policy": on_policy}) for c in cars]
             parts = drive_in_processes(jobs, lambda k: bar.update(int(k)))
     finally:
         bar.close()
@@ -449,7 +459,7 @@ def collect(
     for _, _, counts in parts:
         manoeuvres.update(counts)
     info = {
-        "key": cfg.key if learner is None else on_policy_key(cfg, learner, beta, fresh_labels),
+        "key": cfg.key if on_policy is None else on_policy.key(cfg),
         "split": cfg.split,
         "n_samples": cfg.n_samples,
         "shares": situation_shares(a),
@@ -458,16 +468,6 @@ def collect(
         "collision_events": result.events,
     }
     return DrivingData(a, dataset_stats(a), info)
-
-
-def on_policy_key(cfg: DataConfig, learner: Any, beta: float, fresh: bool) -> str:
-    """The key of samples a learner (a network or its agent) drove: the settings, its weights
-    (a scripted one: its class), beta and the labeller, so nothing trained on them serves another."""
-    from .checkpoints import weights_digest
-
-    net = getattr(learner, "model", learner)
-    who = weights_digest(net) if hasattr(net, "state_dict") else type(net).__name__
-    return settings_key(cfg.key, "dagger", who, beta, *(("fresh labels",) * fresh))
 
 
 def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:
