@@ -49,7 +49,7 @@ from .driving.rollout import EvalConfig, disjoint_runs
 from .estimate import Work, cpu_name, plan_text
 from .learning.data import DataConfig, load_or_collect
 from .learning.models import pick_device
-from .record_tests import FAMILIES, STEPS
+from .record_tests import family
 from .simulation.world import WorldConfig
 
 #: every row of the record: the paper's, DAgger's (chapter 12) and the controls
@@ -160,8 +160,6 @@ def record_share(
         raise ValueError(f"record_share: seeds {seeds} must be distinct and >= 0")
     check_range("record_share", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
     commit, keys = _commit(), [d.key for d in ROWS]
-    family = {"families": FAMILIES, "tests": {st.what: st.family for st in STEPS},
-              "adjustment": "holm", "declared": f"before this record ran, in the recipes of {commit}"}  # fmt: skip
     world_cfg = WorldConfig.for_profile(profile)
     workers, device = default_workers(), pick_device()
     if progress:
@@ -208,7 +206,7 @@ def record_share(
         "machine": f"{cpu_name()}, {os.cpu_count()} cores, {workers} workers, {device.type}",
         "block": {"name": template.block, "range": list(ROAD_BLOCKS[template.block])},
         "single_seed_rows": list(single),
-        "family": family,
+        "family": family(f"before this record ran, in the recipes of {commit}"),
         "rows": [
             {
                 "key": k,
@@ -275,24 +273,19 @@ def pool_shares(shares: Sequence[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
             ({**r, "machine": machines.index(share["machine"])}
              for _, share in shares for r in share["rows"][i]["runs"]), key=lambda r: r["seed"],
         )  # fmt: skip
-        if row["key"] in single:  # one network (or none) drove every seed's run: one entry
-            hours = sum(r["miles"] / r["mph"] for r in runs if r["mph"] > 0)
-            miles = sum(r["miles"] for r in runs)
-            runs = [{"seed": 0, "collisions": sum(r["collisions"] for r in runs),
-                     "miles": round(miles, 3), "mph": round(miles / hours, 2) if hours else 0.0,
-                     "stalls": sum(r["stalls"] for r in runs)}]  # fmt: skip
-            car = sum(r["car"] for s in shares for r in s[1]["rows"][i]["runs"])
-            rail = sum(r["rail"] for s in shares for r in s[1]["rows"][i]["runs"])
-        else:
-            car, rail = sum(r["car"] for r in runs), sum(r["rail"] for r in runs)
         miles = sum(r["miles"] for r in runs)
         hours = sum(r["miles"] / r["mph"] for r in runs if r["mph"] > 0)
+        mph, stalls = round(miles / hours, 2) if hours else 0.0, sum(r["stalls"] for r in runs)
+        car, rail = sum(r["car"] for r in runs), sum(r["rail"] for r in runs)
+        if row["key"] in single:  # one network (or none) drove every seed's run: one entry
+            runs = [{"seed": 0, "collisions": car + rail, "miles": round(miles, 3), "mph": mph,
+                     "stalls": stalls}]  # fmt: skip
         rows.append({
             "key": row["key"], "label": row["label"], "paper_per_100mi": row["paper_per_100mi"],
             "seeds": [{k: r[k] for k in ("seed", "collisions", "miles", "mph", "stalls", "machine")
                        if k in r} for r in runs],
-            "car": car, "rail": rail, "mph": round(miles / hours, 2) if hours else 0.0,
-            "stalls": sum(r["stalls"] for r in runs), "commit": first["recipes_commit"],
+            "car": car, "rail": rail, "mph": mph, "stalls": stalls,
+            "commit": first["recipes_commit"],
             "control": row["control"],
         })  # fmt: skip
     mps, n = first["miles_per_seed"], len(seeds)
@@ -352,7 +345,7 @@ def plan(
     (:func:`~e2e_lite.record_tests.record_power`), and what each plan costs on 2 cores and on a
     16-core machine with a GPU (:func:`record_work`); the chosen plan is the cheapest on 2 cores
     that reaches ``target`` (else the most powerful at ``most`` seeds)."""
-    from .driving.verdicts import power
+    from .driving.verdicts import seeds_for_power
     from .estimate import estimate_s
     from .record_tests import record_power
 
@@ -360,14 +353,11 @@ def plan(
     k, rate = found["dispersion"]["dispersion"], found["rate_per_100mi"]
     options = []
     for miles in miles_options:
-        for seeds in range(10, most + 1):
-            p = power(seeds, miles, rate, dispersion=k, n_sim=n_sim)["power"]
-            if p >= target or seeds == most:
-                work = record_work(FULL, seeds, miles)
-                options.append({"seeds": seeds, "miles_per_seed": miles, "power": p,
-                                "hours_2_cores": estimate_s(work, 2) / 3600.0,
-                                "hours_16_cores_gpu": estimate_s(work, 16, "cuda") / 3600.0})  # fmt: skip
-                break
+        need = seeds_for_power(miles, rate, target, most=most, least=10, n_sim=n_sim, dispersion=k)
+        work = record_work(FULL, need["seeds"], miles)
+        options.append({**need, "miles_per_seed": miles,
+                        "hours_2_cores": estimate_s(work, 2) / 3600.0,
+                        "hours_16_cores_gpu": estimate_s(work, 16, "cuda") / 3600.0})  # fmt: skip
     reaching = [o for o in options if o["power"] >= target]
     chosen = (
         min(reaching, key=lambda o: o["hours_2_cores"])

@@ -81,18 +81,18 @@ def verdict(test: dict[str, Any], slow_mph: float | None) -> str:
     return text + (f", at {slow_mph:.1f} mph" if slow_mph is not None else "")
 
 
+def family(declared: str) -> dict[str, Any]:
+    """The families of :data:`STEPS` as a record holds them, with when they were ``declared``."""
+    tests = {st.what: st.family for st in STEPS}
+    return {"families": FAMILIES, "tests": tests, "adjustment": "holm", "declared": declared}
+
+
 def declared_family(record: dict[str, Any]) -> dict[str, Any]:
     """The record's families of tests: as its JSON declares them, or (a record from before the
-    declaration, issue 64) :data:`FAMILIES` with the steps' own, marked as declared after it
-    ran."""
+    declaration, issue 64) :func:`family`, marked as declared after it ran."""
     if "family" in record:
         return record["family"]
-    return {
-        "families": FAMILIES,
-        "tests": {st.what: st.family for st in STEPS},
-        "adjustment": "holm",
-        "declared": "after this record ran (issue 64), so its Holm p is a reading, not a plan",
-    }
+    return family("after this record ran (issue 64), so its Holm p is a reading, not a plan")
 
 
 def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
@@ -131,11 +131,11 @@ def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
-def controls_line(record: dict[str, Any]) -> str:
-    """One sentence per control: what its test found, and so whether the paper's step it tests
-    is credited to its method ("" when the record has no control)."""
+def controls_line(tested: list[dict[str, Any]]) -> str:
+    """One sentence per control among the ``tested`` steps (:func:`steps`): what its test found,
+    and so whether the step it tests is credited to its method ("" without a control)."""
     found = []
-    for st in steps(record):
+    for st in tested:
         if st["credits"] is None:
             continue
         credited = st["verdict"].startswith("reproduces")

@@ -164,7 +164,8 @@ def table1(record: dict[str, Any]) -> str:
         " | the paper's ratio | seed-level verdict |"
     )
     lines.append("|---|---|---|---|---|---|---|---|")
-    for st in steps(record):
+    tested = steps(record)
+    for st in tested:
         lo, hi = st["ratio_ci"]
         ratio = "-" if np.isnan(st["ratio"]) else f"{st['ratio']:.2f} [{lo:.2f}, {hi:.2f}]"
         paper = "-" if st["paper_ratio"] is None else f"{st['paper_ratio']:.2g}"
@@ -173,7 +174,7 @@ def table1(record: dict[str, Any]) -> str:
             f"{st['p_better']:.2g} ({st['test']}) | {st['p_holm']:.2g} | {ratio} | {paper} | "
             f"{st['verdict']} |"
         )
-    controls = controls_line(record)
+    controls = controls_line(tested)
     if controls:
         lines += ["", controls]
     threads = record.get("torch_threads")
@@ -192,8 +193,9 @@ def table1(record: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def results_md(record: dict[str, Any]) -> str:
-    """``docs/results.md``: Table 1 and, per row, what a reader needs to judge it."""
+def results_md(record: dict[str, Any], table: str | None = None) -> str:
+    """``docs/results.md``: Table 1 (``table``, the README's, when already rendered) and, per row,
+    what a reader needs to judge it."""
     rows = record["rows"]
     detail = [
         "| driver | collisions (car / rail) | miles | stalls | minutes between collisions "
@@ -221,7 +223,7 @@ def results_md(record: dict[str, Any]) -> str:
         "",
         f"## {record['title']}",
         "",
-        table1(record),
+        table1(record) if table is None else table,
         "",
         *(line for note in record.get("notes", []) for line in (note, "")),
         "## Per row",
@@ -466,9 +468,10 @@ def main(argv: list[str] | None = None) -> int:
             print(table1(record))
             return 0
     record = load()
+    table = table1(record)
     wanted = {
-        README: readme_with(README.read_text(), table1(record)),
-        RESULTS_MD: results_md(record),
+        README: readme_with(README.read_text(), table),
+        RESULTS_MD: results_md(record, table),
     }
     if TEACHING.exists():
         run = json.loads(COURSE_RUN.read_text()) if COURSE_RUN.exists() else None

@@ -300,19 +300,21 @@ def seeds_for_power(
     step: float = 2.0,
     most: int = 20,
     *,
+    least: int = 2,
+    n_sim: int = 1_000,
     dispersion: float = 0.0,
     test: str = "rank",
-) -> int:
-    """The fewest seeds per row whose record finds a ``step`` with at least ``target`` power
-    (:func:`power`, under the seeds' ``dispersion``), up to ``most`` (returned when none
-    reaches it)."""
-    for n in range(2, most + 1):
+) -> dict[str, float]:
+    """The fewest seeds per row, from ``least``, whose record finds a ``step`` with at least
+    ``target`` power (:func:`power`, under the seeds' ``dispersion``), up to ``most`` (returned
+    when none reaches it): ``{"seeds", "power"}``."""
+    for n in range(least, most + 1):
         found = power(
-            n, miles_per_seed, rate_per_100mi, step, n_sim=1_000, dispersion=dispersion, test=test
+            n, miles_per_seed, rate_per_100mi, step, n_sim=n_sim, dispersion=dispersion, test=test
         )
-        if found["power"] >= target:
-            return n
-    return most
+        if found["power"] >= target or n == most:
+            return {"seeds": n, "power": found["power"]}
+    raise ValueError(f"seeds_for_power: most={most} is below least={least}")
 
 
 def _nb_loglik(counts: Sequence[np.ndarray], dispersion: float) -> float:

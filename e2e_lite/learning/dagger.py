@@ -129,12 +129,17 @@ def round_data(profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str)
     return dataclasses.replace(base, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
 
 
+def _stem(cfg: DaggerConfig, arm: str) -> str:
+    """The stored names' stem of ``arm``'s samples and networks (DAgger's say who labelled)."""
+    return f"12_{arm}" + ("_fresh" if arm == "dagger" and cfg.labels == "fresh" else "")
+
+
 def samples_key(
     profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str, learner: DrivingModel | None
 ) -> str:
     """The key of round ``r``'s samples: the collection's settings and, for DAgger, the
-    learner's weights and the round's beta (so a retrained learner or another beta collects
-    anew, and the fine-tunes on them retrain: their data key holds this one)."""
+    learner's weights, the round's beta and the labeller (:meth:`~e2e_lite.learning.data.OnPolicy.key`:
+    anything else collects anew, and the fine-tunes on it retrain: their data key holds this)."""
     dcfg = round_data(profile, cfg, seed, r, arm)
     if arm == "control":
         return dcfg.key
@@ -171,8 +176,7 @@ def round_samples(
         def make() -> DrivingData:
             return collect(dcfg, progress)
 
-    tag = "_fresh" if arm == "dagger" and cfg.labels == "fresh" else ""
-    name = f"12_{arm}{tag}_seed{seed}_round{r + 1}.npz"
+    name = f"{_stem(cfg, arm)}_seed{seed}_round{r + 1}.npz"
     return cached(artifact_path("data", name), key, make, save_dataset, load_dataset)
 
 
@@ -269,8 +273,7 @@ def run(
             new = round_samples(profile, cfg, seed, r, arm, model, progress)
             shift = covariate_shift(new, earlier)
             data = finetune_set(earlier, new, cfg.replay, seed, r)
-            tag = "_fresh" if arm == "dagger" and cfg.labels == "fresh" else ""
-            name = f"12_{arm}{tag}_round{r + 1}" + (f"_seed{seed}" if seed else "")
+            name = f"{_stem(cfg, arm)}_round{r + 1}" + (f"_seed{seed}" if seed else "")
             model, _ = train_or_load(
                 name, recipes.AFFORDANCE_CFG, tcfg, objective, data, val, init_from=parent,
                 parent_data_key=parent_key, carry_optimizer=True, progress=progress,
