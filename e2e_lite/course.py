@@ -90,7 +90,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 29),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 28),
     11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 11),
-    12: ChapterInfo("DAgger: the learner drives, the expert labels its states", "", 11, 11),
+    12: ChapterInfo("DAgger: the learner drives, the expert labels its states", "", 11, 12),
 }
 
 
