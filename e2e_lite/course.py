@@ -365,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         from .learning.models import pick_device
 
         reference_s = 60.0 * sum(CHAPTERS[n].full_min for n, _ in chapters)
-        work = course_work(FULL)
+        work = course_work(FULL, [n for n, _ in chapters])
         line = plan_text("the course", work, default_workers(), pick_device().type, reference_s)
         print(line, flush=True)
     ledger = (outputs_dir(quick) / TIMES_FILE).resolve()  # (in-process chapters change the cwd)

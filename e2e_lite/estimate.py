@@ -6,6 +6,7 @@ run prints first (:func:`plan_text`: the workers, the device, the precision and 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -91,30 +92,56 @@ def plan_text(
     )
 
 
-def course_work(profile: Profile) -> Work:
-    """What the full course does from an empty outputs folder, in :class:`Work`'s parts (counted
-    from the chapters: chapter 04's data; chapters 05-08's networks, chapter 08's weight grid,
-    chapters 09-10's further seeds and the fine-tunes; every evaluation and every selection
-    drive). Chapters 01-03, the figures and the replays are ``other_s``."""
+def chapter_work(profile: Profile) -> dict[int, Work]:
+    """What each chapter does from the outputs of the chapters before it, in :class:`Work`'s
+    parts (counted from the chapters): chapter 04's data and its two ceilings' drives; chapters
+    05-08's networks (05: three, 07: two), chapter 08's weight grid; chapters 09-10's further
+    seeds (09: + affordance, 10: the Baseline E2E and the GMM; PilotNet and L2 keep seed 0; the
+    w = 0 control is the record's) and chapter 09's fine-tunes; chapter 12's DAgger rounds and
+    their control (a collection and a fine-tune each); every evaluation and selection drive.
+    Chapters 01-03, the figures and the replays are ``other_s`` (about 300 s in all)."""
+    from .learning.dagger import DaggerConfig
     from .learning.recipes import SELECT_MILES
 
     s, n, epochs = profile.ablation_seeds, profile.n_train_samples, profile.train_epochs
-    # seed 0 of chapters 05-08 (05: three, 07: two), then seeds 1.. of the actuators, the GMM and
-    # + affordance (chapters 09-10; PilotNet and L2 keep seed 0; the w = 0 control is the record's)
-    scratch = 7 + 3 * (s - 1)
-    tuned = 2 * s  # the CVaR fine-tune and its control, every seed
-    grid = 5 * 2 * n / 4  # chapter 08's weight grid: 5 weights, 2 epochs, a quarter of the data
-    selecting = scratch * epochs * SELECT_MILES if epochs > 1 else 0.0
-    # chapters 05-08's evaluations (05: 3, 06: 1, 07: 2, 08: 1) and chapter 10's four rows that
-    # are no paper step (the ceilings, PilotNet, L2) at the chapters' budget
-    evaluations = (7 + 4) * profile.eval_miles
-    rows_09_11 = (3 + 2 + 3) * profile.ablation_miles  # 09: 3 rows, 10: 2 new, 11: 3 variants
-    return Work(
-        collect_samples=profile.n_train_samples + profile.n_val_samples,
-        train_samples=n * (scratch * epochs + tuned) + grid,
-        drive_miles=selecting + evaluations + rows_09_11,
-        other_s=300.0,
-    )
+    select = epochs * SELECT_MILES if epochs > 1 else 0.0  # the selection drives of a training
+    ev, rows = profile.eval_miles, profile.ablation_miles  # one evaluation, one ablation row
+
+    def trains(scratch: int, evaluations: float, tuned: int = 0, grid: float = 0.0) -> Work:
+        return Work(
+            0.0, n * (scratch * epochs + tuned) + grid, scratch * select + evaluations, 31.0
+        )
+
+    dagger = DaggerConfig.for_profile(profile)
+    collected = s * 2 * dagger.rounds * dagger.samples  # both arms, every seed and round
+    return {
+        1: Work(0.0, 0.0, 0.0, 10.0),
+        2: Work(0.0, 0.0, 0.0, 5.0),
+        3: Work(0.0, 0.0, 0.0, 5.0),
+        4: Work(profile.n_train_samples + profile.n_val_samples, 0.0, 2 * ev, 31.0),
+        5: trains(3, 3 * ev),
+        6: trains(1, ev),
+        7: trains(2, 2 * ev),
+        8: trains(1, ev, grid=5 * 2 * n / 4),  # 5 weights, 2 epochs, a quarter of the data
+        9: trains(s - 1, 3 * rows, tuned=2 * s),  # the CVaR fine-tune and its control
+        10: trains(2 * (s - 1), 2 * rows + 4 * ev),  # + the ceilings, PilotNet and L2
+        11: trains(0, 3 * rows),  # three variants of the safety module
+        # validation: the start and each round of both arms, the expert, the oracle; test: two rows
+        12: Work(
+            collected,
+            collected * (1.0 + dagger.replay),
+            (3 + 2 * dagger.rounds) * ev + 2 * rows,
+            31.0,
+        ),
+    }
+
+
+def course_work(profile: Profile, chapters: Sequence[int] | None = None) -> Work:
+    """What the full course (or its ``chapters``) does from an empty outputs folder: the sum of
+    :func:`chapter_work` over them."""
+    each = chapter_work(profile)
+    parts = [each[k] for k in (each if chapters is None else chapters) if k in each]
+    return Work(*(sum(w[i] for w in parts) for i in range(len(Work._fields))))
 
 
 def cpu_name() -> str:

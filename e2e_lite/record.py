@@ -124,14 +124,15 @@ def seed_run(profile: Profile, seed: int, miles_per_seed: float) -> EvalConfig:
 
 def _commit() -> str:
     """The code that trains and drives: the commit at the start (a run takes hours); every recipe
-    choice is frozen in it before the sealed roads are driven."""
+    choice is frozen in it before the sealed roads are driven. A copy without git's history (a
+    zip, a lent machine's copy of the tree) says its commit in ``$E2E_LITE_COMMIT``."""
     try:
         return subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
             cwd=Path(__file__).resolve().parent,
         ).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
-        return "unknown"
+        return os.environ.get("E2E_LITE_COMMIT", "unknown")
 
 
 def share_digest(share: dict[str, Any]) -> str:
@@ -291,11 +292,12 @@ def pool_shares(shares: Sequence[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     mps, n = first["miles_per_seed"], len(seeds)
     kinds = sorted({m.split(",")[0] for m in machines})
     where = machines[0] if len(machines) == 1 else f"{len(machines)} machines ({', '.join(kinds)})"
+    alone = " and ".join(BY_KEY[k].label for k in first["single_seed_rows"])
     return {
         "title": f"Table 1 of record ({first['profile']} profile, {n} training seeds)",
         "status": (
             f"Of record: {n} training seeds per learned row (seeds {seeds[0]}-{seeds[-1]}), "
-            f"{mps:g} mi each ({', '.join(first['single_seed_rows'])}: seed 0 alone, {mps * n:g} mi), "
+            f"{mps:g} mi each ({alone}: seed 0 alone, {mps * n:g} mi), "
             f"pooled from {len(shares)} share{'s' * (len(shares) > 1)} on {len(machines)} "
             f"machine{'s' * (len(machines) > 1)} of {len(kinds)} kind{'s' * (len(kinds) > 1)}"
         ),

@@ -65,7 +65,14 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
     """Issue 56: a long run says first how many workers and which device it will use, and how
     long it should take from the benchmarks' per-part rates."""
     from e2e_lite.config import FULL
-    from e2e_lite.estimate import RATES, Work, course_work, estimate_s, plan_text
+    from e2e_lite.estimate import (
+        RATES,
+        Work,
+        chapter_work,
+        course_work,
+        estimate_s,
+        plan_text,
+    )
     from e2e_lite.learning import recipes
     from e2e_lite.record import record_work
 
@@ -87,5 +94,15 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
     assert ten.drive_miles - lean.drive_miles == pytest.approx(18 * selecting)
     course = course_work(FULL)
     assert course.drive_miles > 0 and course.train_samples > 0
+    # the course is the sum of its chapters; a subset's estimate counts that subset's work only
+    each = chapter_work(FULL)
+    assert sorted(each) == list(range(1, 13))
+    assert course.collect_samples == pytest.approx(sum(w.collect_samples for w in each.values()))
+    early, late = course_work(FULL, range(1, 8)), course_work(FULL, range(8, 13))
+    for part in range(len(Work._fields)):
+        assert early[part] + late[part] == pytest.approx(course[part])
+    # chapter 12 collects DAgger's rounds and their control: 4 seeds x 2 arms x 2 rounds x 8,000
+    assert each[12].collect_samples == 4 * 2 * 2 * FULL.n_train_samples // 6
+    assert early.collect_samples == FULL.n_train_samples + FULL.n_val_samples
     line = plan_text("the record", ten, 16, "cuda")
     assert "16 worker processes" in line and "cuda" in line and "fp32" in line and "min" in line

@@ -399,6 +399,7 @@ def test_shares_of_the_record_pool_into_what_one_run_gives_and_what_does_not_bel
     pooled, one = rec.pool_shares([("a", a), ("b", b)]), rec.pool_shares([("both", both)])
     assert pooled["rows"] == one["rows"] and len(pooled["rows"][3]["seeds"]) == 2
     assert pooled["family"] == one["family"] and "2 shares on 1 machine" in pooled["status"]
+    assert "(PilotNet, steering only and trajectory L2 + LQR: seed 0 alone" in pooled["status"]
     elsewhere = copy.deepcopy(b)
     elsewhere["machine"] = "Another CPU, 16 cores, 16 workers, cuda"
     elsewhere["digest"] = rec.share_digest(elsewhere)

@@ -231,3 +231,22 @@ def test_the_record_plan_reaches_its_power_at_the_least_time_and_the_class_can_r
     assert "## A class's Table 1" in teaching and "--pool" in teaching and "--plan" in teaching
     script = (ROOT / "docs" / "record-array.sh").read_text()
     assert "--record --seeds" in script and "SLURM_ARRAY_TASK_ID" in script and "--pool" in script
+
+
+def test_a_copy_without_git_names_its_recipes_commit_from_the_environment(monkeypatch) -> None:
+    """A lent machine's copy of the tree has no git history: its shares say the commit they ran
+    through $E2E_LITE_COMMIT, so a pool can check them against shares made in a clone."""
+    import subprocess
+
+    from e2e_lite import record
+
+    assert re.fullmatch(r"[0-9a-f]{7,40}", record._commit())  # this checkout: git answers
+
+    def no_git(*args, **kwargs):
+        raise subprocess.CalledProcessError(128, "git")
+
+    monkeypatch.setattr(record.subprocess, "run", no_git)
+    monkeypatch.delenv("E2E_LITE_COMMIT", raising=False)
+    assert record._commit() == "unknown"
+    monkeypatch.setenv("E2E_LITE_COMMIT", "6e94ed0")
+    assert record._commit() == "6e94ed0"
