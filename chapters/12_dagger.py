@@ -122,7 +122,8 @@ for k, (_, arms) in runs.items():
             drove = r.collection.get("collisions_per_100mi", float("nan"))
             print(f"seed {k} {arm:7s} round {r.round}: +{r.samples:,} samples -> "
                   f"{r.aggregate:,}; visited outside the data {r.shift['any']:.1%}; while "
-                  f"collecting {drove:.1f} collisions per 100 mi")  # fmt: skip
+                  f"collecting {r.collection.get('miles', float('nan')):.1f} mi, "
+                  f"{drove:.1f} collisions per 100 mi")  # fmt: skip
 
 # %% [markdown]
 # ## 3. Covariate shift, measured
@@ -280,6 +281,9 @@ artifacts.write_metrics(
 # * A data method needs a data control: the same number of samples from the expert's own
 #   driving, on the same roads, with the same fine-tunes. Only a step that beats it is the
 #   learner's states; the verdict lines above say whether this run's did.
+# * DAgger can only label the states a round visits. Compare the miles one round drove (section
+#   2) with the miles between the start network's collisions (section 5): the states that end in
+#   a collision are rare, and a round of this size may visit none of them (exercise 6).
 # * DAgger assumes an expert whose label depends on the state alone: the course's labels come
 #   from an expert planning afresh at each state. A planner that remembers its plan labels a
 #   learner that lagged it with the rest of that plan: a swerve (exercise 3).
@@ -297,3 +301,6 @@ artifacts.write_metrics(
 # 4. No aggregation: set `replay=0.0`, so each round fine-tunes on its new samples alone. What
 #    does the network forget (drive it, and compare the shift)?
 # 5. DAgger from the GMM (chapter 07) instead of the final network: does a worse start gain more?
+# 6. Rare states: how many collisions should a round of `cfg.samples` meet at the start's rate on
+#    test roads? Run one round of six times the samples (`samples=6 * cfg.samples`): how many
+#    collisions did its collection meet, and does the fine-tune on them drive better?
