@@ -199,10 +199,10 @@ def power_line(record: dict[str, Any]) -> str:
 def family_line(record: dict[str, Any]) -> str:
     fam = declared_family(record)
     tests = fam["tests"]
-    parts = [
-        f"{text} ({sum(f == key for f in tests.values())} tests)"
-        for key, text in fam["families"].items()
-    ]
+    parts = []
+    for key, text in fam["families"].items():
+        n = sum(f == key for f in tests.values())
+        parts.append(f"{text} ({n} test{'s' * (n != 1)})")
     return (
         f" The families of tests, declared {fam['declared']}: " + "; ".join(parts) + ". Each"
         " family's p-values are Holm-adjusted together, and the verdict reads the adjusted p at"
