@@ -92,9 +92,8 @@ class Profile:
         ablation_seeds: training seeds per learned driver in chapters 09-11; a row's miles are
             shared among them and the verdicts compare seeds (one training run cannot separate
             the methods). Four in the full profile: 4 seeds against 4 can reach p = 1/70, where
-            3 against 3 never go below 0.05, and five would have taken the course of 111 min
-            (measured on the reference 2-core machine over three sittings, docs/benchmarks.md)
-            about 20 min longer.
+            3 against 3 never go below 0.05; a fifth seed would add about 20 min to the course
+            on the slower of the reference 2-core machines (docs/benchmarks.md).
     """
 
     name: str

@@ -306,7 +306,11 @@ def pool_shares(shares: Sequence[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
         "torch": ", ".join(sorted({s["torch"] for _, s in shares})),
         "precision": first["precision"],
         "roads": "test",
-        "block": {**first["block"], "recipes_commit": first["recipes_commit"]},
+        "block": {
+            **first["block"],
+            "recipes_commit": first["recipes_commit"],
+            "sealed": first["block"]["name"] == SEALED_BLOCK,
+        },
         "commits": {first["recipes_commit"]: "every row"},
         "miles_note": "each seed drove its miles on test roads of its own (record.seed_run)",
         "single_seed_rows": first["single_seed_rows"],

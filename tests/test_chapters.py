@@ -375,6 +375,9 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
     assert record["roads"] == "test" and record["precision"] == "fp32"
     # a smoke run never drives the sealed roads of the record of record
     assert record["block"]["name"] == "open" and record["block"]["range"] == [*ROAD_BLOCKS["open"]]
+    assert not record["block"]["sealed"] and "the open block of test roads (a smoke run" in (
+        report.table1(record)
+    )
     assert "| the paper's step |" in report.table1(record)
     assert "wrote" in capsys.readouterr().out
 
