@@ -106,10 +106,11 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
     s, n, epochs = profile.ablation_seeds, profile.n_train_samples, profile.train_epochs
     select = epochs * SELECT_MILES if epochs > 1 else 0.0  # the selection drives of a training
     ev, rows = profile.eval_miles, profile.ablation_miles  # one evaluation, one ablation row
+    other = 31.0  # a chapter's figures, replays and imports [s]
 
     def trains(scratch: int, evaluations: float, tuned: int = 0, grid: float = 0.0) -> Work:
         return Work(
-            0.0, n * (scratch * epochs + tuned) + grid, scratch * select + evaluations, 31.0
+            0.0, n * (scratch * epochs + tuned) + grid, scratch * select + evaluations, other
         )
 
     dagger = DaggerConfig.for_profile(profile)
@@ -118,7 +119,7 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
         1: Work(0.0, 0.0, 0.0, 10.0),
         2: Work(0.0, 0.0, 0.0, 5.0),
         3: Work(0.0, 0.0, 0.0, 5.0),
-        4: Work(profile.n_train_samples + profile.n_val_samples, 0.0, 2 * ev, 31.0),
+        4: Work(profile.n_train_samples + profile.n_val_samples, 0.0, 2 * ev, other),
         5: trains(3, 3 * ev),
         6: trains(1, ev),
         7: trains(2, 2 * ev),
@@ -131,7 +132,7 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
             collected,
             collected * (1.0 + dagger.replay),
             (3 + 2 * dagger.rounds) * ev + 2 * rows,
-            31.0,
+            other,
         ),
     }
 

@@ -416,8 +416,8 @@ def collect(
     :func:`~e2e_lite.config.default_workers`, at most one per :data:`MIN_SAMPLES_PER_WORKER`);
     the arrays are the same bytes for any count.
 
-    ``learner`` (:class:`OnPolicy`): the cars are cut in whole forward groups on one torch
-    thread each, so the network, and so the samples, do not depend on the count."""
+    ``learner``, ``beta``, ``fresh_labels``: a DAgger round (:class:`OnPolicy`); its cars are cut
+    in whole forward groups, one torch thread each, so its samples do not depend on the count."""
     check_range("collect", "beta", beta, 0.0, 1.0)
     t_wall = time.perf_counter()
     if workers is None:  # every core, but no worker for fewer samples than its start is worth
