@@ -135,6 +135,11 @@ def test_the_finetunes_key_holds_the_parent_the_round_the_beta_and_the_data():
     )
     assert ft.info["key"] != dagger.finetune_set([base], new, 1.0, 0, 1).info["key"]
     assert len(dagger.finetune_set([base, new], new, 0.5, 0, 1)) == 24
+    # a beta schedule stores its samples and networks under names of its own, beside the course's
+    course = dagger.DaggerConfig(rounds=2, samples=64)
+    assert dagger._stem(course, "dagger") == "12_dagger_fresh"
+    assert dagger._stem(cfg, "dagger") == "12_dagger_fresh_beta0.5-0"
+    assert dagger._stem(cfg, "control") == dagger._stem(course, "control") == "12_control"
 
 
 def test_covariate_shift_counts_the_visits_outside_the_datas_range():

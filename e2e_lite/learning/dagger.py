@@ -130,8 +130,12 @@ def round_data(profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str)
 
 
 def _stem(cfg: DaggerConfig, arm: str) -> str:
-    """The stored names' stem of ``arm``'s samples and networks (DAgger's say who labelled)."""
-    return f"12_{arm}" + ("_fresh" if arm == "dagger" and cfg.labels == "fresh" else "")
+    """The stored names' stem of ``arm``'s samples and networks (DAgger's say who labelled, and
+    the betas when the expert executes any share, so a beta schedule keeps the course's own)."""
+    if arm != "dagger":
+        return f"12_{arm}"
+    betas = "_beta" + "-".join(f"{b:g}" for b in cfg.betas) if any(cfg.betas) else ""
+    return "12_dagger" + ("_fresh" if cfg.labels == "fresh" else "") + betas
 
 
 def samples_key(
