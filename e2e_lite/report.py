@@ -162,7 +162,7 @@ def table1(record: dict[str, Any]) -> str:
         lines.append("| " + " | ".join(_row_cells(row, expert_mph)) + " |")
     lines.append("")
     lines.append(
-        "| the paper's step | family | seeds | p, one-sided (test) | Holm p | rate ratio [95 % CI]"
+        "| step, or method against control | family | seeds | p, one-sided (test) | Holm p | rate ratio [95 % CI]"
         " | the paper's ratio | seed-level verdict |"
     )
     lines.append("|---|---|---|---|---|---|---|---|")

@@ -378,7 +378,7 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
     assert not record["block"]["sealed"] and "the open block of test roads (a smoke run" in (
         report.table1(record)
     )
-    assert "| the paper's step |" in report.table1(record)
+    assert "| step, or method against control |" in report.table1(record)
     assert "wrote" in capsys.readouterr().out
 
 
