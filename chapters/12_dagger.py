@@ -88,7 +88,7 @@ print(f"{len(seeds)} training seeds, {cfg.rounds} rounds of {cfg.samples:,} samp
 start0, _, _ = recipes.gmm_affordance_cvar(profile, train, val, weight, 0)
 drive = dagger.round_data(profile, cfg, 0, 0, "dagger")  # fresh training roads, no noise
 visited = collect(drive, progress=False, learner=TrajectoryAgent(start0), beta=cfg.betas[0],
-                  fresh_labels=cfg.labels == "fresh")  # fmt: skip
+                  fresh_labels=cfg.fresh)  # fmt: skip
 shift = dagger.covariate_shift(visited, [train])  # outside the data's 1-99 % range
 ft_data = dagger.finetune_set([train], visited, cfg.replay, 0, 0)  # new + replayed old
 objective, tcfg = recipes.finetune_settings(profile, weight, 0, "mean")

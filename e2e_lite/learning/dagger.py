@@ -100,6 +100,11 @@ class DaggerConfig:
         for k, beta in enumerate(self.betas):
             check_range(o, f"betas[{k}]", beta, 0.0, 1.0)
 
+    @property
+    def fresh(self) -> bool:
+        """Whether an expert planning afresh labels the learner's states (``labels="fresh"``)."""
+        return self.labels == "fresh"
+
     @classmethod
     def for_profile(cls, profile: Profile, **changes: Any) -> DaggerConfig:
         """The profile's rounds: a sixth of the training data per round in the full profile."""
@@ -135,7 +140,7 @@ def _stem(cfg: DaggerConfig, arm: str) -> str:
     if arm != "dagger":
         return f"12_{arm}"
     betas = "_beta" + "-".join(f"{b:g}" for b in cfg.betas) if any(cfg.betas) else ""
-    return "12_dagger" + ("_fresh" if cfg.labels == "fresh" else "") + betas
+    return "12_dagger" + ("_fresh" if cfg.fresh else "") + betas
 
 
 def samples_key(
@@ -149,7 +154,7 @@ def samples_key(
         return dcfg.key
     if learner is None:
         raise ValueError("samples_key: DAgger's round needs the learner that drives it")
-    return OnPolicy(learner, cfg.betas[r], cfg.labels == "fresh").key(dcfg)
+    return OnPolicy(learner, cfg.betas[r], cfg.fresh).key(dcfg)
 
 
 def round_samples(
@@ -172,7 +177,7 @@ def round_samples(
             agent = TrajectoryAgent(learner.eval())
             return collect(
                 dcfg, progress, learner=agent, beta=cfg.betas[r],
-                fresh_labels=cfg.labels == "fresh",
+                fresh_labels=cfg.fresh,
             )  # fmt: skip
 
     else:
