@@ -76,6 +76,20 @@ def test_beta_one_drives_exactly_the_experts_states():
     alone = collect(cfg, progress=False, workers=1)
     for name in alone.arrays:
         assert np.array_equal(mixed.arrays[name], alone.arrays[name]), name
+    # the control with fresh labels (DaggerConfig.control_labels): the same states, each labelled
+    # by an expert planning afresh there
+    from e2e_lite.control.expert import fresh_labels
+
+    shadow = Shadow()
+    fresh = collect(cfg, progress=False, workers=1, learner=shadow, fresh_labels=True)
+    for name in alone.arrays:
+        if name != "trajectory":
+            assert np.array_equal(fresh.arrays[name], alone.arrays[name]), name
+    quota = cfg.n_samples // cfg.n_worlds
+    for k, obs in enumerate(shadow.seen[:quota]):
+        want = fresh_labels(obs, list(range(cfg.n_worlds)), cfg.world.sim)
+        rows = np.arange(cfg.n_worlds) * quota + k
+        np.testing.assert_allclose(fresh.arrays["trajectory"][rows], want, atol=1e-5)
 
 
 def test_a_networks_round_gives_the_same_bytes_for_one_and_two_workers():
@@ -140,6 +154,13 @@ def test_the_finetunes_key_holds_the_parent_the_round_the_beta_and_the_data():
     assert dagger._stem(course, "dagger") == "12_dagger_fresh"
     assert dagger._stem(cfg, "dagger") == "12_dagger_fresh_beta0.5-0"
     assert dagger._stem(cfg, "control") == dagger._stem(course, "control") == "12_control"
+    relabelled = dataclasses.replace(course, control_labels="fresh")
+    assert dagger._stem(relabelled, "control") == "12_control_fresh"
+    assert dagger.samples_key(QUICK, relabelled, 0, 0, "control", None) != dagger.samples_key(
+        QUICK, course, 0, 0, "control", None
+    )
+    with pytest.raises(ValueError, match="control_labels"):
+        dagger.DaggerConfig(control_labels="oracle")
 
 
 def test_covariate_shift_counts_the_visits_outside_the_datas_range():

@@ -36,6 +36,7 @@ import numpy as np
 
 from ..artifacts import artifact_path, cached, settings_key
 from ..config import Profile, check_range
+from ..control.drivers import LaneKeeper
 from ..control.labels import AFFORDANCE_INDEX
 from ..driving.rollout import EvalConfig
 from . import recipes
@@ -78,6 +79,10 @@ class DaggerConfig:
             assumes; or ``"expert"``, the collector's expert, whose plans remember where it meant
             the car to be: it labels a learner that lagged its lane change with the rest of that
             plan, a swerve (lab note "Who labels DAgger's states": those rounds drove worse).
+        control_labels: who labels the control's states (the expert's own driving): the
+            collector's expert (``"expert"``, the course's: chapter 04's samples), or the fresh
+            expert (``"fresh"``), so that DAgger and its control differ in whose states alone
+            (lab note "DAgger's states or its labeller").
     """
 
     rounds: int = 2
@@ -85,11 +90,15 @@ class DaggerConfig:
     betas: tuple[float, ...] = (0.0, 0.0)
     replay: float = 1.0
     labels: str = "fresh"
+    control_labels: str = "expert"
 
     def __post_init__(self) -> None:
         o = "DaggerConfig"
-        if self.labels not in LABELS:
-            raise ValueError(f"{o}.labels={self.labels!r} is invalid: must be one of {LABELS}")
+        for name in ("labels", "control_labels"):
+            if getattr(self, name) not in LABELS:
+                raise ValueError(
+                    f"{o}.{name}={getattr(self, name)!r} is invalid: must be one of {LABELS}"
+                )
         check_range(o, "rounds", self.rounds, 1, 20, integer=True)
         check_range(o, "samples", self.samples, 1, integer=True)
         check_range(o, "replay", self.replay, 0.0, 100.0)
@@ -138,7 +147,7 @@ def _stem(cfg: DaggerConfig, arm: str) -> str:
     """The stored names' stem of ``arm``'s samples and networks (DAgger's say who labelled, and
     the betas when the expert executes any share, so a beta schedule keeps the course's own)."""
     if arm != "dagger":
-        return f"12_{arm}"
+        return f"12_{arm}" + ("_fresh" if cfg.control_labels == "fresh" else "")
     betas = "_beta" + "-".join(f"{b:g}" for b in cfg.betas) if any(cfg.betas) else ""
     return "12_dagger" + ("_fresh" if cfg.fresh else "") + betas
 
@@ -151,6 +160,8 @@ def samples_key(
     anything else collects anew, and the fine-tunes on it retrain: their data key holds this)."""
     dcfg = round_data(profile, cfg, seed, r, arm)
     if arm == "control":
+        if cfg.control_labels == "fresh":  # the key of round_samples' stand-in learner
+            return OnPolicy(LaneKeeper(), 1.0, True).key(dcfg)
         return dcfg.key
     if learner is None:
         raise ValueError("samples_key: DAgger's round needs the learner that drives it")
@@ -168,7 +179,8 @@ def round_samples(
 ) -> DrivingData:
     """Round ``r``'s samples of ``arm``, stored under ``<outputs>/data/`` and reused while the
     settings, the learner's weights and its beta are the same: DAgger's are the ``learner``'s
-    drive, labelled by the expert; the control's the expert's own."""
+    drive, labelled by the expert; the control's the expert's own (labelled by the collector's
+    expert, or afresh: ``cfg.control_labels``)."""
     dcfg = round_data(profile, cfg, seed, r, arm)
     key = samples_key(profile, cfg, seed, r, arm, learner)
     if arm == "dagger":
@@ -179,6 +191,12 @@ def round_samples(
                 dcfg, progress, learner=agent, beta=cfg.betas[r],
                 fresh_labels=cfg.fresh,
             )  # fmt: skip
+
+    elif cfg.control_labels == "fresh":  # a stand-in learner that never drives (beta 1): the
+        # states are the collector's own, bit for bit (tests/test_dagger.py); only labels change
+
+        def make() -> DrivingData:
+            return collect(dcfg, progress, learner=LaneKeeper(), beta=1.0, fresh_labels=True)
 
     else:
 
