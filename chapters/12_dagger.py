@@ -280,7 +280,9 @@ artifacts.write_metrics(
 #   range, round by round.
 # * A data method needs a data control: the same number of samples from the expert's own
 #   driving, on the same roads, with the same fine-tunes. Only a step that beats it is the
-#   learner's states; the verdict lines above say whether this run's did.
+#   learner's states; the verdict lines above say whether this run's did. A control must differ
+#   in one thing: this one's labels come from the collector's expert, DAgger's from the fresh
+#   one (exercise 7 holds the labeller fixed).
 # * DAgger can only label the states a round visits. Compare the miles one round drove (section
 #   2) with the miles between the start network's collisions (section 5): the states that end in
 #   a collision are rare, and a round of this size may visit none of them (exercise 6).
@@ -304,3 +306,6 @@ artifacts.write_metrics(
 # 6. Rare states: how many collisions should a round of `cfg.samples` meet at the start's rate on
 #    test roads? Run one round of six times the samples (`samples=6 * cfg.samples`): how many
 #    collisions did its collection meet, and does the fine-tune on them drive better?
+# 7. The control's labeller: run the control with `control_labels="fresh"` (its very states,
+#    labelled by the fresh expert). Does it still drive as the course's control does? Which of
+#    DAgger's two differences from its control, states or labels, moves the collisions?
