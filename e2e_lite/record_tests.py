@@ -63,15 +63,20 @@ POWER_ROW, POWER_STEP = "gmm_affordance", 2.0
 SLOW_SHARE = 0.9
 
 
-def verdict(test: dict[str, Any], slow_mph: float | None) -> str:
+#: what a verdict says when the later row collides less, per family: a step beyond the paper
+#: has nothing to reproduce, and a method that beats its control is credited
+FOUND = {"paper": "reproduces", "controls": "beats its control", "beyond": "fewer collisions"}
+
+
+def verdict(test: dict[str, Any], slow_mph: float | None, family: str = "paper") -> str:
     """A step's verdict from its seed-level test (:func:`~e2e_lite.driving.verdicts.compare_seeds`
     of the later row against the earlier), read at its family's Holm-adjusted p-values
     (``p_holm_fewer``, ``p_holm_more``; the raw ones where absent), with the later row's speed
-    when it is slow."""
+    when it is slow; in the words of its ``family`` (:data:`FOUND`)."""
     fewer = test.get("p_holm_fewer", test["p_fewer"]) < 0.05 - 1e-9
     more = test.get("p_holm_more", test["p_more"]) < 0.05 - 1e-9
     if fewer:
-        text = "reproduces"
+        text = FOUND.get(family, FOUND["paper"])
     elif more:
         text = "the opposite"
     elif test["min_p"] >= 0.05:
@@ -127,7 +132,7 @@ def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
     for o in out:
         test = {"p_fewer": o["p_better"], "p_more": o["p_worse"], "min_p": o["min_p"],
                 "p_holm_fewer": o["p_holm"], "p_holm_more": o["p_holm_worse"]}  # fmt: skip
-        o["verdict"] = verdict(test, o.pop("slow_mph"))
+        o["verdict"] = verdict(test, o.pop("slow_mph"), o["family"])
     return out
 
 
@@ -138,7 +143,7 @@ def controls_line(tested: list[dict[str, Any]]) -> str:
     for st in tested:
         if st["credits"] is None:
             continue
-        credited = st["verdict"].startswith("reproduces")
+        credited = st["verdict"].startswith(FOUND["controls"])
         found.append(
             f"{st['step']}: {'beaten' if credited else 'not beaten'} (Holm p = {st['p_holm']:.2g},"
             f" ratio {st['ratio']:.2f}), so '{st['credits']}' is "
@@ -207,5 +212,5 @@ def family_line(record: dict[str, Any]) -> str:
         f" The families of tests, declared {fam['declared']}: " + "; ".join(parts) + ". Each"
         " family's p-values are Holm-adjusted together, and the verdict reads the adjusted p at"
         " 0.05; 'reproduces' means the direction of the paper's step, whose own ratio is beside"
-        " ours."
+        " ours ('beats its control', 'fewer collisions': the same for a control, a step beyond)."
     )

@@ -186,6 +186,16 @@ def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_pape
     assert aff["verdict"] == "reproduces"
     assert steps["Baseline E2E -> trajectory GMM"]["paper_ratio"] == pytest.approx(12.7 / 183.3)
     assert aff["paper_ratio"] is None  # the hand-made row has no paper figure
+    # a method that beats its control says so in its family's words, and is credited
+    beaten = copy.deepcopy(record)
+    beaten["rows"][3] = row("gmm_affordance_w0", [30, 35, 28, 40, 33])
+    control = {s["step"]: s for s in report.steps(beaten)}[
+        "affordance loss against its control (w = 0)"
+    ]
+    assert control["verdict"] == "beats its control"
+    assert "so 'GMM -> + affordance' is credited to its method" in report.controls_line(
+        report.steps(beaten)
+    )
     # a family that holds every test in one: Holm over three (the control's p is about 0.5)
     # takes it to 2 x 7/252 = 0.056, and the same seeds no longer read "reproduces"
     record["family"] = {
