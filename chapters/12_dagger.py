@@ -203,9 +203,10 @@ print(f"saved {png}")
 #
 # The start network, the last DAgger round and the last control round drive the test roads
 # (chapter 10's: seed `k` of each on the same roads), and two paired sign-flip tests by seed read
-# them: **the step** (last round against its start network) and **the states** (DAgger against
-# its control, which shares its parent, its roads and its fine-tunes). The power line says what
-# these seeds can find: a true 2x step at the start's rate, with the record's seed spread.
+# them: **the step** (last round against its start network) and **the control** (DAgger against
+# its control, which shares its parent, its roads and its fine-tunes, but not its labeller:
+# exercise 7). The power line says what these seeds can find: a true 2x step at the start's
+# rate, with the record's seed spread.
 
 # %%
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
@@ -226,7 +227,7 @@ print(f"{len(seeds)} seeds x {per_mi:.3g} mi: a true 2x step at {start_rate:.1f}
       f"{spread_k:.2f}); smallest reachable p {reach['min_p']:.2g}")  # fmt: skip
 verdicts = {
     "the step: DAgger's last round vs its start": compare_seeds(test["dagger"], test["start"], paired=True),
-    "the states: DAgger vs its control": compare_seeds(test["dagger"], test["control"], paired=True),
+    "the control: DAgger vs its control": compare_seeds(test["dagger"], test["control"], paired=True),
     "the control's step: control vs the start": compare_seeds(test["control"], test["start"], paired=True),
 }  # fmt: skip
 for what, v in verdicts.items():
