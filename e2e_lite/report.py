@@ -162,8 +162,8 @@ def table1(record: dict[str, Any]) -> str:
         lines.append("| " + " | ".join(_row_cells(row, expert_mph)) + " |")
     lines.append("")
     lines.append(
-        "| step, or method against control | family | seeds | p, one-sided (test) | Holm p | rate ratio [95 % CI]"
-        " | the paper's ratio | seed-level verdict |"
+        "| step, or method against control | family | seeds | p, one-sided (test) | Holm p"
+        " | rate ratio [95 % CI] | the paper's ratio | seed-level verdict |"
     )
     lines.append("|---|---|---|---|---|---|---|---|")
     tested = steps(record)

@@ -9,30 +9,20 @@ variant's labels ask for more than 1.5 m of sideways motion at 1.5 s.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import numpy as np
+from dagger_setup import setup
 
 from e2e_lite import ablation
-from e2e_lite.config import FULL, QUICK
 from e2e_lite.driving.evaluation import seed_counts
-from e2e_lite.learning import dagger, recipes
+from e2e_lite.learning import dagger
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.data import DataConfig, load_or_collect
-from e2e_lite.simulation.world import WorldConfig
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true")
-    profile = QUICK if parser.parse_args().quick else FULL
-    world_cfg = WorldConfig.for_profile(profile)
-    train = load_or_collect(DataConfig.for_profile(profile, "train"))
-    val = load_or_collect(DataConfig.for_profile(profile, "val"))
-    weight = recipes.affordance_weight(profile, train, val)
-    seeds = range(profile.ablation_seeds)
+    profile, world_cfg, train, val, weight, seeds = setup(__doc__)
     on_val = dagger.val_roads(profile.eval_miles, profile.ablation_worlds)
     out = {"profile": profile.name, "variants": {}}
     for labels in dagger.LABELS:

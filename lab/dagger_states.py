@@ -13,28 +13,19 @@ arm; the course's arms' drives are chapter 12's, reused).
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
+from dagger_setup import setup
+
 from e2e_lite import ablation
-from e2e_lite.config import FULL, QUICK
 from e2e_lite.driving.evaluation import EvalConfig, compare_seeds, seed_counts
-from e2e_lite.learning import dagger, recipes
+from e2e_lite.learning import dagger
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.data import DataConfig, load_or_collect
-from e2e_lite.simulation.world import WorldConfig
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true")
-    profile = QUICK if parser.parse_args().quick else FULL
-    world_cfg = WorldConfig.for_profile(profile)
-    train = load_or_collect(DataConfig.for_profile(profile, "train"))
-    val = load_or_collect(DataConfig.for_profile(profile, "val"))
-    weight = recipes.affordance_weight(profile, train, val)
-    seeds = range(profile.ablation_seeds)
+    profile, world_cfg, train, val, weight, seeds = setup(__doc__)
     course = dagger.DaggerConfig.for_profile(profile)
     expert_states = dagger.DaggerConfig.for_profile(profile, betas=(1.0,) * course.rounds)
     relabelled = dagger.DaggerConfig.for_profile(profile, control_labels="fresh")

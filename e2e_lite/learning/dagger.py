@@ -146,10 +146,17 @@ def round_data(profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str)
 def _stem(cfg: DaggerConfig, arm: str) -> str:
     """The stored names' stem of ``arm``'s samples and networks (DAgger's say who labelled, and
     the betas when the expert executes any share, so a beta schedule keeps the course's own)."""
-    if arm != "dagger":
-        return f"12_{arm}" + ("_fresh" if cfg.control_labels == "fresh" else "")
-    betas = "_beta" + "-".join(f"{b:g}" for b in cfg.betas) if any(cfg.betas) else ""
-    return "12_dagger" + ("_fresh" if cfg.fresh else "") + betas
+    fresh = cfg.fresh if arm == "dagger" else cfg.control_labels == "fresh"
+    mixed = arm == "dagger" and any(cfg.betas)
+    betas = "_beta" + "-".join(f"{b:g}" for b in cfg.betas) if mixed else ""
+    return f"12_{arm}" + ("_fresh" if fresh else "") + betas
+
+
+def _relabelled_control() -> OnPolicy:
+    """The control's collection with fresh labels: a stand-in learner that never drives (beta 1),
+    so the states are the collector's own, bit for bit (tests/test_dagger.py): only the labels
+    change."""
+    return OnPolicy(LaneKeeper(), 1.0, fresh=True)
 
 
 def samples_key(
@@ -160,9 +167,7 @@ def samples_key(
     anything else collects anew, and the fine-tunes on it retrain: their data key holds this)."""
     dcfg = round_data(profile, cfg, seed, r, arm)
     if arm == "control":
-        if cfg.control_labels == "fresh":  # the key of round_samples' stand-in learner
-            return OnPolicy(LaneKeeper(), 1.0, True).key(dcfg)
-        return dcfg.key
+        return _relabelled_control().key(dcfg) if cfg.control_labels == "fresh" else dcfg.key
     if learner is None:
         raise ValueError("samples_key: DAgger's round needs the learner that drives it")
     return OnPolicy(learner, cfg.betas[r], cfg.fresh).key(dcfg)
@@ -192,11 +197,11 @@ def round_samples(
                 fresh_labels=cfg.fresh,
             )  # fmt: skip
 
-    elif cfg.control_labels == "fresh":  # a stand-in learner that never drives (beta 1): the
-        # states are the collector's own, bit for bit (tests/test_dagger.py); only labels change
+    elif cfg.control_labels == "fresh":
 
         def make() -> DrivingData:
-            return collect(dcfg, progress, learner=LaneKeeper(), beta=1.0, fresh_labels=True)
+            p = _relabelled_control()
+            return collect(dcfg, progress, learner=p.learner, beta=p.beta, fresh_labels=p.fresh)
 
     else:
 
