@@ -53,8 +53,9 @@ seeds = list(range(profile.ablation_seeds))  # chapter 10's training seeds
 # ## 1. The start network, and the rounds
 #
 # The start is **GMM + affordance + CVaR** (chapter 09), one network per training seed: the
-# record's lowest pooled rate among the paper's rows (tied with the mean fine-tune, its control)
-# and the paper's final row. A round (`dagger.DaggerConfig`) adds a sixth of the training data:
+# paper's final row, and the lowest pooled rate among the paper's rows (tied with its control,
+# the mean fine-tune) in the first record (seeds 0-9), the one this recipe was chosen on. A
+# round (`dagger.DaggerConfig`) adds a sixth of the training data:
 #
 # * the current network drives fresh **training** roads (never validation or test roads), the
 #   expert executing a share `beta` of the decisions. Ross et al.'s first round (`beta = 1`,
