@@ -136,6 +136,20 @@ def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
+def verdict_p(step: dict[str, Any]) -> float:
+    """The Holm-adjusted p a tested step's verdict (:func:`steps`) reads: the one for more
+    collisions when the verdict is the opposite of the step's direction, else the one for fewer."""
+    return step["p_holm_worse"] if step["verdict"].startswith("the opposite") else step["p_holm"]
+
+
+def verdict_cell(step: dict[str, Any]) -> str:
+    """A tested step's verdict as the steps table shows it: the opposite of the step's direction
+    with the p it reads, since the table's p-values are those for fewer collisions."""
+    if step["verdict"].startswith("the opposite"):
+        return f"{step['verdict']}: more collisions, Holm p {verdict_p(step):.2g}"
+    return step["verdict"]
+
+
 def controls_line(tested: list[dict[str, Any]]) -> str:
     """One sentence per control among the ``tested`` steps (:func:`steps`): what its test found,
     and so whether the step it tests is credited to its method ("" without a control)."""
@@ -144,9 +158,11 @@ def controls_line(tested: list[dict[str, Any]]) -> str:
         if st["credits"] is None:
             continue
         credited = st["verdict"].startswith(FOUND["controls"])
+        worse = st["verdict"].startswith("the opposite")
+        what = "beaten" if credited else "the control collides less" if worse else "not beaten"
         found.append(
-            f"{st['step']}: {'beaten' if credited else 'not beaten'} (Holm p = {st['p_holm']:.2g},"
-            f" ratio {st['ratio']:.2f}), so '{st['credits']}' is "
+            f"{st['step']}: {what} (Holm p = {verdict_p(st):.2g}, ratio {st['ratio']:.2f}), so"
+            f" '{st['credits']}' is "
             + ("credited to its method" if credited else "not credited to its method")
         )
     return "" if not found else "**What the controls found.** " + "; ".join(found) + "."

@@ -47,6 +47,8 @@ from .record_tests import (  # noqa: F401 (re-exported: chapter 10 and the tests
     record_power,
     steps,
     verdict,
+    verdict_cell,
+    verdict_p,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -174,7 +176,7 @@ def table1(record: dict[str, Any]) -> str:
         lines.append(
             f"| {st['step']} | {st['family']} | {st['seeds'][0]} vs {st['seeds'][1]} | "
             f"{st['p_better']:.2g} ({st['test']}) | {st['p_holm']:.2g} | {ratio} | {paper} | "
-            f"{st['verdict']} |"
+            f"{verdict_cell(st)} |"
         )
     controls = controls_line(tested)
     if controls:
@@ -362,7 +364,7 @@ def _one_run_against_the_record(record: dict[str, Any]) -> str:
         if k in rows
     )
     controls = "; ".join(
-        f"{st['step']}: {st['verdict']} (Holm p = {st['p_holm']:.2g})"
+        f"{st['step']}: {st['verdict']} (Holm p = {verdict_p(st):.2g})"
         for st in steps(record)
         if st["credits"] is not None
     )

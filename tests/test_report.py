@@ -215,6 +215,18 @@ def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_pape
     assert "so 'GMM -> + affordance' is credited to its method" in report.controls_line(
         report.steps(beaten)
     )
+    # a control that collides less reads "the opposite", and the table, the controls line and
+    # the teacher's line show the p for more collisions that verdict reads, not the p = 1 for fewer
+    worse = copy.deepcopy(record)
+    worse["rows"][3] = row("gmm_affordance_w0", [0, 1, 0, 1, 0])
+    opposite = next(s for s in report.steps(worse) if s["step"].startswith("affordance loss"))
+    assert opposite["verdict"] == "the opposite" and opposite["p_better"] == pytest.approx(1.0)
+    assert report.verdict_p(opposite) == opposite["p_holm_worse"] < 0.05
+    cell = f"the opposite: more collisions, Holm p {opposite['p_holm_worse']:.2g}"
+    assert report.verdict_cell(opposite) == cell and cell in report.table1(worse)
+    assert f"the control collides less (Holm p = {opposite['p_holm_worse']:.2g}" in (
+        report.controls_line(report.steps(worse))
+    )
     # a family that holds every test in one: Holm over three (the control's p is about 0.5)
     # takes it to 2 x 7/252 = 0.056, and the same seeds no longer read "reproduces"
     record["family"] = {
