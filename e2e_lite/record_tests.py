@@ -66,6 +66,8 @@ SLOW_SHARE = 0.9
 #: what a verdict says when the later row collides less, per family: a step beyond the paper
 #: has nothing to reproduce, and a method that beats its control is credited
 FOUND = {"paper": "reproduces", "controls": "beats its control", "beyond": "fewer collisions"}
+#: what a verdict says when the later row collides more, in every family
+OPPOSITE = "the opposite"
 
 
 def verdict(test: dict[str, Any], slow_mph: float | None, family: str = "paper") -> str:
@@ -78,7 +80,7 @@ def verdict(test: dict[str, Any], slow_mph: float | None, family: str = "paper")
     if fewer:
         text = FOUND.get(family, FOUND["paper"])
     elif more:
-        text = "the opposite"
+        text = OPPOSITE
     elif test["min_p"] >= 0.05:
         text = "cannot be decided with these seeds"
     else:
@@ -139,13 +141,13 @@ def steps(record: dict[str, Any]) -> list[dict[str, Any]]:
 def verdict_p(step: dict[str, Any]) -> float:
     """The Holm-adjusted p a tested step's verdict (:func:`steps`) reads: the one for more
     collisions when the verdict is the opposite of the step's direction, else the one for fewer."""
-    return step["p_holm_worse"] if step["verdict"].startswith("the opposite") else step["p_holm"]
+    return step["p_holm_worse"] if step["verdict"].startswith(OPPOSITE) else step["p_holm"]
 
 
 def verdict_cell(step: dict[str, Any]) -> str:
     """A tested step's verdict as the steps table shows it: the opposite of the step's direction
     with the p it reads, since the table's p-values are those for fewer collisions."""
-    if step["verdict"].startswith("the opposite"):
+    if step["verdict"].startswith(OPPOSITE):
         return f"{step['verdict']}: more collisions, Holm p {verdict_p(step):.2g}"
     return step["verdict"]
 
@@ -158,7 +160,7 @@ def controls_line(tested: list[dict[str, Any]]) -> str:
         if st["credits"] is None:
             continue
         credited = st["verdict"].startswith(FOUND["controls"])
-        worse = st["verdict"].startswith("the opposite")
+        worse = st["verdict"].startswith(OPPOSITE)
         what = "beaten" if credited else "the control collides less" if worse else "not beaten"
         found.append(
             f"{st['step']}: {what} (Holm p = {verdict_p(st):.2g}, ratio {st['ratio']:.2f}), so"
