@@ -26,9 +26,9 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.geometry import generate_track
-from e2e_lite.simulation.raster import clip_near, save_image
+from e2e_lite.simulation.raster import clip_near, draw_trajectory, save_image
 from e2e_lite.simulation.topdown import render_topdown
 from e2e_lite.simulation.world import ParkedCars, WorldConfig, make_world
 from e2e_lite.viz import save_figure

@@ -145,8 +145,8 @@ sc = ax2.scatter(
     poles.real.ravel(), poles.imag.ravel(), c=np.repeat(speeds, 2), s=8, cmap="viridis"
 )
 fig.colorbar(sc, ax=ax2, label="speed [m/s]")
-ax2.set(xlim=(0.5, 1.05), ylim=(-0.3, 0.3), aspect="equal", title="closed-loop poles (unit circle)",
-        xlabel="real part", ylabel="imaginary part")  # fmt: skip
+ax2.set(xlim=(0.5, 1.05), ylim=(-0.3, 0.3), aspect="equal", xlabel="real", ylabel="imaginary")
+ax2.set_title("closed-loop poles (unit circle)")
 gains_png = save_figure(fig, artifacts.artifact_path("figures", "03_gains.png"))
 print(f"saved {gains_png}")
 

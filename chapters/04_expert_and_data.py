@@ -44,7 +44,7 @@ from e2e_lite.driving.evaluation import (
     observe,
     speed_histogram,
 )
-from e2e_lite.learning.data import (
+from e2e_lite.learning.collector import (
     AFFORDANCE_NAMES,
     SLOW_MPS,
     DataConfig,
@@ -52,9 +52,9 @@ from e2e_lite.learning.data import (
     describe,
     load_or_collect,
 )
-from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.geometry import Track
-from e2e_lite.simulation.raster import save_image, tile
+from e2e_lite.simulation.raster import draw_trajectory, save_image, tile
 from e2e_lite.simulation.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
 from e2e_lite.simulation.world import ParkedCars, World, WorldConfig, make_world
 from e2e_lite.viz import draw_road, save_figure
@@ -326,13 +326,11 @@ fig = Figure(figsize=(8.5, 3.6))
 ax = fig.subplots()
 edges = np.arange(SPEED_BINS + 1)
 for (name, h), style in zip(coverage.items(), ("-", "--", "-", ":")):
-    ax.stairs(h / h.sum(), edges, label=f"{name} ({slow_shares[name]:.1%} below {SLOW_MPS:g} m/s)",
-              ls=style, lw=1.8)  # fmt: skip
+    label = f"{name} ({slow_shares[name]:.1%} below {SLOW_MPS:g} m/s)"
+    ax.stairs(h / h.sum(), edges, label=label, ls=style, lw=1.8)
 ax.axvline(SLOW_MPS, color="0.5", lw=0.8)
-ax.set(
-    xlim=(12, 28), yscale="log", ylim=(1e-4, 1.2), xlabel="speed [m/s] (1 m/s bins)",
-    ylabel="share of samples / decisions", title="speeds in the data and in closed loop",
-)  # fmt: skip
+ax.set(xlim=(12, 28), yscale="log", ylim=(1e-4, 1.2), xlabel="speed [m/s] (1 m/s bins)")
+ax.set(ylabel="share of samples / decisions", title="speeds in the data and in closed loop")
 ax.legend(fontsize=8, loc="upper left")
 coverage_png = save_figure(fig, artifacts.artifact_path("figures", "04_speed_coverage.png"))
 for name, share in slow_shares.items():

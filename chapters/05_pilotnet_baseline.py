@@ -34,7 +34,7 @@ from e2e_lite import artifacts
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, results_table
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import ActuatorAgent, SteeringAgent
-from e2e_lite.learning.data import DataConfig, DrivingDataset, concat, load_or_collect
+from e2e_lite.learning.collector import DataConfig, DrivingDataset, concat, load_or_collect
 from e2e_lite.learning.losses import Objective
 from e2e_lite.learning.models import build_model, count_parameters, pick_device, prepare
 from e2e_lite.learning.recovery import RecoveryConfig, load_or_make_recovery
@@ -166,8 +166,9 @@ gap = max(
     float((a - b).detach().abs().max())
     for a, b in zip(by_hand.parameters(), by_library.parameters())
 )
-print(f"{len(few)} samples, {len(few) // check_cfg.batch_size} steps: the largest weight "
-      f"difference between the written-out loop and the library's is {gap:.1e}")  # fmt: skip
+steps = len(few) // check_cfg.batch_size
+between = "between the written-out loop and the library's"
+print(f"{len(few)} samples, {steps} steps: the largest weight difference {between} is {gap:.1e}")
 assert gap < 1e-6, gap
 
 # %% [markdown]
@@ -342,6 +343,6 @@ artifacts.write_metrics(
 #    loss go up or down? And the collisions? Explain the difference.
 # 2. Replace the cruise control of `SteeringAgent` by a constant 25 m/s. Which collisions appear?
 # 3. Seed 002 predicted throttle and brake instead of acceleration. Use
-#    `e2e_lite.learning.data.throttle_brake` to make those targets and train a 3-output head. What changes?
+#    `e2e_lite.learning.collector.throttle_brake` to make those targets and train a 3-output head. What changes?
 # 4. Look at `outputs/figures/train_05_actuators.png`. Is the kept epoch the last? What would more
 #    epochs buy, and what would they cost on this CPU?

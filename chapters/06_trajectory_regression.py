@@ -31,10 +31,10 @@ from e2e_lite.control.labels import CHANGE, KEEP
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe, results_table
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.data import DataConfig, DrivingDataset, load_or_collect
+from e2e_lite.learning.collector import DataConfig, DrivingDataset, load_or_collect
 from e2e_lite.learning.training import evaluate_loss
-from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
-from e2e_lite.simulation.raster import save_image
+from e2e_lite.simulation.camera import Camera, CameraConfig
+from e2e_lite.simulation.raster import draw_trajectory, save_image
 from e2e_lite.simulation.scenarios import two_answers_scene
 from e2e_lite.simulation.world import World, WorldConfig, make_world
 
@@ -169,12 +169,10 @@ draw_trajectory(img, pred, human, colour=(255, 40, 40), label="L2")
 scene_png = save_image(artifacts.artifact_path("figures", "06_l2_averages.png"), img)
 mean_y, lane_w = float(np.mean(expert_y)), world_cfg.road.lane_width_m
 between = abs(pred[-1, 1]) < lane_w / 2 and min(expert_y) < pred[-1, 1] < max(expert_y)
-print(
-    f"expert end points y5: {np.round(expert_y, 2).tolist()} m (mean {mean_y:+.2f}); L2 "
-    f"prediction y5 {pred[-1, 1]:+.2f} m: "
-    + ("between the answers, in the parked car's lane: it averages" if between
-       else "not in the parked car's lane: it commits to a side here")
-)  # fmt: skip
+averages = "between the answers, in the parked car's lane: it averages"
+commits = "not in the parked car's lane: it commits to a side here"
+ends = f"expert end points y5: {np.round(expert_y, 2).tolist()} m (mean {mean_y:+.2f})"
+print(f"{ends}; L2 prediction y5 {pred[-1, 1]:+.2f} m: {averages if between else commits}")
 print(f"saved {scene_png}")
 
 # %%

@@ -49,10 +49,11 @@ from e2e_lite.driving.evaluation import (
 )
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.data import DataConfig, DrivingDataset, load_or_collect, situations
+from e2e_lite.learning.collector import DataConfig, DrivingDataset, load_or_collect, situations
 from e2e_lite.learning.heads import gmm_nll
 from e2e_lite.learning.training import DECISIVE, VAL_ROADS, evaluate_loss
-from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.camera import Camera, CameraConfig
+from e2e_lite.simulation.raster import draw_trajectory
 from e2e_lite.simulation.scenarios import (
     START_S_M,
     ScenarioConfig,
@@ -202,12 +203,12 @@ def modes_panels(ax_img, ax_xy, img, last, title, expert=None) -> None:
     ax_img.set_title(title, fontsize=10)
     for k in range(last["modes"].shape[1]):
         pts = last["modes"][0, k]
-        ax_xy.plot(pts[:, 1], pts[:, 0], "o-", color=np.array(MODE_RGB[k % 4]) / 255,
-                   label=f"mode {k + 1}, weight {last['weights'][0, k]:.2f}")  # fmt: skip
+        label = f"mode {k + 1}, weight {last['weights'][0, k]:.2f}"
+        ax_xy.plot(pts[:, 1], pts[:, 0], "o-", color=np.array(MODE_RGB[k % 4]) / 255, label=label)
     if expert is not None:
         # open squares under the modes: a mode on the expert's path stays visible
-        ax_xy.plot(expert[:, 1], expert[:, 0], "s--", color=np.array(EXPERT_RGB) / 255,
-                   mfc="none", ms=9, zorder=1, label="expert's trajectory")  # fmt: skip
+        look = {"color": np.array(EXPERT_RGB) / 255, "mfc": "none", "ms": 9, "zorder": 1}
+        ax_xy.plot(expert[:, 1], expert[:, 0], "s--", label="expert's trajectory", **look)
     ax_xy.plot([0], [0], "k^", label="the car (rear axle)")
     ax_xy.set_xlim(4.5, -4.5)  # left of the car is drawn on the left
     ax_xy.set_xlabel("lateral position y, left positive [m]")
@@ -256,8 +257,8 @@ modes_panels(
     "a straight validation frame, no car within 60 m",
     expert=val.trajectory[i],
 )
-modes_panels(axes[0, 1], axes[1, 1], right_img, bi,
-             "chapter 06's scene: a parked car 44 m ahead")  # fmt: skip
+bimodal_title = "chapter 06's scene: a parked car 44 m ahead"
+modes_panels(axes[0, 1], axes[1, 1], right_img, bi, bimodal_title)
 fig.suptitle("The GMM's modes at 0.3-1.5 s: on the camera view and top-down", fontsize=11)
 fig3_png = save_figure(fig, artifacts.artifact_path("figures", "07_gmm_modes.png"))
 gap_uni = float(np.abs(uni["modes"][0, 0, -1] - uni["modes"][0, 1, -1]).max())
@@ -333,8 +334,8 @@ for name, r in scene_results.items():
     print(f"{name:6s} {r.summary()}")
 shows = scene_results["L2"].pass_rate < scene_results["GMM"].pass_rate
 rates = {n: f"{scene_results[n].pass_rate:.0%}" for n in ("L2", "GMM")}
-print(f"L2 passed {rates['L2']}, the GMM {rates['GMM']}: "
-      + ("the scenes show averaging" if shows else "no averaging shows (L2 fails no more)"))  # fmt: skip
+found = "the scenes show averaging" if shows else "no averaging shows (L2 fails no more)"
+print(f"L2 passed {rates['L2']}, the GMM {rates['GMM']}: {found}")
 fig = Figure(figsize=(10, 3.4))
 axes = fig.subplots(1, 3, sharey=True)
 lane_w = world_cfg.road.lane_width_m
@@ -347,8 +348,8 @@ for ax, (name, r) in zip(axes, scene_results.items()):
     ax.add_patch(Rectangle((-2.25, -0.9), 4.5, 1.8, color="0.2"))  # the parked car
     for line in (-1.5, -0.5, 0.5, 1.5):
         ax.axhline(line * lane_w, color="0.7", lw=0.6, ls="-" if abs(line) == 1.5 else "--")
-    ax.set(xlim=(-90, 25), xlabel="distance to the parked car [m]",
-           title=f"{name}: {r.pass_rate:.0%} passed")  # fmt: skip
+    title = f"{name}: {r.pass_rate:.0%} passed"
+    ax.set(xlim=(-90, 25), xlabel="distance to the parked car [m]", title=title)
 axes[0].set_ylabel("lateral position from the middle lane's centre [m]")
 scenes_png = save_figure(fig, artifacts.artifact_path("figures", "07_overtake_scenes.png"))
 print(f"saved {scenes_png} (25 scenes per driver: green passed, red collided, orange stuck)")
@@ -384,8 +385,8 @@ def predict_rows(probe: TrajectoryAgent, rows: np.ndarray) -> dict[str, np.ndarr
 probe_rows = np.arange(0, len(val), max(1, len(val) // 4000))
 masks = situations(val.arrays, probe_rows)
 masks["other"] = ~(masks["overtake_start"] | masks["slow"] | masks["curve"])
-learned, _, learned_hist = recipes.gmm(profile, train, val, name="07_gmm_sigma_learned",
-                                      sigma="learned")  # fmt: skip
+learned_name = "07_gmm_sigma_learned"
+learned, _, learned_hist = recipes.gmm(profile, train, val, name=learned_name, sigma="learned")
 print(f"learned sigmas: kept epoch {learned_hist.best_epoch + 1} of {len(learned_hist.epochs)}")
 probed = predict_rows(TrajectoryAgent(learned), probe_rows)
 heaviest = probed["weights"].argmax(axis=1)
@@ -409,8 +410,8 @@ for name, m in masks.items():
             for j, axis in ((1, "y"), (0, "x"))
         },
     }
-    print(f"| {name} | {r['frames']} | {r['sigma_y_1p5s_m']:.3f} | {r['sigma_x_1p5s_m']:.3f} | "
-          f"{r['weight_y']:.2f} | {r['weight_x']:.2f} |")  # fmt: skip
+    sig = f"{r['sigma_y_1p5s_m']:.3f} | {r['sigma_x_1p5s_m']:.3f}"
+    print(f"| {name} | {r['frames']} | {sig} | {r['weight_y']:.2f} | {r['weight_x']:.2f} |")
 
 # %% [markdown]
 # A weight under 1 is a situation the learned-sigma GMM learns less from than from plain driving.
@@ -420,8 +421,8 @@ for name, m in masks.items():
 
 # %%
 res_learned = evaluate(TrajectoryAgent(learned), world_cfg, ev, desc="GMM, learned sigmas")
-print(results_table([("GMM, sigma held (the course's)", res),
-                     ("GMM, learned sigmas (the paper's)", res_learned)]))  # fmt: skip
+fixed_sigma, free_sigma = "GMM, sigma held (the course's)", "GMM, learned sigmas (the paper's)"
+print(results_table([(fixed_sigma, res), (free_sigma, res_learned)]))
 sigma_verdict = "held vs learned sigmas: " + compare_rates(res, res_learned)["verdict"]
 print(sigma_verdict)
 

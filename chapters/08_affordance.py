@@ -49,7 +49,7 @@ from e2e_lite.driving.evaluation import (
 )
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import Recorder, TrajectoryAgent
-from e2e_lite.learning.data import (
+from e2e_lite.learning.collector import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,
@@ -219,8 +219,9 @@ goals = goal_ratios(errors)
 errors_joint = affordance_errors(pred_joint, true, a_mean)
 goals_joint = goal_ratios(errors_joint)
 for what, ratio in goals.items():
-    print(f"{what}: {ratio:.2f} of the mean predictor's ({'met' if ratio <= 0.5 else 'not met'}: "
-          f"the goal is at most half); the joint head of the kept epoch {goals_joint[what]:.2f}")  # fmt: skip
+    met = "met" if ratio <= 0.5 else "not met"
+    joint = f"the joint head of the kept epoch {goals_joint[what]:.2f}"
+    print(f"{what}: {ratio:.2f} of the mean predictor's ({met}: the goal is at most half); {joint}")
 print(f"saved {scatter_png}")
 
 # %% [markdown]

@@ -41,8 +41,7 @@ from e2e_lite.driving.evaluation import (
     results_table,
 )
 from e2e_lite.learning import recipes
-from e2e_lite.learning.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
-from e2e_lite.learning.data import (
+from e2e_lite.learning.collector import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,
@@ -50,6 +49,7 @@ from e2e_lite.learning.data import (
     load_or_collect,
     situation_shares,
 )
+from e2e_lite.learning.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.learning.training import evaluate_loss
 from e2e_lite.simulation.raster import save_image
 from e2e_lite.simulation.world import WorldConfig
@@ -186,13 +186,15 @@ shares_tail, shares_all = shares["tail"], shares["random"]
 print(f"{len(tail_rows)} tail samples out of {len(probe_rows)}:")
 print(f"  {'situation':28s} {'by loss':>8s} {'by error':>9s} {'random':>7s}")
 for key in shares_all:
-    print(f"  {key:28s} {shares['tail'][key]:8.1%} {shares['error_tail'][key]:9.1%} "
-          f"{shares['random'][key]:7.1%}")  # fmt: skip
+    tail, error_tail, anywhere = (shares[k][key] for k in ("tail", "error_tail", "random"))
+    print(f"  {key:28s} {tail:8.1%} {error_tail:9.1%} {anywhere:7.1%}")
 both_tails = float(np.mean(in_error_tail[in_tail]))
-print(f"the loss's tail and the followed error's tail share {both_tails:.0%} of their samples; "
-      f"followed ADE in the loss's tail {probe_metrics['ADE [m]'][in_tail].mean():.2f} m, in the "
-      f"error's {probe_metrics['ADE [m]'][in_error_tail].mean():.2f} m, "
-      f"overall {probe_metrics['ADE [m]'].mean():.2f} m")  # fmt: skip
+ade = probe_metrics["ADE [m]"]
+shared = f"the loss's tail and the followed error's tail share {both_tails:.0%} of their samples"
+in_tails = f"in the loss's tail {ade[in_tail].mean():.2f} m, in the error's"
+print(
+    f"{shared}; followed ADE {in_tails} {ade[in_error_tail].mean():.2f} m, overall {ade.mean():.2f} m"
+)
 pick_tail = tail_rows[np.argsort(probe_losses[in_tail])[::-1][:8]]
 pick_random = rng.choice(random_rows, size=min(8, len(random_rows)), replace=False)
 grid_img = np.concatenate(

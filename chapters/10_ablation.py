@@ -41,16 +41,14 @@ from e2e_lite.driving.evaluation import (
     EvalConfig,
     collision_kinds,
     compare_rates,
-    compare_seeds,
     miles_text,
-    power,
     result_dict,
     results_table,
-    seed_counts,
 )
-from e2e_lite.driving.verdicts import rank_test, sign_flip_test
-from e2e_lite.learning.data import DataConfig, load_or_collect
-from e2e_lite.report import SPREAD_GOAL, STEPS, load, record_dispersion, spread, verdict
+from e2e_lite.driving.verdicts import compare_seeds, power, rank_test, seed_counts, sign_flip_test
+from e2e_lite.learning.collector import DataConfig, load_or_collect
+from e2e_lite.record.stats import SPREAD_GOAL, STEPS, record_dispersion, spread, verdict
+from e2e_lite.report import load
 from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.viz import collision_chart, save_figure
 
@@ -114,7 +112,7 @@ print(table + profile.caveat)
 # First, what these seeds and miles can show at all: the smallest p-value the seeds can reach,
 # and how often a record of this size finds a true 2x step at the + affordance row's rate
 # (`power`), with seeds that spread as the record's seeds do (a negative binomial fitted to its
-# rows, `report.record_dispersion`) and, as an upper bound, seeds that do not differ at all.
+# rows, `record.stats.record_dispersion`) and, as an upper bound, seeds that do not differ at all.
 
 # %%
 aff_counts, per_seed_mi = seed_counts(results["gmm_affordance"])
@@ -154,15 +152,15 @@ def flip_p(a, b):  # P(sum of the flipped differences <= observed), every patter
 
 
 gmm_counts, cvar_counts = (seed_counts(results[k])[0] for k in ("gmm", "gmm_affordance_cvar"))
-rec = {r["key"]: seed_counts(r)[0][:6] for r in load()["rows"]}  # and 6 seeds of the record's
-for a, b, c in ((aff_counts, gmm_counts, cvar_counts),
-                (rec["gmm_affordance"], rec["gmm"], rec["gmm_affordance_cvar"])):  # fmt: skip
+rec = {r.key: seed_counts(r.as_result())[0][:6] for r in load().rows}  # 6 of the record's seeds
+ours = (aff_counts, gmm_counts, cvar_counts)
+for a, b, c in (ours, (rec["gmm_affordance"], rec["gmm"], rec["gmm_affordance_cvar"])):
     assert np.isclose(rank_p(a, b), rank_test(a, b)["p_fewer"])
     assert np.isclose(flip_p(c, a), sign_flip_test(c, a)["p_fewer"])
-print(f"by hand, the record's 6: rank p {rank_p(a, b):.3g}, sign-flip p {flip_p(c, a):.3g}, as "
-      "e2e_lite.driving.verdicts gives")  # fmt: skip
+by_hand = f"rank p {rank_p(a, b):.3g}, sign-flip p {flip_p(c, a):.3g}"
+print(f"by hand, the record's 6: {by_hand}, as e2e_lite.driving.verdicts gives")
 # %%
-# the paper's three steps (report.STEPS, family "paper"); PilotNet and L2 have one seed:
+# the paper's three steps (record.stats.STEPS, family "paper"); PilotNet and L2 have one seed:
 # chapters 05-07 compare them, the record tests them
 steps = []
 expert_mph = result_dict(results["expert"])["mean_speed_mph"]
@@ -172,10 +170,10 @@ for st in (st for st in STEPS if st.family == "paper"):
     mph = result_dict(results[st.after])["mean_speed_mph"]
     outcome = verdict(seeds, mph if mph < 0.9 * expert_mph else None)
     paper = ablation.BY_KEY[st.after].paper_per_100mi / ablation.BY_KEY[st.before].paper_per_100mi
-    steps.append({"step": st.what, "before": st.before, "after": st.after, "seed_level": seeds,
-                  "pooled_p_value": pooled, "paper_ratio": paper, "outcome": outcome})  # fmt: skip
-    print(f"{st.what}: {seeds['verdict']}; pooled p = {pooled:.2g}: {outcome}"
-          f" (the paper's ratio {paper:.2g})")  # fmt: skip
+    which = {"step": st.what, "before": st.before, "after": st.after, "seed_level": seeds}
+    steps.append({**which, "pooled_p_value": pooled, "paper_ratio": paper, "outcome": outcome})
+    tail = f"pooled p = {pooled:.2g}: {outcome} (the paper's ratio {paper:.2g})"
+    print(f"{st.what}: {seeds['verdict']}; {tail}")
 
 # %% [markdown]
 # ## 3b. Controls: which part of a step did it?

@@ -65,10 +65,11 @@ from e2e_lite.driving.evaluation import (
 )
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
+from e2e_lite.learning.collector import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
 from e2e_lite.safety.agent import IMPACT_CAUSES, SafeAgent, SafetyStats
 from e2e_lite.safety.rule import SafetyConfig, calibrate_gap_free, check
-from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.camera import Camera, CameraConfig
+from e2e_lite.simulation.raster import draw_trajectory
 from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.viz import collision_chart, save_figure
 
@@ -100,7 +101,8 @@ else:
     print("chapter 10 has no results in this profile: using GMM + affordance")
 seeded = ablation.build_seeded_drivers(profile, [key], train=train, val=val)[key]
 perceivers = [
-    recipes.perceiving(policy.model, train, f"11_{key}_seed{k}") for k, policy in enumerate(seeded)
+    recipes.perceiving(policy.model, train, artifacts.seeded(f"11_{key}", k))
+    for k, policy in enumerate(seeded)
 ]
 
 
@@ -216,8 +218,10 @@ for label, m in bins:
         "false_alarm_pct": 100.0 * float(np.mean(expert_true[m] & ~expert_pred[m])),
         "miss_pct": 100.0 * float(np.mean(~network_true[m] & network_pred[m])),
     }
-    print(f"| {label} | {d['frames']:,} | {q50:.1f} [{q25:.1f}-{q75:.1f}] | {d['mae_m']:.1f} | "
-          f"{d['false_alarm_pct']:.1f} % | {d['miss_pct']:.1f} % |")  # fmt: skip
+    print(
+        f"| {label} | {d['frames']:,} | {q50:.1f} [{q25:.1f}-{q75:.1f}] | {d['mae_m']:.1f} | "
+        f"{d['false_alarm_pct']:.1f} % | {d['miss_pct']:.1f} % |"
+    )
 
 # %% [markdown]
 # Which check raises the false alarms? For each, the rule that rejected the expert's trajectory
@@ -267,9 +271,12 @@ def calibrate(head) -> SafetyConfig:
 
 
 calibrated = [calibrate(p) for p in perceivers]
-print("calibrated per training seed (ego lane / left and right lanes): " + ", ".join(
-    f"seed {k} {c.gap_free_m:.1f} / {c.gap_free_side_m:.1f} m" for k, c in enumerate(calibrated)
-))  # fmt: skip
+print(
+    "calibrated per training seed (ego lane / left and right lanes): "
+    + ", ".join(
+        f"seed {k} {c.gap_free_m:.1f} / {c.gap_free_side_m:.1f} m" for k, c in enumerate(calibrated)
+    )
+)
 calibration = {
     "gap_free_m": [c.gap_free_m for c in calibrated],
     "gap_free_side_m": [c.gap_free_side_m for c in calibrated],
@@ -287,8 +294,10 @@ for name, how in (("uncalibrated", cfg), ("calibrated", calibrated[0])):
             100.0 * float(np.mean(seen_gap[free] < how.gap_free_m)) if free.any() else 0.0
         ),
     }
-    print(f"| {name} | {row['expert_accepted_pct']:.1f} % | {row['false_alarm_pct']:.1f} % | "
-          f"{row['miss_pct']:.1f} % | {row['ghost_car_pct_of_free_frames']:.1f} % |")  # fmt: skip
+    print(
+        f"| {name} | {row['expert_accepted_pct']:.1f} % | {row['false_alarm_pct']:.1f} % | "
+        f"{row['miss_pct']:.1f} % | {row['ghost_car_pct_of_free_frames']:.1f} % |"
+    )
 
 # %% [markdown]
 # ## 3. Closed loop: four rows
@@ -319,21 +328,22 @@ n_seeds = len(seeded)
 runs = disjoint_runs(ev, world_cfg, n_seeds)  # seed k's roads, as chapter 10's
 EMERGENCY = world_cfg.vehicle.max_brake_mps2  # the car's full brake [m/s^2]
 path = [dataclasses.replace(c, fallback="path") for c in calibrated]  # (brake along its path)
+brake = [dataclasses.replace(c, emergency_brake_mps2=EMERGENCY) for c in path]
 variants = (  # (name, stored as, settings per seed, checked on the truth)
     ("on the truth", "truth", [cfg] * n_seeds, True),
     ("on perception", "calibrated_path", path, False),
-    ("on perception + emergency brake", "calibrated_path_emergency",
-     [dataclasses.replace(c, emergency_brake_mps2=EMERGENCY) for c in path], False),
-)  # fmt: skip
+    ("on perception + emergency brake", "calibrated_path_emergency", brake, False),
+)
 guarded, stats, examples, verdicts = {}, {}, {}, {}
 for name, tag, settings, truth in variants:
     per_seed, counts = [], SafetyStats()
     for k, (perceiver, run, how) in enumerate(zip(perceivers, runs, settings)):
-        res = ablation.evaluate_stored(
-            f"11_{key}_{tag}_seed{k}", f"with the module ({name}), seed {k}",
-            SafeAgent(TrajectoryAgent(perceiver), how, ground_truth=truth, audit_every=4),
-            world_cfg, run,
-        )  # fmt: skip
+        agent = SafeAgent(TrajectoryAgent(perceiver), how, ground_truth=truth, audit_every=4)
+        stored_as, title = (
+            artifacts.seeded(f"11_{key}_{tag}", k),
+            f"with the module ({name}), seed {k}",
+        )
+        res = ablation.evaluate_stored(stored_as, title, agent, world_cfg, run)
         per_seed.append(res)
         counts.add(result_info(res))
         examples.setdefault(name, result_info(res).get("examples", [])[:3])  # seed 0's
@@ -387,8 +397,11 @@ print(f"saved {rows_png}")
 # %%
 speed_bins = ((0.0, 10.0), (10.0, 20.0), (20.0, np.inf))
 by_speed, causes = {}, {}
-print("| row | collisions (car / rail) | under 10 m/s | 10-20 m/s | 20+ m/s | "
-      + " | ".join(IMPACT_CAUSES) + " |")  # fmt: skip
+print(
+    "| row | collisions (car / rail) | under 10 m/s | 10-20 m/s | 20+ m/s | "
+    + " | ".join(IMPACT_CAUSES)
+    + " |"
+)
 print("|---|---:|---:|---:|---:|" + "---:|" * len(IMPACT_CAUSES))
 for name, res in rows_of:
     r = result_dict(res)
@@ -396,8 +409,11 @@ for name, res in rows_of:
     by_speed[name] = [sum(lo <= v < hi for v in impact) for lo, hi in speed_bins]
     who = stats.get(name.removeprefix("with the module "), {}).get("at_impact")
     causes[name] = [who.get(c, 0) for c in IMPACT_CAUSES] if who else [0, 0, 0, len(impact)]
-    print(f"| {name} | {len(impact)} ({r['car_collisions']} / {r['rail_collisions']}) | "
-          + " | ".join(map(str, by_speed[name] + causes[name])) + " |")  # fmt: skip
+    print(
+        f"| {name} | {len(impact)} ({r['car_collisions']} / {r['rail_collisions']}) | "
+        + " | ".join(map(str, by_speed[name] + causes[name]))
+        + " |"
+    )
 
 # %%
 fig = Figure(figsize=(9, 0.5 * len(causes) + 1.9), layout="constrained")
@@ -448,12 +464,9 @@ if n_rows:
             )
             caption = f"{name}: {ex['reason']}. Mode weights: {weights}; driven: {ex['source']}."
             ax.set_title(textwrap.fill(caption, 80), fontsize=8, loc="left")
-    fig.legend(
-        handles=[Line2D([], [], color=np.array(c) / 255, marker="o", label=t)
-                 for c, t in ((MODE_RGB[0], "mode 1"), (MODE_RGB[1], "mode 2"),
-                              (DRIVEN_RGB, "what was driven"))],
-        loc="outside lower center", ncols=3, fontsize=9,
-    )  # fmt: skip
+    keys = ((MODE_RGB[0], "mode 1"), (MODE_RGB[1], "mode 2"), (DRIVEN_RGB, "what was driven"))
+    handles = [Line2D([], [], color=np.array(c) / 255, marker="o", label=t) for c, t in keys]
+    fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize=9)
     grid_png = save_figure(fig, artifacts.artifact_path("figures", "11_interventions.png"))
     print(f"saved {grid_png}")
 else:

@@ -41,8 +41,9 @@ from e2e_lite.driving.evaluation import EvalConfig, compare_seeds, power, result
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.checkpoints import train_or_load, training_data_key
-from e2e_lite.learning.data import DataConfig, collect, load_or_collect
-from e2e_lite.report import load, record_dispersion
+from e2e_lite.learning.collector import DataConfig, OnPolicy, collect, load_or_collect
+from e2e_lite.record.stats import record_dispersion
+from e2e_lite.report import load
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.viz import save_figure
 
@@ -73,8 +74,10 @@ train = load_or_collect(DataConfig.for_profile(profile, "train"))
 val = load_or_collect(DataConfig.for_profile(profile, "val"))
 weight = recipes.affordance_weight(profile, train, val)
 cfg = dagger.DaggerConfig.for_profile(profile)
-print(f"{len(seeds)} training seeds, {cfg.rounds} rounds of {cfg.samples:,} samples, betas "
-      f"{cfg.betas}, {cfg.replay:g} replayed sample per new one")  # fmt: skip
+print(
+    f"{len(seeds)} training seeds, {cfg.rounds} rounds of {cfg.samples:,} samples, betas "
+    f"{cfg.betas}, {cfg.replay:g} replayed sample per new one"
+)
 
 # %% [markdown]
 # ## 2. One round, written out
@@ -87,19 +90,28 @@ print(f"{len(seeds)} training seeds, {cfg.rounds} rounds of {cfg.samples:,} samp
 
 # %%
 start0, _, _ = recipes.gmm_affordance_cvar(profile, train, val, weight, 0)
-drive = dagger.round_data(profile, cfg, 0, 0, "dagger")  # fresh training roads, no noise
-visited = collect(drive, progress=False, learner=TrajectoryAgent(start0), beta=cfg.betas[0],
-                  fresh_labels=cfg.fresh)  # fmt: skip
+drive = dagger.RoundSpec(profile, cfg, 0, 0, "dagger").data()  # fresh training roads, no noise
+learner = OnPolicy(TrajectoryAgent(start0), beta=cfg.betas[0], fresh=cfg.fresh)
+visited = collect(drive, progress=False, on_policy=learner)
 shift = dagger.covariate_shift(visited, [train])  # outside the data's 1-99 % range
 ft_data = dagger.finetune_set([train], visited, cfg.replay, 0, 0)  # new + replayed old
 objective, tcfg = recipes.finetune_settings(profile, weight, 0, "mean")
 by_hand, _ = train_or_load(
-    "12_by_hand", recipes.AFFORDANCE_CFG, tcfg, objective, ft_data, val,
-    init_from="09_gmm_affordance_cvar", parent_data_key=training_data_key(train, val),
-    carry_optimizer=True, progress=False,
-)  # fmt: skip
-print(f"round 1 by hand: {len(visited):,} samples, aggregate {len(train) + len(visited):,}; "
-      f"outside the data's range: {shift['any']:.1%}")  # fmt: skip
+    "12_by_hand",
+    recipes.AFFORDANCE_CFG,
+    tcfg,
+    objective,
+    ft_data,
+    val,
+    init_from="09_gmm_affordance_cvar",
+    parent_data_key=training_data_key(train, val),
+    carry_optimizer=True,
+    progress=False,
+)
+print(
+    f"round 1 by hand: {len(visited):,} samples, aggregate {len(train) + len(visited):,}; "
+    f"outside the data's range: {shift['any']:.1%}"
+)
 
 # %% [markdown]
 # Now the library's rounds, for every seed and both arms: DAgger, and the control whose samples
@@ -111,7 +123,7 @@ print(f"round 1 by hand: {len(visited):,} samples, aggregate {len(train) + len(v
 # %%
 runs = {k: dagger.run(profile, train, val, weight, k, cfg) for k in seeds}
 first = runs[0][1]["dagger"][0]
-library_visited = dagger.round_samples(profile, cfg, 0, 0, "dagger", start0, progress=False)
+library_visited = dagger.RoundSpec(profile, cfg, 0, 0, "dagger").samples(start0, progress=False)
 assert all(np.array_equal(visited.arrays[f], library_visited.arrays[f]) for f in visited.arrays)
 mine, theirs = by_hand.state_dict(), first.model.state_dict()
 apart = max(float((mine[n].float() - theirs[n].float()).abs().max()) for n in mine)
@@ -121,10 +133,12 @@ for k, (_, arms) in runs.items():
     for arm, rounds in arms.items():
         for r in rounds:
             drove = r.collection.get("collisions_per_100mi", float("nan"))
-            print(f"seed {k} {arm:7s} round {r.round}: +{r.samples:,} samples -> "
-                  f"{r.aggregate:,}; visited outside the data {r.shift['any']:.1%}; while "
-                  f"collecting {r.collection.get('miles', float('nan')):.1f} mi, "
-                  f"{drove:.1f} collisions per 100 mi")  # fmt: skip
+            print(
+                f"seed {k} {arm:7s} round {r.round}: +{r.samples:,} samples -> "
+                f"{r.aggregate:,}; visited outside the data {r.shift['any']:.1%}; while "
+                f"collecting {r.collection.get('miles', float('nan')):.1f} mi, "
+                f"{drove:.1f} collisions per 100 mi"
+            )
 
 # %% [markdown]
 # ## 3. Covariate shift, measured
@@ -191,8 +205,12 @@ ax.axhline(line["12_expert"], color="C2", ls="--", label="expert")
 ax.set(xticks=x, xlabel="round (0: the start network)", ylabel="collisions per 100 mi, validation")
 ax.legend(fontsize=8)
 for f, name in enumerate(names):
-    ax_shift.plot(np.arange(1, cfg.rounds + 1), 100 * np.median(shift_by_round[:, :, f], axis=0),
-                  marker="o", label=name)  # fmt: skip
+    ax_shift.plot(
+        np.arange(1, cfg.rounds + 1),
+        100 * np.median(shift_by_round[:, :, f], axis=0),
+        marker="o",
+        label=name,
+    )
 ax_shift.set(xlabel="round", ylabel="visited states outside the data [%]", xticks=x[1:])
 ax_shift.legend(fontsize=7)
 fig.suptitle(f"DAgger and its control, {len(seeds)} training seeds", fontsize=11)
@@ -211,26 +229,32 @@ print(f"saved {png}")
 
 # %%
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
-last = f"round {cfg.rounds}"
-rows = {"start": "gmm_affordance_cvar", "dagger": f"12_dagger_{last.replace(' ', '_')}",
-        "control": f"12_control_{last.replace(' ', '_')}"}  # fmt: skip
+last = f"round_{cfg.rounds}"
+rows = {
+    "start": "gmm_affordance_cvar",
+    "dagger": f"12_dagger_{last}",
+    "control": f"12_control_{last}",
+}
+nets_of = {"start": "12_start", "dagger": f"12_dagger_{last}", "control": f"12_control_{last}"}
 on_test = ablation.evaluate_drivers(
-    {rows["start"]: drivers["12_start"], rows["dagger"]: drivers[f"12_dagger_{last.replace(' ', '_')}"],
-     rows["control"]: drivers[f"12_control_{last.replace(' ', '_')}"]}, world_cfg, ev,
-)  # fmt: skip
+    {rows[k]: drivers[n] for k, n in nets_of.items()}, world_cfg, ev
+)
 test = {k: on_test[v] for k, v in rows.items()}
 counts, per_mi = seed_counts(test["start"])
 start_rate = max(0.5, float(np.median(counts)) * 100.0 / per_mi)
 spread_k = record_dispersion(load())["dispersion"]
 reach = power(len(seeds), per_mi, start_rate, dispersion=spread_k, test="sign-flip")
-print(f"{len(seeds)} seeds x {per_mi:.3g} mi: a true 2x step at {start_rate:.1f} per 100 mi is "
-      f"found in {reach['power']:.0%} of records (paired, the record's seed spread "
-      f"{spread_k:.2f}); smallest reachable p {reach['min_p']:.2g}")  # fmt: skip
-verdicts = {
-    "the step: DAgger's last round vs its start": compare_seeds(test["dagger"], test["start"], paired=True),
-    "the control: DAgger vs its control": compare_seeds(test["dagger"], test["control"], paired=True),
-    "the control's step: control vs the start": compare_seeds(test["control"], test["start"], paired=True),
-}  # fmt: skip
+print(
+    f"{len(seeds)} seeds x {per_mi:.3g} mi: a true 2x step at {start_rate:.1f} per 100 mi is "
+    f"found in {reach['power']:.0%} of records (paired, the record's seed spread "
+    f"{spread_k:.2f}); smallest reachable p {reach['min_p']:.2g}"
+)
+pairs = {
+    "the step: DAgger's last round vs its start": ("dagger", "start"),
+    "the control: DAgger vs its control": ("dagger", "control"),
+    "the control's step: control vs the start": ("control", "start"),
+}
+verdicts = {what: compare_seeds(test[a], test[b], paired=True) for what, (a, b) in pairs.items()}
 for what, v in verdicts.items():
     print(f"{what}: {v['verdict']}")
 rate = {k: result_dict(r)["collisions_per_100mi"] for k, r in test.items()}
@@ -241,33 +265,45 @@ print("test roads: " + ", ".join(f"{k} {rate[k]:.1f} per 100 mi at {mph[k]:.1f} 
 # ## Headline figures
 
 # %%
-artifacts.write_metrics(
-    "12_dagger",
-    {
-        "profile": profile.name,
-        "headline": {
-            "start collisions/100mi": rate["start"],
-            "DAgger collisions/100mi": rate["dagger"],
-            "control collisions/100mi": rate["control"],
-            "DAgger mph": mph["dagger"],
-            "visited outside the data, round 1": float(np.median(shift_by_round[:, 0, -1])),
-            f"visited outside the data, round {cfg.rounds}": float(np.median(shift_by_round[:, -1, -1])),
-        },
-        "config": {"rounds": cfg.rounds, "samples": cfg.samples, "betas": list(cfg.betas),
-                   "replay": cfg.replay, "seeds": len(seeds)},
-        "rounds": {k: {arm: [{"round": r.round, "samples": r.samples, "aggregate": r.aggregate,
-                              "shift": r.shift, "collection": r.collection} for r in rounds]
-                       for arm, rounds in arms.items()} for k, (_, arms) in runs.items()},
-        "train_samples": len(train),
-        "validation_per_seed": {k: v.tolist() for k, v in per_seed.items()},
-        "ceilings_validation": line,
-        "test": {k: {**result_dict(r), "events": None} for k, r in test.items()},
-        "verdicts": {k: {"verdict": v["verdict"], "p": v["p_fewer"], "ratio": v["ratio"]}
-                     for k, v in verdicts.items()},
-        "power": {**reach, "dispersion": spread_k, "rate_per_100mi": start_rate},
-    },
-    figures=(png,),
-)  # fmt: skip
+shift_first, shift_last = (float(np.median(shift_by_round[:, j, -1])) for j in (0, -1))
+headline = {
+    "start collisions/100mi": rate["start"],
+    "DAgger collisions/100mi": rate["dagger"],
+    "control collisions/100mi": rate["control"],
+    "DAgger mph": mph["dagger"],
+    "visited outside the data, round 1": shift_first,
+    f"visited outside the data, round {cfg.rounds}": shift_last,
+}
+config = {k: getattr(cfg, k) for k in ("rounds", "samples", "betas", "replay")} | {
+    "seeds": len(seeds)
+}
+
+
+def round_entry(r: dagger.Round) -> dict:
+    return {k: getattr(r, k) for k in ("round", "samples", "aggregate", "shift", "collection")}
+
+
+rounds = {
+    k: {a: [round_entry(r) for r in rs] for a, rs in arms.items()} for k, (_, arms) in runs.items()
+}
+tested = {
+    k: {"verdict": v["verdict"], "p": v["p_fewer"], "ratio": v["ratio"]}
+    for k, v in verdicts.items()
+}
+# %%
+metrics = {
+    "profile": profile.name,
+    "headline": headline,
+    "config": config,
+    "rounds": rounds,
+    "train_samples": len(train),
+    "validation_per_seed": {k: v.tolist() for k, v in per_seed.items()},
+    "ceilings_validation": line,
+    "test": {k: {**result_dict(r), "events": None} for k, r in test.items()},
+    "verdicts": tested,
+    "power": {**reach, "dispersion": spread_k, "rate_per_100mi": start_rate},
+}
+artifacts.write_metrics("12_dagger", metrics, figures=(png,))
 
 # %% [markdown]
 # ## Summary
@@ -275,7 +311,7 @@ artifacts.write_metrics(
 # * Cloning trains on the expert's states; a learner that errs drifts into others, where its
 #   errors compound (`eps T^2`). DAgger labels the learner's own states with the expert and
 #   aggregates them (`eps T`).
-# * A round is a collection with the learner driving (`collect(..., learner=, beta=)`): the
+# * A round is a collection with the learner driving (`collect(..., on_policy=OnPolicy(...))`): the
 #   expert labels every state, whoever drives; the network is fine-tuned on the new samples
 #   plus replayed old ones.
 # * Covariate shift can be measured: the share of visited states outside the training data's

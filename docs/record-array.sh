@@ -4,7 +4,7 @@
 #
 #   sbatch --array=10-23 docs/record-array.sh          # one share per seed (the plan's seeds)
 #   sbatch --dependency=afterok:<job id> --wrap \
-#     ".venv/bin/python -m e2e_lite.report --pool outputs-*/shares/share-seeds-*.json"
+#     ".venv/bin/python -m e2e_lite.record pool outputs-*/shares/share-seeds-*.json"
 #
 # Each task trains every row of the record for its seed and drives its run of the sealed block;
 # the pool refuses a share of another commit, settings or profile, a seed twice, and a share
@@ -18,4 +18,4 @@ set -euo pipefail
 seed="${SLURM_ARRAY_TASK_ID:?submit with sbatch --array=FIRST-LAST}"
 # a folder of outputs per task: tasks on shared storage never write the same files
 export E2E_LITE_OUTPUTS="outputs-seed-${seed}"
-.venv/bin/python -m e2e_lite.report --record --seeds "${seed}-${seed}" --miles "${MILES:-200}"
+.venv/bin/python -m e2e_lite.record run --seeds "${seed}-${seed}" --miles "${MILES:-200}"

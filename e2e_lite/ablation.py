@@ -27,7 +27,15 @@ from typing import Any
 
 import torch
 
-from .artifacts import artifact_path, cached, load_json, save_json, settings_key, versioned
+from .artifacts import (
+    artifact_path,
+    cached,
+    load_json,
+    save_json,
+    seeded,
+    settings_key,
+    versioned,
+)
 from .config import Profile, precision
 from .control.expert import Expert
 from .control.oracle import Oracle
@@ -37,7 +45,7 @@ from .driving.rollout import EvalConfig, disjoint_runs
 from .learning import dagger, recipes
 from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
 from .learning.checkpoints import weights_digest
-from .learning.data import DataConfig, DrivingData, load_or_collect
+from .learning.collector import DataConfig, DrivingData, load_or_collect
 from .simulation.policy import Policy
 from .simulation.world import WorldConfig
 
@@ -115,7 +123,7 @@ def _dagger(b: Build, arm: str) -> Policy:
 
 def _w0(b: Build) -> Policy:
     """The affordance network trained with ``w = 0`` (the head present, its loss off)."""
-    name = f"10_gmm_affordance_w0_seed{b.seed}"
+    name = seeded("10_gmm_affordance_w0", b.seed)
     return TrajectoryAgent(recipes.gmm_affordance(*b.data, 0.0, name=name, **b.seeded)[0])
 
 
@@ -273,7 +281,7 @@ def build_drivers(
 
 #: rows chapter 10 and the record drive with the chapters' own networks (training seed 0) alone:
 #: they are not steps of the paper's Table 1, and training them with every seed would take the
-#: full course past its 2 h on 2 cores and the record past a sitting (issue 57).
+#: full course past its 2 h on 2 cores and the record past a sitting.
 SEED_ZERO_ONLY = ("pilotnet", "trajectory_l2")
 
 
@@ -295,11 +303,10 @@ def build_seeded_drivers(
     if any(k not in UNTRAINED for k in keys):
         train = train or load_or_collect(DataConfig.for_profile(profile, "train"))
         val = val or load_or_collect(DataConfig.for_profile(profile, "val"))
-    per_seed = [
-        build_drivers(profile, [k for k in keys if k not in single or s == 0], train, val,
-                      seed=s, **kw)
-        for s in range(seeds)
-    ]  # fmt: skip
+    per_seed = []
+    for s in range(seeds):
+        keys_of_seed = [k for k in keys if k not in single or s == 0]
+        per_seed.append(build_drivers(profile, keys_of_seed, train, val, seed=s, **kw))
     return {
         key: per_seed[0][key] if key in UNTRAINED else [p[key] for p in per_seed if key in p]
         for key in keys
@@ -365,11 +372,11 @@ def evaluate_drivers(
         label = BY_KEY[key].label if key in BY_KEY else key
         if isinstance(policy, (list, tuple)):
             runs = disjoint_runs(cfg, world_cfg, len(policy))
-            parts = [
-                evaluate_stored(f"{key}_seed{k}", f"{label} (seed {k})", p, world_cfg, run,
-                                reuse=reuse, progress=progress, workers=workers)
-                for k, (p, run) in enumerate(zip(policy, runs))
-            ]  # fmt: skip
+            parts = []
+            for k, (p, run) in enumerate(zip(policy, runs)):
+                name, seed_label = seeded(key, k), f"{label} (seed {k})"
+                kw = {"reuse": reuse, "progress": progress, "workers": workers}
+                parts.append(evaluate_stored(name, seed_label, p, world_cfg, run, **kw))
             out[key] = pool_results(parts, cfg.intervention_cost_s)
         else:
             out[key] = evaluate_stored(

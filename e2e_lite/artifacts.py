@@ -100,6 +100,12 @@ def artifact_path(*parts: str) -> Path:
     return path
 
 
+def seeded(name: str, seed: int, *, plain_zero: bool = False) -> str:
+    """The stored name of training seed ``seed``'s artifact ``name``: ``<name>_seed<seed>``, or
+    ``name`` itself for seed 0 with ``plain_zero`` (the chapters' own networks are seed 0)."""
+    return name if plain_zero and seed == 0 else f"{name}_seed{seed}"
+
+
 def _plain(obj: Any, for_key: bool) -> Any:
     """``dataclasses.asdict``'s plain values, except that for a key, at every level, the fields a
     dataclass names in ``KEY_DEFAULTS_OMITTED`` are left out while at their default."""
@@ -323,7 +329,7 @@ def write_metrics(
 #: (``tests/test_reference.py`` refuses to record a changed behaviour under the same versions).
 ARTIFACT_VERSIONS = {
     # 4: each car records its own quota from its own draws, so any number of collecting
-    # processes makes the same bytes (issue 56)
+    # processes makes the same bytes
     "dataset": 4,
     # 3: the precision (fp32 / tf32) is part of the key
     "checkpoint": 3,

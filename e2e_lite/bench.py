@@ -49,7 +49,7 @@ from .driving.rollout import EvalConfig
 from .learning import recipes
 from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
 from .learning.checkpoints import load_checkpoint
-from .learning.data import DataConfig, DrivingDataset, collect, synthetic_data
+from .learning.collector import DataConfig, DrivingDataset, collect, synthetic_data
 from .learning.losses import Objective
 from .learning.models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
 from .learning.training import TrainConfig, fit
@@ -390,7 +390,7 @@ def scaling_workers(cores: int) -> list[int]:
 
 
 def bench_scaling(quick: bool, agent: str = "gmm") -> dict[str, float]:
-    """How driving and collecting scale with worker processes here (issue 56). Driving: chapter
+    """How driving and collecting scale with worker processes here. Driving: chapter
     10's evaluation (64 cars, or FORWARD_GROUP per core if more; 20 mi, quick 1) with 1, 2, 4, ...
     and all workers: miles per wall-second with and without the workers' start, the speed-up over
     one worker, its share of the ideal (``efficiency``), and whether the events equal one

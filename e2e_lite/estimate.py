@@ -1,7 +1,7 @@
 """How long a run should take on this machine: the parts the benchmarks measure (:class:`Work`),
 their rates on the reference machine (:data:`RATES`, from docs/benchmarks.md), and the line a long
 run prints first (:func:`plan_text`: the workers, the device, the precision and the estimate).
-``python -m e2e_lite.course`` and ``python -m e2e_lite.report --record`` print it.
+``python -m e2e_lite.course`` and ``python -m e2e_lite.record run`` print it.
 """
 
 from __future__ import annotations

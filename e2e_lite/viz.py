@@ -195,11 +195,9 @@ def collision_chart(
             dy = 0.25 * (j - (len(per_seed) - 1) / 2) / max(1, len(per_seed) - 1) * 2
             sl, sh = sr["ci95_per_100mi"]
             sv = sr["collisions_per_100mi"]
-            ax.errorbar(
-                [sv], [yi + dy], xerr=[[sv - sl], [sh - sv]], fmt="o", color="0.35", ms=3.5,
-                elinewidth=0.8, capsize=0, zorder=4,
-                label=None if seeds_shown else "one training seed (95 % interval)",
-            )  # fmt: skip
+            label = None if seeds_shown else "one training seed (95 % interval)"
+            look = {"fmt": "o", "color": "0.35", "ms": 3.5, "elinewidth": 0.8, "capsize": 0}
+            ax.errorbar([sv], [yi + dy], xerr=[[sv - sl], [sh - sv]], zorder=4, label=label, **look)
             seeds_shown = True
             hi = np.maximum(hi, np.where(y == yi, sh, 0.0))
     # each row's value is written right of everything drawn on it: interval, seeds, paper mark

@@ -36,13 +36,12 @@ def main() -> None:
                 {key: [TrajectoryAgent(m) for m in models]}, world_cfg, on_val
             )[key]
             counts, budget = seed_counts(res)
-            swerve = [
-                float(np.mean(np.abs(dagger.round_samples(
-                    profile, cfg, k, j, "dagger", (runs[k][0] if j == 0 else
-                                                    runs[k][1]["dagger"][j - 1].model),
-                    progress=False).arrays["trajectory"][:, -1, 1]) > 1.5))
-                for k in seeds
-            ]  # fmt: skip
+            swerve = []
+            for k in seeds:  # the learner of round j is the start, or round j - 1's network
+                learner = runs[k][0] if j == 0 else runs[k][1]["dagger"][j - 1].model
+                spec = dagger.RoundSpec(profile, cfg, k, j, "dagger")
+                ends_y = spec.samples(learner, progress=False).arrays["trajectory"][:, -1, 1]
+                swerve.append(float(np.mean(np.abs(ends_y) > 1.5)))
             variant[f"round {j + 1}"] = {
                 "validation per seed, per 100 mi": (100.0 * counts / budget).tolist(),
                 "labels over 1.5 m sideways": swerve,

@@ -7,7 +7,7 @@ import argparse
 
 from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.learning import recipes
-from e2e_lite.learning.data import DataConfig, DrivingData, load_or_collect
+from e2e_lite.learning.collector import DataConfig, DrivingData, load_or_collect
 from e2e_lite.simulation.world import WorldConfig
 
 

@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from e2e_lite.config import FULL, QUICK
     from e2e_lite.learning import recipes
-    from e2e_lite.learning.data import DataConfig, load_or_collect
+    from e2e_lite.learning.collector import DataConfig, load_or_collect
 
     profile = QUICK if args.quick else FULL
     t0 = time.perf_counter()

@@ -22,7 +22,7 @@ from e2e_lite.control.expert import Expert
 from e2e_lite.control.labels import AFFORDANCE_INDEX, GAP_CAP_M
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.data import DataConfig, load_or_collect
+from e2e_lite.learning.collector import DataConfig, load_or_collect
 from e2e_lite.simulation.scenarios import START_S_M, ScenarioConfig, overtake_scenes, run_scenarios
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.viz import save_figure

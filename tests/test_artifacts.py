@@ -21,7 +21,7 @@ from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.driving.evaluation import EvalConfig
 from e2e_lite.learning.checkpoints import refit_or_load, train_or_load
-from e2e_lite.learning.data import DataConfig, load_or_collect
+from e2e_lite.learning.collector import DataConfig, load_or_collect
 from e2e_lite.learning.dataset import synthetic_data
 from e2e_lite.learning.losses import GMMObjective, Objective
 from e2e_lite.learning.models import ModelConfig, build_model, prepare

@@ -74,7 +74,7 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
         plan_text,
     )
     from e2e_lite.learning import recipes
-    from e2e_lite.record import record_work
+    from e2e_lite.record.run import record_work
 
     drive = Work(collect_samples=0.0, train_samples=0.0, drive_miles=1_000.0)
     one, two = estimate_s(drive, 1), estimate_s(drive, 2)

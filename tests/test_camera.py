@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.simulation.camera import Camera, CameraConfig, draw_trajectory
+from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.geometry import RoadConfig, generate_track
-from e2e_lite.simulation.raster import MARKING, ROAD, SHOULDER, SKY, clip_near
+from e2e_lite.simulation.raster import MARKING, ROAD, SHOULDER, SKY, clip_near, draw_trajectory
 from e2e_lite.simulation.topdown import TopDownConfig, render_topdown
 from e2e_lite.simulation.world import WorldConfig, make_world
 

@@ -348,95 +348,93 @@ def test_selection_and_table():
 def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick_profile(
     quick_course, monkeypatch, capsys
 ):
-    """``python -m e2e_lite.report --record --quick``: each learned row with its seeds, each
-    seed's counts, miles, speed and stalls, the machine, and the render of it (the quick record
-    goes to the outputs folder, never to docs/)."""
+    """``python -m e2e_lite.record run --quick``: each learned row with its seeds, each seed's
+    counts, miles, speed and stalls, the machine, and the render of it (the quick record goes to
+    the outputs folder, never to docs/)."""
     from e2e_lite import ablation, artifacts, report
     from e2e_lite.driving.roads import ROAD_BLOCKS
+    from e2e_lite.record.__main__ import main
+    from e2e_lite.record.rows import load_record
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(quick_course[1].parent))  # its networks, trained
     before = (ROOT / "docs" / "results" / "table1.json").read_text()
-    assert report.main(["--record", "--quick", "--seeds", "2", "--miles", "0.1"]) == 0
+    assert main(["run", "--quick", "--seeds", "2", "--miles", "0.1"]) == 0
     assert (ROOT / "docs" / "results" / "table1.json").read_text() == before
-    record = json.loads((artifacts.outputs_dir(quick=True) / "table1.json").read_text())
-    keys = [r["key"] for r in record["rows"]]
+    record = load_record(artifacts.outputs_dir(quick=True) / "table1.json")
+    keys = [r.key for r in record.rows]
     assert keys == [d.key for d in (*ablation.DRIVERS, *ablation.BEYOND, *ablation.CONTROLS)]
     # PilotNet and L2 (no verdict step is theirs) train seed 0 alone, which drives both seeds' miles
-    assert record["single_seed_rows"] == list(ablation.SEED_ZERO_ONLY)
+    assert record.single_seed_rows == list(ablation.SEED_ZERO_ONLY)
     single = {*ablation.UNTRAINED, *ablation.SEED_ZERO_ONLY}
-    for row in record["rows"]:
-        n = 1 if row["key"] in single else 2
-        assert len(row["seeds"]) == n, row["key"]
-        assert sum(s["collisions"] for s in row["seeds"]) == row["car"] + row["rail"]
-        assert all(s["miles"] > 0 and s["mph"] > 0 for s in row["seeds"])
-    miles = {r["key"]: sum(s["miles"] for s in r["seeds"]) for r in record["rows"]}
-    assert miles["pilotnet"] == pytest.approx(miles["gmm"], abs=0.05)
-    assert record["roads"] == "test" and record["precision"] == "fp32"
+    for row in record.rows:
+        assert len(row.seeds) == (1 if row.key in single else 2), row.key
+        assert all(s.miles > 0 and s.mph > 0 for s in row.seeds)
+    assert record.row("pilotnet").miles == pytest.approx(record.row("gmm").miles, abs=0.05)
+    assert record.roads == "test" and record.precision == "fp32"
     # a smoke run never drives the sealed roads of the record of record
-    assert record["block"]["name"] == "open" and record["block"]["range"] == [*ROAD_BLOCKS["open"]]
-    assert not record["block"]["sealed"] and "the open block of test roads (a smoke run" in (
-        report.table1(record)
-    )
-    assert "| step, or method against control |" in report.table1(record)
+    assert record.block.name == "open" and record.block.range == [*ROAD_BLOCKS["open"]]
+    table = report.table1(record)
+    assert not record.block.sealed and "the open block of test roads (a smoke run" in table
+    assert "| step, or method against control |" in table
     assert "wrote" in capsys.readouterr().out
 
 
 def test_shares_of_the_record_pool_into_what_one_run_gives_and_what_does_not_belong_is_refused(
     quick_course, monkeypatch, tmp_path, capsys
 ):
-    """Issue 65: two quick shares of different seeds pool into the same rows as one share of
-    both; a pool keeps each seed's machine and says how many it holds; and it refuses, naming
-    the file, a share edited after it was written, a seed twice, another recipes commit or
-    settings key or profile, and a seed's roads off its own run of the block."""
-    import copy
+    """Two quick shares of different seeds pool into the same rows as one share of both; a pool
+    keeps each seed's machine and says how many it holds; and it refuses, naming the file, a
+    share edited after it was written, a seed twice, another recipes commit or settings key or
+    profile, and a seed's roads off its own run of the block."""
+    import dataclasses
 
-    from e2e_lite import record as rec
-    from e2e_lite import report
     from e2e_lite.config import QUICK
+    from e2e_lite.record.__main__ import main
+    from e2e_lite.record.pool import ShareRefused, pool
+    from e2e_lite.record.rows import Share, dump
+    from e2e_lite.record.run import record_share
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(quick_course[1].parent))  # its networks, trained
-    a = rec.record_share(QUICK, [0], 0.1, progress=False)
-    b = rec.record_share(QUICK, [1], 0.1, progress=False)
-    both = rec.record_share(QUICK, [0, 1], 0.1, progress=False)
-    pooled, one = rec.pool_shares([("a", a), ("b", b)]), rec.pool_shares([("both", both)])
-    assert pooled["rows"] == one["rows"] and len(pooled["rows"][3]["seeds"]) == 2
-    assert pooled["family"] == one["family"] and "2 shares on 1 machine" in pooled["status"]
-    assert "(PilotNet, steering only and trajectory L2 + LQR: seed 0 alone" in pooled["status"]
-    elsewhere = copy.deepcopy(b)
-    elsewhere["machine"] = "Another CPU, 16 cores, 16 workers, cuda"
-    elsewhere["digest"] = rec.share_digest(elsewhere)
-    two = rec.pool_shares([("a", a), ("b", elsewhere)])
-    assert two["machine"].startswith("2 machines") and len(two["machines"]) == 2
-    assert [s["machine"] for s in two["rows"][3]["seeds"]] == [0, 1]
+    a = record_share(QUICK, [0], 0.1, progress=False)
+    b = record_share(QUICK, [1], 0.1, progress=False)
+    both = record_share(QUICK, [0, 1], 0.1, progress=False)
+    pooled, one = pool([("a", a), ("b", b)]), pool([("both", both)])
+    assert pooled.rows == one.rows and len(pooled.rows[3].seeds) == 2
+    assert pooled.family == one.family and "2 shares on 1 machine" in pooled.status
+    assert "(PilotNet, steering only and trajectory L2 + LQR: seed 0 alone" in pooled.status
+    elsewhere = dataclasses.replace(b, machine="Another CPU, 16 cores, 16 workers, cuda").sealed()
+    two = pool([("a", a), ("b", elsewhere)])
+    assert two.machine.startswith("2 machines") and len(two.machines) == 2
+    assert [s.machine for s in two.rows[3].seeds] == [0, 1]
 
-    def refused(share: dict, match: str, *others: tuple[str, dict]) -> None:
-        with pytest.raises(rec.ShareRefused, match=match):
-            rec.pool_shares([("a", a), *others, ("bad.json", share)])
+    def refused(share: Share, match: str) -> None:
+        with pytest.raises(ShareRefused, match=match):
+            pool([("a", a), ("bad.json", share)])
 
-    edited = copy.deepcopy(b)
-    edited["rows"][3]["runs"][0]["collisions"] += 1
+    def with_runs(share: Share, change) -> Share:
+        rows = tuple(
+            dataclasses.replace(r, runs=tuple(change(run) for run in r.runs)) for r in share.rows
+        )
+        return dataclasses.replace(share, rows=rows)
+
+    edited = with_runs(b, lambda run: dataclasses.replace(run, collisions=run.collisions + 1))
     refused(edited, r"bad.json: .*edited after it was written")
-    refused(copy.deepcopy(both), "bad.json: training seed 0 is in a too")
-    for field, value in (("recipes_commit", "0000000"), ("settings_key", "other"),
-                         ("profile", "full")):  # fmt: skip
-        other = copy.deepcopy(b)
-        other[field] = value
-        other["digest"] = rec.share_digest(other)
-        refused(other, f"bad.json: its {field}")
-    moved = copy.deepcopy(b)
-    for row in moved["rows"]:
-        row["runs"][0]["first_track"] += 64
-    moved["digest"] = rec.share_digest(moved)
-    refused(moved, "bad.json: seed 1 drove from tracks .* not its own run")
+    refused(both, "bad.json: training seed 0 is in a too")
+    for field, value in (("recipes_commit", "0000000"), ("settings_key", "other")):
+        refused(dataclasses.replace(b, **{field: value}).sealed(), f"bad.json: its {field}")
+    refused(dataclasses.replace(b, profile="full").sealed(), "bad.json: its profile")
+    moved = with_runs(b, lambda run: dataclasses.replace(run, first_track=run.first_track + 64))
+    refused(moved.sealed(), "bad.json: seed 1 drove from tracks .* not its own run")
     # the commands: a share file per seed range, a pool of files, a refusal with exit code 2
-    assert report.main(["--record", "--quick", "--seeds", "1-1", "--miles", "0.1"]) == 0
+    assert main(["run", "--quick", "--seeds", "1-1", "--miles", "0.1"]) == 0
     written = quick_course[1] / "shares" / "share-seeds-1-1.json"
-    assert json.loads(written.read_text())["digest"] == b["digest"]
+    assert json.loads(written.read_text())["digest"] == b.digest
     first_file = tmp_path / "a.json"
-    first_file.write_text(json.dumps(a))
-    assert report.main(["--pool", str(first_file), str(written)]) == 0
-    assert json.loads((quick_course[1] / "table1.json").read_text())["rows"] == pooled["rows"]
+    first_file.write_text(dump(a))
+    assert main(["pool", str(first_file), str(written)]) == 0
+    quick_record = json.loads((quick_course[1] / "table1.json").read_text())
+    assert quick_record["rows"] == json.loads(dump(pooled))["rows"]
     bad_file = tmp_path / "edited.json"
-    bad_file.write_text(json.dumps(edited))
-    assert report.main(["--pool", str(first_file), str(bad_file)]) == 2
+    bad_file.write_text(dump(edited))
+    assert main(["pool", str(first_file), str(bad_file)]) == 2
     assert "edited.json" in capsys.readouterr().err

@@ -131,7 +131,7 @@ def test_affordance_weight_zero_is_the_plain_gmm_loss():
 
 def test_training_loop_reduces_with_the_objectives_reduce():
     """fit() minimises objective.reduce(per-sample losses): CVaR changes what is trained on."""
-    from e2e_lite.learning.data import DrivingDataset, synthetic_data
+    from e2e_lite.learning.collector import DrivingDataset, synthetic_data
     from e2e_lite.learning.losses import Objective
 
     calls = []
@@ -258,7 +258,7 @@ def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples(
 
 
 def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset():
-    from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M
+    from e2e_lite.learning.collector import AFFORDANCE_NAMES, GAP_CAP_M
     from e2e_lite.learning.heldout import affordance_errors
 
     true = np.zeros((4, 9))
@@ -284,7 +284,7 @@ def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset()
 
 
 def test_goal_ratios_are_each_goals_error_over_the_mean_predictors():
-    from e2e_lite.learning.data import AFFORDANCE_NAMES, GAP_CAP_M
+    from e2e_lite.learning.collector import AFFORDANCE_NAMES, GAP_CAP_M
     from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 
     true = np.zeros((4, 9))

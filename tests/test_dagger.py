@@ -16,7 +16,7 @@ from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.control.expert import Expert
 from e2e_lite.learning import dagger
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.data import DataConfig, NoiseConfig, collect
+from e2e_lite.learning.collector import DataConfig, NoiseConfig, OnPolicy, collect
 from e2e_lite.learning.dataset import synthetic_data
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig
@@ -52,7 +52,7 @@ class Shadow(LaneKeeper):
 def test_on_policy_samples_are_the_experts_labels_of_the_states_the_learner_visited():
     cfg = small(noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
     learner = Shadow()
-    data = collect(cfg, progress=False, workers=1, learner=learner, beta=0.0)
+    data = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(learner, beta=0.0))
     # a fresh expert of the same seed, shown the same states in the same order, labels them so
     expert = Expert(cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed)
     expert.seed_cars(np.arange(cfg.n_worlds))
@@ -72,7 +72,7 @@ def test_on_policy_samples_are_the_experts_labels_of_the_states_the_learner_visi
 
 def test_beta_one_drives_exactly_the_experts_states():
     cfg = small()  # with the collector's noise and take-overs: only who drives may differ
-    mixed = collect(cfg, progress=False, workers=1, learner=Shadow(), beta=1.0)
+    mixed = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(Shadow(), beta=1.0))
     alone = collect(cfg, progress=False, workers=1)
     for name in alone.arrays:
         assert np.array_equal(mixed.arrays[name], alone.arrays[name]), name
@@ -81,7 +81,7 @@ def test_beta_one_drives_exactly_the_experts_states():
     from e2e_lite.control.expert import fresh_labels
 
     shadow = Shadow()
-    fresh = collect(cfg, progress=False, workers=1, learner=shadow, fresh_labels=True)
+    fresh = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(shadow, fresh=True))
     for name in alone.arrays:
         if name != "trajectory":
             assert np.array_equal(fresh.arrays[name], alone.arrays[name]), name
@@ -97,8 +97,8 @@ def test_a_networks_round_gives_the_same_bytes_for_one_and_two_workers():
     model = build_model(ModelConfig(head="trajectory", fusion_width=16))
     model = prepare(model, torch.device("cpu")).eval()
     cfg = small(n_worlds=16, n_samples=320, noise=NoiseConfig(rate_per_s=0.0))
-    one = collect(cfg, progress=False, workers=1, learner=TrajectoryAgent(model), beta=0.5)
-    two = collect(cfg, progress=False, workers=2, learner=TrajectoryAgent(model), beta=0.5)
+    one = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(TrajectoryAgent(model), 0.5))
+    two = collect(cfg, progress=False, workers=2, on_policy=OnPolicy(TrajectoryAgent(model), 0.5))
     for name in one.arrays:
         assert np.array_equal(one.arrays[name], two.arrays[name]), name
 
@@ -108,13 +108,13 @@ def test_a_round_drives_fresh_training_roads_and_never_a_validation_or_test_road
     firsts = set()
     for seed in range(4):
         for r in range(cfg.rounds):
-            both = [dagger.round_data(QUICK, cfg, seed, r, arm) for arm in dagger.ARMS]
+            both = [dagger.RoundSpec(QUICK, cfg, seed, r, arm).data() for arm in dagger.ARMS]
             assert all(d.split == "train" for d in both)
             assert both[0].first_track == both[1].first_track >= dagger.FIRST_TRACK  # paired
             firsts.add(both[0].first_track)
     assert len(firsts) == 4 * cfg.rounds  # every seed and round on roads of its own
-    data = collect(dagger.round_data(QUICK, cfg, 1, 1, "control"), progress=False, workers=1)
-    first = dagger.round_data(QUICK, cfg, 1, 1, "control").first_track
+    data = collect(dagger.RoundSpec(QUICK, cfg, 1, 1, "control").data(), progress=False, workers=1)
+    first = dagger.RoundSpec(QUICK, cfg, 1, 1, "control").data().first_track
     assert data.arrays["track"].min() >= first
     assert data.arrays["track"].max() < first + dagger.TRACK_STRIDE
     with pytest.raises(ValueError, match="split"):
@@ -122,7 +122,7 @@ def test_a_round_drives_fresh_training_roads_and_never_a_validation_or_test_road
     with pytest.raises(ValueError, match="one beta per round"):
         dagger.DaggerConfig(rounds=2, betas=(0.5,))
     with pytest.raises(ValueError, match="arm"):
-        dagger.round_data(QUICK, cfg, 0, 0, "oracle")
+        dagger.RoundSpec(QUICK, cfg, 0, 0, "oracle").data()
 
 
 def test_the_finetunes_key_holds_the_parent_the_round_the_beta_and_the_data():
@@ -130,14 +130,14 @@ def test_the_finetunes_key_holds_the_parent_the_round_the_beta_and_the_data():
     net = build_model(ModelConfig(head="trajectory", fusion_width=16))
     other = build_model(ModelConfig(head="trajectory", fusion_width=16))
     cfg = dagger.DaggerConfig(rounds=2, samples=64, betas=(0.5, 0.0))
-    key = dagger.samples_key(QUICK, cfg, 0, 0, "dagger", net)
-    assert key != dagger.samples_key(QUICK, cfg, 0, 1, "dagger", net)  # the round
-    assert key != dagger.samples_key(QUICK, cfg, 1, 0, "dagger", net)  # the seed
-    assert key != dagger.samples_key(QUICK, cfg, 0, 0, "dagger", other)  # the learner
+    key = dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").samples_key(net)
+    assert key != dagger.RoundSpec(QUICK, cfg, 0, 1, "dagger").samples_key(net)  # the round
+    assert key != dagger.RoundSpec(QUICK, cfg, 1, 0, "dagger").samples_key(net)  # the seed
+    assert key != dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").samples_key(other)  # the learner
     other_beta = dataclasses.replace(cfg, betas=(0.7, 0.0))
-    assert key != dagger.samples_key(QUICK, other_beta, 0, 0, "dagger", net)  # the beta
+    assert key != dagger.RoundSpec(QUICK, other_beta, 0, 0, "dagger").samples_key(net)  # the beta
     with pytest.raises(ValueError, match="learner"):
-        dagger.samples_key(QUICK, cfg, 0, 0, "dagger", None)
+        dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").samples_key(None)
     # the fine-tune's data: its new samples, every earlier part and the rows replayed
     base, new = synthetic_data(40, seed=1), synthetic_data(16, seed=2)
     ft = dagger.finetune_set([base], new, 1.0, 0, 0)
@@ -151,14 +151,18 @@ def test_the_finetunes_key_holds_the_parent_the_round_the_beta_and_the_data():
     assert len(dagger.finetune_set([base, new], new, 0.5, 0, 1)) == 24
     # a beta schedule stores its samples and networks under names of its own, beside the course's
     course = dagger.DaggerConfig(rounds=2, samples=64)
-    assert dagger._stem(course, "dagger") == "12_dagger_fresh"
-    assert dagger._stem(cfg, "dagger") == "12_dagger_fresh_beta0.5-0"
-    assert dagger._stem(cfg, "control") == dagger._stem(course, "control") == "12_control"
-    relabelled = dataclasses.replace(course, control_labels="fresh")
-    assert dagger._stem(relabelled, "control") == "12_control_fresh"
-    assert dagger.samples_key(QUICK, relabelled, 0, 0, "control", None) != dagger.samples_key(
-        QUICK, course, 0, 0, "control", None
+    assert dagger.RoundSpec(QUICK, course, 0, 0, "dagger").stem == "12_dagger_fresh"
+    assert dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").stem == "12_dagger_fresh_beta0.5-0"
+    assert (
+        dagger.RoundSpec(QUICK, cfg, 0, 0, "control").stem
+        == dagger.RoundSpec(QUICK, course, 0, 0, "control").stem
+        == "12_control"
     )
+    relabelled = dataclasses.replace(course, control_labels="fresh")
+    assert dagger.RoundSpec(QUICK, relabelled, 0, 0, "control").stem == "12_control_fresh"
+    assert dagger.RoundSpec(QUICK, relabelled, 0, 0, "control").samples_key(
+        None
+    ) != dagger.RoundSpec(QUICK, course, 0, 0, "control").samples_key(None)
     with pytest.raises(ValueError, match="control_labels"):
         dagger.DaggerConfig(control_labels="oracle")
 
@@ -179,7 +183,7 @@ def test_fresh_labels_come_from_an_expert_without_memory_of_its_plans():
 
     cfg = small(n_samples=80, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
     learner = Shadow()
-    data = collect(cfg, progress=False, workers=1, learner=learner, beta=0.0, fresh_labels=True)
+    data = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(learner, 0.0, fresh=True))
     quota = cfg.n_samples // cfg.n_worlds
     for k, obs in enumerate(learner.seen[:quota]):
         rows = np.arange(cfg.n_worlds) * quota + k
@@ -192,6 +196,6 @@ def test_fresh_labels_come_from_an_expert_without_memory_of_its_plans():
     expert = dagger.DaggerConfig.for_profile(QUICK, labels="expert")
     fresh = dagger.DaggerConfig.for_profile(QUICK)  # the course's labels
     assert fresh.labels == "fresh"
-    assert dagger.samples_key(QUICK, expert, 0, 0, "dagger", net) != dagger.samples_key(
-        QUICK, fresh, 0, 0, "dagger", net
-    )
+    assert dagger.RoundSpec(QUICK, expert, 0, 0, "dagger").samples_key(net) != dagger.RoundSpec(
+        QUICK, fresh, 0, 0, "dagger"
+    ).samples_key(net)

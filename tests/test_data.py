@@ -11,7 +11,7 @@ from conftest import straight_world
 from e2e_lite.config import QUICK
 from e2e_lite.control.labels import CHANGE
 from e2e_lite.driving.evaluation import EvalConfig
-from e2e_lite.learning.data import (
+from e2e_lite.learning.collector import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,

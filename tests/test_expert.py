@@ -6,18 +6,11 @@ import numpy as np
 import pytest
 from conftest import straight_world
 
-from e2e_lite.control import expert as expert_module
-from e2e_lite.control.expert import (
-    Expert,
-    ExpertConfig,
-    SpeedLimits,
-    car_ahead,
-    fresh_labels,
-    lane_clear,
-    speed_profile,
-)
+from e2e_lite.control import rules
+from e2e_lite.control.expert import Expert, fresh_labels
 from e2e_lite.control.labels import CHANGE, KEEP
 from e2e_lite.control.oracle import Oracle
+from e2e_lite.control.rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear, speed_profile
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe
 from e2e_lite.simulation.geometry import RoadConfig, Track
 from e2e_lite.simulation.world import Fleet, TrafficConfig, World, WorldConfig, make_world
@@ -149,10 +142,8 @@ def test_fresh_labels_with_kept_speed_limits_are_the_same_and_profile_each_track
         fleet.place(i, s, float(world.track.lane_center(lane)), v)
     obs = observe(fleet, respawned=True)
     calls = []
-    real = expert_module.speed_profile
-    monkeypatch.setattr(
-        expert_module, "speed_profile", lambda *a, **k: calls.append(1) or real(*a, **k)
-    )
+    real = rules.speed_profile
+    monkeypatch.setattr(rules, "speed_profile", lambda *a, **k: calls.append(1) or real(*a, **k))
     plain = [fresh_labels(obs, idx) for idx in ([0, 1], [2, 3], [0, 3])]
     assert len(calls) == 4  # a fresh expert computes every track it meets again
     calls.clear()

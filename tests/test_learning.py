@@ -25,7 +25,7 @@ from e2e_lite.learning.checkpoints import (
     save_checkpoint,
     train_or_load,
 )
-from e2e_lite.learning.data import DrivingDataset, synthetic_data
+from e2e_lite.learning.collector import DrivingDataset, synthetic_data
 from e2e_lite.learning.losses import GMMObjective, Objective, target
 from e2e_lite.learning.models import (
     TRUNK_FEATURES,

@@ -3,21 +3,32 @@ docs/results/ by one command, and the paper's steps are judged on the training s
 
 from __future__ import annotations
 
-import copy
+import dataclasses
+import json
 import re
 
 import pytest
 
 from e2e_lite import report
+from e2e_lite.record.rows import Record, Row, SeedRun
+from e2e_lite.record.stats import controls_line, record_power, spread, steps
 
 ROOT = report.ROOT
 
 
-def row(key: str, counts: list[int], miles: float = 100.0, mph: float = 55.0) -> dict:
+def row(key: str, counts: list[int], miles: float = 100.0, mph: float = 55.0) -> Row:
     """A hand-made row: one entry per training seed, all collisions into parked cars."""
-    seeds = [{"seed": k, "collisions": c, "miles": miles} for k, c in enumerate(counts)]
-    return {"key": key, "label": key, "paper_per_100mi": None, "seeds": seeds,
-            "car": sum(counts), "rail": 0, "mph": mph, "stalls": 0}  # fmt: skip
+    seeds = tuple(SeedRun(k, c, miles) for k, c in enumerate(counts))
+    return Row(key, key, None, seeds, car=sum(counts), rail=0, mph=mph, stalls=0)
+
+
+def with_rows(record: Record, *rows: Row) -> Record:
+    """``record`` with ``rows`` in place of its own."""
+    return dataclasses.replace(record, rows=tuple(rows))
+
+
+def by_step(record: Record) -> dict:
+    return {s.step: s for s in steps(record)}
 
 
 #: the first sealed record's seeds (5f7918c, 10 x 100 mi): a spread of about 0.32 across its
@@ -32,11 +43,9 @@ SPREAD = {
 }
 
 
-def spread_record() -> dict:
+def spread_record() -> Record:
     """The committed record with :data:`SPREAD`'s rows in place of its own."""
-    record = copy.deepcopy(report.load())
-    record["rows"] = [row(key, counts) for key, counts in SPREAD.items()]
-    return record
+    return with_rows(report.load(), *(row(key, counts) for key, counts in SPREAD.items()))
 
 
 def test_the_readme_and_results_page_are_the_render_of_the_committed_record() -> None:
@@ -64,90 +73,105 @@ def test_every_lab_note_names_the_commit_of_its_code() -> None:
 
 
 def test_each_step_gives_its_p_ratio_interval_and_paired_test_and_the_record_its_power() -> None:
-    """Issue 57: per step, the primary p-value (paired where a fine-tune shares its parent), the
-    rate ratio with its bootstrap interval, the unpaired and paired p-values; and the record's
-    power at its own + affordance rate, stated under the table."""
-    record = copy.deepcopy(report.load())
-    record["rows"] = [
+    """Per step, the primary p-value (paired where a fine-tune shares its parent), the rate ratio
+    with its bootstrap interval, the unpaired and paired p-values; and the record's power at its
+    own + affordance rate, stated under the table."""
+    record = with_rows(
+        report.load(),
         row("expert", [0]),
         row("gmm", [6, 10, 5, 3, 11]),
         row("gmm_affordance", [6, 5, 3, 2, 3]),
         row("gmm_affordance_cvar", [5, 4, 4, 3, 6]),
-    ]
-    steps = {s["step"]: s for s in report.steps(record)}
-    aff = steps["GMM -> + affordance"]
-    assert abs(aff["p_better"] - 0.087) < 0.005 and aff["test"] == "rank"
-    assert aff["verdict"] == "not shown at the seed level"
-    assert aff["ratio"] == pytest.approx(19 / 35) and aff["ratio_ci"][0] < aff["ratio"]
-    cvar = steps["+ affordance -> + CVaR"]
-    assert cvar["test"] == "paired sign-flip" and cvar["p_paired"] == cvar["p_better"]
+    )
+    tested = by_step(record)
+    aff = tested["GMM -> + affordance"]
+    assert abs(aff.p_fewer - 0.087) < 0.005 and aff.test == "rank"
+    assert aff.verdict == "not shown at the seed level"
+    assert aff.ratio == pytest.approx(19 / 35) and aff.ratio_ci[0] < aff.ratio
+    cvar = tested["+ affordance -> + CVaR"]
+    assert cvar.test == "paired sign-flip" and cvar.p_paired == cvar.p_fewer
     table = report.table1(record)
     assert "0.54 [" in table and "Power: 5 seeds x 100 mi" in table
-    found = report.record_power(record)
+    found = record_power(record)
     assert found["rate_per_100mi"] == 3.0 and 0.5 < found["power"] < 0.7
     # three seeds against three: the verdict says it cannot decide
-    record["rows"] = [row("gmm", [20, 21, 22]), row("gmm_affordance", [1, 2, 3])]
-    assert report.steps(record)[0]["verdict"] == "cannot be decided with these seeds"
+    few = with_rows(record, row("gmm", [20, 21, 22]), row("gmm_affordance", [1, 2, 3]))
+    assert steps(few)[0].verdict == "cannot be decided with these seeds"
 
 
 def test_a_row_with_one_catastrophic_seed_is_not_called_reproduced() -> None:
-    record = copy.deepcopy(report.load())
-    record["rows"] = [
-        row("expert", [0]),
-        row("gmm", [20, 21, 22, 19, 23]),
-        # four seeds far better than the GMM, one catastrophic: the pooled rate is worse
-        row("gmm_affordance", [1, 2, 1, 2, 200]),
-    ]
-    step = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
-    assert step["p_better"] > 0.05 and not step["verdict"].startswith("reproduces")
+    expert, gmm = row("expert", [0]), row("gmm", [20, 21, 22, 19, 23])
+    # four seeds far better than the GMM, one catastrophic: the pooled rate is worse
+    bad = row("gmm_affordance", [1, 2, 1, 2, 200])
+    step = by_step(with_rows(report.load(), expert, gmm, bad))["GMM -> + affordance"]
+    assert step.p_fewer > 0.05 and not step.verdict.startswith("reproduces")
     # five clean seeds below the GMM's five are
-    record["rows"][2] = row("gmm_affordance", [1, 2, 1, 2, 3])
-    step = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
-    assert step["verdict"] == "reproduces" and step["p_better"] == pytest.approx(1 / 252)
+    good = row("gmm_affordance", [1, 2, 1, 2, 3])
+    step = by_step(with_rows(report.load(), expert, gmm, good))["GMM -> + affordance"]
+    assert step.verdict == "reproduces" and step.p_fewer == pytest.approx(1 / 252)
 
 
 def test_a_slow_row_is_marked_and_its_verdict_names_its_speed() -> None:
-    record = copy.deepcopy(report.load())
-    record["rows"] = [
+    record = with_rows(
+        report.load(),
         row("expert", [0], mph=55.0),
         row("gmm", [20, 21, 22, 19, 23]),
         row("gmm_affordance", [1, 2, 1, 2, 3], mph=40.0),
-    ]
-    step = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
-    assert step["verdict"] == "reproduces, at 40.0 mph"
+    )
+    assert by_step(record)["GMM -> + affordance"].verdict == "reproduces, at 40.0 mph"
     assert "40.0 (slow)" in report.table1(record)
 
 
 def test_a_record_whose_seeds_do_not_add_up_is_refused(tmp_path) -> None:
-    record = copy.deepcopy(report.load())
+    record = json.loads(report.RECORD.read_text())
     record["rows"][2]["car"] += 1
     path = tmp_path / "bad.json"
-    path.write_text(__import__("json").dumps(record))
+    path.write_text(json.dumps(record))
     with pytest.raises(ValueError, match="do not add up"):
         report.load(path)
 
 
-def test_the_spread_is_the_worst_seed_over_the_median_and_a_paper_row_over_the_goal_is_marked():
-    row = {"seeds": [{"collisions": c, "miles": 100.0} for c in (10, 12, 60)]}
-    assert report.spread(row) == pytest.approx(5.0)
-    assert report.spread({"seeds": [{"collisions": 3, "miles": 100.0}]}) is None
-    zero = {"seeds": [{"collisions": c, "miles": 100.0} for c in (0, 0, 2)]}
-    assert report.spread(zero) == float("inf")
+def test_the_committed_record_and_shares_load_and_write_back_byte_for_byte() -> None:
+    """The typed record reads the committed JSON and writes it back unchanged (the same keys in
+    the same order), and the committed shares too, each with its digest; pooled again, the
+    shares give the committed record, and its render is the committed README and results page."""
+    from e2e_lite.record.pool import pool
+    from e2e_lite.record.rows import Share, dump
+
+    text = report.RECORD.read_text()
     record = report.load()
-    paper = next(r for r in record["rows"] if r["paper_per_100mi"] is not None)
-    paper["seeds"] = [
-        {"collisions": c, "miles": 100.0, "mph": 50.0, "stalls": 0} for c in (10, 12, 60)
-    ]
-    paper["car"], paper["rail"] = 82, 0
-    md = report.results_md(record)
-    line = next(ln for ln in md.splitlines() if ln.startswith(f"| {paper['label']} | 82"))
+    assert dump(record) == text
+    shares = []
+    for ref in record.shares:
+        path = report.RECORD.parent / "shares" / ref.file
+        share = Share.from_json(json.loads(path.read_text()))
+        assert dump(share) == path.read_text() and share.content_digest() == ref.digest
+        shares.append((ref.file, share))
+    assert dump(pool(shares)) == text
+    assert report.render(record, check=True) == []
+
+
+def test_the_spread_is_the_worst_seed_over_the_median_and_a_paper_row_over_the_goal_is_marked():
+    result = {"seeds": [{"collisions": c, "miles": 100.0} for c in (10, 12, 60)]}
+    assert spread(result) == pytest.approx(5.0)
+    assert spread({"seeds": [{"collisions": 3, "miles": 100.0}]}) is None
+    zero = {"seeds": [{"collisions": c, "miles": 100.0} for c in (0, 0, 2)]}
+    assert spread(zero) == float("inf")
+    record = report.load()
+    paper = next(r for r in record.rows if r.paper_per_100mi is not None)
+    seeds = tuple(SeedRun(k, c, 100.0, 50.0, 0) for k, c in enumerate((10, 12, 60)))
+    changed = dataclasses.replace(paper, seeds=seeds, car=82, rail=0)
+    assert spread(changed) == pytest.approx(5.0)
+    rows = tuple(changed if r is paper else r for r in record.rows)
+    md = report.results_md(dataclasses.replace(record, rows=rows))
+    line = next(ln for ln in md.splitlines() if ln.startswith(f"| {paper.label} | 82"))
     assert line.endswith("| 5.0 (over the goal) |")
 
 
 def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp_path) -> None:
-    """Issue 58: docs/teaching.md's per-chapter block is rendered from what a full-profile run
-    wrote (its chapter times and headline figures), never typed; a cut run says so."""
-    import json
+    """docs/teaching.md's per-chapter block is rendered from what a full-profile run wrote (its
+    chapter times and headline figures), never typed; a cut run says so."""
+    from e2e_lite.record.course_run import course_run_record
 
     (tmp_path / "metrics").mkdir()
     times = {
@@ -157,7 +181,7 @@ def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp
     (tmp_path / "course_times.json").write_text(json.dumps(times))
     metrics = {"profile": "full", "headline": {"lane keeper collisions/100mi": 0.0}}
     (tmp_path / "metrics" / "01_highway.json").write_text(json.dumps(metrics))
-    run = report.course_run_record(tmp_path)
+    run = course_run_record(tmp_path)
     assert run["chapters"]["01_highway"]["headline"] == {"lane keeper collisions/100mi": 0.0}
     table = report.course_run_table(run)
     assert "| 01_highway | 0.1 | lane keeper collisions/100mi: 0 |" in table
@@ -165,93 +189,85 @@ def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp
     assert "No full-profile run" in report.course_run_table(None)
     (tmp_path / "metrics" / "02_camera.json").write_text(json.dumps({"profile": "quick"}))
     with pytest.raises(ValueError, match="not a full-profile run"):
-        report.course_run_record(tmp_path)
+        course_run_record(tmp_path)
 
 
 def test_the_committed_record_drives_a_sealed_block_and_states_its_power() -> None:
-    """Issue 57: the record of record names its block of test roads (not the open one), the
-    block's range and the commit of its frozen recipes, and docs/results.md states its power at
-    its own + affordance rate."""
+    """The record of record names its block of test roads (not the open one), the block's range
+    and the commit of its frozen recipes, and docs/results.md states its power at its own +
+    affordance rate."""
     from e2e_lite.driving.roads import ROAD_BLOCKS
 
     record = report.load()
-    block = record["block"]
-    assert block["name"] != "open" and block["range"] == list(ROAD_BLOCKS[block["name"]])
-    assert re.fullmatch(r"[0-9a-f]{7,40}", block["recipes_commit"])
-    found = report.record_power(record)
+    block = record.block
+    assert block.name != "open" and block.range == list(ROAD_BLOCKS[block.name])
+    assert re.fullmatch(r"[0-9a-f]{7,40}", block.recipes_commit) and block.sealed
+    found = record_power(record)
     assert found is not None and found["seeds"] >= 10
     results = (ROOT / "docs" / "results.md").read_text()
     assert f"Power: {found['seeds']} seeds x {found['miles_per_seed']:.0f} mi" in results
 
 
 def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_papers_ratio() -> None:
-    """Issue 64: the record names its families of tests; each step's p is Holm-adjusted within
-    its family and the verdict word reads the adjusted p; the table shows raw and adjusted p, the
-    paper's ratio beside ours, and a line on what each control found."""
-    record = copy.deepcopy(report.load())
-    assert set(record["family"]["tests"].values()) <= set(record["family"]["families"])
-    record["rows"] = [
-        row("actuators", [60, 70, 80, 65, 75]),
-        row("gmm", [6, 10, 5, 9, 11]),
+    """The record names its families of tests; each step's p is Holm-adjusted within its family
+    and the verdict word reads the adjusted p; the table shows raw and adjusted p, the paper's
+    ratio beside ours, and a line on what each control found."""
+    committed = report.load()
+    assert set(committed.family.tests.values()) <= set(committed.family.families)
+    rows = [
+        dataclasses.replace(row("actuators", [60, 70, 80, 65, 75]), paper_per_100mi=183.3),
+        dataclasses.replace(row("gmm", [6, 10, 5, 9, 11]), paper_per_100mi=12.7),
         row("gmm_affordance", [5, 4, 6, 3, 5]),
         row("gmm_affordance_w0", [6, 4, 5, 3, 4]),
     ]
-    record["rows"][0]["paper_per_100mi"], record["rows"][1]["paper_per_100mi"] = 183.3, 12.7
-    steps = {s["step"]: s for s in report.steps(record)}
-    aff = steps["GMM -> + affordance"]
+    record = with_rows(committed, *rows)
+    tested = by_step(record)
+    aff = tested["GMM -> + affordance"]
     # raw p = 7/252 (0.028); in the paper's family of two (beside the Baseline step's 1/252)
     # Holm leaves it at max(2/252, 7/252): still "reproduces"
-    assert aff["p_better"] == pytest.approx(7 / 252) and aff["p_holm"] == pytest.approx(7 / 252)
-    assert aff["verdict"] == "reproduces"
-    assert steps["Baseline E2E -> trajectory GMM"]["paper_ratio"] == pytest.approx(12.7 / 183.3)
-    assert aff["paper_ratio"] is None  # the hand-made row has no paper figure
+    assert aff.p_fewer == pytest.approx(7 / 252) and aff.p_holm_fewer == pytest.approx(7 / 252)
+    assert aff.verdict == "reproduces"
+    assert tested["Baseline E2E -> trajectory GMM"].paper_ratio == pytest.approx(12.7 / 183.3)
+    assert aff.paper_ratio is None  # the hand-made row has no paper figure
     # a method that beats its control says so in its family's words, and is credited
-    beaten = copy.deepcopy(record)
-    beaten["rows"][3] = row("gmm_affordance_w0", [30, 35, 28, 40, 33])
-    control = {s["step"]: s for s in report.steps(beaten)}[
-        "affordance loss against its control (w = 0)"
-    ]
-    assert control["verdict"] == "beats its control"
-    assert "so 'GMM -> + affordance' is credited to its method" in report.controls_line(
-        report.steps(beaten)
-    )
+    beaten = with_rows(committed, *rows[:3], row("gmm_affordance_w0", [30, 35, 28, 40, 33]))
+    control = by_step(beaten)["affordance loss against its control (w = 0)"]
+    assert control.verdict == "beats its control"
+    assert "so 'GMM -> + affordance' is credited to its method" in controls_line(steps(beaten))
     # a control that collides less reads "the opposite", and the table, the controls line and
     # the teacher's line show the p for more collisions that verdict reads, not the p = 1 for fewer
-    worse = copy.deepcopy(record)
-    worse["rows"][3] = row("gmm_affordance_w0", [0, 1, 0, 1, 0])
-    opposite = next(s for s in report.steps(worse) if s["step"].startswith("affordance loss"))
-    assert opposite["verdict"] == "the opposite" and opposite["p_better"] == pytest.approx(1.0)
-    assert report.verdict_p(opposite) == opposite["p_holm_worse"] < 0.05
-    cell = f"the opposite: more collisions, Holm p {opposite['p_holm_worse']:.2g}"
-    assert report.verdict_cell(opposite) == cell and cell in report.table1(worse)
-    assert f"the control collides less (Holm p = {opposite['p_holm_worse']:.2g}" in (
-        report.controls_line(report.steps(worse))
+    worse = with_rows(committed, *rows[:3], row("gmm_affordance_w0", [0, 1, 0, 1, 0]))
+    opposite = next(s for s in steps(worse) if s.step.startswith("affordance loss"))
+    assert opposite.verdict == "the opposite" and opposite.p_fewer == pytest.approx(1.0)
+    assert opposite.verdict_p == opposite.p_holm_more < 0.05
+    cell = f"the opposite: more collisions, Holm p {opposite.p_holm_more:.2g}"
+    assert opposite.cell == cell and cell in report.table1(worse)
+    assert f"the control collides less (Holm p = {opposite.p_holm_more:.2g}" in (
+        controls_line(steps(worse))
     )
     # a family that holds every test in one: Holm over three (the control's p is about 0.5)
     # takes it to 2 x 7/252 = 0.056, and the same seeds no longer read "reproduces"
-    record["family"] = {
-        **record["family"],
-        "tests": dict.fromkeys(record["family"]["tests"], "paper"),
-    }
-    one = {s["step"]: s for s in report.steps(record)}["GMM -> + affordance"]
-    assert one["p_holm"] == pytest.approx(14 / 252) and one["p_better"] == aff["p_better"]
-    assert one["verdict"] == "not shown at the seed level"
-    table = report.table1(report.load())
+    tests = dict.fromkeys(committed.family.tests, "paper")
+    one_family = dataclasses.replace(record.family, tests=tests)
+    one = by_step(dataclasses.replace(record, family=one_family))["GMM -> + affordance"]
+    assert one.p_holm_fewer == pytest.approx(14 / 252) and one.p_fewer == aff.p_fewer
+    assert one.verdict == "not shown at the seed level"
+    table = report.table1(committed)
     assert "| Holm p |" in table and "the paper's ratio" in table
     assert "**What the controls found.**" in table and "not credited to its method" in table
     assert "The families of tests, declared " in table
 
 
 def test_the_committed_record_states_its_power_under_its_seeds_spread() -> None:
-    """Issue 64: power is simulated under the dispersion fitted to the record's own rows (about
-    0.3 across the first record's), with the Poisson figure beside as an upper bound."""
-    found = report.record_power(spread_record())
+    """Power is simulated under the dispersion fitted to the record's own rows (about 0.3 across
+    the first record's), with the Poisson figure beside as an upper bound."""
+    found = record_power(spread_record())
     k = found["dispersion"]
     assert 0.15 < k["dispersion"] < 0.6 and k["low"] < k["dispersion"] < k["high"]
     assert (
         found["power"] < found["power_poisson"] and found["power_paired"] < found["power_poisson"]
     )
-    found = report.record_power(report.load())  # the committed record's, as rendered
+    found = record_power(report.load())  # the committed record's, as rendered
     k = found["dispersion"]
     assert 0.0 <= k["low"] <= k["dispersion"] <= k["high"]
     results = (ROOT / "docs" / "results.md").read_text()
@@ -260,10 +276,10 @@ def test_the_committed_record_states_its_power_under_its_seeds_spread() -> None:
 
 
 def test_the_record_plan_reaches_its_power_at_the_least_time_and_the_class_can_run_it() -> None:
-    """Issue 65: the plan, per budget of miles per seed, the fewest seeds (at most 30) that find
-    a 2x step with the target power under the record's fitted spread, the cheapest chosen; the
-    teacher's kit says how a class runs and pools shares, and a job-array script runs them."""
-    from e2e_lite.record import plan
+    """The plan, per budget of miles per seed, the fewest seeds (at most 30) that find a 2x step
+    with the target power under the record's fitted spread, the cheapest chosen; the teacher's
+    kit says how a class runs and pools shares, and a job-array script runs them."""
+    from e2e_lite.record.run import plan
 
     found = plan(spread_record(), target=0.6, most=14, miles_options=(100.0, 200.0), n_sim=200)
     assert 0.15 < found["dispersion"] < 0.6 and len(found["options"]) == 2
@@ -273,9 +289,26 @@ def test_the_record_plan_reaches_its_power_at_the_least_time_and_the_class_can_r
         )
     assert found["chosen"]["power"] >= 0.6
     teaching = (ROOT / "docs" / "teaching.md").read_text()
-    assert "## A class's Table 1" in teaching and "--pool" in teaching and "--plan" in teaching
+    assert "## A class's Table 1" in teaching
+    assert "e2e_lite.record pool" in teaching and "e2e_lite.record plan" in teaching
     script = (ROOT / "docs" / "record-array.sh").read_text()
-    assert "--record --seeds" in script and "SLURM_ARRAY_TASK_ID" in script and "--pool" in script
+    assert "e2e_lite.record run --seeds" in script and "SLURM_ARRAY_TASK_ID" in script
+    assert "e2e_lite.record pool" in script
+
+
+def test_the_record_command_runs_pools_and_plans_and_the_report_only_renders(capsys) -> None:
+    """One command per job: ``python -m e2e_lite.record`` names its jobs, ``report`` has no flag
+    but ``--check``."""
+    from e2e_lite.record.__main__ import main
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert all(job in text for job in ("run", "pool", "plan", "course-run"))
+    with pytest.raises(SystemExit):
+        report.main(["--help"])
+    text = capsys.readouterr().out
+    assert "--check" in text and "--record" not in text and "--pool" not in text
 
 
 def test_a_copy_without_git_names_its_recipes_commit_from_the_environment(monkeypatch) -> None:
@@ -283,7 +316,7 @@ def test_a_copy_without_git_names_its_recipes_commit_from_the_environment(monkey
     through $E2E_LITE_COMMIT, so a pool can check them against shares made in a clone."""
     import subprocess
 
-    from e2e_lite import record
+    from e2e_lite.record import run as record
 
     assert re.fullmatch(r"[0-9a-f]{7,40}", record._commit())  # this checkout: git answers
 

@@ -15,7 +15,7 @@ from e2e_lite.control.labels import GAP_NAMES
 from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.driving.metrics import add_info
-from e2e_lite.learning.data import AFFORDANCE_NAMES, affordances
+from e2e_lite.learning.collector import AFFORDANCE_NAMES, affordances
 from e2e_lite.safety.agent import IMPACT_CAUSES, SafeAgent, SafetyStats, impact_cause
 from e2e_lite.safety.rule import (
     SafetyConfig,

@@ -36,15 +36,16 @@ import copy
 import math
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
-from ..config import check_pair, check_range
-from ..simulation.geometry import Track, wrap_angle
+from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation, seeded_cars
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
 from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S
+from .rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear
 from .tracker import (
     LaneChangePath,
     LQRTracker,
@@ -53,65 +54,6 @@ from .tracker import (
 )
 
 QUINTIC_PEAK = 10.0 / math.sqrt(3.0)  # max |b''| of the quintic blend: 5.77
-
-
-@dataclass(frozen=True)
-class ExpertConfig:
-    """Settings of the expert.
-
-    Attributes:
-        top_speed_mps: cruise speed on straights [m/s].
-        max_lat_accel_mps2: the friction bound of the speed limit in curves [m/s^2].
-        curve_brake_mps2: deceleration planned when slowing down for a curve ahead [m/s^2].
-        trigger_m: (min, max) gap from the front bumper to a parked car's rear that triggers an
-            overtake, drawn per manoeuvre [m]. At 25 m/s a comfortable lane change needs about
-            60 m, so the range starts at 45 m (the change is shortened to fit, see
-            ``change_lat_accel_mps2``).
-        finish_m: (min, max) distance of the rear axle past the overtaken car's front before the
-            return, drawn per manoeuvre [m].
-        change_time_s: (min, max) duration of a lane change, drawn per manoeuvre [s].
-        min_change_m: shortest lane change [m].
-        change_lat_accel_mps2: a lane change that would need more peak lateral acceleration than
-            this is not started (the expert slows down instead) [m/s^2].
-        clear_behind_m: the target lane must be free from this far behind the rear axle (parked
-            cars never move, so this only has to cover the car's own length) [m].
-        clear_past_m: ... to this far past the overtaken car's front [m].
-        follow_margin_m: when it cannot overtake it stops this far behind the car ahead [m].
-        approach_brake_mps2: outside ``keep`` the speed is capped so that the car could stop
-            ``follow_margin_m`` behind the next parked car in the lane it is heading for, braking at
-            this rate [m/s^2].
-        lookahead_m: range of the gap search [m].
-    """
-
-    top_speed_mps: float = 25.0
-    max_lat_accel_mps2: float = 2.5
-    curve_brake_mps2: float = 1.5
-    trigger_m: tuple[float, float] = (45.0, 75.0)
-    finish_m: tuple[float, float] = (5.0, 40.0)
-    change_time_s: tuple[float, float] = (2.5, 3.5)
-    min_change_m: float = 15.0
-    change_lat_accel_mps2: float = 4.0
-    clear_behind_m: float = 5.0
-    clear_past_m: float = 40.0
-    follow_margin_m: float = 15.0
-    approach_brake_mps2: float = 3.0
-    lookahead_m: float = 150.0
-
-    def __post_init__(self) -> None:
-        o = "ExpertConfig"
-        check_range(o, "top_speed_mps", self.top_speed_mps, 0.0, 60.0, lo_open=True)
-        check_range(o, "max_lat_accel_mps2", self.max_lat_accel_mps2, 0.0, 10.0, lo_open=True)
-        check_range(o, "curve_brake_mps2", self.curve_brake_mps2, 0.0, 10.0, lo_open=True)
-        check_pair(o, "trigger_m", self.trigger_m, lo=self.follow_margin_m)
-        check_pair(o, "finish_m", self.finish_m, lo=0.0)
-        check_pair(o, "change_time_s", self.change_time_s, lo=0.5)
-        check_range(o, "min_change_m", self.min_change_m, 1.0, 500.0)
-        check_range(o, "change_lat_accel_mps2", self.change_lat_accel_mps2, 0.0, 10.0, lo_open=True)
-        check_range(o, "clear_behind_m", self.clear_behind_m, 0.0, 500.0)
-        check_range(o, "clear_past_m", self.clear_past_m, 0.0, 500.0)
-        check_range(o, "follow_margin_m", self.follow_margin_m, 1.0, 100.0)
-        check_range(o, "approach_brake_mps2", self.approach_brake_mps2, 0.0, 10.0, lo_open=True)
-        check_range(o, "lookahead_m", self.lookahead_m, self.trigger_m[1], 1000.0)
 
 
 @dataclass
@@ -158,61 +100,6 @@ class Plan:
         out = copy.copy(self)
         out.rng = None
         return out
-
-
-def speed_profile(track: Track, cfg: ExpertConfig, step_m: float = 5.0) -> np.ndarray:
-    """The expert's speed limit every ``step_m`` metres of ``track`` [m/s].
-
-    ``v(s) = min(top, sqrt(a_lat / |kappa(s)|))``, then a backward pass
-    ``v_i = min(v_i, sqrt(v_{i+1}^2 + 2 b step))`` so that it slows down *before* a curve at no more
-    than ``curve_brake_mps2``. The curvature is sampled at both ends of each step.
-    """
-    s = np.arange(0.0, track.length + step_m, step_m)
-    kappa = np.maximum(np.abs(track.curvature(s)), np.abs(track.curvature(s + step_m)))
-    v = np.minimum(cfg.top_speed_mps, np.sqrt(cfg.max_lat_accel_mps2 / np.maximum(kappa, 1e-9)))
-    reach = 2.0 * cfg.curve_brake_mps2 * step_m
-    for i in range(len(v) - 2, -1, -1):
-        v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + reach))
-    return v
-
-
-class SpeedLimits:
-    """The expert's speed limit at any ``(track, s)``: :func:`speed_profile` computed once per
-    track object (keyed by identity: two roads may share a ``track_id`` but not a profile)."""
-
-    STEP_M = 5.0
-
-    def __init__(self, cfg: ExpertConfig) -> None:
-        self.cfg = cfg
-        self._profiles: dict[int, tuple[Track, np.ndarray]] = {}
-
-    def at(self, track: Track, s: float) -> float:
-        """Speed limit [m/s] at arc length ``s`` [m]."""
-        entry = self._profiles.get(id(track))
-        if entry is None or entry[0] is not track:
-            entry = (track, speed_profile(track, self.cfg, self.STEP_M))
-            self._profiles[id(track)] = entry
-        profile = entry[1]
-        return float(profile[min(len(profile) - 1, max(0, int(s / self.STEP_M)))])
-
-
-def car_ahead(world: World, s_from: float, lane: int, range_m: float) -> tuple[float, int]:
-    """The first parked car in ``lane`` whose rear is ahead of ``s_from`` (or overlaps it), from
-    the world's car list: ``(gap from s_from to its rear [m], index)``, or ``(inf, -1)``."""
-    cars = world.cars
-    half = cars.length_m / 2.0
-    sl = cars.between(s_from - half, s_from + range_m + half)
-    hits = np.flatnonzero(cars.lane[sl] == lane)
-    if hits.size == 0:
-        return math.inf, -1
-    j = sl.start + int(hits[0])
-    return float(cars.s[j]) - half - s_from, j
-
-
-def lane_clear(world: World, lane: int, s_lo: float, s_hi: float) -> bool:
-    """No parked car's body in ``lane`` overlaps ``[s_lo, s_hi]`` [m] of arc length."""
-    half = world.cars.length_m / 2.0
-    return world.lane_free(s_lo, lane, half, s_hi - s_lo + half)
 
 
 class Expert:
@@ -279,7 +166,14 @@ class Expert:
             self._restart(self.plans[i], int(obs.lane[i]))
         before = dict(self.manoeuvres)
         steer, accel = self._decide(
-            self.plans, obs.state, obs.s, obs.d, obs.heading_error, obs.curvature, obs.worlds, True
+            self.plans,
+            obs.state,
+            obs.s,
+            obs.d,
+            obs.heading_error,
+            obs.curvature,
+            obs.worlds,
+            count_manoeuvres=True,
         )
         started = Counter({k: n - before[k] for k, n in self.manoeuvres.items() if n > before[k]})
         return Actuation(steer, accel, info={"manoeuvres": started} if started else None)
@@ -312,7 +206,9 @@ class Expert:
             if k:
                 s, d, road_h, kap = lane_frame(tracks, st, seg)
                 he = wrap_angle(st[:, H] - road_h)
-            steer, accel = self._decide(plans, st, s, d, he, kap, obs.worlds, False)
+            steer, accel = self._decide(
+                plans, st, s, d, he, kap, obs.worlds, count_manoeuvres=False
+            )
             for _ in range(self.sim.steps_per_policy):
                 bicycle_step(st, steer, accel, self.vehicle, self.sim.dt_s)
             if (k + 1) % per_point == 0:
@@ -323,9 +219,135 @@ class Expert:
         return out
 
     # ------------------------------------------------------------------ machine
-    def _restart(self, plan: Plan, lane: int) -> None:
+    # One decision per car, in the three phases of the state table (module docstring): the
+    # transitions move the plan, then the lateral and the speed references follow from it.
+    def _decide(
+        self,
+        plans: list[Plan],
+        state: np.ndarray,
+        s: np.ndarray,
+        d: np.ndarray,
+        heading_error: np.ndarray,
+        curvature: np.ndarray,
+        worlds: list[World],
+        count_manoeuvres: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Advance every plan one decision and return ``(steer [rad], accel [m/s^2])``.
+        ``count_manoeuvres``: add the manoeuvres started to :attr:`manoeuvres` (the driven
+        decision does; a label's rollout does not)."""
+        n = len(plans)
+        e, psi, kap = np.empty(n), np.empty(n), np.empty(n)
+        v_ref = np.empty(n)
+        brake = np.zeros(n)  # extra deceleration demanded by a car ahead [m/s^2]
+        speeds = state[:, V]
+        for i, plan in enumerate(plans):
+            car = _Car(worlds[i], float(s[i]), float(d[i]), float(speeds[i]))
+            gap = self._transition(plan, car, count_manoeuvres)
+            e[i], psi[i], kap[i] = self._lateral_reference(
+                plan, car, heading_error[i], curvature[i]
+            )
+            v_ref[i], brake[i] = self._speed_reference(plan, car, gap)
+        steer = self.tracker.steer(e, psi, kap, speeds)
+        accel = self.tracker.accel(speeds, v_ref)
+        accel = np.where(brake > 0, np.minimum(accel, -brake), accel)
+        return steer, accel
+
+    @staticmethod
+    def _restart(plan: Plan, lane: int) -> None:
+        """A car (re-)placed in ``lane``: ``keep`` there, no manoeuvre under way."""
         plan.state, plan.lane, plan.origin, plan.path = KEEP, lane, lane, None
         plan.overtaking, plan.obstacle_front_m = False, -math.inf
+
+    def _gap_ahead(self, plan: Plan, car: _Car, lane: int | None = None) -> tuple[float, int]:
+        """The parked car ahead of ``car``'s front bumper in ``lane`` (default: the plan's)."""
+        front = car.s + self._front
+        return car_ahead(
+            car.world, front, plan.lane if lane is None else lane, self.cfg.lookahead_m
+        )
+
+    def _transition(self, plan: Plan, car: _Car, count_manoeuvres: bool) -> float:
+        """The state machine's transitions for one decision (the module docstring's table);
+        returns the gap to the parked car ahead in the lane the plan now drives for [m]."""
+        if plan.state == CHANGE and plan.path is not None and plan.path.done(car.s):
+            self._end_change(plan)
+        gap, j = self._gap_ahead(plan, car)
+        should_overtake = plan.state in (KEEP, PASS, FOLLOW) and gap < plan.trigger_m
+        if should_overtake:
+            if self._start_overtake(plan, car, gap, j, count_manoeuvres):
+                gap, _ = self._gap_ahead(plan, car)
+            elif plan.state != FOLLOW:
+                plan.state = FOLLOW
+                self._count("follow", count_manoeuvres)
+        elif plan.state == FOLLOW:
+            plan.state = KEEP
+        passed = plan.state == PASS and car.s > plan.obstacle_front_m + plan.finish_m
+        if passed and plan.origin != plan.lane and self._start_return(plan, car, count_manoeuvres):
+            gap, _ = self._gap_ahead(plan, car)
+        if plan.state == PASS and plan.origin == plan.lane:
+            plan.state = KEEP
+        return gap
+
+    def _count(self, manoeuvre: str, count_manoeuvres: bool) -> None:
+        if count_manoeuvres:
+            self.manoeuvres[manoeuvre] += 1
+
+    @staticmethod
+    def _end_change(plan: Plan) -> None:
+        """``change`` -> ``pass`` (an overtake) or ``keep`` (a return) at the path's end."""
+        plan.state = PASS if plan.overtaking else KEEP
+        plan.path = None
+        if plan.state == KEEP:
+            plan.origin = plan.lane
+
+    def _start_overtake(
+        self, plan: Plan, car: _Car, gap: float, j: int, count_manoeuvres: bool
+    ) -> bool:
+        """``keep``/``pass``/``follow`` -> ``change``: a lane change around parked car ``j``
+        (``gap`` metres ahead) if a neighbouring lane is free; True if started."""
+        cfg, world, track = self.cfg, car.world, car.world.track
+        s_obst_front = float(world.cars.s[j]) + world.cars.length_m / 2.0
+        free = [
+            lane
+            for lane in (plan.lane + 1, plan.lane - 1)
+            if 0 <= lane < track.n_lanes
+            and lane_clear(world, lane, car.s - cfg.clear_behind_m, s_obst_front + cfg.clear_past_m)
+        ]
+        if not free:
+            return False
+        length = self._change_length(plan, car.v, gap, track.lane_width)
+        if length is None:
+            return False
+        if plan.state == PASS and plan.origin in free:
+            target = plan.origin
+        elif len(free) == 2:
+            target = free[0] if plan.coin < 0.5 else free[1]
+        else:
+            target = free[0]
+        side = 1 if target > plan.lane else -1
+        if target != plan.origin:  # the lane it leaves is where it returns to (one lane at a time)
+            plan.origin = plan.lane
+        plan.path = LaneChangePath(car.s, length, car.d, float(track.lane_center(target)))
+        plan.state, plan.lane, plan.overtaking, plan.side = CHANGE, target, True, side
+        plan.obstacle_front_m = s_obst_front
+        self._count("left" if side > 0 else "right", count_manoeuvres)
+        plan.draw(cfg)
+        return True
+
+    def _start_return(self, plan: Plan, car: _Car, count_manoeuvres: bool) -> bool:
+        """``pass`` -> ``change``: back to the origin lane once it is free far enough ahead;
+        True if started."""
+        cfg, track = self.cfg, car.world.track
+        g_back, _ = self._gap_ahead(plan, car, plan.origin)
+        length = self._change_length(plan, car.v, g_back, track.lane_width)
+        if length is None or not lane_clear(
+            car.world, plan.origin, car.s - cfg.clear_behind_m, car.s + length + cfg.clear_past_m
+        ):
+            return False
+        plan.path = LaneChangePath(car.s, length, car.d, float(track.lane_center(plan.origin)))
+        plan.state, plan.lane, plan.overtaking = CHANGE, plan.origin, False
+        self._count("return", count_manoeuvres)
+        plan.draw(cfg)
+        return True
 
     def _change_length(
         self, plan: Plan, speed: float, gap: float, lane_width_m: float
@@ -342,128 +364,42 @@ class Expert:
             return None
         return length
 
-    def _try_overtake(
-        self,
-        plan: Plan,
-        world: World,
-        s: float,
-        d: float,
-        speed: float,
-        gap: float,
-        j: int,
-        count: bool,
-    ) -> bool:
-        """Start a lane change around car ``j`` if a neighbouring lane is free; True if started."""
-        cfg, track = self.cfg, world.track
-        s_obst_front = float(world.cars.s[j]) + world.cars.length_m / 2.0
-        free = [
-            lane
-            for lane in (plan.lane + 1, plan.lane - 1)
-            if 0 <= lane < track.n_lanes
-            and lane_clear(world, lane, s - cfg.clear_behind_m, s_obst_front + cfg.clear_past_m)
-        ]
-        if not free:
-            return False
-        length = self._change_length(plan, speed, gap, track.lane_width)
-        if length is None:
-            return False
-        if plan.state == PASS and plan.origin in free:
-            target = plan.origin
-        elif len(free) == 2:
-            target = free[0] if plan.coin < 0.5 else free[1]
-        else:
-            target = free[0]
-        side = 1 if target > plan.lane else -1
-        if target != plan.origin:  # the lane it leaves is where it returns to (one lane at a time)
-            plan.origin = plan.lane
-        plan.path = LaneChangePath(s, length, d, float(track.lane_center(target)))
-        plan.state, plan.lane, plan.overtaking, plan.side = CHANGE, target, True, side
-        plan.obstacle_front_m = s_obst_front
-        if count:
-            self.manoeuvres["left" if side > 0 else "right"] += 1
-        plan.draw(cfg)
-        return True
+    @staticmethod
+    def _lateral_reference(
+        plan: Plan, car: _Car, heading_error: float, curvature: float
+    ) -> tuple[float, float, float]:
+        """``(e [m], psi [rad], kappa [1/m])`` for the tracker: the lane-change path in
+        ``change``, else the centre of the plan's lane."""
+        if plan.state == CHANGE and plan.path is not None:
+            return plan.path.reference(car.s, car.d, float(heading_error), float(curvature))
+        ei, pi, ki = lane_reference(
+            car.d, heading_error, curvature, car.world.track.lane_center(plan.lane)
+        )
+        return float(ei), float(pi), float(ki)
 
-    def _decide(
-        self,
-        plans: list[Plan],
-        state: np.ndarray,
-        s: np.ndarray,
-        d: np.ndarray,
-        heading_error: np.ndarray,
-        curvature: np.ndarray,
-        worlds: list[World],
-        count: bool,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Advance every plan one decision and return ``(steer [rad], accel [m/s^2])``."""
+    def _speed_reference(self, plan: Plan, car: _Car, gap: float) -> tuple[float, float]:
+        """``(v_ref [m/s], brake [m/s^2])``: the curve profile, capped outside ``keep`` so the car
+        could still stop ``follow_margin_m`` behind the car ahead (``gap`` metres), and in
+        ``follow`` the deceleration that stops it there (0: none)."""
         cfg = self.cfg
-        n = len(plans)
-        e, psi, kap = np.empty(n), np.empty(n), np.empty(n)
-        v_ref = np.empty(n)
-        brake = np.zeros(n)  # extra deceleration demanded by a car ahead [m/s^2]
-        speeds = state[:, V]
-        for i, plan in enumerate(plans):
-            world, si, di, v = worlds[i], float(s[i]), float(d[i]), float(speeds[i])
-            track = world.track
-            front = si + self._front
-            if plan.state == CHANGE and plan.path is not None and plan.path.done(si):
-                plan.state = PASS if plan.overtaking else KEEP
-                plan.path = None
-                if plan.state == KEEP:
-                    plan.origin = plan.lane
-            gap, j = car_ahead(world, front, plan.lane, cfg.lookahead_m)
-            if plan.state in (KEEP, PASS, FOLLOW) and gap < plan.trigger_m:
-                if self._try_overtake(plan, world, si, di, v, gap, j, count):
-                    gap, j = car_ahead(world, front, plan.lane, cfg.lookahead_m)
-                elif plan.state != FOLLOW:
-                    plan.state = FOLLOW
-                    if count:
-                        self.manoeuvres["follow"] += 1
-            elif plan.state == FOLLOW:
-                plan.state = KEEP
-            if (
-                plan.state == PASS
-                and si > plan.obstacle_front_m + plan.finish_m
-                and plan.origin != plan.lane
-            ):
-                g_back, _ = car_ahead(world, front, plan.origin, cfg.lookahead_m)
-                length = self._change_length(plan, v, g_back, track.lane_width)
-                if length is not None and lane_clear(
-                    world, plan.origin, si - cfg.clear_behind_m, si + length + cfg.clear_past_m
-                ):
-                    plan.path = LaneChangePath(
-                        si, length, di, float(track.lane_center(plan.origin))
-                    )
-                    plan.state, plan.lane, plan.overtaking = CHANGE, plan.origin, False
-                    if count:
-                        self.manoeuvres["return"] += 1
-                    plan.draw(cfg)
-                    gap, j = car_ahead(world, front, plan.lane, cfg.lookahead_m)
-            if plan.state == PASS and plan.origin == plan.lane:
-                plan.state = KEEP
-            # lateral reference
-            if plan.state == CHANGE and plan.path is not None:
-                e[i], psi[i], kap[i] = plan.path.reference(
-                    si, di, float(heading_error[i]), float(curvature[i])
-                )
-            else:
-                ei, pi, ki = lane_reference(
-                    di, heading_error[i], curvature[i], track.lane_center(plan.lane)
-                )
-                e[i], psi[i], kap[i] = float(ei), float(pi), float(ki)
-            # speed: the curve profile, then any car ahead it must not reach
-            v_ref[i] = self.speed_limits.at(track, si)
-            room = gap - cfg.follow_margin_m
-            if plan.state == FOLLOW:
-                v_ref[i] = min(v_ref[i], math.sqrt(2.0 * cfg.approach_brake_mps2 * max(room, 0.0)))
-                if v > 0.1:
-                    brake[i] = v * v / (2.0 * max(room, 0.5))
-            elif plan.state != KEEP and math.isfinite(gap):
-                v_ref[i] = min(v_ref[i], math.sqrt(2.0 * cfg.approach_brake_mps2 * max(room, 0.0)))
-        steer = self.tracker.steer(e, psi, kap, speeds)
-        accel = self.tracker.accel(speeds, v_ref)
-        accel = np.where(brake > 0, np.minimum(accel, -brake), accel)
-        return steer, accel
+        v_ref, brake = self.speed_limits.at(car.world.track, car.s), 0.0
+        room = gap - cfg.follow_margin_m
+        if plan.state == FOLLOW:
+            v_ref = min(v_ref, math.sqrt(2.0 * cfg.approach_brake_mps2 * max(room, 0.0)))
+            if car.v > 0.1:
+                brake = car.v * car.v / (2.0 * max(room, 0.5))
+        elif plan.state != KEEP and math.isfinite(gap):
+            v_ref = min(v_ref, math.sqrt(2.0 * cfg.approach_brake_mps2 * max(room, 0.0)))
+        return v_ref, brake
+
+
+class _Car(NamedTuple):
+    """One car at one decision, as the state machine reads it."""
+
+    world: World
+    s: float  # arc length of the rear axle [m]
+    d: float  # lateral offset from the reference line [m]
+    v: float  # speed [m/s]
 
 
 def fresh_labels(

@@ -8,17 +8,22 @@
 * The 9 affordances (:data:`AFFORDANCE_NAMES`, after DeepDriving) and the cap of their gaps.
 * Seed 002's throttle and brake, recovered from the acceleration label (:func:`throttle_brake`).
 
-The collector (:mod:`e2e_lite.learning.data`) computes them from the world; the dataset
+The affordances of cars in their worlds are measured here (:func:`affordances`, for the
+collector, :mod:`e2e_lite.learning.collector`, and the safety module's audits); the dataset
 (:mod:`e2e_lite.learning.dataset`), the losses and the safety module read them from here.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..simulation.vehicle import VehicleParams
+
+if TYPE_CHECKING:  # (annotations only: the labels load without the simulator)
+    from ..simulation.world import World
 
 #: The paper's trajectory: 5 points, 0.3 s apart, 1.5 s ahead.
 N_POINTS = 5
@@ -110,3 +115,42 @@ def along_path(points: np.ndarray, progress: Callable[[np.ndarray], np.ndarray])
     end = (x >= a[:, -1:])[..., None]  # on a vertex or at the end: that point (as np.interp)
     out[moved] = np.where((x == lo)[..., None] | end, np.where(end, p[:, -1:], p_lo), at)
     return out.reshape(pts.shape)
+
+
+def affordances(
+    worlds: list[World], s: np.ndarray, d: np.ndarray, heading_error: np.ndarray
+) -> np.ndarray:
+    """The affordances of B cars, ``(B, 9)`` float64 (see :data:`AFFORDANCE_NAMES` for units).
+
+    Args:
+        worlds: car i's world.
+        s, d: lane-frame position of each rear axle [m].
+        heading_error: heading minus the road's [rad].
+    """
+    n = len(worlds)
+    out = np.empty((n, len(AFFORDANCE_NAMES)))
+    for i, world in enumerate(worlds):
+        track, veh = world.track, world.vehicle
+        di = float(d[i])
+        lane = int(track.lane_index(di))
+        centre = float(track.lane_center(lane))
+        half_lane = track.lane_width / 2.0
+        front = float(s[i]) + veh.length_m - veh.rear_overhang_m
+        start = front - veh.length_m  # the rear bumper: a car reaching past it is alongside
+        gaps = []
+        for other in (lane, lane + 1, lane - 1):
+            if not 0 <= other < track.n_lanes:
+                gaps.append(0.0)
+                continue
+            hit = world.gap_ahead(start, other, GAP_CAP_M + front - start)
+            gaps.append(min(GAP_CAP_M, max(0.0, start + hit - front)))
+        out[i] = (
+            float(heading_error[i]),
+            di - centre,
+            centre + half_lane - di,
+            di - (centre - half_lane),
+            track.half_width - di,
+            di + track.half_width,
+            *gaps,
+        )
+    return out

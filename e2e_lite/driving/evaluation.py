@@ -65,7 +65,6 @@ from .rollout import (  # noqa: F401 (re-exported, as above)
     drive,
     drive_shard,
     restart_state,
-    roll_out,
     start_lane,
     start_state,
     track_index,

@@ -39,10 +39,10 @@ with warnings.catch_warnings():  # meshcat 0.3 imports a deprecated pyzmq module
 
 from ..artifacts import atomic_write
 from ..simulation.camera import Camera, CameraConfig
-from ..simulation.camera import draw_trajectory as draw_on_frame
 from ..simulation.geometry import Track
 from ..simulation.policy import Actuation, Observation, Policy
 from ..simulation.raster import CAR_COLOURS, DASH_M, DASH_PERIOD_M, RAIL_HEIGHT_M
+from ..simulation.raster import draw_trajectory as draw_on_frame
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import ParkedCars, World, WorldConfig
 from .rollout import drive
@@ -190,14 +190,24 @@ def _line(points_xy: np.ndarray, z: float) -> np.ndarray:
 
 
 def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> RecordingWindow:
-    """The episode as meshcat commands: the stretch of road it drove, the parked cars there, the
-    ego's animation and its proposals' animation."""
+    """The episode as meshcat commands: the stretch of road it drove (from ``margin_m`` behind its
+    first position to ``ahead_m`` past its last), the parked cars there, the ego's animation and
+    its proposals' animation."""
     window = RecordingWindow()
     vis = meshcat.Visualizer(window=window)
     track = ep.track
     s_drive = np.array(track.to_frenet(ep.states[:, 0], ep.states[:, 1])[0], dtype=float)
     s_lo = max(0.0, float(s_drive.min()) - margin_m)
     s_hi = min(track.length, float(s_drive.max()) + ahead_m)
+    _draw_road(vis, track, s_lo, s_hi)
+    _draw_parked(vis, ep.cars, s_lo, s_hi)
+    _draw_ego_and_plans(vis, ep)
+    _animate(vis, ep)
+    return window
+
+
+def _draw_road(vis: meshcat.Visualizer, track: Track, s_lo: float, s_hi: float) -> None:
+    """The road's surface, edge lines, dashed dividers and guard rails from ``s_lo`` to ``s_hi``."""
     s = np.arange(s_lo, s_hi, 2.0)
     # road surface: a triangle strip between the two edges
     left = track.position(s, track.half_width)
@@ -232,8 +242,10 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
         xy = track.position(s, d)
         for z, part in ((RAIL_HEIGHT_M, "top"), (RAIL_HEIGHT_M * 0.6, "mid")):
             vis[f"road/{name}_{part}"].set_object(g.Line(g.PointsGeometry(_line(xy, z)), rail))
-    # parked cars on the stretch
-    cars = ep.cars
+
+
+def _draw_parked(vis: meshcat.Visualizer, cars: ParkedCars, s_lo: float, s_hi: float) -> None:
+    """The parked cars between arc lengths ``s_lo`` and ``s_hi``, as coloured boxes."""
     box = g.Box([cars.length_m, cars.width_m, CAR_HEIGHT_M])
     for i in range(*_slice(cars, s_lo, s_hi)):
         colour = _hex(CAR_COLOURS[i % len(CAR_COLOURS)])
@@ -242,26 +254,35 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
         node.set_transform(
             _pose(float(cars.x[i]), float(cars.y[i]), CAR_HEIGHT_M / 2, float(cars.heading[i]))
         )
-    # the ego and its proposals (5 points per mode)
-    ego = vis["ego"]
+
+
+def _draw_ego_and_plans(vis: meshcat.Visualizer, ep: Episode) -> None:
+    """The ego's box and a sphere per proposed point (5 per mode), and the chase camera.
+
+    meshcat's orbit controls aim the camera at the *world* origin whatever frame the camera sits
+    in, so moving the camera with the car left it looking back at the origin. Instead the scene
+    moves (:func:`_animate`): every object lives under /meshcat, whose transform each frame is the
+    inverse of the car's pose, so the car stays at the origin facing +x, and the camera sits 18 m
+    behind it and 9 m up (the camera's frame is y-up), looking at it; dragging orbits around
+    the car."""
     veh = ep.vehicle
-    ego.set_object(
+    vis["ego"].set_object(
         g.Box([veh.length_m, veh.width_m, CAR_HEIGHT_M]), g.MeshLambertMaterial(color=0xE8322C)
     )
-    n_modes = 0 if ep.modes is None else ep.modes.shape[1]
-    for m in range(n_modes):
+    for m in range(0 if ep.modes is None else ep.modes.shape[1]):
         mat = g.MeshLambertMaterial(color=_hex(MODE_COLOURS[m % len(MODE_COLOURS)]))
         for p in range(5):
             vis[f"plan/mode_{m}/p{p}"].set_object(g.Sphere(0.45), mat)
-    # A chase view. meshcat's orbit controls aim the camera at the *world* origin whatever frame
-    # the camera sits in, so moving the camera with the car left it looking back at the origin.
-    # Instead the scene moves: every object lives under /meshcat, whose transform each frame is
-    # the inverse of the car's pose, so the car stays at the origin facing +x, and the camera
-    # sits 18 m behind it and 9 m up (the camera's frame is y-up), looking at it; dragging
-    # orbits around the car.
     vis["/Cameras/default/rotated/<object>"].set_property("position", CHASE_CAMERA_M)
     vis["/Grid"].set_property("visible", False)  # the default grid sits at the world's origin
     vis["/Axes"].set_property("visible", False)
+
+
+def _animate(vis: meshcat.Visualizer, ep: Episode) -> None:
+    """One animation frame per decision: the ego's pose, the scene moved so the car stays at
+    the origin, and each proposed point placed and scaled by its mode's weight."""
+    veh = ep.vehicle
+    n_modes = 0 if ep.modes is None else ep.modes.shape[1]
     anim = Animation(default_framerate=round(1.0 / ep.period_s))
     rear_to_centre = veh.length_m / 2 - veh.rear_overhang_m  # rear axle to the body's centre [m]
     for f, (x, y, h) in enumerate(ep.states[:, :3]):
@@ -269,18 +290,18 @@ def build_scene(ep: Episode, margin_m: float = 40.0, ahead_m: float = 120.0) -> 
             cx, cy = x + rear_to_centre * np.cos(h), y + rear_to_centre * np.sin(h)
             frame["ego"].set_transform(_pose(cx, cy, CAR_HEIGHT_M / 2, h))
             frame["/meshcat"].set_transform(np.linalg.inv(_pose(cx, cy, 0.0, h)))
-            if ep.modes is not None and f < len(ep.modes):
-                c, si = np.cos(h), np.sin(h)
-                for m in range(n_modes):
-                    w = float(ep.weights[f, m])
-                    for p, (px, py) in enumerate(ep.modes[f, m]):
-                        wx, wy = x + c * px - si * py, y + si * px + c * py
-                        node = frame[f"plan/mode_{m}/p{p}"]
-                        node.set_transform(_pose(wx, wy, 0.45, 0.0))
-                        size = 0.25 + 0.75 * w  # an animated transform keeps no scale
-                        node.set_property("scale", "vector3", [size, size, size])
+            if ep.modes is None or f >= len(ep.modes):
+                continue
+            c, si = np.cos(h), np.sin(h)
+            for m in range(n_modes):
+                w = float(ep.weights[f, m])
+                for p, (px, py) in enumerate(ep.modes[f, m]):
+                    wx, wy = x + c * px - si * py, y + si * px + c * py
+                    node = frame[f"plan/mode_{m}/p{p}"]
+                    node.set_transform(_pose(wx, wy, 0.45, 0.0))
+                    size = 0.25 + 0.75 * w  # an animated transform keeps no scale
+                    node.set_property("scale", "vector3", [size, size, size])
     vis.set_animation(anim, play=True, repetitions=1)
-    return window
 
 
 def _slice(cars: ParkedCars, s_lo: float, s_hi: float) -> tuple[int, int]:
@@ -359,10 +380,8 @@ def export_gif(ep: Episode, path: Path | str, every: int = 2, scale: float = 0.7
     path = Path(path)
     ms = round(1000 * ep.period_s * every)
     with atomic_write(path) as f:
-        pics[0].save(
-            f, format="GIF", save_all=True, append_images=pics[1:], duration=ms, loop=0,
-            optimize=True,
-        )  # fmt: skip
+        rest = {"append_images": pics[1:], "duration": ms, "loop": 0, "optimize": True}
+        pics[0].save(f, format="GIF", save_all=True, **rest)
     return path
 
 

@@ -10,9 +10,9 @@ from ..simulation.world import SEALED_TEST_TRACKS, World, WorldConfig, make_worl
 
 #: Blocks of test tracks, by name: ``[first, end)`` track indices. "open" holds every road the
 #: course, the lab scripts, the benchmarks and the tests drive; "record" is sealed: only the
-#: numbers of record (:func:`e2e_lite.record.record_table1`) drive it, after every recipe
-#: choice is frozen, so no choice was ever made while looking at its roads (issue 57; a test
-#: checks that no other code names it, and `rollout.track_index` keeps every other drive out).
+#: numbers of record (:func:`e2e_lite.record.run.record_share`) drive it, after every recipe
+#: choice is frozen, so no choice was ever made while looking at its roads (a test checks that
+#: no other code names it, and `rollout.track_index` keeps every other drive out).
 SEALED_BLOCK = "record"
 ROAD_BLOCKS = {
     "open": (0, SEALED_TEST_TRACKS.start),

@@ -7,7 +7,7 @@ after a collision or a stall where :func:`restart_state` says; so every policy w
 settings drives the same roads with the same parked cars, and no road twice. (Tracks are
 procedural: there are as many as asked for. ``n_tracks`` cycles through a fixed few instead, for
 tests and demos.) :func:`drive_shard` runs one shard's cars and returns what it measured
-(:class:`ShardResult`); :func:`merge_shards` sums shards into an
+(:class:`ShardResult`); :func:`~e2e_lite.driving.metrics.merge_shards` sums shards into an
 :class:`~e2e_lite.driving.metrics.EvalResult`. :func:`drive` drives one car in a hand-made world.
 """
 
@@ -28,10 +28,8 @@ from ..simulation.vehicle import H, V
 from ..simulation.world import Fleet, World, WorldConfig
 from .metrics import (
     M_PER_MILE,
-    EvalResult,
     ShardResult,
     add_info,
-    merge_shards,
     speed_histogram,
 )
 from .roads import ROAD_BLOCKS, WorldPool
@@ -70,11 +68,9 @@ class EvalConfig:
     these states (chapter 04), the evaluation is not changed to avoid them.
 
     Why fresh roads by default: the collision counts' confidence intervals treat collisions as
-    independent events. Cycling 64 cars through 16 tracks drove each road 4 times from the same
-    start, and a deterministic driver crashed at the same places each time: in chapter 10 (code
-    8f946b2) the GMM's 177 collisions over 500 mi were 65 distinct places, the L2 row's 86 were 32.
-    Collisions came in clusters of 2.7, so the intervals were about sqrt(2.7) = 1.6 times too
-    narrow and the tests' p-values far too small.
+    independent events, and a deterministic driver that drives a road again crashes at the same
+    places, so cycled roads make clusters of collisions and intervals too narrow (lab note "The
+    evaluator drove each road four times").
     """
 
     miles: float = 100.0
@@ -446,15 +442,16 @@ def drive_shard(
     world_cfg: WorldConfig,
     cfg: EvalConfig,
     cars: np.ndarray,
-    advance: Callable[[float], None],
+    advance: Callable[[float], None] | None = None,
     record_traces: bool = False,
     stop_when: Callable[[], bool | np.ndarray] | None = None,
 ) -> ShardResult:
     """Drive the cars ``cars`` (their indices among ``cfg.n_worlds``) to their shares.
 
     Every random choice is the car's own (:func:`start_lane`, the camera's jitter, the policy's
-    ``seed_cars``), so a car drives the same in any shard of any size. ``stop_when`` is called
-    after every decision: True stops every car, an array of bools the cars it marks."""
+    ``seed_cars``), so a car drives the same in any shard of any size. ``advance`` is told the
+    miles driven since its last call (a progress bar; None: nobody is told). ``stop_when`` is
+    called after every decision: True stops every car, an array of bools the cars it marks."""
     shard = _Shard(policy, world_cfg, cfg, cars)
     reported = 0.0
     while shard.active.any():
@@ -468,29 +465,7 @@ def drive_shard(
         if stop_when is not None:
             shard.active &= ~np.broadcast_to(np.asarray(stop_when(), dtype=bool), (shard.n,))
         done = float(np.minimum(shard.odometer, shard.share_m).sum() / M_PER_MILE)
-        advance(max(0.0, done - reported))
+        if advance is not None:
+            advance(max(0.0, done - reported))
         reported = max(reported, done)
     return shard.result()
-
-
-def roll_out(
-    policy: Policy,
-    world_cfg: WorldConfig,
-    cfg: EvalConfig,
-    *,
-    stop_when: Callable[[], bool] | None = None,
-    record_traces: bool = False,
-) -> EvalResult:
-    """The lockstep rollout of all ``cfg.n_worlds`` cars in this thread, as one result: what
-    :func:`~e2e_lite.driving.evaluation.evaluate` runs in shards behind a progress bar. The data
-    collector drives its expert with it, ``stop_when`` its sample count (called after every
-    decision; the metrics cover what was driven)."""
-    t_wall = time.perf_counter()
-    check_policy_rate(policy, world_cfg)
-    cars = np.arange(cfg.n_worlds)
-    shard = drive_shard(policy, world_cfg, cfg, cars, _ignore, record_traces, stop_when)
-    return merge_shards([shard], cfg.intervention_cost_s, time.perf_counter() - t_wall)
-
-
-def _ignore(miles: float) -> None:
-    """A progress callback that shows nothing."""

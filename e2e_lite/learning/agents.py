@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..control.expert import ExpertConfig, SpeedLimits
 from ..control.labels import N_POINTS, POINT_DIMS
+from ..control.rules import ExpertConfig, SpeedLimits
 from ..control.tracker import (
     SPEED_READINGS,
     LQRTracker,

@@ -14,7 +14,7 @@ import hashlib
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -206,8 +206,8 @@ def train_or_load(
         carry_optimizer: with ``init_from``, continue the parent's Adam state (at this run's
             learning rate) instead of a fresh Adam; the parent must have kept it
             (``keep_optimizer``), else :class:`CheckpointMismatch`.
-        keep_optimizer: a stored checkpoint without its optimiser state (saved before the course
-            kept it) is retrained, so a fine-tune can carry the state on.
+        keep_optimizer: a stored checkpoint without its optimiser state is retrained, so a
+            fine-tune can carry the state on.
         progress: progress bars and per-epoch lines.
         on_epoch: given to :func:`~e2e_lite.learning.training.fit` when the model is trained
             (not called for a stored one).
@@ -220,50 +220,25 @@ def train_or_load(
     key = checkpoint_key(model_cfg, train_cfg, objective, data_key)
     parent, parent_meta = None, {"optimizer": None}
     if init_from is not None:
-        parent_path = artifact_path("checkpoints", f"{init_from}.pt")
-        if not parent_path.exists():
-            raise CheckpointMismatch(
-                f"{name} fine-tunes {init_from}, but {parent_path} does not exist: train it first"
-            )
-        parent, parent_meta = load_checkpoint(
-            parent_path, model_cfg, parent_data_key or data_key, stats, device
+        parent, parent_meta, key = _parent(
+            name, init_from, key, model_cfg, parent_data_key or data_key, stats, device
         )
-        # the parent's weights, not only its settings: a parent retrained with the same
-        # settings (another kept epoch) makes this checkpoint stale
-        key = settings_key(key, parent_meta["key"], weights_digest(parent))
         if carry_optimizer:
             if parent_meta["optimizer"] is None:
                 raise CheckpointMismatch(
-                    f"{name} continues the optimiser of {init_from}, but {parent_path.name} has "
+                    f"{name} continues the optimiser of {init_from}, but {init_from}.pt has "
                     "no optimiser state: retrain it with keep_optimizer=True"
                 )
             key = settings_key(key, "optimizer carried")
     elif carry_optimizer:
         raise ValueError("carry_optimizer needs init_from: whose optimiser would it carry?")
-    if path.exists():
-        try:
-            model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
-            hist = meta["history"]
-            why = None
-            if meta["key"] != key or hist is None:
-                why = "other settings"
-            elif meta["optimizer"] is None and keep_optimizer:
-                why = "no optimiser state kept"
-            elif kept_epoch(hist["epochs"], train_cfg) != hist["best_epoch"]:
-                # a rule fixed since the checkpoint was trained retrains it, and only it
-                why = f"epoch {hist['best_epoch'] + 1} kept, which train_cfg's rule would not keep"
-            if why is None:
-                if progress:
-                    print(f"[checkpoints] {name}: reusing {path.name}")
-                return model, History(**hist)
-            if progress:
-                print(f"[checkpoints] {name}: trained with {why}; retraining")
-        except (CheckpointMismatch, CorruptArtifact) as err:
-            if progress:
-                print(f"[checkpoints] {name}: {err}; retraining")
-        except Exception as err:  # a corrupt file is retrained, never trusted
-            if progress:
-                print(f"[checkpoints] {name}: unreadable ({type(err).__name__}); retraining")
+    stored = _stored(path, key, model_cfg, train_cfg, data_key, stats, device, keep_optimizer)
+    if stored.model is not None:
+        if progress:
+            print(f"[checkpoints] {name}: reusing {path.name}")
+        return stored.model, stored.history
+    if progress and stored.why:
+        print(f"[checkpoints] {name}: {stored.why}; retraining")
     torch.manual_seed(train_cfg.seed)
     if parent is not None:
         model = parent
@@ -285,6 +260,69 @@ def train_or_load(
     model.eval()
     save_checkpoint(path, model, train_cfg, objective, data_key, history, key=key)
     return model, history
+
+
+def _parent(
+    name: str,
+    init_from: str,
+    key: str,
+    model_cfg: ModelConfig,
+    data_key: str,
+    stats: dict[str, Any],
+    device: torch.device,
+) -> tuple[DrivingModel, dict[str, Any], str]:
+    """A fine-tune's parent checkpoint ``init_from``: its model, its metadata, and the fine-tune's
+    ``key`` joined with the parent's key and weights (a parent retrained with the same settings,
+    another kept epoch, makes the fine-tune stale)."""
+    parent_path = artifact_path("checkpoints", f"{init_from}.pt")
+    if not parent_path.exists():
+        raise CheckpointMismatch(
+            f"{name} fine-tunes {init_from}, but {parent_path} does not exist: train it first"
+        )
+    parent, meta = load_checkpoint(parent_path, model_cfg, data_key, stats, device)
+    return parent, meta, settings_key(key, meta["key"], weights_digest(parent))
+
+
+class _Stored(NamedTuple):
+    """A stored checkpoint that may be reused (``model`` and ``history``), or why it may not
+    (``why``, "" when there is none)."""
+
+    model: DrivingModel | None = None
+    history: History | None = None
+    why: str = ""
+
+
+def _stored(
+    path: Path,
+    key: str,
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    data_key: str,
+    stats: dict[str, Any],
+    device: torch.device,
+    keep_optimizer: bool,
+) -> _Stored:
+    """The checkpoint at ``path`` if it was trained with ``key`` and its kept epoch is the one
+    ``train_cfg``'s rule keeps (a rule fixed since it was trained retrains it, and only it);
+    with ``keep_optimizer``, only if it kept its optimiser state. A corrupt or unreadable file is
+    retrained, never trusted."""
+    if not path.exists():
+        return _Stored()
+    try:
+        model, meta = load_checkpoint(path, model_cfg, data_key, stats, device)
+    except (CheckpointMismatch, CorruptArtifact) as err:
+        return _Stored(why=str(err))
+    except Exception as err:
+        return _Stored(why=f"unreadable ({type(err).__name__})")
+    hist = meta["history"]
+    if meta["key"] != key or hist is None:
+        return _Stored(why="trained with other settings")
+    if meta["optimizer"] is None and keep_optimizer:
+        return _Stored(why="trained with no optimiser state kept")
+    if kept_epoch(hist["epochs"], train_cfg) != hist["best_epoch"]:
+        why = f"epoch {hist['best_epoch'] + 1} kept, which train_cfg's rule would not keep"
+        return _Stored(why=f"trained with {why}")
+    return _Stored(model, History(**hist))
 
 
 def refit_or_load(

@@ -7,10 +7,11 @@ states the expert never showed, where it errs more: over a horizon of T decision
 can grow as ``eps T^2``. Training on the learner's own states, labelled by the expert, bounds
 them by ``eps T`` (their Theorem 3.1).
 
-A **round** (:func:`run`): the current network drives closed loop on fresh *training* roads (never
-validation or test roads), the expert executing a share ``beta`` of the decisions
-(:func:`~e2e_lite.learning.data.collect` with a learner); the expert labels every state visited,
-in the dataset's schema; collisions and stalls re-place the car as the evaluator does. The round's
+A **round** (:func:`run`, one :class:`RoundSpec` each): the current network drives closed loop on
+fresh *training* roads (never validation or test roads), the expert executing a share ``beta`` of
+the decisions (:func:`~e2e_lite.learning.collector.collect` with an
+:class:`~e2e_lite.learning.collector.OnPolicy`); the expert labels every state visited, in the
+dataset's schema; collisions and stalls re-place the car as the evaluator does. The round's
 samples join the aggregate, and the network is fine-tuned on them plus as many samples replayed
 from the earlier data (:func:`finetune_set`), with chapter 09's control fine-tune (the chapter-08
 loss reduced by the mean, one epoch, its parent's Adam carried at a tenth of the rate:
@@ -34,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import artifact_path, cached, settings_key
+from ..artifacts import artifact_path, cached, seeded, settings_key
 from ..config import Profile, check_range
 from ..control.drivers import LaneKeeper
 from ..control.labels import AFFORDANCE_INDEX
@@ -42,7 +43,7 @@ from ..driving.rollout import EvalConfig
 from . import recipes
 from .agents import TrajectoryAgent
 from .checkpoints import train_or_load, training_data_key
-from .data import DataConfig, NoiseConfig, OnPolicy, collect, load_dataset, save_dataset
+from .collector import DataConfig, NoiseConfig, OnPolicy, collect, load_dataset, save_dataset
 from .dataset import DrivingData, allocate
 from .models import DrivingModel
 
@@ -127,89 +128,96 @@ def val_roads(miles: float, n_worlds: int) -> EvalConfig:
     return EvalConfig(miles=miles, n_worlds=n_worlds, split="val")
 
 
-def round_data(profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str) -> DataConfig:
-    """What round ``r`` (0-based) of training ``seed`` collects: ``cfg.samples`` on fresh
-    training roads of its own (the same roads and start lanes in both arms); DAgger's learner
-    drives without noise or take-overs (its own errors are the point), the control's expert as
-    chapter 04's collector does."""
-    if arm not in ARMS:
-        raise ValueError(f"arm={arm!r} is invalid: must be one of {ARMS}")
-    base = DataConfig.for_profile(
-        profile, "train", n_samples=cfg.samples, n_tracks=None,
-        first_track=FIRST_TRACK + (seed * cfg.rounds + r) * TRACK_STRIDE, seed=1_000 + seed,
-    )  # fmt: skip
-    if arm == "control":
-        return base
-    return dataclasses.replace(base, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
+@dataclass(frozen=True)
+class RoundSpec:
+    """Which round: the profile and the rounds' settings, the training ``seed``, the round's
+    ``index`` (0-based) and its ``arm``. Everything stored for a round is named and keyed from
+    this one value: the roads it drives (:meth:`data`), its samples' key and file, its network's
+    name."""
 
+    profile: Profile
+    cfg: DaggerConfig
+    seed: int
+    index: int
+    arm: str
 
-def _stem(cfg: DaggerConfig, arm: str) -> str:
-    """The stored names' stem of ``arm``'s samples and networks (DAgger's say who labelled, and
-    the betas when the expert executes any share, so a beta schedule keeps the course's own)."""
-    fresh = cfg.fresh if arm == "dagger" else cfg.control_labels == "fresh"
-    mixed = arm == "dagger" and any(cfg.betas)
-    betas = "_beta" + "-".join(f"{b:g}" for b in cfg.betas) if mixed else ""
-    return f"12_{arm}" + ("_fresh" if fresh else "") + betas
+    def __post_init__(self) -> None:
+        if self.arm not in ARMS:
+            raise ValueError(f"arm={self.arm!r} is invalid: must be one of {ARMS}")
+        check_range("RoundSpec", "index", self.index, 0, self.cfg.rounds - 1, integer=True)
 
+    def data(self) -> DataConfig:
+        """What the round collects: ``cfg.samples`` on fresh training roads of its own (the same
+        roads and start lanes in both arms); DAgger's learner drives without noise or take-overs
+        (its own errors are the point), the control's expert as chapter 04's collector does."""
+        first = FIRST_TRACK + (self.seed * self.cfg.rounds + self.index) * TRACK_STRIDE
+        base = DataConfig.for_profile(
+            self.profile,
+            "train",
+            n_samples=self.cfg.samples,
+            n_tracks=None,
+            first_track=first,
+            seed=1_000 + self.seed,
+        )
+        if self.arm == "control":
+            return base
+        quiet = NoiseConfig(rate_per_s=0.0)
+        return dataclasses.replace(base, noise=quiet, restart_rate_per_s=0.0)
 
-def _relabelled_control() -> OnPolicy:
-    """The control's collection with fresh labels: a stand-in learner that never drives (beta 1),
-    so the states are the collector's own, bit for bit (tests/test_dagger.py): only the labels
-    change."""
-    return OnPolicy(LaneKeeper(), 1.0, fresh=True)
+    @property
+    def stem(self) -> str:
+        """The stored names' stem of the arm's samples and networks (DAgger's say who labelled,
+        and the betas when the expert executes any share, so a beta schedule keeps the course's
+        own)."""
+        cfg, dagger_arm = self.cfg, self.arm == "dagger"
+        fresh = cfg.fresh if dagger_arm else cfg.control_labels == "fresh"
+        mixed = dagger_arm and any(cfg.betas)
+        betas = "_beta" + "-".join(f"{b:g}" for b in cfg.betas) if mixed else ""
+        return f"12_{self.arm}" + ("_fresh" if fresh else "") + betas
 
+    @property
+    def samples_name(self) -> str:
+        """The file of the round's samples under ``<outputs>/data/``."""
+        return seeded(self.stem, self.seed) + f"_round{self.index + 1}.npz"
 
-def samples_key(
-    profile: Profile, cfg: DaggerConfig, seed: int, r: int, arm: str, learner: DrivingModel | None
-) -> str:
-    """The key of round ``r``'s samples: the collection's settings and, for DAgger, the
-    learner's weights, the round's beta and the labeller (:meth:`~e2e_lite.learning.data.OnPolicy.key`:
-    anything else collects anew, and the fine-tunes on it retrain: their data key holds this)."""
-    dcfg = round_data(profile, cfg, seed, r, arm)
-    if arm == "control":
-        return _relabelled_control().key(dcfg) if cfg.control_labels == "fresh" else dcfg.key
-    if learner is None:
-        raise ValueError("samples_key: DAgger's round needs the learner that drives it")
-    return OnPolicy(learner, cfg.betas[r], cfg.fresh).key(dcfg)
+    @property
+    def network_name(self) -> str:
+        """The checkpoint name of the network the round fine-tunes."""
+        return seeded(f"{self.stem}_round{self.index + 1}", self.seed, plain_zero=True)
 
+    def on_policy(self, learner: DrivingModel | None) -> OnPolicy | None:
+        """How the round collects: DAgger's ``learner`` drives and the chosen expert labels; the
+        control's relabelled states come from a stand-in learner that never drives (beta 1), so
+        its states are the collector's own, bit for bit, and only the labels change; the
+        course's control is the plain collector (None)."""
+        if self.arm == "control":
+            return (
+                OnPolicy(LaneKeeper(), 1.0, fresh=True)
+                if self.cfg.control_labels == "fresh"
+                else None
+            )
+        if learner is None:
+            raise ValueError("RoundSpec.on_policy: DAgger's round needs the learner that drives it")
+        return OnPolicy(TrajectoryAgent(learner.eval()), self.cfg.betas[self.index], self.cfg.fresh)
 
-def round_samples(
-    profile: Profile,
-    cfg: DaggerConfig,
-    seed: int,
-    r: int,
-    arm: str,
-    learner: DrivingModel | None = None,
-    progress: bool = True,
-) -> DrivingData:
-    """Round ``r``'s samples of ``arm``, stored under ``<outputs>/data/`` and reused while the
-    settings, the learner's weights and its beta are the same: DAgger's are the ``learner``'s
-    drive, labelled by the expert; the control's the expert's own (labelled by the collector's
-    expert, or afresh: ``cfg.control_labels``)."""
-    dcfg = round_data(profile, cfg, seed, r, arm)
-    key = samples_key(profile, cfg, seed, r, arm, learner)
-    if arm == "dagger":
+    def samples_key(self, learner: DrivingModel | None) -> str:
+        """The key of the round's samples: the collection's settings and, for DAgger, the
+        learner's weights, the round's beta and the labeller
+        (:meth:`~e2e_lite.learning.collector.OnPolicy.key`: anything else collects anew, and the
+        fine-tunes on it retrain: their data key holds this)."""
+        how = self.on_policy(learner)
+        return self.data().key if how is None else how.key(self.data())
+
+    def samples(self, learner: DrivingModel | None = None, progress: bool = True) -> DrivingData:
+        """The round's samples, stored under ``<outputs>/data/`` and reused while the settings,
+        the learner's weights and its beta are the same."""
+        key = self.samples_key(learner)
 
         def make() -> DrivingData:
-            agent = TrajectoryAgent(learner.eval())
-            return collect(
-                dcfg, progress, learner=agent, beta=cfg.betas[r],
-                fresh_labels=cfg.fresh,
-            )  # fmt: skip
+            return collect(self.data(), progress, on_policy=self.on_policy(learner))
 
-    elif cfg.control_labels == "fresh":
-
-        def make() -> DrivingData:
-            p = _relabelled_control()
-            return collect(dcfg, progress, learner=p.learner, beta=p.beta, fresh_labels=p.fresh)
-
-    else:
-
-        def make() -> DrivingData:
-            return collect(dcfg, progress)
-
-    name = f"{_stem(cfg, arm)}_seed{seed}_round{r + 1}.npz"
-    return cached(artifact_path("data", name), key, make, save_dataset, load_dataset)
+        path = artifact_path("data", self.samples_name)
+        return cached(path, key, make, save_dataset, load_dataset)
 
 
 def covariate_shift(visited: DrivingData, trained_on: list[DrivingData]) -> dict[str, float]:
@@ -290,7 +298,7 @@ def run(
 ) -> tuple[DrivingModel, dict[str, list[Round]]]:
     """DAgger and its control for training ``seed``, from chapter 09's CVaR network of that seed
     (the start network, trained first if missing): ``(start, {arm: [Round, ...]})``. Every
-    round's samples and fine-tune are stored and reused (:func:`round_samples`,
+    round's samples and fine-tune are stored and reused (:meth:`RoundSpec.samples`,
     :func:`~e2e_lite.learning.checkpoints.train_or_load`)."""
     cfg = cfg or DaggerConfig.for_profile(profile)
     start, _, _ = recipes.gmm_affordance_cvar(profile, train, val, weight, seed)
@@ -302,18 +310,30 @@ def run(
         parent_key = training_data_key(train, val)
         rounds = []
         for r in range(cfg.rounds):
-            new = round_samples(profile, cfg, seed, r, arm, model, progress)
+            spec = RoundSpec(profile, cfg, seed, r, arm)
+            new = spec.samples(model, progress)
             shift = covariate_shift(new, earlier)
             data = finetune_set(earlier, new, cfg.replay, seed, r)
-            name = f"{_stem(cfg, arm)}_round{r + 1}" + (f"_seed{seed}" if seed else "")
+            name = spec.network_name
             model, _ = train_or_load(
-                name, recipes.AFFORDANCE_CFG, tcfg, objective, data, val, init_from=parent,
-                parent_data_key=parent_key, carry_optimizer=True, progress=progress,
-            )  # fmt: skip
+                name,
+                recipes.AFFORDANCE_CFG,
+                tcfg,
+                objective,
+                data,
+                val,
+                init_from=parent,
+                parent_data_key=parent_key,
+                carry_optimizer=True,
+                progress=progress,
+            )
             beta = cfg.betas[r] if arm == "dagger" else None
             earlier.append(new)
-            rounds.append(Round(arm, r + 1, beta, len(new), sum(len(d) for d in earlier), shift,
-                                name, model, new.info.get("collection", {})))  # fmt: skip
+            aggregate = sum(len(d) for d in earlier)
+            collection = new.info.get("collection", {})
+            rounds.append(
+                Round(arm, r + 1, beta, len(new), aggregate, shift, name, model, collection)
+            )
             parent, parent_key = name, training_data_key(data, val)
         out[arm] = rounds
     return start, out

@@ -1,7 +1,7 @@
 """The dataset: its schema, its container, its situations and its ``torch`` view.
 
 No simulator here: the training side (models, losses, training) imports this module, not the
-collector (:mod:`e2e_lite.learning.data`, chapter 04), so it loads without pymunk, OpenCV or
+collector (:mod:`e2e_lite.learning.collector`, chapter 04), so it loads without pymunk, OpenCV or
 python-control. One sample per policy step (10 Hz); the schema (:data:`SCHEMA`) is the one
 place that says what a sample holds, and the table below, the field list (:data:`FIELDS`), the
 collector's arrays (:func:`allocate`) and :func:`synthetic_data` are all made from it.

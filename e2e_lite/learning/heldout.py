@@ -60,7 +60,7 @@ def side_shares(
 
 
 #: Chapter 08's goals for the affordance head on held-out frames: the error that must be at most
-#: half the mean predictor's (issue 16): MAE of the gap on frames with a car ahead, RMSE of the
+#: half the mean predictor's: MAE of the gap on frames with a car ahead, RMSE of the
 #: lane-centre offset and the heading.
 AFFORDANCE_GOALS = (
     ("gap_ego_m_car_ahead", "mae"),

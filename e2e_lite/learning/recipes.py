@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from ..artifacts import artifact_path
+from ..artifacts import artifact_path, seeded
 from ..config import Profile
 from ..control.labels import AFFORDANCE_NAMES
 from .checkpoints import refit_or_load, train_or_load
@@ -104,7 +104,7 @@ ACTUATORS_CFG = ModelConfig(kind="fusion", head="actuators")
 def seeded_name(name: str, seed: int) -> str:
     """The checkpoint name of training seed ``seed`` of the recipe whose seed-0 checkpoint is
     ``name`` (chapter 10 trains seeds 1, 2, ... beside the chapters' own seed 0)."""
-    return name if seed == 0 else f"10_{name.split('_', 1)[1]}_seed{seed}"
+    return seeded(f"10_{name.split('_', 1)[1]}", seed) if seed else name
 
 
 def pilotnet(

@@ -17,7 +17,7 @@ from ..config import check_pair, check_range, tqdm
 from ..control.tracker import LQRTracker, follow_trajectory
 from ..simulation.camera import Camera
 from ..simulation.world import World, make_world
-from .data import DataConfig, affordances
+from .collector import DataConfig, affordances
 from .dataset import FIELDS, DrivingData, load_dataset, save_dataset
 
 

@@ -61,7 +61,7 @@ class TrainConfig:
         select_by: which epoch's weights are kept: ``"val_loss"`` (the lowest validation loss) or
             ``"decisive_ade"`` (the lowest error of the followed trajectory on the situations that
             decide collisions: the mean over overtake starts, slow frames and curves of each
-            one's held-out ADE, see :func:`~e2e_lite.learning.data.situations`; trajectory heads only).
+            one's held-out ADE, see :func:`~e2e_lite.learning.collector.situations`; trajectory heads only).
             A GMM's NLL keeps falling as its sigmas sharpen while its driving gets worse.
             ``"val_roads"``: the fewest collisions per 100 mi when the epoch drives
             ``select_miles`` on validation roads (``fit``'s ``on_epoch`` drives it and returns
@@ -272,15 +272,8 @@ def fit(
     """
     device = next(model.parameters()).device
     params = dict(model.named_parameters())
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    if optimizer_state is not None:
-        opt.load_state_dict(optimizer_state)
-        for group in opt.param_groups:  # the state carries over, the rate is this run's
-            group["lr"], group["weight_decay"] = cfg.lr, cfg.weight_decay
-    val_ds = val
-    if cfg.max_val_samples is not None and len(val) > cfg.max_val_samples:
-        keep = np.linspace(0, len(val) - 1, cfg.max_val_samples).round().astype(int)
-        val_ds = DrivingDataset(val.data, val.indices[keep])
+    opt = _adam(model, cfg, optimizer_state)
+    val_ds = _validation_rows(val, cfg)
     epochs: list[dict[str, Any]] = []
     best_score, best_epoch, best_state, best_opt = (float("inf"),), 0, None, None
     masks = situations(val_ds.data.arrays, val_ds.indices) if cfg.select_by != "val_loss" else None
@@ -296,40 +289,16 @@ def fit(
         total, count = train_epoch(model, objective, train, opt, cfg, epoch, desc, progress)
         t_train += time.perf_counter() - t0
         n_seen += count
-        val_losses, val_metrics = evaluate_loss(
-            model, objective, val_ds, device=device, epoch=epoch
-        )
-        record = {
-            "epoch": epoch,
-            "train_loss": total / max(count, 1),
-            "val_loss": float(val_losses.mean()),
-            **{k: float(v.mean()) for k, v in val_metrics.items()},
-            "frozen": frozen,
-            "seconds": time.perf_counter() - t0,
-        }
-        if masks is not None and "ADE [m]" in val_metrics:
-            record.update(decisive_errors(val_metrics["ADE [m]"], masks))
-        elif cfg.select_by == "decisive_ade":
-            raise ValueError(
-                f"TrainConfig.select_by={cfg.select_by!r} needs a trajectory head (ADE metric)"
-            )
+        losses, decisive = _validate(model, objective, val_ds, cfg, epoch, masks, device)
+        record = {"epoch": epoch, "train_loss": total / max(count, 1), **losses}
+        record |= {"frozen": frozen, "seconds": time.perf_counter() - t0, **decisive}
         if on_epoch is not None:
             model.eval()
             record.update(on_epoch(epoch, model) or {})
         score = selection_score(record, cfg)
         epochs.append(record)
         if progress:
-            extras = ", ".join(
-                f"{k} {v:.3g}"
-                for k, v in record.items()
-                if k in ("ADE [m]", DECISIVE, VAL_ROADS) or "MAE" in k
-            )
-            print(
-                f"{name} epoch {epoch + 1}/{cfg.epochs}: train {record['train_loss']:.4f}, "
-                f"val {record['val_loss']:.4f}"
-                + (f" ({extras})" if extras else "")
-                + (f", frozen {frozen}" if frozen else "")
-            )
+            print(_epoch_line(name, cfg, record))
         if score < best_score:
             best_score, best_epoch = score, epoch
             best_state = copy.deepcopy(model.state_dict())
@@ -352,6 +321,61 @@ def fit(
     save_json(artifact_path("training", f"{name}.json"), history.to_dict())
     save_figure(training_curve(history, name), artifact_path("figures", f"train_{name}.png"))
     return history
+
+
+def _adam(model: DrivingModel, cfg: TrainConfig, state: dict[str, Any] | None) -> torch.optim.Adam:
+    """Adam at ``cfg``'s rate, continuing ``state`` when given (its moments and step count carry
+    over; the rate and weight decay are this run's)."""
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if state is not None:
+        opt.load_state_dict(state)
+        for group in opt.param_groups:
+            group["lr"], group["weight_decay"] = cfg.lr, cfg.weight_decay
+    return opt
+
+
+def _validation_rows(val: DrivingDataset, cfg: TrainConfig) -> DrivingDataset:
+    """The validation set, thinned evenly to at most ``cfg.max_val_samples`` rows."""
+    if cfg.max_val_samples is None or len(val) <= cfg.max_val_samples:
+        return val
+    keep = np.linspace(0, len(val) - 1, cfg.max_val_samples).round().astype(int)
+    return DrivingDataset(val.data, val.indices[keep])
+
+
+def _validate(
+    model: DrivingModel,
+    objective: Objective,
+    val: DrivingDataset,
+    cfg: TrainConfig,
+    epoch: int,
+    masks: dict[str, np.ndarray] | None,
+    device: torch.device,
+) -> tuple[dict[str, float], dict[str, float]]:
+    """One epoch's validation: the mean loss and each metric's mean; and (with ``masks``) the
+    errors on the decisive situations that ``cfg.select_by`` may keep an epoch by."""
+    losses, metrics = evaluate_loss(model, objective, val, device=device, epoch=epoch)
+    means = {"val_loss": float(losses.mean()), **{k: float(v.mean()) for k, v in metrics.items()}}
+    if masks is not None and "ADE [m]" in metrics:
+        return means, decisive_errors(metrics["ADE [m]"], masks)
+    if cfg.select_by == "decisive_ade":
+        raise ValueError(
+            f"TrainConfig.select_by={cfg.select_by!r} needs a trajectory head (ADE metric)"
+        )
+    return means, {}
+
+
+def _epoch_line(name: str, cfg: TrainConfig, record: dict[str, Any]) -> str:
+    """The line printed after an epoch: its losses, the errors that choose the kept epoch, and
+    the parts frozen."""
+    shown = ("ADE [m]", DECISIVE, VAL_ROADS)
+    extras = ", ".join(f"{k} {v:.3g}" for k, v in record.items() if k in shown or "MAE" in k)
+    frozen = record["frozen"]
+    return (
+        f"{name} epoch {record['epoch'] + 1}/{cfg.epochs}: train {record['train_loss']:.4f}, "
+        f"val {record['val_loss']:.4f}"
+        + (f" ({extras})" if extras else "")
+        + (f", frozen {frozen}" if frozen else "")
+    )
 
 
 def selection_score(record: dict[str, Any], cfg: TrainConfig) -> tuple[float, ...]:

@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 
 from ..config import check_range
-from ..control.expert import ExpertConfig, SpeedLimits, fresh_labels
-from ..learning.data import affordances
+from ..control.expert import fresh_labels
+from ..control.labels import affordances
+from ..control.rules import ExpertConfig, SpeedLimits
 from ..simulation.policy import Actuation, Observation
 from ..simulation.world import SimConfig
 from .rule import RESULTS_VERSION, SafetyConfig, check, choose

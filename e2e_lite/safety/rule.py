@@ -7,7 +7,7 @@ responsibility-sensitive safety (RSS), for a road of parked cars:
 
 Inputs (what the driver perceives): the 5 proposed points ``(x_i, y_i)`` in the car frame at
 ``t_i = 0.3 i`` s, the car's speed ``v``, the road's curvature ``kappa`` here (from the map, as
-the cruise control knows it), and the 9 affordances (``e2e_lite.learning.data.AFFORDANCE_NAMES``): the
+the cruise control knows it), and the 9 affordances (``e2e_lite.learning.collector.AFFORDANCE_NAMES``): the
 heading to the road ``h``, the offset from the lane centre, the distances to the markings and the
 road edges, and the free gap ahead of the front bumper in the ego, left and right lanes (capped at
 60 m: "nothing seen"). The network's own affordance head provides them; the *ground-truth variant*
@@ -176,7 +176,7 @@ def check(
 
     Args:
         points: ``(5, 2)`` proposed rear-axle positions, car frame [m], 0.3 s apart.
-        aff: the 9 affordances, in :data:`~e2e_lite.learning.data.AFFORDANCE_NAMES` order (perceived or
+        aff: the 9 affordances, in :data:`~e2e_lite.learning.collector.AFFORDANCE_NAMES` order (perceived or
             true).
         speed_mps: the car's speed now [m/s].
         curvature: the road's curvature here [1/m] (left positive).
@@ -190,66 +190,73 @@ def check(
     x, y, _ = interpolated_path(pts)
     delta = y + a[_A["heading_rad"]] * x - curvature * x * x / 2.0
     half = cfg.car_width_m / 2.0
-    # 2. road edges
-    left = delta + half - (a[_A["left_edge_m"]] + cfg.edge_margin_m)
-    right = -delta + half - (a[_A["right_edge_m"]] + cfg.edge_margin_m)
-    for side, excess in (("left", left), ("right", right)):
-        if excess.max() > 0.0:
-            k = int(np.argmax(excess > 0.0))
-            return Verdict(
-                False,
-                f"leaves the road on the {side} ({excess.max():.2f} m past the edge, "
-                f"{k * POINT_DT_S / PATH_SUBSTEPS:.1f} s ahead)",
-                side,
-                "road edge",
-                k * POINT_DT_S / PATH_SUBSTEPS,
-            )
+    off_road = _off_road(delta, half, a, cfg)
+    if off_road is not None:
+        return off_road
     # 3. which lanes the body occupies, relative to the ego lane's centre
     width = max(2.0, a[_A["left_marking_m"]] + a[_A["right_marking_m"]])
     lateral = a[_A["center_offset_m"]] + delta
-    lo, hi = lateral - half, lateral + half
     v_end = float(np.hypot(*(pts[-1] - pts[-2]))) / POINT_DT_S
     for lane, offset, gap_name in (
         ("ego", 0.0, "gap_ego_m"),
         ("left", width, "gap_left_m"),
         ("right", -width, "gap_right_m"),
     ):
-        inside = np.minimum(hi, offset + width / 2) - np.maximum(lo, offset - width / 2)
+        inside = np.minimum(lateral + half, offset + width / 2)
+        inside -= np.maximum(lateral - half, offset - width / 2)
         occupied = inside > (cfg.lane_overlap_m if lane != "ego" else 0.0)
-        if not occupied.any():
-            continue
         gap = float(a[_A[gap_name]])
-        if gap >= cfg.free_from_m(lane):
+        if not occupied.any() or gap >= cfg.free_from_m(lane):
             continue
-        # 4a. the front bumper reaches the parked car while the body is in its lane
-        front = x  # progress of the front bumper [m] (the rear axle's, the body is rigid)
-        rear = x - cfg.car_length_m
-        hit = occupied & (front > gap - cfg.margin_m) & (rear < gap + cfg.parked_length_m)
-        if hit.any():
-            k = int(np.argmax(hit))
-            return Verdict(
-                False,
-                f"runs into the car {gap:.0f} m ahead in the {lane} lane "
-                f"({k * POINT_DT_S / PATH_SUBSTEPS:.1f} s ahead)",
-                lane,
-                "collision course",
-                k * POINT_DT_S / PATH_SUBSTEPS,
-            )
-        # 4b. ending the 1.5 s in that lane (its centre line inside it): can it stop in time?
         ends_here = abs(lateral[-1] - offset) <= width / 2
-        if ends_here and front[-1] < gap:
-            need = cfg.stopping_m(v_end)
-            left_m = gap - front[-1]
-            if left_m < need:
-                return Verdict(
-                    False,
-                    f"cannot stop for the car {gap:.0f} m ahead in the {lane} lane: "
-                    f"{left_m:.0f} m left after 1.5 s at {v_end:.1f} m/s, {need:.0f} m needed",
-                    lane,
-                    "cannot stop",
-                    N_POINTS * POINT_DT_S,
-                )
+        conflict = _parked_car_conflict(x, occupied, ends_here, gap, lane, v_end, cfg)
+        if conflict is not None:
+            return conflict
     return Verdict(True)
+
+
+def _off_road(delta: np.ndarray, half: float, a: np.ndarray, cfg: SafetyConfig) -> Verdict | None:
+    """Step 2: the body, ``half`` its width either side of the path's offsets ``delta`` [m], past
+    a road edge plus its margin (None: it stays on the road)."""
+    left = delta + half - (a[_A["left_edge_m"]] + cfg.edge_margin_m)
+    right = -delta + half - (a[_A["right_edge_m"]] + cfg.edge_margin_m)
+    for side, excess in (("left", left), ("right", right)):
+        if excess.max() > 0.0:
+            t_s = int(np.argmax(excess > 0.0)) * POINT_DT_S / PATH_SUBSTEPS
+            why = f"leaves the road on the {side} ({excess.max():.2f} m past the edge, {t_s:.1f} s ahead)"
+            return Verdict(False, why, side, "road edge", t_s)
+    return None
+
+
+def _parked_car_conflict(
+    x: np.ndarray,
+    occupied: np.ndarray,
+    ends_here: bool,
+    gap: float,
+    lane: str,
+    v_end: float,
+    cfg: SafetyConfig,
+) -> Verdict | None:
+    """Steps 4a and 4b for the parked car ``gap`` metres ahead in ``lane``, which the body
+    occupies where ``occupied`` along the path's progress ``x`` [m]: does the front bumper reach
+    it while the body is in its lane, or does the path end in that lane (``ends_here``) where the
+    car cannot stop in time at ``v_end`` [m/s]? None: neither."""
+    front = x  # progress of the front bumper [m] (the rear axle's, the body is rigid)
+    rear = x - cfg.car_length_m
+    hit = occupied & (front > gap - cfg.margin_m) & (rear < gap + cfg.parked_length_m)
+    if hit.any():
+        t_s = int(np.argmax(hit)) * POINT_DT_S / PATH_SUBSTEPS
+        why = f"runs into the car {gap:.0f} m ahead in the {lane} lane ({t_s:.1f} s ahead)"
+        return Verdict(False, why, lane, "collision course", t_s)
+    if ends_here and front[-1] < gap:
+        need, left_m = cfg.stopping_m(v_end), gap - front[-1]
+        if left_m < need:
+            why = (
+                f"cannot stop for the car {gap:.0f} m ahead in the {lane} lane: {left_m:.0f} m"
+                f" left after 1.5 s at {v_end:.1f} m/s, {need:.0f} m needed"
+            )
+            return Verdict(False, why, lane, "cannot stop", N_POINTS * POINT_DT_S)
+    return None
 
 
 def lane_width(aff: np.ndarray) -> float:

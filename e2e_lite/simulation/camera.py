@@ -40,7 +40,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from ..config import check_range
@@ -55,17 +54,13 @@ from .raster import (
     FACES,
     GRASS,
     MARK_WIDTH_M,
-    MARKING,
-    RAIL,
     RAIL_HEIGHT_M,
     ROAD,
-    SCALE,
-    SHIFT,
-    SHOULDER,
     SKY,
     STRIPS,
     clip_near,
     clip_strips,
+    paint,
     strip_line,
     to_fixed,
 )
@@ -288,50 +283,12 @@ class Camera:
             out = np.empty((n_frames, *self.shape), dtype=np.uint8)
         if s is None:
             s = np.array([float(t.to_frenet(p[0], p[1])[0]) for t, p in zip(tracks, poses)])
-        heights = np.full(n_frames, self.height)
-        pitches = np.full(n_frames, self.pitch)
-        road_cols = [ROAD] * n_frames
-        if cfg.augment:
-            if rng is None:
-                raise ValueError("Camera.render: rng is required when CameraConfig.augment is on")
-            brights = []
-            for b in range(n_frames):
-                rng_b = rng[b] if isinstance(rng, Sequence) else rng  # (one per frame, or shared)
-                heights[b] += rng_b.uniform(-cfg.height_jitter_m, cfg.height_jitter_m)
-                pitches[b] += math.radians(
-                    rng_b.uniform(-cfg.pitch_jitter_deg, cfg.pitch_jitter_deg)
-                )
-                tint = 1.0 + rng_b.uniform(-cfg.tint_jitter, cfg.tint_jitter, 6)
-                road_cols[b] = tuple(int(min(255, c * t)) for c, t in zip(ROAD, tint[:3]))
-                grass = tuple(int(min(255, c * t)) for c, t in zip(GRASS, tint[3:]))
-                brights.append(1.0 + rng_b.uniform(-cfg.brightness_jitter, cfg.brightness_jitter))
-                np.copyto(out[b], self._make_background(pitches[b], SKY, grass))
-        else:
-            out[:] = self._background
-        rot, t = self._matrices(poses, heights, pitches)
+        looks = self._looks(out, rng)  # the background drawn, each frame's jitter
+        rot, t = self._matrices(poses, looks.heights, looks.pitches)
         s_lens = np.asarray(s, dtype=np.float64) + cfg.forward_offset_m
         s_pts = np.maximum(s_lens[:, None] + self._s_offsets, 0.0)  # (B, n)
         n = s_pts.shape[1]
-        # --- all ground points of all frames: 6 lines along the road, then the dash corners.
-        # Every track shares the first track's cross-section (one RoadConfig per evaluation).
-        track = tracks[0]
-        hw, rd = track.half_width, track.rail_d
-        d_lines = np.array([-rd, rd, -hw, hw, hw - MARK_WIDTH_M, -hw + MARK_WIDTH_M])
-        n_div = track.n_lanes - 1
-        d_div = np.asarray(track.lane_center(np.arange(1, track.n_lanes))) - track.lane_width / 2
-        first = np.floor(s_pts[:, :1] / DASH_PERIOD_M) * DASH_PERIOD_M
-        starts = first + DASH_PERIOD_M * np.arange(self._n_dashes)  # (B, D)
-        dash_s = (starts[:, :, None] + DASH_S).reshape(n_frames, 1, -1)  # (B, 1, 4D)
-        all_s = np.concatenate(
-            [
-                np.repeat(s_pts, 6, axis=0).reshape(n_frames, 6 * n),
-                np.repeat(dash_s, n_div, axis=1).reshape(n_frames, -1),
-            ],
-            axis=1,
-        )
-        all_d = np.concatenate(
-            [np.repeat(d_lines, n), (d_div[:, None] + np.tile(DASH_D, self._n_dashes)).ravel()]
-        )
+        all_s, all_d = self._ground_points(tracks[0], s_pts)
         xy = positions_on(tracks, all_s, all_d)  # (B, P, 2)
         cam = xy @ rot[:, :, :2].transpose(0, 2, 1) + t[:, None, :]  # (B, P, 3)
         lines = cam[:, : 6 * n].reshape(n_frames, 6, n, 3)
@@ -343,39 +300,77 @@ class Camera:
         dash_front = dz.min(axis=-1) >= cfg.near_m
         dash_px = to_fixed(self.project(np.where(dash_front[..., None, None], dashes, 1.0)))
         straddle = ~dash_front & (dz.max(axis=-1) >= cfg.near_m)
-        car_faces = self._car_faces(cars, poses, s_lens, heights, rot, t)
+        car_faces = self._car_faces(cars, poses, s_lens, looks.heights, rot, t)
         for b in range(n_frames):
-            img = out[b]
             if ok[b]:
                 polys = list(strip_px[b])
             else:  # a line that does not cross the near plane once (car turned across the road)
-                polys = []
-                for a, c in STRIPS:
-                    poly = clip_near(
-                        np.concatenate(
-                            [strip_line(lines, tops, b, a), strip_line(lines, tops, b, c)[::-1]]
-                        ),
-                        cfg.near_m,
-                    )
-                    polys.append(None if poly is None else to_fixed(self.project(poly)))
+                polys = [self._strip_polygon(lines, tops, b, a, c) for a, c in STRIPS]
             marks = [p for p in polys[2:4] if p is not None] + list(dash_px[b][dash_front[b]])
             for k in np.flatnonzero(straddle[b]).tolist():  # the dash under the lens: cut it
                 poly = clip_near(dashes[b, k], cfg.near_m)
                 if poly is not None:
                     marks.append(to_fixed(self.project(poly)))
-            for poly, colour in ((polys[0], SHOULDER), (polys[1], road_cols[b])):
-                if poly is not None:
-                    cv2.fillPoly(img, [poly], colour, cv2.LINE_AA, SHIFT)
-            if marks:
-                cv2.fillPoly(img, marks, MARKING, cv2.LINE_AA, SHIFT)
-            walls = [p for p in polys[4:6] if p is not None]
-            if walls:
-                cv2.fillPoly(img, walls, RAIL, cv2.LINE_AA, SHIFT)
-            for pts, colour in car_faces[b]:
-                cv2.fillConvexPoly(img, pts, colour, cv2.LINE_AA, SHIFT)
-            if cfg.augment and brights[b] != 1.0:
-                cv2.convertScaleAbs(img, dst=img, alpha=brights[b])
+            paint(out[b], polys, looks.road_colours[b], marks, car_faces[b], looks.brightness[b])
         return out
+
+    def _looks(
+        self, out: np.ndarray, rng: np.random.Generator | Sequence[np.random.Generator] | None
+    ) -> _Looks:
+        """Each frame's camera height, pitch, road colour and brightness, and its background
+        drawn into ``out``: the mounted camera's, or with ``cfg.augment`` each jittered from
+        ``rng`` (one generator for every frame, in order, or one per frame)."""
+        cfg, n_frames = self.cfg, len(out)
+        looks = _Looks(
+            heights=np.full(n_frames, self.height),
+            pitches=np.full(n_frames, self.pitch),
+            road_colours=[ROAD] * n_frames,
+            brightness=[1.0] * n_frames,
+        )
+        if not cfg.augment:
+            out[:] = self._background
+            return looks
+        if rng is None:
+            raise ValueError("Camera.render: rng is required when CameraConfig.augment is on")
+        for b in range(n_frames):
+            rng_b = rng[b] if isinstance(rng, Sequence) else rng  # (one per frame, or shared)
+            looks.heights[b] += rng_b.uniform(-cfg.height_jitter_m, cfg.height_jitter_m)
+            looks.pitches[b] += math.radians(
+                rng_b.uniform(-cfg.pitch_jitter_deg, cfg.pitch_jitter_deg)
+            )
+            tint = 1.0 + rng_b.uniform(-cfg.tint_jitter, cfg.tint_jitter, 6)
+            looks.road_colours[b] = tuple(int(min(255, c * t)) for c, t in zip(ROAD, tint[:3]))
+            grass = tuple(int(min(255, c * t)) for c, t in zip(GRASS, tint[3:]))
+            looks.brightness[b] = 1.0 + rng_b.uniform(-cfg.brightness_jitter, cfg.brightness_jitter)
+            np.copyto(out[b], self._make_background(looks.pitches[b], SKY, grass))
+        return looks
+
+    def _ground_points(self, track: Track, s_pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every ground point of every frame, as arc lengths ``(B, P)`` and offsets ``(P,)`` [m]:
+        the 6 lines along the road (rails, edges, edge markings) at ``s_pts``, then the corners
+        of the dashes between the lanes. Every track shares ``track``'s cross-section (one
+        ``RoadConfig`` per evaluation)."""
+        n_frames, n = s_pts.shape
+        hw, rd = track.half_width, track.rail_d
+        d_lines = np.array([-rd, rd, -hw, hw, hw - MARK_WIDTH_M, -hw + MARK_WIDTH_M])
+        n_div = track.n_lanes - 1
+        d_div = np.asarray(track.lane_center(np.arange(1, track.n_lanes))) - track.lane_width / 2
+        first = np.floor(s_pts[:, :1] / DASH_PERIOD_M) * DASH_PERIOD_M
+        starts = first + DASH_PERIOD_M * np.arange(self._n_dashes)  # (B, D)
+        dash_s = (starts[:, :, None] + DASH_S).reshape(n_frames, 1, -1)  # (B, 1, 4D)
+        along = np.repeat(s_pts, 6, axis=0).reshape(n_frames, 6 * n)
+        all_s = np.concatenate([along, np.repeat(dash_s, n_div, axis=1).reshape(n_frames, -1)], 1)
+        dash_d = (d_div[:, None] + np.tile(DASH_D, self._n_dashes)).ravel()
+        return all_s, np.concatenate([np.repeat(d_lines, n), dash_d])
+
+    def _strip_polygon(
+        self, lines: np.ndarray, tops: np.ndarray, b: int, a: int, c: int
+    ) -> np.ndarray | None:
+        """Frame ``b``'s band between lines ``a`` and ``c``, clipped at the near plane one
+        polygon at a time (None: wholly behind it)."""
+        both = np.concatenate([strip_line(lines, tops, b, a), strip_line(lines, tops, b, c)[::-1]])
+        poly = clip_near(both, self.cfg.near_m)
+        return None if poly is None else to_fixed(self.project(poly))
 
     def _car_faces(
         self,
@@ -455,44 +450,11 @@ class Camera:
         return faces
 
 
-def draw_trajectory(
-    image: np.ndarray,
-    points_car: np.ndarray,
-    camera: Camera,
-    colour: tuple[int, int, int] = (255, 40, 40),
-    radius_px: int | None = None,
-    thickness_px: int | None = None,
-    label: str | None = None,
-) -> np.ndarray:
-    """Draw a car-frame trajectory ``(K, 2)`` (x forward, y left; metres) on a camera image.
+@dataclass
+class _Looks:
+    """Each frame's camera height [m] and pitch [rad], road colour (RGB) and brightness gain."""
 
-    Points are projected on the road surface; points behind the near plane are skipped. The
-    polyline starts at the road point below the camera's near plane. Draws in place; returns it.
-    """
-    pts = np.asarray(points_car, dtype=np.float64).reshape(-1, 2)
-    start = np.array([[camera.cfg.forward_offset_m + camera.cfg.near_m * 4, 0.0]])
-    ground = np.concatenate([np.r_[start, pts], np.zeros((len(pts) + 1, 1))], axis=1)
-    px, front = camera.project_car(ground)
-    scale = max(1, round(image.shape[1] / 200))
-    radius = radius_px if radius_px is not None else 1 + scale
-    thick = thickness_px if thickness_px is not None else scale
-    fixed = to_fixed(px[front])
-    if len(fixed) >= 2:
-        cv2.polylines(image, [fixed], False, colour, thick, cv2.LINE_AA, SHIFT)
-    for p in fixed[1:] if front[0] else fixed:
-        cv2.circle(
-            image, (int(p[0]), int(p[1])), radius * int(SCALE), colour, -1, cv2.LINE_AA, SHIFT
-        )
-    if label and len(fixed):
-        tip = fixed[-1] / SCALE
-        cv2.putText(
-            image,
-            label,
-            (int(tip[0]) + 3, int(tip[1])),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.3 * scale,
-            colour,
-            1,
-            cv2.LINE_AA,
-        )
-    return image
+    heights: np.ndarray
+    pitches: np.ndarray
+    road_colours: list[tuple[int, int, int]]
+    brightness: list[float]

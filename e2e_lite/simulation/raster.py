@@ -1,5 +1,7 @@
 """The rasteriser's parts, shared by the front camera and the top-down view: the palette and the
-painted sizes, OpenCV's fixed-point pixels, the near-plane clip, and PNG output.
+painted sizes, OpenCV's fixed-point pixels, the near-plane clip, the fills of a camera frame
+(:func:`paint`), the trajectory overlay on a camera frame (:func:`draw_trajectory`), and PNG
+output.
 
 All colours are RGB. Pixel coordinates are floats with pixel centres at integers; OpenCV draws
 them with ``SHIFT`` fractional bits (:func:`to_fixed`), so edges land between pixels and are
@@ -10,11 +12,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
 from ..artifacts import atomic_write, show_in_notebook
+
+
+class Projection(Protocol):
+    """What the trajectory overlay needs of a camera (:class:`~e2e_lite.simulation.camera.Camera`):
+    its settings and the projection of car-frame points to pixels."""
+
+    cfg: Any
+
+    def project_car(self, pts_car: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
 
 SHIFT = 4  # sub-pixel bits for OpenCV fills
 SCALE = float(1 << SHIFT)
@@ -117,6 +130,76 @@ def clip_near(poly: np.ndarray, near: float) -> np.ndarray | None:
             f = (near - za) / (zb - za)
             out.append((xa + f * (xb - xa), ya + f * (yb - ya), near))
     return np.array(out) if len(out) >= 3 else None
+
+
+def paint(
+    img: np.ndarray,
+    bands: Sequence[np.ndarray | None],
+    road_colour: tuple[int, int, int],
+    marks: list[np.ndarray],
+    car_faces: list[tuple[np.ndarray, tuple[int, int, int]]],
+    brightness: float = 1.0,
+) -> np.ndarray:
+    """Fill one camera frame far to near (the painter's algorithm) over its background, in place:
+    the shoulder and the road (``bands[0]``, ``bands[1]``), the markings, the two rails'
+    walls (``bands[4:6]``), the cars' faces (farthest first), then the brightness gain. Polygons
+    are fixed-point pixels (:func:`to_fixed`); a None band is wholly behind the camera."""
+    for poly, colour in ((bands[0], SHOULDER), (bands[1], road_colour)):
+        if poly is not None:
+            cv2.fillPoly(img, [poly], colour, cv2.LINE_AA, SHIFT)
+    if marks:
+        cv2.fillPoly(img, marks, MARKING, cv2.LINE_AA, SHIFT)
+    walls = [p for p in bands[4:6] if p is not None]
+    if walls:
+        cv2.fillPoly(img, walls, RAIL, cv2.LINE_AA, SHIFT)
+    for pts, colour in car_faces:
+        cv2.fillConvexPoly(img, pts, colour, cv2.LINE_AA, SHIFT)
+    if brightness != 1.0:
+        cv2.convertScaleAbs(img, dst=img, alpha=brightness)
+    return img
+
+
+def draw_trajectory(
+    image: np.ndarray,
+    points_car: np.ndarray,
+    camera: Projection,
+    colour: tuple[int, int, int] = (255, 40, 40),
+    radius_px: int | None = None,
+    thickness_px: int | None = None,
+    label: str | None = None,
+) -> np.ndarray:
+    """Draw a car-frame trajectory ``(K, 2)`` (x forward, y left; metres) on a camera image.
+
+    Points are projected on the road surface; points behind the near plane are skipped. The
+    polyline starts at the road point below the camera's near plane. Draws in place; returns it.
+    """
+    pts = np.asarray(points_car, dtype=np.float64).reshape(-1, 2)
+    start = np.array([[camera.cfg.forward_offset_m + camera.cfg.near_m * 4, 0.0]])
+    ground = np.concatenate([np.r_[start, pts], np.zeros((len(pts) + 1, 1))], axis=1)
+    px, front = camera.project_car(ground)
+    scale = max(1, round(image.shape[1] / 200))
+    radius = radius_px if radius_px is not None else 1 + scale
+    thick = thickness_px if thickness_px is not None else scale
+    fixed = to_fixed(px[front])
+    if len(fixed) >= 2:
+        cv2.polylines(image, [fixed], False, colour, thick, cv2.LINE_AA, SHIFT)
+    for p in fixed[1:] if front[0] else fixed:
+        cv2.circle(
+            image, (int(p[0]), int(p[1])), radius * int(SCALE), colour, -1, cv2.LINE_AA, SHIFT
+        )
+    if label and len(fixed):
+        tip = fixed[-1] / SCALE
+        cv2.putText(
+            image,
+            label,
+            (int(tip[0]) + 3, int(tip[1])),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.3 * scale,
+            colour,
+            1,
+            cv2.LINE_AA,
+        )
+    return image
 
 
 def tile(images: Sequence[np.ndarray], columns: int) -> np.ndarray:

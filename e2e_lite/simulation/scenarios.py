@@ -200,10 +200,8 @@ def run_scenarios(
             for i in np.flatnonzero(active).tolist():
                 track_path[i].append((float(s[i]), float(d[i])))
             if camera is not None:
-                camera.render_batch(
-                    [w.track for w in worlds], [w.cars for w in worlds], fleet.state[:, :3], s,
-                    out=images,
-                )  # fmt: skip
+                tracks, cars = [w.track for w in worlds], [w.cars for w in worlds]
+                camera.render_batch(tracks, cars, fleet.state[:, :3], s, out=images)
             act = policy.act(observe(fleet, k == 0, k * period, images, (s, d, road_h, kappa)))
             contacts = fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2), active)
             s_after = fleet.lane_frame()[0]

@@ -310,8 +310,8 @@ class World:
         inside, so a query cut into pieces (to follow curves) missed every car whose rear lay
         within the query's radius past a piece's start, and reported the next hit instead: on 4 %
         of the positions approaching a car the gap came out up to one piece (9.9 m) too long, or
-        the car was not seen at all (code before 2026-11-24; ``tests/test_world.py`` checks the
-        boxes against pymunk's shapes).
+        the car was not seen at all (``tests/test_world.py`` checks the boxes against pymunk's
+        shapes).
         """
         cars = self.cars
         if not len(cars):

@@ -26,21 +26,23 @@ import numpy as np
 
 from ..artifacts import artifact_path, cached, settings_key, versioned
 from ..config import Profile, check_pair, check_range, default_workers, tqdm
-from ..control.expert import Expert, ExpertConfig, SpeedLimits, fresh_labels
+from ..control.expert import Expert, fresh_labels
 from ..control.labels import (  # noqa: F401 (re-exported, as above)
     AFFORDANCE_NAMES,
     CHANGE,
     GAP_CAP_M,
     N_POINTS,
+    affordances,
     throttle_brake,
 )
+from ..control.rules import ExpertConfig, SpeedLimits
 from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
 from ..driving.rollout import EvalConfig, drive_shard
 from ..simulation.camera import CameraConfig
 from ..simulation.policy import Actuation, Observation, car_rng
-from ..simulation.world import World, WorldConfig
+from ..simulation.world import WorldConfig
 from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's names here)
     CHANGE_START_M,
     FIELDS,
@@ -58,45 +60,6 @@ from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's 
     situations,
     synthetic_data,
 )
-
-
-def affordances(
-    worlds: list[World], s: np.ndarray, d: np.ndarray, heading_error: np.ndarray
-) -> np.ndarray:
-    """The affordances of B cars, ``(B, 9)`` float64 (see :data:`AFFORDANCE_NAMES` for units).
-
-    Args:
-        worlds: car i's world.
-        s, d: lane-frame position of each rear axle [m].
-        heading_error: heading minus the road's [rad].
-    """
-    n = len(worlds)
-    out = np.empty((n, len(AFFORDANCE_NAMES)))
-    for i, world in enumerate(worlds):
-        track, veh = world.track, world.vehicle
-        di = float(d[i])
-        lane = int(track.lane_index(di))
-        centre = float(track.lane_center(lane))
-        half_lane = track.lane_width / 2.0
-        front = float(s[i]) + veh.length_m - veh.rear_overhang_m
-        start = front - veh.length_m  # the rear bumper: a car reaching past it is alongside
-        gaps = []
-        for other in (lane, lane + 1, lane - 1):
-            if not 0 <= other < track.n_lanes:
-                gaps.append(0.0)
-                continue
-            hit = world.gap_ahead(start, other, GAP_CAP_M + front - start)
-            gaps.append(min(GAP_CAP_M, max(0.0, start + hit - front)))
-        out[i] = (
-            float(heading_error[i]),
-            di - centre,
-            centre + half_lane - di,
-            di - (centre - half_lane),
-            track.half_width - di,
-            di + track.half_width,
-            *gaps,
-        )
-    return out
 
 
 @dataclass(frozen=True)
@@ -233,13 +196,17 @@ def car_quotas(cfg: DataConfig) -> np.ndarray:
 
 @dataclass(frozen=True)
 class OnPolicy:
-    """A DAgger collection (chapter 12): ``learner`` drives, the expert executing a share ``beta``
-    of the decisions and labelling every state; ``fresh``: trajectory labels of an expert planning
-    afresh at each state (:func:`~e2e_lite.control.expert.fresh_labels`)."""
+    """A DAgger collection (chapter 12), passed to :func:`collect`: ``learner`` drives, the expert
+    executing a share ``beta`` of the decisions and labelling every state; ``fresh``: trajectory
+    labels of an expert planning afresh at each state
+    (:func:`~e2e_lite.control.expert.fresh_labels`)."""
 
     learner: Any
     beta: float = 1.0
     fresh: bool = False
+
+    def __post_init__(self) -> None:
+        check_range("OnPolicy", "beta", self.beta, 0.0, 1.0)
 
     def key(self, cfg: DataConfig) -> str:
         """Its samples' key: the settings, the learner's weights (or class), beta, the labeller."""
@@ -389,16 +356,10 @@ def collect_cars(
     """Drive cars ``cars`` (of ``cfg.n_worlds``) to their quotas: their samples (car after car),
     the drive's metrics and the expert's manoeuvres; one process's share of :func:`collect`."""
     rec = _Recorder(cfg, cars, advance, on_policy)
-    ev = EvalConfig(
-        miles=1e6, n_worlds=cfg.n_worlds, split=cfg.split, n_tracks=cfg.n_tracks, seed=cfg.seed,
-        first_track=cfg.first_track,
-    )  # fmt: skip
-    shard = drive_shard(rec, cfg.world, ev, cars, _no_miles, stop_when=rec.done)
+    roads = {"split": cfg.split, "n_tracks": cfg.n_tracks, "first_track": cfg.first_track}
+    ev = EvalConfig(miles=1e6, n_worlds=cfg.n_worlds, seed=cfg.seed, **roads)
+    shard = drive_shard(rec, cfg.world, ev, cars, stop_when=rec.done)  # (it counts samples)
     return rec.a, shard, dict(rec.expert.manoeuvres)
-
-
-def _no_miles(miles: float) -> None:
-    """Collection counts samples, not miles."""
 
 
 def collect(
@@ -406,19 +367,15 @@ def collect(
     progress: bool = True,
     workers: int | None = None,
     *,
-    learner: Any = None,
-    beta: float = 1.0,
-    fresh_labels: bool = False,
+    on_policy: OnPolicy | None = None,
 ) -> DrivingData:
-    """Drive the noisy expert until ``cfg.n_samples`` samples are recorded (no caching).
+    """Drive the noisy expert until ``cfg.n_samples`` samples are recorded (no caching), or with
+    ``on_policy`` a DAgger collection: its learner drives, the expert labels (:class:`OnPolicy`).
 
     The cars are shared out over ``workers`` processes (default: every core,
     :func:`~e2e_lite.config.default_workers`, at most one per :data:`MIN_SAMPLES_PER_WORKER`);
-    the arrays are the same bytes for any count.
-
-    ``learner``, ``beta``, ``fresh_labels``: a DAgger round (:class:`OnPolicy`); its cars are cut
-    in whole forward groups, one torch thread each, so its samples do not depend on the count."""
-    check_range("collect", "beta", beta, 0.0, 1.0)
+    the arrays are the same bytes for any count. A learner's cars are cut in whole forward
+    groups, one torch thread each, so its samples do not depend on the count either."""
     t_wall = time.perf_counter()
     if workers is None:  # every core, but no worker for fewer samples than its start is worth
         workers = min(default_workers(), max(1, cfg.n_samples // MIN_SAMPLES_PER_WORKER))
@@ -431,14 +388,13 @@ def collect(
         leave=False,
         mininterval=0.5,
     )
-    if learner is None:
+    if on_policy is None:
         cars = np.array_split(np.arange(cfg.n_worlds), min(workers, cfg.n_worlds))
     else:
         cars = shard_cars(cfg.n_worlds, workers)
-    on_policy = None if learner is None else OnPolicy(learner, beta, fresh_labels)
     try:
         if len(cars) == 1:
-            with pinned_threads() if learner is not None else contextlib.nullcontext():
+            with pinned_threads() if on_policy is not None else contextlib.nullcontext():
                 parts = [collect_cars(cfg, cars[0], lambda k: bar.update(int(k)), on_policy)]
         else:
             jobs = [(collect_cars, (cfg, c), {"on_policy": on_policy}) for c in cars]

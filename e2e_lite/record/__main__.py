@@ -1,0 +1,132 @@
+"""``python -m e2e_lite.record``: run a share of the record, pool shares, plan the record, or
+record a course run (see :mod:`e2e_lite.record`). Rendering is ``python -m e2e_lite.report``'s."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from ..artifacts import atomic_write, outputs_dir
+from ..config import FULL, QUICK
+from . import COURSE_RUN, RECORD, ROOT
+from .rows import Record, Share, dump
+
+
+def _parser() -> argparse.ArgumentParser:
+    import e2e_lite.record
+
+    parser = argparse.ArgumentParser(
+        prog="python -m e2e_lite.record",
+        description=e2e_lite.record.__doc__.split("\n\n")[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    jobs = parser.add_subparsers(dest="job", required=True, metavar="JOB")
+    run = jobs.add_parser(
+        "run",
+        help="train and drive every row for some training seeds (hours in the full profile; stop "
+        "and run again to go on: trainings and drives are stored)",
+    )
+    run.add_argument(
+        "--seeds",
+        default="10",
+        metavar="N|A-B",
+        help="N: training seeds 0 .. N-1, pooled here into the record; A-B: one share of the "
+        "record, written to <outputs>/shares/ for the pool",
+    )
+    run.add_argument("--miles", type=float, default=100.0, help="test-road miles per seed")
+    run.add_argument(
+        "--quick",
+        action="store_true",
+        help="the quick profile (a smoke test on open roads, written to the outputs folder, "
+        "never to docs/)",
+    )
+    pool = jobs.add_parser(
+        "pool",
+        help="pool shares (from run --seeds A-B, on any machines) into docs/results/table1.json "
+        "and render it; a share that does not belong is refused, naming its file",
+    )
+    pool.add_argument("shares", nargs="+", type=Path, metavar="SHARE")
+    jobs.add_parser(
+        "plan",
+        help="the seeds and miles per seed that find a 2x step with power 0.8 under the "
+        "committed record's seed spread, and what each costs",
+    )
+    course = jobs.add_parser(
+        "course-run",
+        help="record what a full-profile course run printed (docs/results/course_run.json, "
+        "rendered into docs/teaching.md)",
+    )
+    course.add_argument("outputs", type=Path, metavar="OUTPUTS")
+    return parser
+
+
+def _write_record(record: Record, quick: bool) -> int:
+    """Write a pooled record: the record of record (rendered), or a quick smoke test's (printed,
+    never written to docs/)."""
+    from .. import report
+
+    path = outputs_dir(quick=True) / "table1.json" if quick else RECORD
+    with atomic_write(path, "w") as f:
+        f.write(dump(record))
+    print(f"wrote {path}")
+    if quick:
+        print(report.table1(record))
+    else:
+        report.render(record)
+    return 0
+
+
+def _run(seeds_text: str, miles: float, quick: bool) -> int:
+    from .pool import pool
+    from .run import parse_seeds, record_share
+
+    profile = QUICK if quick else FULL
+    seeds = parse_seeds(seeds_text)
+    share = record_share(profile, seeds, miles)
+    if "-" not in seeds_text:  # the whole record on this machine: pooled at once
+        return _write_record(pool([("this run", share)]), quick)
+    path = outputs_dir(quick=quick) / "shares" / f"share-seeds-{seeds[0]}-{seeds[-1]}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "w") as f:
+        f.write(dump(share))
+    print(f"wrote {path}: pool it with python -m e2e_lite.record pool SHARE...")
+    return 0
+
+
+def _pool(files: Sequence[Path]) -> int:
+    from .pool import ShareRefused, pool
+
+    shares = [(p.name, Share.from_json(json.loads(p.read_text()))) for p in files]
+    try:
+        record = pool(shares)
+    except ShareRefused as err:
+        print(err, file=sys.stderr)
+        return 2
+    return _write_record(record, quick=shares[0][1].profile == QUICK.name)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.job == "run":
+        return _run(args.seeds, args.miles, args.quick)
+    if args.job == "pool":
+        return _pool(args.shares)
+    if args.job == "plan":
+        from .rows import load_record
+        from .run import plan, plan_lines
+
+        print("\n".join(plan_lines(plan(load_record(RECORD)))))
+        return 0
+    from .course_run import course_run_record
+
+    with atomic_write(COURSE_RUN, "w") as f:
+        json.dump(course_run_record(args.outputs), f, indent=1)
+    print(f"wrote {COURSE_RUN.relative_to(ROOT)}: render it with python -m e2e_lite.report")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,256 @@
+"""Running the record: one share of training seeds (:func:`record_share`), every row trained
+and driven for them, each seed on its own run of the sealed block (:func:`seed_run`: the same
+roads whatever share holds it); what a share costs (:func:`record_work`); and the plan, the seeds
+and miles that reach the record's power (:func:`plan`). Trainings and drives are stored as the
+chapters store theirs, so a cut run goes on where it stopped.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..ablation import (
+    BEYOND,
+    BY_KEY,
+    CONTROLS,
+    DRIVERS,
+    SEED_ZERO_ONLY,
+    UNTRAINED,
+    build_drivers,
+    evaluate_stored,
+)
+from ..artifacts import seeded, settings_key
+from ..config import FULL, Profile, check_range, default_workers, precision
+from ..driving.metrics import result_dict
+from ..driving.roads import ROAD_BLOCKS
+from ..driving.rollout import EvalConfig
+from ..estimate import Work, cpu_name, plan_text
+from ..learning.collector import DataConfig, load_or_collect
+from ..learning.models import pick_device
+from ..simulation.world import WorldConfig
+from .pool import pool, record_block, seed_run
+from .rows import SHARE_FORMAT, Block, Record, SeedDrive, Share, ShareRow
+from .stats import family
+
+#: every row of the record: the paper's, DAgger's (chapter 12) and the controls
+ROWS = (*DRIVERS, *BEYOND, *CONTROLS)
+
+
+def record_work(
+    profile: Profile, seeds: int, miles_per_seed: float, single: Sequence[str] = SEED_ZERO_ONLY
+) -> Work:
+    """What :func:`record_table1` does from an empty outputs folder, in the parts the benchmarks
+    measure: the data, chapter 08's weight grid (5 weights, 2 epochs, a quarter of the data),
+    every training (from scratch: the profile's epochs and a selection drive per epoch; the two
+    fine-tunes: one epoch; the rows of ``single``: seed 0 alone), DAgger's rounds and their
+    control (a collection and a fine-tune each), and every seed's run of every row."""
+    from ..learning.dagger import DaggerConfig
+    from ..learning.recipes import SELECT_MILES
+
+    learned = [d.key for d in (*DRIVERS, *CONTROLS) if d.key not in UNTRAINED]
+    tuned = sum(k in ("gmm_affordance_cvar", "gmm_affordance_control") for k in learned)
+    trainings = sum(1 if k in single else seeds for k in learned)  # (no fine-tune is single)
+    scratch = trainings - seeds * tuned
+    epochs = profile.train_epochs
+    rounds = DaggerConfig.for_profile(profile)
+    dagger_samples = seeds * len(BEYOND) * rounds.rounds * rounds.samples  # collected
+    return Work(
+        collect_samples=profile.n_train_samples + profile.n_val_samples + dagger_samples,
+        train_samples=profile.n_train_samples * (scratch * epochs + seeds * tuned)
+        + 5 * 2 * profile.n_train_samples / 4
+        + dagger_samples * (1.0 + rounds.replay),
+        drive_miles=scratch * epochs * SELECT_MILES + miles_per_seed * seeds * len(ROWS),
+    )
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"N"``: training seeds ``0 .. N-1`` (the whole record on one machine); ``"A-B"``: seeds
+    ``A .. B`` (one share of it)."""
+    try:
+        if "-" in text:
+            first, last = (int(x) for x in text.split("-"))
+        else:
+            first, last = 0, int(text) - 1
+    except ValueError:
+        raise ValueError(f"--seeds {text!r} is invalid: give N (seeds 0 .. N-1) or A-B") from None
+    if first < 0 or last < first:
+        raise ValueError(f"--seeds {text!r} is invalid: give N >= 1, or A-B with 0 <= A <= B")
+    return list(range(first, last + 1))
+
+
+def _commit() -> str:
+    """The code that trains and drives: the commit at the start (a run takes hours); every recipe
+    choice is frozen in it before the sealed roads are driven. A copy without git's history (a
+    zip, a lent machine's copy of the tree) says its commit in ``$E2E_LITE_COMMIT``."""
+    try:
+        git = ["git", "rev-parse", "--short", "HEAD"]
+        here = Path(__file__).resolve().parent
+        return subprocess.run(
+            git, capture_output=True, text=True, check=True, cwd=here
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return os.environ.get("E2E_LITE_COMMIT", "unknown")
+
+
+def _seed_drive(seed: int, first_track: int, result: Any) -> SeedDrive:
+    """One seed's drive of one row, from its evaluation's result."""
+    r = result_dict(result)
+    return SeedDrive(
+        seed=seed,
+        first_track=first_track,
+        collisions=r["collisions"],
+        car=r["car_collisions"],
+        rail=r["rail_collisions"],
+        miles=round(r["miles"], 3),
+        mph=round(r["mean_speed_mph"], 2),
+        stalls=r["stalls"],
+    )
+
+
+def record_share(
+    profile: Profile,
+    seeds: Sequence[int],
+    miles_per_seed: float = 100.0,
+    *,
+    single: Sequence[str] = SEED_ZERO_ONLY,
+    progress: bool = True,
+) -> Share:
+    """One share of the record: every row of :data:`ROWS` (the paper's, DAgger's and the
+    controls) for training ``seeds``, each seed driving ``miles_per_seed`` on its own run of the
+    block (:func:`seed_run`; the sealed block of test roads, or open roads in the quick profile's
+    smoke run). Each learned row trains the share's seeds; the rows of ``single`` (PilotNet and
+    L2: no step of the paper is theirs) drive seed 0's network on each seed's run, as the expert
+    and the oracle do. Returns the share, its digest written."""
+    seeds = sorted(int(k) for k in seeds)
+    if not seeds or seeds[0] < 0 or len(set(seeds)) != len(seeds):
+        raise ValueError(f"record_share: seeds {seeds} must be distinct and >= 0")
+    check_range("record_share", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
+    commit, keys = _commit(), [d.key for d in ROWS]
+    world_cfg = WorldConfig.for_profile(profile)
+    workers, device = default_workers(), pick_device()
+    if progress:
+        work = record_work(profile, len(seeds), miles_per_seed, single)
+        print(plan_text(f"the record's seeds {seeds[0]}-{seeds[-1]}", work, workers, device.type))
+    train = load_or_collect(DataConfig.for_profile(profile, "train"), progress)
+    val = load_or_collect(DataConfig.for_profile(profile, "val"), progress)
+    learned = [k for k in keys if k not in UNTRAINED and k not in single]
+    fixed = build_drivers(profile, [k for k in keys if k not in learned], train, val, seed=0)
+    runs: dict[str, list[SeedDrive]] = {k: [] for k in keys}
+    for seed in seeds:
+        run = seed_run(profile, seed, miles_per_seed)
+        mine = {**fixed, **build_drivers(profile, learned, train, val, seed=seed)}
+        for key in keys:
+            label = f"{BY_KEY[key].label} (seed {seed})"
+            name = seeded(key, seed)
+            result = evaluate_stored(name, label, mine[key], world_cfg, run, progress=progress)
+            runs[key].append(_seed_drive(seed, run.first_track, result))
+    block = record_block(profile)
+    template = EvalConfig(miles=miles_per_seed, n_worlds=profile.ablation_worlds, block=block)
+    data_keys = (train.info["key"], val.info["key"])
+    settings = settings_key(
+        profile, world_cfg, template, *data_keys, precision(), keys, list(single)
+    )
+    controls = {d.key for d in CONTROLS}
+    rows = tuple(
+        ShareRow(k, BY_KEY[k].label, BY_KEY[k].paper_per_100mi, k in controls, tuple(runs[k]))
+        for k in keys
+    )
+    return Share(
+        format=SHARE_FORMAT,
+        profile=profile.name,
+        seeds=seeds,
+        miles_per_seed=miles_per_seed,
+        recipes_commit=commit,
+        settings_key=settings,
+        data=dict(zip(("train", "val"), data_keys)),
+        precision=precision(),
+        torch=torch.__version__,
+        machine=f"{cpu_name()}, {os.cpu_count()} cores, {workers} workers, {device.type}",
+        block=Block(block, list(ROAD_BLOCKS[block])),
+        single_seed_rows=list(single),
+        family=family(f"before this record ran, in the recipes of {commit}"),
+        rows=rows,
+    ).sealed()
+
+
+def record_table1(
+    profile: Profile,
+    seeds: int = 10,
+    miles_per_seed: float = 100.0,
+    *,
+    single: Sequence[str] = SEED_ZERO_ONLY,
+    progress: bool = True,
+) -> Record:
+    """Table 1 of record on one machine: the share of training seeds ``0 .. seeds-1``
+    (:func:`record_share`), pooled (:func:`~e2e_lite.record.pool.pool`)."""
+    check_range("record_table1", "seeds", seeds, 1, integer=True)
+    share = record_share(profile, range(seeds), miles_per_seed, single=single, progress=progress)
+    return pool([("this run", share)])
+
+
+def plan(
+    record: Record,
+    target: float = 0.8,
+    most: int = 30,
+    miles_options: Sequence[float] = (100.0, 150.0, 200.0, 300.0),
+    n_sim: int = 500,
+) -> dict[str, Any]:
+    """The record's plan: for each budget of miles per seed, the fewest training seeds
+    (10 to ``most``) whose verdicts find a true 2x step at the record's own + affordance rate with
+    at least ``target`` power under the seeds' spread fitted to ``record``
+    (:func:`~e2e_lite.record.stats.record_power`), and what each plan costs on 2 cores and on a
+    16-core machine with a GPU (:func:`record_work`); the chosen plan is the cheapest on 2 cores
+    that reaches ``target`` (else the most powerful at ``most`` seeds)."""
+    from ..driving.verdicts import seeds_for_power
+    from ..estimate import estimate_s
+    from .stats import record_power
+
+    found = record_power(record)
+    k, rate = found["dispersion"]["dispersion"], found["rate_per_100mi"]
+    options = []
+    for miles in miles_options:
+        need = seeds_for_power(miles, rate, target, most=most, least=10, n_sim=n_sim, dispersion=k)
+        work = record_work(FULL, need["seeds"], miles)
+        hours = {
+            "hours_2_cores": estimate_s(work, 2) / 3600.0,
+            "hours_16_cores_gpu": estimate_s(work, 16, "cuda") / 3600.0,
+        }
+        options.append({**need, "miles_per_seed": miles, **hours})
+    reaching = [o for o in options if o["power"] >= target]
+    chosen = (
+        min(reaching, key=lambda o: o["hours_2_cores"])
+        if reaching
+        else max(options, key=lambda o: o["power"])
+    )
+    return {
+        "dispersion": k,
+        "rate_per_100mi": rate,
+        "target": target,
+        "options": options,
+        "chosen": chosen,
+    }
+
+
+def plan_lines(found: dict[str, Any]) -> list[str]:
+    """:func:`plan` as the lines ``python -m e2e_lite.record --plan`` prints."""
+    lines = [
+        f"seeds' spread (dispersion) {found['dispersion']:.2f}; a 2x step at "
+        f"{found['rate_per_100mi']:.1f} per 100 mi, power {found['target']:.0%}:"
+    ]
+    for o in found["options"]:
+        lines.append(
+            f"  {o['miles_per_seed']:5.0f} mi per seed: {o['seeds']:2d} seeds, power "
+            f"{o['power']:.2f}, about {o['hours_2_cores']:.1f} h on 2 cores, "
+            f"{o['hours_16_cores_gpu']:.1f} h on 16 cores and a GPU"
+        )
+    c = found["chosen"]
+    lines.append(
+        f"plan: {c['seeds']} seeds x {c['miles_per_seed']:.0f} mi (power {c['power']:.2f})"
+    )
+    return lines
