@@ -314,7 +314,7 @@ for name, how in (("uncalibrated", cfg), ("calibrated", calibrated[0])):
 #   full deceleration (`VehicleParams.max_brake_mps2`), while the rule still plans with the
 #   tracker's gentler `brake_mps2`: headroom the rule does not count on.
 #
-# The module audits one intervention in four: would a fresh expert, from the same state, have
+# The module audits one intervention in four: would the expert, from the same state, have
 # driven what the network proposed (then it was a **false alarm**)? And would the rule on the
 # truth have accepted it (then **perception alone** caused it)? The guarded drives are stored
 # with these counts, so a second run of the chapter reads them back.

@@ -115,10 +115,31 @@ def _finetune(b: Build, reduction: str, sigma: str = recipes.CVAR_SIGMA) -> Poli
 
 
 def _dagger(b: Build, arm: str) -> Policy:
-    """Chapter 12's last round of ``arm`` (DAgger, or its control) from this seed's CVaR network
-    (:func:`~e2e_lite.learning.dagger.run`, the course's :class:`~e2e_lite.learning.dagger.DaggerConfig`)."""
-    rounds = dagger.run(*b.data, b.weight(), b.seed, arms=(arm,), **b.kw)[1][arm]
-    return TrajectoryAgent(rounds[-1].model)
+    """Chapter 12's kept iterate of ``arm`` for this seed (:func:`dagger_iterates`)."""
+    iterates, _, kept = dagger_iterates(b, arm)
+    return TrajectoryAgent(iterates[kept][1])
+
+
+def dagger_iterates(
+    b: Build, arm: str, cfg: dagger.DaggerConfig | None = None
+) -> tuple[list[tuple[str, Any]], list[float], int]:
+    """``arm``'s iterates for this seed, the CVaR network it started from first, as
+    ``[(name, network), ...]``, each one's collisions per 100 mi on the seed's own validation
+    roads (each drive stored), and the index of the one kept: the one that collided least
+    (:func:`~e2e_lite.learning.dagger.kept_iterate`). The rounds are
+    :func:`~e2e_lite.learning.dagger.run`'s."""
+    cfg = cfg or dagger.DaggerConfig.for_profile(b.profile)
+    start, arms = dagger.run(*b.data, b.weight(), b.seed, cfg, arms=(arm,), **b.kw)
+    start_name = recipes.seeded_name("09_gmm_affordance_cvar", b.seed)
+    iterates = [(start_name, start), *((r.name, r.model) for r in arms[arm])]
+    run = dagger.val_run(b.profile, b.seed, cfg.val_miles)
+    world_cfg = WorldConfig.for_profile(b.profile)
+    rates = []
+    for name, model in iterates:
+        label = f"{name} on validation roads"
+        res = evaluate_stored(f"{name}_val", label, TrajectoryAgent(model), world_cfg, run, **b.kw)
+        rates.append(result_dict(res)["collisions_per_100mi"])
+    return iterates, rates, dagger.kept_iterate(rates)
 
 
 def _w0(b: Build) -> Policy:
@@ -196,15 +217,23 @@ CONTROLS = (
         build=lambda b: _finetune(b, "mean"),
     ),
 )
-#: Rows beyond the paper that the record drives (chapter 12): DAgger's last round, and its control
-#: (the same rounds with the expert's own samples): does DAgger step beyond + CVaR, and is it the
-#: learner's states?
+#: Rows beyond the paper that the record drives (chapter 12): DAgger's kept iterate, its control
+#: (the expert's DART-noised states, gated, labelled and aggregated alike) and the same fine-tunes
+#: on no new data: does DAgger step beyond + CVaR, is it the network's states, and what do the
+#: fine-tunes alone do?
 BEYOND = (
-    Driver("dagger", "+ DAgger (chapter 12), its last round", build=lambda b: _dagger(b, "dagger")),
+    Driver(
+        "dagger", "+ DAgger (chapter 12), its kept iterate", build=lambda b: _dagger(b, "dagger")
+    ),
     Driver(
         "dagger_control",
-        "+ DAgger's control: the expert's own samples",
+        "+ DAgger's control: the expert's noisy states",
         build=lambda b: _dagger(b, "control"),
+    ),
+    Driver(
+        "dagger_no_new_data",
+        "+ DAgger's fine-tunes on no new data",
+        build=lambda b: _dagger(b, "no_new_data"),
     ),
 )
 #: Drivers of the exercises and the lab notes, which the course does not drive: the affordance

@@ -328,14 +328,13 @@ def write_metrics(
 #: change to the code changes what such an artifact would hold, and every stored one is rebuilt
 #: (``tests/test_reference.py`` refuses to record a changed behaviour under the same versions).
 ARTIFACT_VERSIONS = {
-    # 4: each car records its own quota from its own draws, so any number of collecting
-    # processes makes the same bytes
-    "dataset": 4,
+    # 5: the expert reads its plan off the state at every decision (its labels are a function of
+    # the state alone)
+    "dataset": 5,
     # 3: the precision (fp32 / tf32) is part of the key
     "checkpoint": 3,
-    # 2: each car draws its own start lanes, networks see their frames in fixed groups, one torch
-    # thread per shard: the events no longer depend on the worker count, which left the key
-    "evaluation": 2,
+    # 3: the expert (and so the oracle) reads its plan off the state
+    "evaluation": 3,
     "head-refit": 1,
     "recovery": 1,
 }

@@ -90,7 +90,7 @@ CHAPTERS: dict[int, ChapterInfo] = {
     9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 17),
     10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 17),
     11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 6),
-    12: ChapterInfo("DAgger: the learner drives, the expert labels its states", "", 11, 11),
+    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 75, 45),
 }
 
 

@@ -97,8 +97,9 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
     parts (counted from the chapters): chapter 04's data and its two ceilings' drives; chapters
     05-08's networks (05: three, 07: two), chapter 08's weight grid; chapters 09-10's further
     seeds (09: + affordance, 10: the Baseline E2E and the GMM; PilotNet and L2 keep seed 0; the
-    w = 0 control is the record's) and chapter 09's fine-tunes; chapter 12's DAgger rounds and
-    their control (a collection and a fine-tune each); every evaluation and selection drive.
+    w = 0 control is the record's) and chapter 09's fine-tunes; chapter 12's anatomy and DAgger's
+    three arms (collections, fine-tunes, every iterate on validation roads); every evaluation and
+    selection drive.
     Chapters 01-03, the figures and the replays are ``other_s`` (about 300 s in all)."""
     from .learning.dagger import DaggerConfig
     from .learning.recipes import SELECT_MILES
@@ -114,7 +115,8 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
         )
 
     dagger = DaggerConfig.for_profile(profile)
-    collected = s * 2 * dagger.rounds * dagger.samples  # both arms, every seed and round
+    driven = dagger.rounds * dagger.samples * (2 * dagger.drive + 0.25)  # two arms, DART's pilot
+    collected = s * driven  # every seed
     return {
         1: Work(0.0, 0.0, 0.0, 10.0),
         2: Work(0.0, 0.0, 0.0, 5.0),
@@ -127,11 +129,12 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
         9: trains(s - 1, 3 * rows, tuned=2 * s),  # the CVaR fine-tune and its control
         10: trains(2 * (s - 1), 2 * rows + 4 * ev),  # + the ceilings, PilotNet and L2
         11: trains(0, 3 * rows),  # three variants of the safety module
-        # validation: the start and each round of both arms, the expert, the oracle; test: two rows
+        # the anatomy's drive, the labellers' drives; validation: the start and every round of the
+        # three arms; test: four rows; the fine-tunes draw steps_samples per round and arm
         12: Work(
             collected,
-            collected * (1.0 + dagger.replay),
-            (3 + 2 * dagger.rounds) * ev + 2 * rows,
+            s * 3 * dagger.rounds * dagger.steps_samples,
+            s * (1.5 * ev + (1 + 3 * dagger.rounds) * dagger.val_miles) + 0.6 * ev + 4 * rows,
             other,
         ),
     }

@@ -101,8 +101,9 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
     early, late = course_work(FULL, range(1, 8)), course_work(FULL, range(8, 13))
     for part in range(len(Work._fields)):
         assert early[part] + late[part] == pytest.approx(course[part])
-    # chapter 12 collects DAgger's rounds and their control: 4 seeds x 2 arms x 2 rounds x 8,000
-    assert each[12].collect_samples == 4 * 2 * 2 * FULL.n_train_samples // 6
+    # chapter 12 drives DAgger's rounds and their control, 3 decisions per kept sample, and the
+    # control's DART pilots: 4 seeds x 4 rounds x 8,000 x (2 x 3 + 0.25)
+    assert each[12].collect_samples == pytest.approx(4 * 4 * FULL.n_train_samples // 6 * 6.25)
     assert early.collect_samples == FULL.n_train_samples + FULL.n_val_samples
     line = plan_text("the record", ten, 16, "cuda")
     assert "16 worker processes" in line and "cuda" in line and "fp32" in line and "min" in line

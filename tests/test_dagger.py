@@ -1,7 +1,7 @@
-"""DAgger's round (issue 63): the learner drives, the expert labels the states it visits, the
-data is aggregated, the samples do not depend on the worker count, a round never drives a
-validation or test road, and the fine-tune's key holds what made it. (The quick course's chapter
-12 checks that a round grows the aggregate by exactly its samples: tests/test_chapters.py.)"""
+"""DAgger's rounds and the anatomy (chapter 12): the learner drives, the expert labels the states
+it visits, the gate keeps what it says, a fine-tune draws from the whole aggregate, the control
+differs in who drives, the kept iterate is chosen on validation roads, the samples do not depend
+on the worker count, and a collision's re-drive reproduces it."""
 
 from __future__ import annotations
 
@@ -76,20 +76,6 @@ def test_beta_one_drives_exactly_the_experts_states():
     alone = collect(cfg, progress=False, workers=1)
     for name in alone.arrays:
         assert np.array_equal(mixed.arrays[name], alone.arrays[name]), name
-    # the control with fresh labels (DaggerConfig.control_labels): the same states, each labelled
-    # by an expert planning afresh there
-    from e2e_lite.control.expert import fresh_labels
-
-    shadow = Shadow()
-    fresh = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(shadow, fresh=True))
-    for name in alone.arrays:
-        if name != "trajectory":
-            assert np.array_equal(fresh.arrays[name], alone.arrays[name]), name
-    quota = cfg.n_samples // cfg.n_worlds
-    for k, obs in enumerate(shadow.seen[:quota]):
-        want = fresh_labels(obs, list(range(cfg.n_worlds)), cfg.world.sim)
-        rows = np.arange(cfg.n_worlds) * quota + k
-        np.testing.assert_allclose(fresh.arrays["trajectory"][rows], want, atol=1e-5)
 
 
 def test_a_networks_round_gives_the_same_bytes_for_one_and_two_workers():
@@ -101,70 +87,98 @@ def test_a_networks_round_gives_the_same_bytes_for_one_and_two_workers():
     two = collect(cfg, progress=False, workers=2, on_policy=OnPolicy(TrajectoryAgent(model), 0.5))
     for name in one.arrays:
         assert np.array_equal(one.arrays[name], two.arrays[name]), name
+    for name in one.info["on_policy"]:  # the gate's inputs too
+        assert np.array_equal(one.info["on_policy"][name], two.info["on_policy"][name]), name
 
 
-def test_a_round_drives_fresh_training_roads_and_never_a_validation_or_test_road():
+def test_a_round_drives_fresh_training_roads_and_the_arms_differ_only_in_who_drives():
+    """DAgger's and the control's rounds drive the same fresh training roads with the same start
+    lanes, never a validation or test road; their drives' settings are the same but for the
+    control's DART noise, and their samples' keys differ in who drives (beta) and that noise."""
     cfg = dagger.DaggerConfig.for_profile(QUICK)
     firsts = set()
-    for seed in range(4):
+    for seed in range(3):
         for r in range(cfg.rounds):
-            both = [dagger.RoundSpec(QUICK, cfg, seed, r, arm).data() for arm in dagger.ARMS]
-            assert all(d.split == "train" for d in both)
-            assert both[0].first_track == both[1].first_track >= dagger.FIRST_TRACK  # paired
-            firsts.add(both[0].first_track)
-    assert len(firsts) == 4 * cfg.rounds  # every seed and round on roads of its own
-    data = collect(dagger.RoundSpec(QUICK, cfg, 1, 1, "control").data(), progress=False, workers=1)
-    first = dagger.RoundSpec(QUICK, cfg, 1, 1, "control").data().first_track
-    assert data.arrays["track"].min() >= first
-    assert data.arrays["track"].max() < first + dagger.TRACK_STRIDE
-    with pytest.raises(ValueError, match="split"):
-        DataConfig(split="test")
-    with pytest.raises(ValueError, match="one beta per round"):
-        dagger.DaggerConfig(rounds=2, betas=(0.5,))
-    with pytest.raises(ValueError, match="arm"):
-        dagger.RoundSpec(QUICK, cfg, 0, 0, "oracle").data()
-
-
-def test_the_finetunes_key_holds_the_parent_the_round_the_beta_and_the_data():
+            d, c = (
+                dagger.RoundSpec(QUICK, cfg, seed, r, arm).data() for arm in ("dagger", "control")
+            )
+            assert d == c and d.split == "train" and d.first_track >= dagger.FIRST_TRACK
+            assert d.noise.rate_per_s == 0.0 and d.restart_rate_per_s == 0.0
+            firsts.add(d.first_track)
+    assert len(firsts) == 3 * cfg.rounds  # every seed and round on roads of its own
     torch.manual_seed(0)
     net = build_model(ModelConfig(head="trajectory", fusion_width=16))
-    other = build_model(ModelConfig(head="trajectory", fusion_width=16))
-    cfg = dagger.DaggerConfig(rounds=2, samples=64, betas=(0.5, 0.0))
-    key = dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").samples_key(net)
-    assert key != dagger.RoundSpec(QUICK, cfg, 0, 1, "dagger").samples_key(net)  # the round
-    assert key != dagger.RoundSpec(QUICK, cfg, 1, 0, "dagger").samples_key(net)  # the seed
-    assert key != dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").samples_key(other)  # the learner
-    other_beta = dataclasses.replace(cfg, betas=(0.7, 0.0))
-    assert key != dagger.RoundSpec(QUICK, other_beta, 0, 0, "dagger").samples_key(net)  # the beta
-    with pytest.raises(ValueError, match="learner"):
-        dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").samples_key(None)
-    # the fine-tune's data: its new samples, every earlier part and the rows replayed
+    spec = {arm: dagger.RoundSpec(QUICK, cfg, 0, 0, arm) for arm in ("dagger", "control")}
+    dart = NoiseConfig(rate_per_s=0.0, dart_steer_rad=0.01)
+    assert dataclasses.replace(spec["control"].data(dart), noise=spec["dagger"].data().noise) == (
+        spec["dagger"].data()
+    )
+    assert spec["dagger"].on_policy(net).beta == 0.0 and spec["control"].on_policy(net).beta == 1.0
+    assert spec["dagger"].samples_key(net) != spec["control"].samples_key(net)
+    assert spec["dagger"].samples_key(net) != dagger.RoundSpec(
+        QUICK, cfg, 0, 1, "dagger"
+    ).samples_key(net)
+    with pytest.raises(ValueError, match="arm"):
+        dagger.RoundSpec(QUICK, cfg, 0, 0, "oracle")
+    with pytest.raises(ValueError, match="split"):
+        DataConfig(split="test")
+
+
+def test_the_gate_keeps_the_seconds_before_a_collision_then_the_widest_disagreements():
+    drive = synthetic_data(10)
+    apart = np.array([0.1, 3.0, 0.5, 2.0, 0.2, 1.5, 0.3, 0.4, 0.05, 0.6])
+    before = np.zeros(10, dtype=bool)
+    before[[6, 7]] = True  # two samples before a collision, with small disagreements
+    drive.info["on_policy"] = {"disagreement_m": apart, "before_collision": before}
+    rows, found = dagger.gate(drive, 5, gate_m=1.0)
+    assert rows.tolist() == [1, 3, 5, 6, 7]  # the two before a collision, then 3.0, 2.0, 1.5
+    assert found["gate"] == {
+        "driven": 10,
+        "kept": 5,
+        "before_collision": 2,
+        "before_collision_driven": 2,
+        "beyond_gate": 3,
+        "beyond_gate_driven": 3,
+        "disagreement_median_m": pytest.approx(0.45),
+    }
+    kept = dagger.subset(drive, rows, "k")
+    assert len(kept) == 5 and kept.info["key"] == "k" and "on_policy" not in kept.info
+    assert np.array_equal(kept.arrays["speed"], drive.arrays["speed"][rows])
+
+
+def test_the_kept_iterate_collides_least_on_validation_roads_and_ties_keep_the_latest():
+    assert dagger.kept_iterate([3.0, 1.0, 2.0]) == 1
+    assert dagger.kept_iterate([1.0, 1.0, 2.0, 1.0]) == 3
+    assert dagger.kept_iterate([0.0]) == 0
+    run = dagger.val_run(QUICK, 2, 0.5)
+    assert run.split == "val" and run.block == "open"
+    assert run.first_track != dagger.val_run(QUICK, 1, 0.5).first_track  # each seed's own
+
+
+def test_dart_noise_is_the_spread_of_the_networks_command_errors_and_the_collector_adds_it():
+    rng = np.random.default_rng(0)
+    expert_cmd = rng.normal(size=(4_000, 2))
+    learner = expert_cmd + rng.normal(size=(4_000, 2)) * [0.01, 0.5]
+    noise = dagger.dart_noise(learner, expert_cmd)
+    assert noise.dart_steer_rad == pytest.approx(0.01, rel=0.05)
+    assert noise.dart_accel_mps2 == pytest.approx(0.5, rel=0.05) and noise.rate_per_s == 0.0
+    cfg = small(noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
+    clean = collect(cfg, progress=False, workers=1)
+    noisy = collect(dataclasses.replace(cfg, noise=noise), progress=False, workers=1)
+    assert not np.array_equal(clean.arrays["s"], noisy.arrays["s"])  # the noise was driven
+    again = collect(dataclasses.replace(cfg, noise=noise), progress=False, workers=1)
+    assert np.array_equal(again.arrays["trajectory"], noisy.arrays["trajectory"])  # seeded
+
+
+def test_a_fine_tune_draws_from_the_whole_aggregate_and_its_key_holds_what_it_drew():
     base, new = synthetic_data(40, seed=1), synthetic_data(16, seed=2)
-    ft = dagger.finetune_set([base], new, 1.0, 0, 0)
-    assert len(ft) == 32 and ft.stats["speed_mean"] == base.stats["speed_mean"]
-    assert np.array_equal(ft.arrays["images"][16:], new.arrays["images"])
-    assert (
-        ft.info["key"]
-        != dagger.finetune_set([base], synthetic_data(16, seed=3), 1.0, 0, 0).info["key"]
-    )
-    assert ft.info["key"] != dagger.finetune_set([base], new, 1.0, 0, 1).info["key"]
-    assert len(dagger.finetune_set([base, new], new, 0.5, 0, 1)) == 24
-    # a beta schedule stores its samples and networks under names of its own, beside the course's
-    course = dagger.DaggerConfig(rounds=2, samples=64)
-    assert dagger.RoundSpec(QUICK, course, 0, 0, "dagger").stem == "12_dagger_fresh"
-    assert dagger.RoundSpec(QUICK, cfg, 0, 0, "dagger").stem == "12_dagger_fresh_beta0.5-0"
-    assert (
-        dagger.RoundSpec(QUICK, cfg, 0, 0, "control").stem
-        == dagger.RoundSpec(QUICK, course, 0, 0, "control").stem
-        == "12_control"
-    )
-    relabelled = dataclasses.replace(course, control_labels="fresh")
-    assert dagger.RoundSpec(QUICK, relabelled, 0, 0, "control").stem == "12_control_fresh"
-    assert dagger.RoundSpec(QUICK, relabelled, 0, 0, "control").samples_key(
-        None
-    ) != dagger.RoundSpec(QUICK, course, 0, 0, "control").samples_key(None)
-    with pytest.raises(ValueError, match="control_labels"):
-        dagger.DaggerConfig(control_labels="oracle")
+    drawn = dagger.aggregate_draw([base, new], 30, 0, 0)
+    assert len(drawn) == 30 and drawn.stats["speed_mean"] == base.stats["speed_mean"]
+    from_new = np.isin(drawn.arrays["speed"], new.arrays["speed"]).sum()
+    assert 0 < from_new < 16  # rows from both parts, not a one-to-one slice of the new
+    assert drawn.info["key"] != dagger.aggregate_draw([base, new], 30, 0, 1).info["key"]
+    assert drawn.info["key"] != dagger.aggregate_draw([base], 30, 0, 0).info["key"]
+    assert len(dagger.aggregate_draw([base], 100, 0, 0)) == 40
 
 
 def test_covariate_shift_counts_the_visits_outside_the_datas_range():
@@ -176,26 +190,18 @@ def test_covariate_shift_counts_the_visits_outside_the_datas_range():
     assert dagger.covariate_shift(far, [data])["speed [m/s]"] == 1.0
 
 
-def test_fresh_labels_come_from_an_expert_without_memory_of_its_plans():
-    """Issue 63's lab: with ``labels="fresh"`` each state's trajectory label is what a fresh
-    expert (no plans) drives from it; the key and the stored names say which labels they hold."""
-    from e2e_lite.control.expert import fresh_labels
+def test_the_anatomy_redrives_a_collision_to_the_same_step_and_hands_it_to_the_expert():
+    """A lane keeper drives into parked cars; the witness files each collision's last seconds,
+    a re-drive of the same driver from the earliest of them collides at the same decision, and
+    the expert taking over early enough avoids it (a missed lane change, its plans absent)."""
+    from e2e_lite.driving import anatomy
+    from e2e_lite.driving.evaluation import EvalConfig, evaluate
 
-    cfg = small(n_samples=80, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
-    learner = Shadow()
-    data = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(learner, 0.0, fresh=True))
-    quota = cfg.n_samples // cfg.n_worlds
-    for k, obs in enumerate(learner.seen[:quota]):
-        rows = np.arange(cfg.n_worlds) * quota + k
-        want = fresh_labels(obs, list(range(cfg.n_worlds)), cfg.world.sim)
-        np.testing.assert_allclose(data.arrays["trajectory"][rows], want, atol=1e-5)
-    with pytest.raises(ValueError, match="labels"):
-        dagger.DaggerConfig(labels="oracle")
-    torch.manual_seed(0)
-    net = build_model(ModelConfig(head="trajectory", fusion_width=16))
-    expert = dagger.DaggerConfig.for_profile(QUICK, labels="expert")
-    fresh = dagger.DaggerConfig.for_profile(QUICK)  # the course's labels
-    assert fresh.labels == "fresh"
-    assert dagger.RoundSpec(QUICK, expert, 0, 0, "dagger").samples_key(net) != dagger.RoundSpec(
-        QUICK, fresh, 0, 0, "dagger"
-    ).samples_key(net)
+    witness = anatomy.Witness(LaneKeeper(), WORLD.sim.policy_period_s)
+    res = evaluate(witness, WORLD, EvalConfig(miles=2.0, n_worlds=4, split="val"), progress=False)
+    assert res.collisions == len(witness.collisions) > 0
+    c = witness.collisions[0]
+    assert anatomy.drive_from(c.moments[0], LaneKeeper(), WORLD, 10.0) == len(c.moments) - 1
+    anatomy.dissect(c, WORLD)
+    assert c.kind == "lane change missed" and c.plan_hit is None
+    assert c.saved[max(c.saved)] and c.latest_savable_s is not None

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import straight_world
 
 from e2e_lite.control import rules
-from e2e_lite.control.expert import Expert, fresh_labels
-from e2e_lite.control.labels import CHANGE, KEEP
+from e2e_lite.control.expert import Expert, expert_labels
+from e2e_lite.control.labels import CHANGE, PASS
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear, speed_profile
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe
@@ -43,9 +45,9 @@ def test_both_sides_occur_when_both_are_free():
         side = 0
         for k in range(120):
             act = expert.act(observe(fleet, respawned=k == 0))
-            plan = expert.plans[0]
-            if plan.state == CHANGE and side == 0:
-                side = plan.side
+            decision = expert.decisions[0]
+            if decision.state == CHANGE and side == 0:
+                side = decision.side
             contacts = fleet.step(act.steer_rad, act.accel_mps2)
             assert not contacts[0]
         sides.append(side)
@@ -64,7 +66,7 @@ def test_trigger_distance_is_drawn_in_its_range():
         for k in range(200):
             obs = observe(fleet, respawned=k == 0)
             act = expert.act(obs)
-            if expert.plans[0].state == CHANGE:
+            if expert.decisions[0].state == CHANGE:
                 front = obs.s[0] + 3.6
                 starts.append(400.0 - 2.25 - front)
                 break
@@ -130,8 +132,8 @@ def test_label_is_the_clean_rollout_not_the_noisy_future():
     assert np.abs(label[:, 1] - np.array(noisy_xy)[:, 1]).max() > 0.5
 
 
-def test_fresh_labels_with_kept_speed_limits_are_the_same_and_profile_each_track_once(monkeypatch):
-    """The safety module's audits ask a fresh expert at every intervention; with the speed limits
+def test_expert_labels_with_kept_speed_limits_are_the_same_and_profile_each_track_once(monkeypatch):
+    """The safety module's audits ask the expert at every intervention; with the speed limits
     kept across calls they get the same labels, and each track's profile is computed once."""
     cfg = small_world_cfg()
     worlds = [make_world(cfg, "test", k) for k in range(2)]
@@ -144,29 +146,67 @@ def test_fresh_labels_with_kept_speed_limits_are_the_same_and_profile_each_track
     calls = []
     real = rules.speed_profile
     monkeypatch.setattr(rules, "speed_profile", lambda *a, **k: calls.append(1) or real(*a, **k))
-    plain = [fresh_labels(obs, idx) for idx in ([0, 1], [2, 3], [0, 3])]
-    assert len(calls) == 4  # a fresh expert computes every track it meets again
+    plain = [expert_labels(obs, idx) for idx in ([0, 1], [2, 3], [0, 3])]
+    assert len(calls) == 4  # a new expert computes every track it meets again
     calls.clear()
     limits = SpeedLimits(ExpertConfig())
-    kept = [fresh_labels(obs, idx, limits=limits) for idx in ([0, 1], [2, 3], [0, 3])]
+    kept = [expert_labels(obs, idx, limits=limits) for idx in ([0, 1], [2, 3], [0, 3])]
     assert len(calls) == 2  # once per track
     for a, b in zip(plain, kept):
         np.testing.assert_array_equal(a, b)
     assert np.abs(plain[0][:, -1, 0]).min() > 10.0  # (the cars drive: a real label)
 
 
-def test_label_rollout_does_not_change_the_plan():
-    world = straight_world([200.0], [1], length=1_000.0)
-    fleet = Fleet([world], WorldConfig())
-    fleet.place(0, 120.0, 0.0, 25.0)
-    expert = Expert()
+def test_a_label_depends_on_the_state_alone():
+    """The same state, reached after two different histories (the expert's own drive, and a car
+    placed there by hand before a new expert's first decision), gets the same label and the same
+    decision: mid-overtake, and in the lane it overtook into."""
+    world = straight_world([300.0, 600.0], [1, 1], length=1_000.0)
+    cfg = WorldConfig()
+    fleet = Fleet([world], cfg)
+    fleet.place(0, 100.0, 0.0, 25.0)
+    expert = Expert(seed=3)
     expert.reset(1)
-    before = expert.plans[0].rollout_copy()
-    rng_state = expert.plans[0].rng.bit_generator.state
-    expert.trajectory_label(observe(fleet, respawned=True))
-    after = expert.plans[0]
-    assert after.state == before.state == KEEP and after.trigger_m == before.trigger_m
-    assert after.rng.bit_generator.state == rng_state
+    seen = {}
+    for k in range(200):
+        obs = observe(fleet, respawned=k == 0)
+        label = expert.trajectory_label(obs)
+        act = expert.act(obs)
+        state = expert.decisions[0].state
+        if state in (CHANGE, PASS) and state not in seen:
+            seen[state] = (fleet.state[0].copy(), int(fleet.seg[0]), label, expert.decisions[0])
+        fleet.step(act.steer_rad, act.accel_mps2)
+    assert set(seen) == {CHANGE, PASS}
+    for car_state, seg, label, decision in seen.values():
+        other = Fleet([world], cfg)
+        other.state[0], other.seg[0] = car_state, seg
+        fresh = Expert(seed=3)
+        fresh.reset(1)
+        obs = observe(other, respawned=True)
+        np.testing.assert_array_equal(fresh.trajectory_label(obs), label)
+        fresh.act(obs)
+        assert fresh.decisions[0] == decision
+
+
+def test_the_oracle_on_the_experts_labels_drives_as_the_expert_and_a_label_with_memory_does_not():
+    """A label is a driver: the tracker following the expert's labels at every decision (the
+    oracle) drives validation roads without a collision, as the expert does; the tracker following
+    the labels of the course's first expert with its memory wiped at every decision (chapter 12's
+    old labeller: every plan restarted in keep) runs into parked cars on the same roads."""
+    from e2e_lite.control.remembering import RememberingExpert
+
+    class Wiped(RememberingExpert):
+        def trajectory_label(self, obs):
+            placed = dataclasses.replace(obs, respawned=np.ones(len(obs.s), dtype=bool))
+            return super().trajectory_label(placed)
+
+    cfg = small_world_cfg()
+    ev = EvalConfig(miles=4.0, n_worlds=8, split="val")
+    expert = evaluate(Expert(), cfg, ev, progress=False, workers=1)
+    oracle = evaluate(Oracle(Expert()), cfg, ev, progress=False, workers=1)
+    wiped = evaluate(Oracle(Wiped()), cfg, ev, progress=False, workers=1)
+    assert expert.collisions == 0 and oracle.collisions == 0
+    assert wiped.collisions >= 3
 
 
 def test_oracle_follows_the_labels_without_collision():
@@ -223,9 +263,9 @@ def test_bad_expert_settings_raise():
 
 
 def test_the_expert_and_the_oracle_drive_alike_in_any_shards_and_count_their_manoeuvres():
-    """Issue 56: each car's manoeuvre draws are its own, so the expert and the oracle drive the
-    same events in one shard or in three worker processes; the manoeuvres started in the
-    workers come back through the results' info."""
+    """The expert's draws are the parked cars', so the expert and the oracle drive the same events
+    in one shard or in three worker processes; the manoeuvres started in the workers come back
+    through the results' info."""
     from e2e_lite.driving.evaluation import close_shard_workers
 
     world = WorldConfig(road=RoadConfig(length_m=3_000.0))

@@ -39,6 +39,10 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
   its frames in groups of ``FORWARD_GROUP`` on one thread per shard. So the quick dataset, the
   scripted drivers' start lanes and the trained networks all changed. Recorded on the project's
   2-core AMD EPYC with the code of the commit that made the change.
+* 2026-11-29, every entry, with ``dataset`` 5 and ``evaluation`` 3 (issue 71): the expert reads
+  its plan off the state at every decision (its label is a function of the state alone), so the
+  quick dataset's labels, the expert's drive and the trained networks changed. Recorded on the
+  project's 2-core AMD EPYC with the code of the commit that made the change.
 """
 
 from __future__ import annotations

@@ -25,8 +25,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..artifacts import artifact_path, cached, settings_key, versioned
-from ..config import Profile, check_pair, check_range, default_workers, tqdm
-from ..control.expert import Expert, fresh_labels
+from ..config import Profile, check_range, default_workers, tqdm
+from ..control.expert import Expert
 from ..control.labels import (  # noqa: F401 (re-exported, as above)
     AFFORDANCE_NAMES,
     CHANGE,
@@ -35,7 +35,7 @@ from ..control.labels import (  # noqa: F401 (re-exported, as above)
     affordances,
     throttle_brake,
 )
-from ..control.rules import ExpertConfig, SpeedLimits
+from ..control.rules import ExpertConfig
 from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
@@ -60,56 +60,7 @@ from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's 
     situations,
     synthetic_data,
 )
-
-
-@dataclass(frozen=True)
-class NoiseConfig:
-    """Random bursts added to the executed commands (never to the labels).
-
-    A car not in a burst starts one with probability ``rate_per_s * policy period`` per decision:
-    a steering offset of random sign and size and an acceleration offset, for a random duration.
-    A share ``brake_share`` of the bursts brake instead (``-brake_mps2``, 1-6 m/s off the speed),
-    so the expert's recovery to cruise speed is labelled too; a share ``slow_share`` of those
-    brake *deep*, down to a speed drawn from ``slow_to_mps`` (at most 12 s), whatever the expert
-    commands: the speeds a braking driver or safety module leaves a learned driver at, which the
-    expert's data otherwise hardly holds (chapter 11, section 5, trains with ``slow_share=0.5``).
-
-    Attributes:
-        rate_per_s: bursts per second of driving [1/s] (0 turns noise off).
-        duration_s: (min, max) duration of a burst [s].
-        steer_rad: (min, max) magnitude of the steering offset [rad].
-        accel_mps2: the acceleration offset is uniform in +-this [m/s^2].
-        brake_share: share of bursts that brake, in [0, 1].
-        brake_mps2: (min, max) deceleration added by a braking burst [m/s^2].
-        slow_share: share of the braking bursts that brake deep, in [0, 1] (0: none, the
-            course's default data).
-        slow_to_mps: (min, max) speed a deep braking burst brakes the car down to [m/s].
-    """
-
-    #: added after the course's datasets were keyed: at their defaults those keys stay
-    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("slow_share", "slow_to_mps")
-    #: the longest a deep braking burst lasts [s]
-    SLOW_MAX_S: ClassVar[float] = 12.0
-
-    rate_per_s: float = 0.12
-    duration_s: tuple[float, float] = (0.5, 1.5)
-    steer_rad: tuple[float, float] = (0.003, 0.015)
-    accel_mps2: float = 1.0
-    brake_share: float = 0.25
-    brake_mps2: tuple[float, float] = (2.0, 4.0)
-    slow_share: float = 0.0
-    slow_to_mps: tuple[float, float] = (6.0, 18.0)
-
-    def __post_init__(self) -> None:
-        o = "NoiseConfig"
-        check_range(o, "rate_per_s", self.rate_per_s, 0.0, 10.0)
-        check_pair(o, "duration_s", self.duration_s, lo=0.0)
-        check_pair(o, "steer_rad", self.steer_rad, lo=0.0)
-        check_range(o, "accel_mps2", self.accel_mps2, 0.0, 10.0)
-        check_range(o, "brake_share", self.brake_share, 0.0, 1.0)
-        check_pair(o, "brake_mps2", self.brake_mps2, lo=0.0)
-        check_range(o, "slow_share", self.slow_share, 0.0, 1.0)
-        check_pair(o, "slow_to_mps", self.slow_to_mps, lo=0.0)
+from .noise import Bursts, NoiseConfig
 
 
 @dataclass(frozen=True)
@@ -197,24 +148,25 @@ def car_quotas(cfg: DataConfig) -> np.ndarray:
 @dataclass(frozen=True)
 class OnPolicy:
     """A DAgger collection (chapter 12), passed to :func:`collect`: ``learner`` drives, the expert
-    executing a share ``beta`` of the decisions and labelling every state; ``fresh``: trajectory
-    labels of an expert planning afresh at each state
-    (:func:`~e2e_lite.control.expert.fresh_labels`)."""
+    executing a share ``beta`` of the decisions and labelling every state (its label is a function
+    of the state, so it labels the learner's states as its own)."""
 
     learner: Any
     beta: float = 1.0
-    fresh: bool = False
+
+    #: how long before a collision a sample counts as "before a collision" [s]
+    BEFORE_COLLISION_S: ClassVar[float] = 3.0
 
     def __post_init__(self) -> None:
         check_range("OnPolicy", "beta", self.beta, 0.0, 1.0)
 
     def key(self, cfg: DataConfig) -> str:
-        """Its samples' key: the settings, the learner's weights (or class), beta, the labeller."""
+        """Its samples' key: the settings, the learner's weights (or class) and beta."""
         from .checkpoints import weights_digest
 
         net = getattr(self.learner, "model", self.learner)
         who = weights_digest(net) if hasattr(net, "state_dict") else type(net).__name__
-        return settings_key(cfg.key, "dagger", who, self.beta, *(("fresh labels",) * self.fresh))
+        return settings_key(cfg.key, "dagger", who, self.beta)
 
 
 class _Recorder:
@@ -224,7 +176,7 @@ class _Recorder:
     With ``on_policy`` its learner drives instead (:class:`OnPolicy`)."""
 
     #: uniforms each car draws per decision (a fixed count, so one draw never shifts another):
-    #: restart, burst start, duration, sign, steering, brake?, size, deep?, deep target speed
+    #: restart, then :data:`~e2e_lite.learning.noise.Bursts.DRAWS` for the bursts
     DRAWS = 9
 
     def __init__(
@@ -235,8 +187,6 @@ class _Recorder:
         on_policy: OnPolicy | None = None,
     ) -> None:
         self.cfg, self.advance, self.on_policy = cfg, advance, on_policy
-        fresh = on_policy is not None and on_policy.fresh
-        self.limits = SpeedLimits(ExpertConfig()) if fresh else None  # (one profile per track)
         # the mixing draws: a stream of their own, so the expert's and the noise's are untouched
         self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
@@ -249,6 +199,17 @@ class _Recorder:
         self.rngs = [car_rng(cfg.seed, 23, int(c)) for c in cars]
         h, w = cfg.camera.height_px, cfg.camera.width_px
         self.a = allocate(int(self.quota.sum()), (h, w))
+        self.dart_rngs = [car_rng(cfg.seed, 37, int(c)) for c in cars]  # (a stream of its own)
+        n = int(self.quota.sum())
+        #: with a learner, per sample: its plan's distance from the expert's label (the largest
+        #: over the 5 points) [m], its commands, and whether a collision followed within
+        #: OnPolicy.BEFORE_COLLISION_S
+        self.side = {
+            "disagreement_m": np.zeros(n),
+            "learner_steer_rad": np.zeros(n),
+            "learner_accel_mps2": np.zeros(n),
+            "before_collision": np.zeros(n, dtype=bool),
+        }
 
     def seed_cars(self, cars: np.ndarray) -> None:
         self.expert.seed_cars(cars)
@@ -257,74 +218,67 @@ class _Recorder:
         self.expert.reset(n_worlds)
         if self.on_policy is not None:
             self.on_policy.learner.reset(n_worlds)
-        self.burst_left = np.zeros(n_worlds)  # seconds of burst left per car
-        self.offset_cmd = np.zeros((n_worlds, 2))  # (steer, accel) offsets of the bursts
-        self.slow_to = np.zeros(n_worlds)  # a deep braking burst's target speed, 0: none [m/s]
+        self.bursts = Bursts(self.cfg.noise, self.cfg.world.sim.policy_period_s, n_worlds)
 
     def done(self) -> np.ndarray:
         """Which cars have recorded their quota (the rollout stops them)."""
         return self.count >= self.quota
 
     def act(self, obs: Observation) -> Actuation:
-        if self.limits is not None:  # the label of an expert with no memory of its plans
-            traj = fresh_labels(obs, list(range(len(obs.s))), self.cfg.world.sim, self.limits)
-        else:
-            traj = self.expert.trajectory_label(obs)  # before act: plans as they are now
+        traj = self.expert.trajectory_label(obs)  # a function of the state alone
         clean = self.expert.act(obs)
         u = np.stack([r.random(self.DRAWS) for r in self.rngs])  # (B, DRAWS) in [0, 1)
-        self._update_noise(u, obs.speed)
+        self.bursts.update(u, obs.speed)
+        learned = None if self.on_policy is None else self.on_policy.learner.act(obs)
+        if learned is not None and obs.collided is not None:
+            self._mark_before_collision(np.flatnonzero(obs.collided))
         rows = np.flatnonzero(self.count < self.quota)
         if len(rows):
+            if learned is not None:
+                self._record_learner(learned, traj, rows)
             self._record(obs, clean, traj, rows)
         period = self.cfg.world.sim.policy_period_s
-        deep = self.slow_to > 0  # braked whatever the expert commands
+        deep = self.bursts.slow_to > 0  # braked whatever the expert commands
         steer, accel = clean.steer_rad, clean.accel_mps2
-        if self.on_policy is not None:  # DAgger: the learner drives, but on the expert's turns
-            learned = self.on_policy.learner.act(obs)
+        if learned is not None:  # DAgger: the learner drives, but on the expert's turns
             expert_turn = np.array([r.random() for r in self.mix_rngs]) < self.on_policy.beta
             steer = np.where(expert_turn, steer, learned.steer_rad)
             accel = np.where(expert_turn, accel, learned.accel_mps2)
+        nz = self.cfg.noise
+        if nz.dart_steer_rad or nz.dart_accel_mps2:  # DART: white noise on every decision
+            white = np.stack([r.normal(size=2) for r in self.dart_rngs])  # (B, 2)
+            steer = steer + nz.dart_steer_rad * white[:, 0]
+            accel = accel + nz.dart_accel_mps2 * white[:, 1]
         return Actuation(
-            steer_rad=steer + self.offset_cmd[:, 0],
-            accel_mps2=np.where(deep, 0.0, accel) + self.offset_cmd[:, 1],
+            steer_rad=steer + self.bursts.offset_cmd[:, 0],
+            accel_mps2=np.where(deep, 0.0, accel) + self.bursts.offset_cmd[:, 1],
             restart=u[:, 0] < self.cfg.restart_rate_per_s * period,
         )
 
-    def _update_noise(self, u: np.ndarray, speed: np.ndarray) -> None:
-        """Continue the bursts, end finished ones (deep braking ones at their speed [m/s]), maybe
-        start new ones, each car from its own uniforms ``u`` (:data:`DRAWS`)."""
+    def _record_learner(self, learned: Actuation, traj: np.ndarray, t: np.ndarray) -> None:
+        """Record, for cars ``t``, the learner's commands and how far its plan (the trajectory it
+        follows) lies from the expert's label ``traj``."""
+        sl = self.offset[t] + self.count[t]
+        self.side["learner_steer_rad"][sl] = learned.steer_rad[t]
+        self.side["learner_accel_mps2"][sl] = learned.accel_mps2[t]
+        plan = getattr(self.on_policy.learner, "last", {}).get("points")
+        if plan is not None:
+            apart = np.linalg.norm(plan[t] - traj[t], axis=-1).max(axis=-1)
+            self.side["disagreement_m"][sl] = apart
+
+    def _mark_before_collision(self, cars: np.ndarray) -> None:
+        """Cars ``cars`` collided since their last decision: their samples of the last
+        :data:`OnPolicy.BEFORE_COLLISION_S` led there."""
         period = self.cfg.world.sim.policy_period_s
-        nz = self.cfg.noise
-
-        def between(lo_hi: tuple[float, float], x: np.ndarray) -> np.ndarray:
-            return lo_hi[0] + (lo_hi[1] - lo_hi[0]) * x
-
-        self.burst_left = np.maximum(self.burst_left - period, 0.0)
-        self.burst_left[(self.slow_to > 0) & (speed <= self.slow_to)] = 0.0
-        self.offset_cmd[self.burst_left <= 0] = 0.0
-        self.slow_to[self.burst_left <= 0] = 0.0
-        start = (self.burst_left <= 0) & (u[:, 1] < nz.rate_per_s * period)
-        if not start.any():
-            return
-        us = u[start]
-        sign = np.where(us[:, 3] < 0.5, -1.0, 1.0)
-        brake = us[:, 5] < nz.brake_share
-        self.burst_left[start] = between(nz.duration_s, us[:, 2])
-        self.offset_cmd[start, 0] = sign * between(nz.steer_rad, us[:, 4])
-        self.offset_cmd[start, 1] = np.where(
-            brake,
-            -between(nz.brake_mps2, us[:, 6]),
-            between((-nz.accel_mps2, nz.accel_mps2), us[:, 6]),
-        )
-        deep = brake & (us[:, 7] < nz.slow_share)
-        cars = np.flatnonzero(start)[deep]
-        self.slow_to[cars] = between(nz.slow_to_mps, us[deep, 8])
-        self.burst_left[cars] = nz.SLOW_MAX_S
+        back = round(OnPolicy.BEFORE_COLLISION_S / period)
+        for i in cars.tolist():
+            end = self.offset[i] + self.count[i]
+            self.side["before_collision"][max(self.offset[i], end - back) : end] = True
 
     def _record(self, obs: Observation, clean: Actuation, traj: np.ndarray, t: np.ndarray) -> None:
         """Record cars ``t`` (rows of ``obs``), each at its next row of the arrays."""
         sl = self.offset[t] + self.count[t]
-        a, plans = self.a, [self.expert.plans[i] for i in t.tolist()]
+        a, decisions = self.a, [self.expert.decisions[i] for i in t.tolist()]
         worlds = [obs.worlds[i] for i in t.tolist()]
         a["images"][sl] = obs.images[t]
         a["speed"][sl] = obs.speed[t]
@@ -336,13 +290,10 @@ class _Recorder:
         a["s"][sl], a["d"][sl] = obs.s[t], obs.d[t]
         a["lane"][sl] = obs.lane[t]
         a["curvature"][sl] = obs.curvature[t]
-        a["expert_state"][sl] = [p.state for p in plans]
-        a["change_side"][sl] = [
-            0 if p.state != CHANGE or p.path is None else (1 if p.path.d_to > p.path.d_from else -1)
-            for p in plans
-        ]
-        a["overtaking"][sl] = [p.state == CHANGE and p.overtaking for p in plans]
-        a["noise"][sl] = self.burst_left[t] > 0
+        a["expert_state"][sl] = [dec.state for dec in decisions]
+        a["change_side"][sl] = [dec.side if dec.state == CHANGE else 0 for dec in decisions]
+        a["overtaking"][sl] = [dec.state == CHANGE and dec.overtaking for dec in decisions]
+        a["noise"][sl] = self.bursts.burst_left[t] > 0
         self.count[t] += 1
         self.advance(len(t))
 
@@ -359,7 +310,11 @@ def collect_cars(
     roads = {"split": cfg.split, "n_tracks": cfg.n_tracks, "first_track": cfg.first_track}
     ev = EvalConfig(miles=1e6, n_worlds=cfg.n_worlds, seed=cfg.seed, **roads)
     shard = drive_shard(rec, cfg.world, ev, cars, stop_when=rec.done)  # (it counts samples)
-    return rec.a, shard, dict(rec.expert.manoeuvres)
+    return (
+        {**rec.a, **{f"side/{k}": v for k, v in rec.side.items()}},
+        shard,
+        dict(rec.expert.manoeuvres),
+    )
 
 
 def collect(
@@ -403,6 +358,10 @@ def collect(
         bar.close()
     h, w = cfg.camera.height_px, cfg.camera.width_px
     a = allocate(cfg.n_samples, (h, w))
+    side_names = [name for name in parts[0][0] if name.startswith("side/")]
+    side = {
+        name[5:]: np.concatenate([arrays[name] for arrays, _, _ in parts]) for name in side_names
+    }
     row = 0
     for k, (arrays, shard, counts) in enumerate(parts):  # car after car: blocks of cars in order
         n = len(arrays["speed"])
@@ -423,6 +382,8 @@ def collect(
         "collection": result.to_dict(with_events=False),
         "collision_events": result.events,
     }
+    if on_policy is not None:  # (not stored: DAgger keeps a gated part of its drives)
+        info["on_policy"] = side
     return DrivingData(a, dataset_stats(a), info)
 
 

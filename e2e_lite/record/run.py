@@ -48,8 +48,9 @@ def record_work(
     """What :func:`record_table1` does from an empty outputs folder, in the parts the benchmarks
     measure: the data, chapter 08's weight grid (5 weights, 2 epochs, a quarter of the data),
     every training (from scratch: the profile's epochs and a selection drive per epoch; the two
-    fine-tunes: one epoch; the rows of ``single``: seed 0 alone), DAgger's rounds and their
-    control (a collection and a fine-tune each), and every seed's run of every row."""
+    fine-tunes: one epoch; the rows of ``single``: seed 0 alone), DAgger's three arms (their
+    drives, fine-tunes and every iterate's validation drive), and every seed's run of every
+    row."""
     from ..learning.dagger import DaggerConfig
     from ..learning.recipes import SELECT_MILES
 
@@ -58,14 +59,15 @@ def record_work(
     trainings = sum(1 if k in single else seeds for k in learned)  # (no fine-tune is single)
     scratch = trainings - seeds * tuned
     epochs = profile.train_epochs
-    rounds = DaggerConfig.for_profile(profile)
-    dagger_samples = seeds * len(BEYOND) * rounds.rounds * rounds.samples  # collected
+    dag = DaggerConfig.for_profile(profile)
+    driven = seeds * dag.rounds * dag.samples * (2 * dag.drive + 0.25)  # two arms, DART's pilot
+    iterates = seeds * (1 + len(BEYOND) * dag.rounds) * dag.val_miles
     return Work(
-        collect_samples=profile.n_train_samples + profile.n_val_samples + dagger_samples,
+        collect_samples=profile.n_train_samples + profile.n_val_samples + driven,
         train_samples=profile.n_train_samples * (scratch * epochs + seeds * tuned)
         + 5 * 2 * profile.n_train_samples / 4
-        + dagger_samples * (1.0 + rounds.replay),
-        drive_miles=scratch * epochs * SELECT_MILES + miles_per_seed * seeds * len(ROWS),
+        + seeds * len(BEYOND) * dag.rounds * dag.steps_samples,
+        drive_miles=scratch * epochs * SELECT_MILES + miles_per_seed * seeds * len(ROWS) + iterates,
     )
 
 

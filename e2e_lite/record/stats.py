@@ -45,6 +45,7 @@ FAMILIES = {
     "paper": "the paper's steps: does each reproduce?",
     "beyond": "beyond the paper: does DAgger's step hold?",
     "controls": "each method against its control: is the step the method's?",
+    "data": "does new data from the expert's states beat the same fine-tunes on none?",
 }
 _CVAR_STEP = "+ affordance -> + CVaR"
 _AFFORDANCE_STEP = "GMM -> + affordance"
@@ -79,13 +80,25 @@ STEPS = (
         "controls",
         _DAGGER_STEP,
     ),
+    Step(
+        "dagger_no_new_data",
+        "dagger_control",
+        "DAgger's control against its fine-tunes on no new data",
+        True,
+        "data",
+    ),
 )
 #: the row whose rate the record's power is stated at, and the step it must find
 POWER_ROW, POWER_STEP = "gmm_affordance", 2.0
 
 #: what a verdict says when the later row collides less, per family: a step beyond the paper
 #: has nothing to reproduce, and a method that beats its control is credited
-FOUND = {"paper": "reproduces", "controls": "beats its control", "beyond": "fewer collisions"}
+FOUND = {
+    "paper": "reproduces",
+    "controls": "beats its control",
+    "beyond": "fewer collisions",
+    "data": "fewer collisions",
+}
 #: what a verdict says when the later row collides more, in every family
 OPPOSITE = "the opposite"
 

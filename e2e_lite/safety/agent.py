@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..config import check_range
-from ..control.expert import fresh_labels
+from ..control.expert import expert_labels
 from ..control.labels import affordances
 from ..control.rules import ExpertConfig, SpeedLimits
 from ..simulation.policy import Actuation, Observation
@@ -275,7 +275,7 @@ class SafeAgent:
             self._seen += 1
         if not audited:
             return 0, 0, 0
-        expert_pts = fresh_labels(obs, audited, getattr(self.agent, "sim", None), self._limits)
+        expert_pts = expert_labels(obs, audited, getattr(self.agent, "sim", None), self._limits)
         false_alarms = 0
         for j, i in enumerate(audited):
             dx, dy = np.abs(expert_pts[j, -1] - proposal[i, -1])

@@ -1,0 +1,340 @@
+"""The anatomy of a learned driver's collisions (chapter 12): for each collision, which moment was
+still savable and by whom, and what kind of mistake it was.
+
+A driver drives inside :class:`Witness`, which keeps each car's last :data:`HISTORY_S` of states
+(and the driver's plans, when it has them) and, at every collision, files them as a
+:class:`Collision`. Then, from those states alone:
+
+* **the latest savable moment** (:func:`savable`): the expert takes the car over at 0.5, 1, 2, 3
+  and 5 s before the impact, from the very state the car was in (the world is deterministic and
+  the expert's decision a function of the state), and drives on: does it avoid the collision?
+* **the tracker's share** (:func:`plan_collides`): would the driver's own plans of the last
+  second, followed exactly (a perfect tracker), have hit the car? A collision whose plans were
+  all clear is the tracker's;
+* **how far the plans lay apart** (:func:`disagreement`): the driver's plan against the expert's
+  label at the same states, over the seconds before the impact, beside ordinary driving;
+* **the kind** (:func:`kind`): a rail, or a parked car hit by a lane change missed, late or
+  into an occupied lane, by braking short, or other.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..control.expert import Expert
+from ..control.labels import CHANGE, FOLLOW, interpolated_path
+from ..simulation.policy import Actuation, Observation, Policy, observe
+from ..simulation.world import Fleet, World, WorldConfig, make_world
+
+#: how long before each collision the witness keeps a car's states [s]
+HISTORY_S = 6.0
+#: the hand-over times the anatomy tries, before the impact [s]
+HAND_OVER_S = (0.5, 1.0, 2.0, 3.0, 5.0)
+#: how long the expert drives on past the original impact to count as having avoided it [s]
+AFTER_S = 3.0
+#: the plans before the impact that the tracker's share reads [s]
+PLAN_WINDOW_S = 1.0
+#: the kinds of collision the anatomy tells apart
+KINDS = (
+    "rail",
+    "lane change missed",
+    "lane change late",
+    "into an occupied lane",
+    "braking short",
+    "other",
+)
+
+
+@dataclass
+class Moment:
+    """One decision of one car: its state ``(5,)``, its lane-frame segment hint, its world, and
+    the driver's plan ``(5, 2)`` there (None: the driver has none)."""
+
+    state: np.ndarray
+    seg: int
+    world: World
+    plan: np.ndarray | None
+
+
+@dataclass
+class Collision:
+    """One collision and the moments before it (oldest first, the last one the decision before
+    the impact), with what the anatomy found (filled by :func:`dissect`).
+
+    Attributes:
+        car: the car's index in its drive; step: its decision count at the impact.
+        contact: ``"car"`` or ``"rail"``; parked: the parked car's index (-1: a rail).
+        moments: its last :data:`HISTORY_S` of decisions.
+        saved: per hand-over time [s], whether the expert taking over then avoided it.
+        plan_hit: whether any of the driver's plans of the last :data:`PLAN_WINDOW_S`, followed
+            exactly, hits a parked car (None: the driver has no plans).
+        apart_m: per moment, the largest distance between the driver's plan and the expert's
+            label [m] (NaN where the driver has no plan).
+        kind: one of :data:`KINDS`.
+    """
+
+    car: int
+    step: int
+    contact: str
+    parked: int
+    moments: list[Moment]
+    saved: dict[float, bool] = field(default_factory=dict)
+    plan_hit: bool | None = None
+    apart_m: np.ndarray | None = None
+    kind: str = ""
+
+    @property
+    def latest_savable_s(self) -> float | None:
+        """The latest hand-over (fewest seconds before the impact) that avoided it (None: none
+        of :data:`HAND_OVER_S`)."""
+        ok = [t for t, saved in self.saved.items() if saved]
+        return min(ok) if ok else None
+
+
+class Witness:
+    """A policy wrapper that drives ``driver`` unchanged and keeps, for every car, its last
+    :data:`HISTORY_S` of moments; a car's collision files them in :attr:`collisions`, and every
+    ``every``-th decision of every car is kept in :attr:`ordinary` (driving with no collision in
+    sight, to compare with). A network's plan is read from ``driver.last["points"]``. It keeps
+    its states in this process, so an evaluation drives it in one shard (it has no ``fork``)."""
+
+    def __init__(self, driver: Policy, period_s: float, every: int = 200) -> None:
+        self.driver, self.every = driver, every
+        self.camera = getattr(driver, "camera", None)
+        self.sim = getattr(driver, "sim", None)
+        self.history = round(HISTORY_S / period_s)
+        self.collisions: list[Collision] = []
+        self.ordinary: list[Moment] = []
+
+    def seed_cars(self, cars: np.ndarray) -> None:
+        if hasattr(self.driver, "seed_cars"):
+            self.driver.seed_cars(cars)
+
+    def reset(self, n_worlds: int) -> None:
+        self.driver.reset(n_worlds)
+        self.buffers: list[deque[Moment]] = [deque(maxlen=self.history) for _ in range(n_worlds)]
+        self.steps = np.zeros(n_worlds, dtype=np.int64)
+
+    def act(self, obs: Observation) -> Actuation:
+        for i in np.flatnonzero(obs.collided if obs.collided is not None else []).tolist():
+            self._file(i, obs)
+        act = self.driver.act(obs)
+        plans = getattr(self.driver, "last", {}).get("points")
+        for i, world in enumerate(obs.worlds):
+            if obs.respawned[i]:
+                self.buffers[i].clear()
+            plan = None if plans is None else np.array(plans[i])
+            seg = int(world.track.segment_index(float(obs.s[i])))
+            moment = Moment(obs.state[i].copy(), seg, world, plan)
+            self.buffers[i].append(moment)
+            if self.steps[i] % self.every == self.every - 1:
+                self.ordinary.append(moment)
+        self.steps += 1
+        return act
+
+    def _file(self, i: int, obs: Observation) -> None:
+        """Car ``i`` collided since its last decision: file its moments."""
+        moments = list(self.buffers[i])
+        if not moments:
+            return
+        contact, parked = _contact(moments[-1])
+        self.collisions.append(Collision(i, int(self.steps[i]), contact, parked, moments))
+
+
+def _contact(last: Moment) -> tuple[str, int]:
+    """What the car hit from its last moment: the nearest parked car within a car's length of
+    its path ahead, else a rail."""
+    world, state = last.world, last.state
+    s, d = (float(v) for v in world.track.to_frenet(state[0], state[1]))
+    cars = world.cars
+    near = cars.between(s - 10.0, s + 20.0)
+    best, best_dist = -1, math.inf
+    for j in range(near.start, near.stop):
+        dist = math.hypot(float(cars.s[j]) - s, float(cars.d[j]) - d)
+        if abs(float(cars.d[j]) - d) < 2.5 and dist < best_dist:
+            best, best_dist = j, dist
+    return ("car", best) if best >= 0 else ("rail", -1)
+
+
+def _fresh_fleet(moment: Moment, world_cfg: WorldConfig) -> Fleet:
+    """A one-car fleet in a fresh copy of the moment's world, the car in the moment's state."""
+    split, index = moment.world.track.track_id
+    world = make_world(world_cfg, split, index)  # (never a sealed road: it would raise)
+    fleet = Fleet([world], world_cfg)
+    fleet.state[0], fleet.seg[0] = moment.state, moment.seg
+    world.place_ego(*(float(v) for v in moment.state[:3]))
+    world.clear_contacts()
+    return fleet
+
+
+def drive_from(
+    moment: Moment, policy: Policy, world_cfg: WorldConfig, seconds: float
+) -> int | None:
+    """Drive ``policy`` for ``seconds`` from ``moment``'s state in a fresh copy of its world:
+    the decision at which it collided (None: it did not)."""
+    fleet = _fresh_fleet(moment, world_cfg)
+    policy.reset(1)
+    for k in range(round(seconds / world_cfg.sim.policy_period_s)):
+        act = policy.act(observe(fleet, respawned=k == 0))
+        if fleet.step(np.asarray(act.steer_rad), np.asarray(act.accel_mps2))[0]:
+            return k
+    return None
+
+
+def savable(
+    c: Collision, world_cfg: WorldConfig, expert: Expert | None = None
+) -> dict[float, bool]:
+    """For each of :data:`HAND_OVER_S` that the moments reach: does the expert, taking the car
+    over that long before the impact, avoid it for :data:`AFTER_S` past it?"""
+    expert = expert or Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    period = world_cfg.sim.policy_period_s
+    out = {}
+    for t in HAND_OVER_S:
+        back = round(t / period)
+        if back > len(c.moments):
+            continue
+        hit = drive_from(c.moments[-back], expert, world_cfg, t + AFTER_S)
+        out[t] = hit is None
+    return out
+
+
+def plan_collides(moment: Moment, margin_m: float = 0.2) -> bool:
+    """Would the car, its rear axle following the plan exactly (a perfect tracker), touch a
+    parked car within the plan's 1.5 s? The body is a box around the path, aligned with the
+    road (lane-frame overlap of the two boxes, ``margin_m`` of slack)."""
+    if moment.plan is None:
+        return False
+    world, state = moment.world, moment.state
+    x, y, _ = interpolated_path(moment.plan)
+    c, s_ = math.cos(state[2]), math.sin(state[2])
+    veh = world.vehicle
+    ahead = veh.length_m / 2.0 - veh.rear_overhang_m  # rear axle to the body's centre [m]
+    wx = state[0] + c * (x + ahead) - s_ * y
+    wy = state[1] + s_ * (x + ahead) + c * y
+    s, d = world.track.to_frenet(wx, wy)
+    cars = world.cars
+    near = cars.between(float(np.min(s)) - 10.0, float(np.max(s)) + 10.0)
+    reach_s = (veh.length_m + cars.length_m) / 2.0 - margin_m
+    reach_d = (veh.width_m + cars.width_m) / 2.0 - margin_m
+    for j in range(near.start, near.stop):
+        hit = (np.abs(s - cars.s[j]) < reach_s) & (np.abs(d - cars.d[j]) < reach_d)
+        if hit.any():
+            return True
+    return False
+
+
+def _observe_moment(moment: Moment, world_cfg: WorldConfig) -> Observation:
+    """A one-car observation of ``moment`` (its own world object: labels only read it)."""
+    fleet = Fleet([moment.world], world_cfg)
+    fleet.state[0], fleet.seg[0] = moment.state, moment.seg
+    return observe(fleet, respawned=True)
+
+
+def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: Expert) -> np.ndarray:
+    """Per moment, the largest distance over the 5 points between the driver's plan and the
+    expert's label at the same state [m] (NaN where the driver had no plan)."""
+    out = np.full(len(moments), np.nan)
+    for k, m in enumerate(moments):
+        if m.plan is not None:
+            label = expert.trajectory_label(_observe_moment(m, world_cfg))[0]
+            out[k] = float(np.linalg.norm(m.plan - label, axis=-1).max())
+    return out
+
+
+def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float = 3.0) -> str:
+    """What kind of collision ``c`` was (:data:`KINDS`), from its last ``window_s``: a rail; the
+    parked car in another lane than the car's at the window's start (into an occupied lane); the
+    expert, at those states, changing lanes where the driver's plans kept to the lane (missed) or
+    moved later (late); the expert braking to follow (braking short); else other."""
+    if c.contact == "rail":
+        return "rail"
+    period = world_cfg.sim.policy_period_s
+    window = c.moments[-round(window_s / period) :]
+    track = window[0].world.track
+    d0 = float(track.to_frenet(window[0].state[0], window[0].state[1])[1])
+    hit_lane = int(window[0].world.cars.lane[c.parked])
+    if int(track.lane_index(d0)) != hit_lane:
+        return "into an occupied lane"
+    states = []
+    for m in window:
+        expert.reset(1)
+        expert.act(_observe_moment(m, world_cfg))
+        states.append(expert.decisions[0].state)
+    if CHANGE in states:
+        plans = [m.plan for m in window if m.plan is not None]
+        moved = [abs(float(p[-1, 1])) > 1.0 for p in plans]
+        if not any(moved):
+            return "lane change missed"
+        return "lane change late"
+    if FOLLOW in states:
+        return "braking short"
+    return "other"
+
+
+def dissect(c: Collision, world_cfg: WorldConfig) -> Collision:
+    """Fill ``c``'s findings: the hand-overs that save it, whether its last plan hits, the
+    plans' disagreement with the expert's labels, its kind."""
+    expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    c.saved = savable(c, world_cfg, expert)
+    period = world_cfg.sim.policy_period_s
+    last = [m for m in c.moments[-round(PLAN_WINDOW_S / period) :] if m.plan is not None]
+    c.plan_hit = any(plan_collides(m) for m in last) if last else None
+    c.apart_m = disagreement(c.moments, world_cfg, expert)
+    c.kind = kind(c, world_cfg, expert)
+    return c
+
+
+def table(collisions: list[Collision]) -> dict[str, Any]:
+    """What the anatomy found, added up: per hand-over time the share of collisions the expert
+    saved, the latest savable moment's counts, the tracker's share (collisions whose plans of the
+    last :data:`PLAN_WINDOW_S` were all clear), and the kinds."""
+    n = len(collisions)
+    saved = {t: sum(c.saved.get(t, False) for c in collisions) for t in HAND_OVER_S}
+    latest = {str(t): sum(c.latest_savable_s == t for c in collisions) for t in HAND_OVER_S}
+    latest["none"] = sum(c.latest_savable_s is None for c in collisions)
+    return {
+        "collisions": n,
+        "saved_by_hand_over": {str(t): saved[t] for t in HAND_OVER_S},
+        "latest_savable": latest,
+        "plan_clear": sum(c.plan_hit is False for c in collisions),
+        "kinds": {k: sum(c.kind == k for c in collisions) for k in KINDS},
+    }
+
+
+class _TwoLabellers:
+    """Drives ``driver`` (an expert with its own labels) and, at every decision, also asks
+    ``other`` for its label at the same state: the distance between the two labels' last points
+    [m] is kept per decision."""
+
+    camera = None
+
+    def __init__(self, driver: Any, other: Expert) -> None:
+        self.driver, self.other, self.sim = driver, other, driver.sim
+        self.apart_m: list[np.ndarray] = []
+
+    def seed_cars(self, cars: np.ndarray) -> None:
+        self.driver.seed_cars(cars)
+
+    def reset(self, n_worlds: int) -> None:
+        self.driver.reset(n_worlds)
+
+    def act(self, obs: Observation) -> Actuation:
+        own, theirs = self.driver.trajectory_label(obs), self.other.trajectory_label(obs)
+        self.apart_m.append(np.linalg.norm(own[:, -1] - theirs[:, -1], axis=-1))
+        return self.driver.act(obs)
+
+
+def labellers_apart(driver: Any, world_cfg: WorldConfig, cfg: Any) -> np.ndarray:
+    """Drive ``driver`` (an expert, e.g. the remembering one) over ``cfg``'s roads and return, at
+    every state it drove through, how far its label's last point lies from the course's expert's
+    label there [m]."""
+    from .evaluation import evaluate
+
+    both = _TwoLabellers(driver, Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim))
+    evaluate(both, world_cfg, cfg, progress=False, workers=1)
+    return np.concatenate(both.apart_m)
