@@ -12,8 +12,9 @@
 #
 # The targets are normalised per coordinate with the dataset's statistics: otherwise the far
 # longitudinal points (tens of metres, spread of a metre) would dominate the near and lateral ones
-# (centimetres). The loss is L2 on the normalised target. Its known failure, which chapter 07
-# fixes, is shown at the end: L2 predicts the **mean** of what the expert did.
+# (centimetres). The loss is L2 on the normalised target. Its textbook failure is the question
+# at the end: where the expert has two right answers, does L2 predict their **mean**? The scene
+# built to show it answers for this run (lab note "Why L2 passes the overtake scenes").
 #
 # Run it with `python chapters/06_trajectory_regression.py` (add `--quick` for a run of seconds).
 

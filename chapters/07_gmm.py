@@ -1,7 +1,8 @@
 # %% [markdown]
 # # 07 · A mixture of trajectories (GMM)
 #
-# Chapter 06 ended with L2 regression aiming between two right answers. The paper's fix
+# Chapter 06 ended on a question: where the expert has two right answers, does L2 aim between
+# them (lab note "Why L2 passes the overtake scenes")? The paper's answer to that averaging
 # (seed 000, section 3.3) is a **mixture density network**: the head predicts K trajectories
 # (modes), a spread for each, and how likely each is. For a sample `x` with expert trajectory `y`
 # (10 normalised numbers), the loss is the negative log-likelihood of `y` under the mixture:
@@ -176,7 +177,7 @@ print(f"training curve: {artifacts.artifact_path('figures', 'train_07_gmm.png')}
 # ## 3. One mode or two (the paper's Fig. 3)
 #
 # Left: a straight road with nothing ahead; both modes should agree (or one should carry all the
-# weight). Right: the frame of chapter 06's failure, a parked car 44 m ahead in the middle lane;
+# weight). Right: the frame of chapter 06's question, a parked car 44 m ahead in the middle lane;
 # two plausible answers, left and right, with their weights.
 
 # %%
@@ -474,7 +475,7 @@ artifacts.write_metrics(
 #   4b's scenes, not assumed: a trained L2 can break the tie from cues in the image.
 # * Whether the mixture lowers collisions is measured against L2 on the same roads, with an exact
 #   test. A mixture fixes averaging where there is averaging; it does not fix errors that both
-#   make, and it adds one: committing to the wrong mode with confidence.
+#   make. Does it add one, the wrong mode followed with confidence? *Open*: no run measures it.
 # * A learned sigma is also a learned *weight*: the frames the network finds uncertain are
 #   learned least, and over five seeds the learned-sigma GMM collided more, and less alike
 #   (lab note "Every epoch on the road").

@@ -117,7 +117,7 @@ print(table + profile.caveat)
 # %%
 aff_counts, per_seed_mi = seed_counts(results["gmm_affordance"])
 base_rate = max(0.5, float(np.median(aff_counts)) * 100.0 / per_seed_mi)
-spread_k = record_dispersion(load())["dispersion"]  # the record's seeds' spread
+spread_k = record_dispersion(load(), near="gmm_affordance")["dispersion"]  # its seeds' spread
 reach = power(profile.ablation_seeds, per_seed_mi, base_rate, dispersion=spread_k)
 flat = power(profile.ablation_seeds, per_seed_mi, base_rate)
 print(

@@ -516,8 +516,10 @@ artifacts.write_metrics(
 #   speed, says whether the collisions left are the network's or the module's own.
 # * A safety layer is only as good as its perception and its fallbacks. Even on the truth its
 #   own manoeuvres (the other mode, the fallback) can drive into a rail or a car; on perceived
-#   affordances it adds the network's collisions after each hand-back. It can drive worse than
-#   no module at all: the verdict lines and the causes above say what it did in this run.
+#   affordances it adds the network's collisions after each hand-back. In the course's own run
+#   the module on perception collided more than no module at all (lab note "The safety module
+#   on the course's own driver"); the verdict lines and the causes above say what it did in
+#   this run.
 # * A fallback is only as good as what it reads: braking to a lane centre needs the perceived
 #   lane geometry, braking along the network's own path does not. Whether the car's full brake,
 #   kept as headroom, helps a stop that comes late is a measured verdict (its row), not a given.
@@ -544,5 +546,5 @@ artifacts.write_metrics(
 # 5. Drive the perceived module uncalibrated (`cfg` for every seed): how many interventions, and
 #    how fast does the car go? What does that say about thresholds chosen for exact inputs?
 # 6. A lane gap needs the camera to place a car in a lane, which fails with the car turned on a
-#    curve. The lab note "A free-space profile" describes a head that reads parked cars in the
+#    curve. The lab note "A free-space profile for the module" describes a head that reads parked cars in the
 #    car's own frame instead; sketch how the rule's steps 3-4 would read such a profile.

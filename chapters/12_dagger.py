@@ -34,7 +34,7 @@ from matplotlib.figure import Figure
 from e2e_lite import ablation, artifacts
 from e2e_lite.control.expert import Expert
 from e2e_lite.control.oracle import Oracle
-from e2e_lite.control.remembering import RememberingExpert
+from e2e_lite.control.remembering import RememberingExpert, WipedExpert
 from e2e_lite.driving import anatomy
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, result_dict
 from e2e_lite.driving.verdicts import compare_seeds, power, seed_counts
@@ -118,18 +118,10 @@ print(f"median plan-label distance, ordinary driving {cruise:.2f} m; saved {png_
 check = dagger.val_roads(1.0 if profile.quick else 20.0, 32)
 
 
-class Wiped(RememberingExpert):
-    """The first expert with its plans wiped before every label (chapter 12's old labeller)."""
-
-    def trajectory_label(self, obs):
-        wiped = dataclasses.replace(obs, respawned=np.ones(len(obs.s), dtype=bool))
-        return super().trajectory_label(wiped)
-
-
 drives = {
     "the expert": Expert(sim=world_cfg.sim),
     "the oracle on the expert's labels": Oracle(Expert(sim=world_cfg.sim)),
-    "the oracle on the wiped labels": Oracle(Wiped(sim=world_cfg.sim)),
+    "the oracle on the wiped labels": Oracle(WipedExpert(sim=world_cfg.sim)),
 }
 labellers = {}
 for name, policy in drives.items():
@@ -246,7 +238,7 @@ on_test = ablation.evaluate_drivers({keys[k]: v for k, v in chosen.items()}, wor
 test = {k: on_test[v] for k, v in keys.items()}
 counts, per_mi = seed_counts(test["start"])
 start_rate = max(0.5, float(np.median(counts)) * 100.0 / per_mi)
-spread_k = record_dispersion(load())["dispersion"]
+spread_k = record_dispersion(load(), near="gmm_affordance_cvar")["dispersion"]
 reach = power(len(seeds), per_mi, start_rate, dispersion=spread_k, test="sign-flip")
 print(
     f"{len(seeds)} seeds x {per_mi:.3g} mi: a true 2x step at {start_rate:.1f} per 100 mi is "

@@ -406,9 +406,9 @@ def _run(
             if in_process:
                 code = run_in_process(path, flags, env)
             else:
-                code = subprocess.run(
-                    [sys.executable, str(path), *flags], env=env, cwd=path.parent.parent
-                ).returncode
+                # cell by cell, its transcript kept for the book (e2e_lite.transcript)
+                run = [sys.executable, "-m", "e2e_lite.transcript", str(path), *flags]
+                code = subprocess.run(run, env=env, cwd=path.parent.parent).returncode
             if code != 0:
                 clock.failed()
         seconds = clock.elapsed() - clock.carried  # (this run's own)

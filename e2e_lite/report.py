@@ -49,6 +49,17 @@ CHAPTERS_BEGIN = "<!-- chapters: rendered by python -m e2e_lite.report -->"
 CHAPTERS_END = "<!-- /chapters -->"
 RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.report -->"
 RUN_END = "<!-- /course run -->"
+FINDINGS_BEGIN = "<!-- sessions' findings: rendered by python -m e2e_lite.report -->"
+FINDINGS_END = "<!-- /sessions' findings -->"
+#: each session's chapters and the record's steps it teaches (teaching.md's sessions)
+SESSIONS = {
+    1: (("01", "02", "03"), ()),
+    2: (("04", "05"), ()),
+    3: (("06", "07"), ("Baseline E2E -> trajectory GMM",)),
+    4: (("08", "09"), ("GMM -> + affordance", "+ affordance -> + CVaR")),
+    5: (("10", "11"), ("CVaR against its control (the mean)",)),
+    6: (("12",), ("+ CVaR -> + DAgger",)),
+}
 
 
 def load(path: Path = RECORD) -> Record:
@@ -106,18 +117,18 @@ def _steps_table(record: Record) -> list[str]:
     """The table of steps under Table 1: each test's family, seeds, p, Holm p, rate ratio, the
     paper's ratio and its verdict."""
     lines = [
-        "| step, or method against control | family | seeds | p, one-sided (test) | Holm p"
-        " | rate ratio [95 % CI] | the paper's ratio | seed-level verdict |",
+        "| step, or method against control | family | seeds | p, one-sided: direction (test) |"
+        " Holm p | rate ratio [95 % CI] | the paper's ratio | seed-level verdict |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for st in steps(record):
         lo, hi = st.ratio_ci
         ratio = "-" if np.isnan(st.ratio) else f"{st.ratio:.2f} [{lo:.2f}, {hi:.2f}]"
         paper = "-" if st.paper_ratio is None else f"{st.paper_ratio:.2g}"
+        p, p_holm, direction = st.p_read
         lines.append(
             f"| {st.step} | {st.family} | {st.seeds[0]} vs {st.seeds[1]} | "
-            f"{st.p_fewer:.2g} ({st.test}) | {st.p_holm_fewer:.2g} | {ratio} | {paper} | "
-            f"{st.cell} |"
+            f"{p:.2g}: {direction} ({st.test}) | {p_holm:.2g} | {ratio} | {paper} | {st.cell} |"
         )
     return lines
 
@@ -312,6 +323,31 @@ def _one_run_against_the_record(record: Record) -> str:
     )
 
 
+def session_findings(run: dict[str, Any] | None, record: Record) -> str:
+    """docs/teaching.md's list of what each session's full-profile run should show: the headline
+    figures its chapters printed in the recorded course run, and the record's verdicts on the
+    steps it teaches (many seeds: what one student's seed is a draw from)."""
+    tested = {st.step: st for st in steps(record)}
+    lines = []
+    for session, (chapters, step_names) in SESSIONS.items():
+        shown = []
+        for stem, ch in (run or {}).get("chapters", {}).items():
+            if stem[:2] in chapters:
+                figures = list(ch["headline"].items())[:4]
+                shown += [f"{k} {_figure(v)}" for k, v in figures]
+        verdicts = [
+            f"{name}: {tested[name].cell}, ratio {tested[name].ratio:.2f}"
+            for name in step_names
+            if name in tested
+        ]
+        run_text = "; ".join(shown) if shown else "no full-profile run recorded"
+        record_text = f" The record: {'; '.join(verdicts)}." if verdicts else ""
+        lines.append(
+            f"- **Session {session}** (chapters {', '.join(chapters)}). One run: {run_text}.{record_text}"
+        )
+    return "\n".join(lines)
+
+
 def _replace(text: str, begin: str, end: str, block: str) -> str:
     pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
     if not pattern.search(text):
@@ -336,7 +372,9 @@ def renders(record: Record) -> dict[Path, str]:
     if TEACHING.exists():
         run = json.loads(COURSE_RUN.read_text()) if COURSE_RUN.exists() else None
         block = course_run_table(run, record)
-        wanted[TEACHING] = _replace(TEACHING.read_text(), RUN_BEGIN, RUN_END, block)
+        teaching = _replace(TEACHING.read_text(), RUN_BEGIN, RUN_END, block)
+        findings = session_findings(run, record)
+        wanted[TEACHING] = _replace(teaching, FINDINGS_BEGIN, FINDINGS_END, findings)
     return wanted
 
 

@@ -22,19 +22,11 @@ import numpy as np
 from e2e_lite.config import FULL
 from e2e_lite.control.expert import Expert
 from e2e_lite.control.oracle import Oracle
-from e2e_lite.control.remembering import RememberingExpert
+from e2e_lite.control.remembering import RememberingExpert, WipedExpert
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
 from e2e_lite.simulation.world import WorldConfig
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "labellers.json"
-
-
-class Wiped(RememberingExpert):
-    """The first expert with its plans wiped before every label."""
-
-    def trajectory_label(self, obs):
-        wiped = dataclasses.replace(obs, respawned=np.ones(len(obs.s), dtype=bool))
-        return super().trajectory_label(wiped)
 
 
 class Lateral:
@@ -61,7 +53,7 @@ class Lateral:
 
 def drive(policy, world, ev, workers=None):
     t = time.perf_counter()
-    res = evaluate(policy, world, ev, progress=True, workers=workers, parallel="threads")
+    res = evaluate(policy, world, ev, progress=True, workers=workers)
     r = res.to_dict(with_events=False)
     keep = ("collisions", "car_collisions", "rail_collisions", "miles", "mean_speed_mph", "stalls")
     return {
@@ -87,7 +79,7 @@ def main() -> None:
         out[f"oracle on {name}"] = drive(Oracle(kind(sim=world.sim)), world, ev)
         print(name, out[name], out[f"oracle on {name}"], flush=True)
     wiped_ev = dataclasses.replace(ev, miles=args.wiped_miles)
-    out["oracle on wiped"] = drive(Oracle(Wiped(sim=world.sim)), world, wiped_ev)
+    out["oracle on wiped"] = drive(Oracle(WipedExpert(sim=world.sim)), world, wiped_ev)
     print(out["oracle on wiped"])
     OUT.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {OUT}")

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from conftest import straight_world
@@ -193,18 +191,13 @@ def test_the_oracle_on_the_experts_labels_drives_as_the_expert_and_a_label_with_
     oracle) drives validation roads without a collision, as the expert does; the tracker following
     the labels of the course's first expert with its memory wiped at every decision (chapter 12's
     old labeller: every plan restarted in keep) runs into parked cars on the same roads."""
-    from e2e_lite.control.remembering import RememberingExpert
-
-    class Wiped(RememberingExpert):
-        def trajectory_label(self, obs):
-            placed = dataclasses.replace(obs, respawned=np.ones(len(obs.s), dtype=bool))
-            return super().trajectory_label(placed)
+    from e2e_lite.control.remembering import WipedExpert
 
     cfg = small_world_cfg()
     ev = EvalConfig(miles=4.0, n_worlds=8, split="val")
     expert = evaluate(Expert(), cfg, ev, progress=False, workers=1)
     oracle = evaluate(Oracle(Expert()), cfg, ev, progress=False, workers=1)
-    wiped = evaluate(Oracle(Wiped()), cfg, ev, progress=False, workers=1)
+    wiped = evaluate(Oracle(WipedExpert()), cfg, ev, progress=False, workers=1)
     assert expert.collisions == 0 and oracle.collisions == 0
     assert wiped.collisions >= 3
 

@@ -148,6 +148,8 @@ TOP = {
     "course": "running the chapters in order",
     "estimate": "how long a run should take here",
     "bench": "the benchmarks",
+    "transcript": "a chapter run cell by cell, what each cell printed and saved kept",
+    "book": "the course as a book, rendered from one full run's transcripts",
 }
 
 

@@ -240,8 +240,9 @@ def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_pape
     opposite = next(s for s in steps(worse) if s.step.startswith("affordance loss"))
     assert opposite.verdict == "the opposite" and opposite.p_fewer == pytest.approx(1.0)
     assert opposite.verdict_p == opposite.p_holm_more < 0.05
-    cell = f"the opposite: more collisions, Holm p {opposite.p_holm_more:.2g}"
-    assert opposite.cell == cell and cell in report.table1(worse)
+    assert opposite.cell == "the opposite: more collisions"
+    cells = f"{opposite.p_more:.2g}: more (rank) | {opposite.p_holm_more:.2g} |"
+    assert cells in report.table1(worse)  # the p the verdict reads, not the p = 1 for fewer
     assert f"the control collides less (Holm p = {opposite.p_holm_more:.2g}" in (
         controls_line(steps(worse))
     )
@@ -328,3 +329,21 @@ def test_a_copy_without_git_names_its_recipes_commit_from_the_environment(monkey
     assert record._commit() == "unknown"
     monkeypatch.setenv("E2E_LITE_COMMIT", "6e94ed0")
     assert record._commit() == "6e94ed0"
+
+
+def test_a_verdict_says_whether_the_papers_size_lies_in_its_interval() -> None:
+    """A step in the paper's direction reproduces its size only when the paper's ratio lies in
+    the step's interval; a step not shown whose interval excludes the paper's ratio excludes a
+    step of the paper's size."""
+    committed = report.load()
+    big = dataclasses.replace(row("actuators", [60, 70, 80, 65, 75]), paper_per_100mi=100.0)
+    gmm = dataclasses.replace(row("gmm", [6, 7, 8, 6, 7]), paper_per_100mi=10.0)
+    same = dataclasses.replace(row("gmm_affordance", [6, 7, 8, 6, 7]), paper_per_100mi=0.5)
+    tested = by_step(with_rows(committed, big, gmm, same))
+    assert tested["Baseline E2E -> trajectory GMM"].cell == "reproduces: the paper's size too"
+    assert tested["GMM -> + affordance"].cell.endswith("a step of the paper's size is excluded")
+    small = dataclasses.replace(gmm, paper_per_100mi=0.5)  # the paper's ratio 0.005
+    tested = by_step(with_rows(committed, big, small))
+    assert tested["Baseline E2E -> trajectory GMM"].cell == (
+        "reproduces: the direction only, not the paper's size"
+    )

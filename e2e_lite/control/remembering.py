@@ -24,6 +24,7 @@ off the state) disagree at the same states, and why the course's DAgger uses the
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -391,3 +392,13 @@ class _Car(NamedTuple):
     s: float  # arc length of the rear axle [m]
     d: float  # lateral offset from the reference line [m]
     v: float  # speed [m/s]
+
+
+class WipedExpert(RememberingExpert):
+    """The remembering expert with every plan wiped before each label (every car restarted in
+    ``keep`` at its lane): chapter 12's old DAgger labeller, kept to show that a label is a
+    driver (the tracker following these labels runs into parked cars, chapter 12, section 2)."""
+
+    def trajectory_label(self, obs: Observation) -> np.ndarray:
+        wiped = dataclasses.replace(obs, respawned=np.ones(len(obs.s), dtype=bool))
+        return super().trajectory_label(wiped)

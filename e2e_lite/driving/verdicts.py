@@ -251,6 +251,7 @@ def power(
     *,
     dispersion: float = 0.0,
     test: str = "rank",
+    shared: float = 0.0,
 ) -> dict[str, float]:
     """How often a record of ``seeds`` seeds per row, each driving ``miles_per_seed``, finds a
     true step: the better row colliding ``rate_per_100mi``, the worse ``step`` times that.
@@ -259,23 +260,27 @@ def power(
     of mean 1 and variance ``dispersion``, and its count a Poisson draw of that rate (a negative
     binomial: ``Var = mu + dispersion mu^2``; :func:`fit_dispersion` fits it to a record's rows).
     ``dispersion=0``, no spread between seeds, is an upper bound. The record "finds" the step
-    when ``test`` ("rank": :func:`rank_test`; "sign-flip": :func:`sign_flip_test` on seed pairs
-    drawn independently, so a shared parent's correlation is not counted) gives ``p_fewer < 1 -
-    level``. Returns ``{"power", "min_p"}``: the share of simulated records that find it, and
-    the smallest p-value these seeds can reach."""
+    when ``test`` ("rank": :func:`rank_test`; "sign-flip": :func:`sign_flip_test` on seed pairs)
+    gives ``p_fewer < 1 - level``. ``shared``: the share of a seed's spread its pair shares (a
+    fine-tune and its parent, seed by seed): each seed's rate is then a shared gamma draw of
+    variance ``shared x dispersion`` times one of its own of ``(1 - shared) x dispersion``, so
+    the pair's log-rates correlate about ``shared``. Returns ``{"power", "min_p"}``: the share of
+    simulated records that find it, and the smallest p-value these seeds can reach."""
     check_range("power", "dispersion", dispersion, 0.0)
+    check_range("power", "shared", shared, 0.0, 1.0, hi_open=True)
     if test not in ("rank", "sign-flip"):
         raise ValueError(f"power: test must be 'rank' or 'sign-flip', got {test!r}")
     rng = np.random.default_rng(seed)
     lam = rate_per_100mi * miles_per_seed / 100.0
 
-    def draw(mean: float) -> np.ndarray:
-        if dispersion == 0.0:
-            return rng.poisson(mean, (n_sim, seeds))
-        # (n_sim, seeds): each seed's rate, gamma(shape 1/k, scale k) times the row's
-        return rng.poisson(mean * rng.gamma(1.0 / dispersion, dispersion, (n_sim, seeds)))
+    def spread(k: float) -> np.ndarray:
+        # (n_sim, seeds): gamma(shape 1/k, scale k) draws of mean 1 and variance k
+        return np.ones((n_sim, seeds)) if k == 0.0 else rng.gamma(1.0 / k, k, (n_sim, seeds))
 
-    better, worse = draw(lam), draw(lam * step)
+    common = spread(shared * dispersion)  # what a seed's pair shares
+    own = (1.0 - shared) * dispersion
+    better = rng.poisson(lam * common * spread(own))
+    worse = rng.poisson(lam * step * common * spread(own))
     cut = 1.0 - level - 1e-9
     cache: dict[tuple, bool] = {}
     found = 0

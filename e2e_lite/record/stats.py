@@ -90,6 +90,13 @@ STEPS = (
 )
 #: the row whose rate the record's power is stated at, and the step it must find
 POWER_ROW, POWER_STEP = "gmm_affordance", 2.0
+#: the paired row whose seeds share their parent with :data:`POWER_ROW`'s (the paired power's
+#: shared spread is read from their rank correlation)
+POWER_PAIR = "gmm_affordance_cvar"
+#: the rows whose spread the power is stated under: those whose median rate is within this
+#: factor of :data:`POWER_ROW`'s (the rows its steps compare; a row far above, whose seeds
+#: spread otherwise, would set another spread)
+POWER_RATES_WITHIN = 4.0
 
 #: what a verdict says when the later row collides less, per family: a step beyond the paper
 #: has nothing to reproduce, and a method that beats its control is credited
@@ -185,12 +192,39 @@ class StepResult:
         return self.p_holm_more if self.opposite else self.p_holm_fewer
 
     @property
+    def paper_inside(self) -> bool | None:
+        """Whether the paper's ratio lies inside this step's 95 % interval (None: the paper has
+        no ratio for it, or the interval is undefined)."""
+        lo, hi = self.ratio_ci
+        if self.paper_ratio is None or np.isnan(lo) or np.isnan(hi):
+            return None
+        return bool(lo <= self.paper_ratio <= hi)
+
+    @property
     def cell(self) -> str:
-        """The verdict as the steps table shows it: the opposite of the step's direction with the
-        p it reads, since the table's p-values are those for fewer collisions."""
+        """The verdict as the steps table shows it, with what it says of the paper's size: a step
+        in the paper's direction whose interval holds the paper's ratio reproduces its size too;
+        one that does not, its direction only; a step not shown whose interval excludes the
+        paper's ratio excludes a step of that size."""
         if self.opposite:
-            return f"{self.verdict}: more collisions, Holm p {self.verdict_p:.2g}"
+            return f"{self.verdict}: more collisions"
+        inside = self.paper_inside
+        if inside is None:
+            return self.verdict
+        if self.verdict.startswith(FOUND["paper"]):
+            size = "the paper's size too" if inside else "the direction only, not the paper's size"
+            return f"{self.verdict}: {size}"
+        if not inside and self.verdict.startswith(("not shown", "cannot be decided")):
+            return f"{self.verdict}; a step of the paper's size is excluded"
         return self.verdict
+
+    @property
+    def p_read(self) -> tuple[float, float, str]:
+        """The p-value the verdict reads, its Holm-adjusted twin, and its direction: for more
+        collisions when the verdict is the opposite, else for fewer."""
+        if self.opposite:
+            return self.p_more, self.p_holm_more, "more"
+        return self.p_fewer, self.p_holm_fewer, "fewer"
 
 
 def _tested(record: Record, st: Step, family_of: dict[str, str]) -> tuple[StepResult, float]:
@@ -248,7 +282,13 @@ def controls_line(tested: list[StepResult]) -> str:
         what = (
             "beaten" if credited else "the control collides less" if st.opposite else "not beaten"
         )
-        credit = "credited to its method" if credited else "not credited to its method"
+        credit = (
+            "credited to its method"
+            if credited
+            else "not its method's: the control does better"
+            if st.opposite
+            else "not credited to its method"
+        )
         found.append(
             f"{st.step}: {what} (Holm p = {st.verdict_p:.2g}, ratio {st.ratio:.2f}), so"
             f" '{st.credits}' is {credit}"
@@ -256,12 +296,42 @@ def controls_line(tested: list[StepResult]) -> str:
     return "" if not found else "**What the controls found.** " + "; ".join(found) + "."
 
 
-def record_dispersion(record: Record) -> dict[str, float] | None:
+def record_dispersion(record: Record, near: str | None = None) -> dict[str, float] | None:
     """The negative-binomial dispersion of the record's seeds
-    (:func:`~e2e_lite.driving.verdicts.fit_dispersion` over every row of two or more seeds, each
-    seed's count at its row's common budget); None without such a row."""
-    counts = [seed_counts(r.as_result())[0] for r in record.rows if len(r.seeds) >= 2]
+    (:func:`~e2e_lite.driving.verdicts.fit_dispersion` over its rows of two or more seeds, each
+    seed's count at its row's common budget); with ``near``, over the rows whose median rate is
+    within :data:`POWER_RATES_WITHIN` of that row's only. None without such a row."""
+    rows = [r for r in record.rows if len(r.seeds) >= 2]
+    if near is not None and record.row(near) is not None:
+        centre = _median_rate(record.row(near))
+        rows = [r for r in rows if _within(_median_rate(r), centre, POWER_RATES_WITHIN)]
+    counts = [seed_counts(r.as_result())[0] for r in rows]
     return fit_dispersion(counts) if counts else None
+
+
+def _median_rate(row: Row) -> float:
+    """A row's median seed rate [per 100 mi]."""
+    counts, budget = seed_counts(row.as_result())
+    return float(np.median(counts)) * 100.0 / budget
+
+
+def _within(rate: float, centre: float, factor: float) -> bool:
+    """Whether ``rate`` lies within ``factor`` of ``centre`` (either way; 0.5 per 100 mi floors
+    both, a median of no collision is not infinitely far)."""
+    a, b = max(rate, 0.5), max(centre, 0.5)
+    return max(a, b) / min(a, b) <= factor
+
+
+def shared_spread(record: Record) -> float:
+    """How much of a seed's spread :data:`POWER_ROW` and :data:`POWER_PAIR` share: the Spearman
+    rank correlation of their seeds' counts, at least 0 (0 without both rows)."""
+    a, b = record.row(POWER_ROW), record.row(POWER_PAIR)
+    if a is None or b is None or len(a.seeds) != len(b.seeds) or len(a.seeds) < 3:
+        return 0.0
+    from scipy.stats import spearmanr
+
+    rho = spearmanr(seed_counts(a.as_result())[0], seed_counts(b.as_result())[0]).statistic
+    return float(np.clip(np.nan_to_num(rho), 0.0, 0.95))
 
 
 def record_power(record: Record) -> dict[str, Any] | None:
@@ -276,10 +346,12 @@ def record_power(record: Record) -> dict[str, Any] | None:
         return None
     counts, budget = seed_counts(row.as_result())
     rate = max(float(np.median(counts)) * 100.0 / budget, 0.5)  # (a zero rate has no step)
-    fitted = record_dispersion(record)
-    k = fitted["dispersion"]
+    fitted = record_dispersion(record, near=POWER_ROW)
+    k, rho = fitted["dispersion"], shared_spread(record)
     spread_rank = power(len(counts), budget, rate, POWER_STEP, dispersion=k)
-    spread_pair = power(len(counts), budget, rate, POWER_STEP, dispersion=k, test="sign-flip")
+    spread_pair = power(
+        len(counts), budget, rate, POWER_STEP, dispersion=k, test="sign-flip", shared=rho
+    )
     poisson = power(len(counts), budget, rate, POWER_STEP)
     return {
         "seeds": len(counts),
@@ -291,6 +363,7 @@ def record_power(record: Record) -> dict[str, Any] | None:
         "power_poisson": poisson["power"],
         "min_p": poisson["min_p"],
         "dispersion": fitted,
+        "shared": rho,
     }
 
 
@@ -306,9 +379,11 @@ def power_line(record: Record) -> str:
         f" {POWER_STEP:g}x step at {found['label']}'s median rate"
         f" ({found['rate_per_100mi']:.1f} per 100 mi) in {100 * found['power']:.0f} % of records"
         f" under the seeds' spread (rank test; paired sign-flip"
-        f" {100 * found['power_paired']:.0f} %), a negative binomial of dispersion"
-        f" {k['dispersion']:.2f} [{k['low']:.2f}-{k['high']:.2f}] fitted to this record's"
-        f" {k['rows']} rows of seeds; {100 * found['power_poisson']:.0f} % if seeds did not"
+        f" {100 * found['power_paired']:.0f} %, its pairs sharing {found['shared']:.2f} of the"
+        f" spread, the rank correlation of the seeds of {found['label']} and its fine-tune), a"
+        f" negative binomial of dispersion {k['dispersion']:.2f} [{k['low']:.2f}-{k['high']:.2f}]"
+        f" fitted to this record's {k['rows']} rows of seeds whose rates lie within"
+        f" {POWER_RATES_WITHIN:g}x of it; {100 * found['power_poisson']:.0f} % if seeds did not"
         f" differ (Poisson: an upper bound); at p < 0.05 before Holm's adjustment, which only"
         f" lowers it. The smallest reachable p is {found['min_p']:.2g}."
     )

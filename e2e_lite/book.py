@@ -1,0 +1,155 @@
+"""The course as a book a class can read before it runs (``docs/book/``): one page per chapter
+with its prose, its code, what each cell printed and the figures it saved, from the transcripts
+of one full-profile run (:mod:`e2e_lite.transcript`), and an index with the chapter table, the
+machine, the commit and the date of the run.
+
+    python -m e2e_lite.book OUTPUTS      # OUTPUTS: the full run's outputs folder
+
+Pages are Markdown a repository host shows as it is; figures are copied as PNGs scaled to at most
+:data:`WIDTH_PX` wide, the whole kept under :data:`BUDGET_BYTES`. A page whose chapter source
+changed since its run says so at its top.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+BOOK = ROOT / "docs" / "book"
+#: the widest a figure is shown [px], and the most the book's images may weigh [bytes]
+WIDTH_PX, BUDGET_BYTES = 900, 15_000_000
+#: a cell's printed output longer than this many lines is cut: its head and its tail are shown
+HEAD_LINES, TAIL_LINES = 40, 10
+
+
+def cut(output: str) -> str:
+    """A cell's output, its middle cut (and said so) when it is long."""
+    lines = output.rstrip("\n").splitlines()
+    if len(lines) <= HEAD_LINES + TAIL_LINES:
+        return "\n".join(lines)
+    hidden = len(lines) - HEAD_LINES - TAIL_LINES
+    return "\n".join([*lines[:HEAD_LINES], f"... ({hidden} lines cut) ...", *lines[-TAIL_LINES:]])
+
+
+def shrink(png: Path, width_px: int = WIDTH_PX) -> bytes:
+    """A figure as PNG bytes at most ``width_px`` wide, its colours quantised (the course's
+    figures are line art: 256 colours lose nothing a reader sees)."""
+    from PIL import Image
+
+    img = Image.open(png).convert("RGB")
+    if img.width > width_px:
+        img = img.resize((width_px, round(img.height * width_px / img.width)), Image.LANCZOS)
+    buf = io.BytesIO()
+    img.quantize(256).save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
+def page(transcript: dict[str, Any], source: str, figures: dict[str, str]) -> str:
+    """One chapter's page from its ``transcript``; ``source``: the chapter's current text (a
+    page whose source changed since the run says so); ``figures``: each saved figure's path in
+    the outputs and its file name in the book."""
+    profile = "quick" if "--quick" in transcript.get("flags", []) else "full"
+    lines = [
+        f"*Rendered from the {profile}-profile run at commit `{transcript['commit']}` on"
+        f" {transcript['date']} (the book's [index](README.md) names the machine). The code"
+        f" is [chapters/{transcript['chapter']}.py](../../chapters/{transcript['chapter']}.py).*",
+        "",
+    ]
+    if hashlib.sha256(source.encode()).hexdigest() != transcript["source_sha256"]:
+        lines[:0] = [
+            "> **This chapter's source has changed since this run**: the prose and code below"
+            " are the run's, and may differ from the chapter's today.",
+            "",
+        ]
+    for cell in transcript["cells"]:
+        if cell["kind"] == "markdown":
+            lines += [cell["text"], ""]
+            continue
+        lines += ["```python", cell["text"], "```", ""]
+        if cell.get("output", "").strip():
+            lines += ["```text", cut(cell["output"]), "```", ""]
+        for fig in cell.get("figures", []):
+            if fig in figures:
+                lines += [f"![{Path(fig).stem}](figures/{figures[fig]})", ""]
+    if transcript.get("exit_code"):
+        lines += [f"*The run stopped here with exit code {transcript['exit_code']}.*", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
+    """Write the book from the full run in ``outputs``: a page per transcript, its figures, the
+    index. Returns what it wrote: the chapters, the commit(s) and the images' bytes."""
+    from .course import CHAPTERS, TIMES_FILE, find_chapters
+    from .estimate import cpu_name
+
+    transcripts = sorted((outputs / "transcripts").glob("*.json"))
+    if not transcripts:
+        raise SystemExit(f"{outputs}/transcripts holds no transcript: run the full course first")
+    (book / "figures").mkdir(parents=True, exist_ok=True)
+    for old in (book / "figures").glob("*.png"):
+        old.unlink()
+    paths = dict(find_chapters(ROOT / "chapters"))
+    times = (
+        json.loads((outputs / TIMES_FILE).read_text()) if (outputs / TIMES_FILE).exists() else {}
+    )
+    rows, commits, image_bytes = [], set(), 0
+    for path in transcripts:
+        t = json.loads(path.read_text())
+        figures = {}
+        for cell in t["cells"]:
+            for fig in cell.get("figures", []):
+                name = f"{Path(fig).stem}.png"
+                data = shrink(outputs / fig)
+                (book / "figures" / name).write_bytes(data)
+                image_bytes += len(data)
+                figures[fig] = name
+        number = int(t["chapter"][:2])
+        source = paths[number].read_text() if number in paths else ""
+        (book / f"{t['chapter']}.md").write_text(page(t, source, figures))
+        minutes = (times.get(t["chapter"]) or {}).get("seconds", 0.0) / 60.0
+        info = CHAPTERS.get(number)
+        purpose = info.purpose if info else ""
+        link = f"[{t['chapter'][3:].replace('_', ' ')}]({t['chapter']}.md)"
+        rows.append(f"| {number:02d} | {link} | {purpose} | {minutes:.0f} |")
+        commits.add(t["commit"])
+    if image_bytes > BUDGET_BYTES:
+        raise SystemExit(f"the book's images weigh {image_bytes:,} bytes, over {BUDGET_BYTES:,}")
+    date = max(json.loads(p.read_text())["date"] for p in transcripts)
+    index = [
+        "# The course as a book",
+        "",
+        "Every chapter's prose, code, printed output and figures from **one full-profile run**, so"
+        " a class can read the course before (or instead of) running it, and a teaching assistant"
+        " can check a student's run against it (another CPU trains other networks: compare the"
+        " verdicts and their power, not the last digit). Rendered by `python -m e2e_lite.book`"
+        " from the run's transcripts; do not edit by hand.",
+        "",
+        f"*The run: commit `{', '.join(sorted(commits))}`, {date}, on {cpu_name()}; chapter"
+        " minutes as that run took them.*",
+        "",
+        "| # | chapter | the idea | minutes |",
+        "|---|---|---|---:|",
+        *rows,
+        "",
+    ]
+    (book / "README.md").write_text("\n".join(index))
+    return {"chapters": len(rows), "commits": sorted(commits), "image_bytes": image_bytes}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m e2e_lite.book", description=__doc__)
+    parser.add_argument("outputs", type=Path, help="the full-profile run's outputs folder")
+    args = parser.parse_args(argv)
+    wrote = render(args.outputs)
+    print(f"wrote {BOOK.relative_to(ROOT)}: {wrote}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,65 @@
+"""The book: a chapter run cell by cell keeps each cell's output and figures, and the book's page
+shows them, names its commit, and says when the chapter changed since its run."""
+
+from __future__ import annotations
+
+import json
+
+from e2e_lite import book, transcript
+
+CHAPTER = """# %% [markdown]
+# # 99 · A test chapter
+#
+# It prints and saves a figure.
+
+# %%
+from e2e_lite import artifacts
+
+print("hello from the first cell")
+
+# %% [markdown]
+# Then a long output.
+
+# %%
+from PIL import Image
+
+for k in range(80):
+    print(f"line {k}")
+Image.new("RGB", (1200, 300), (200, 30, 30)).save(artifacts.artifact_path("figures", "99_t.png"))
+"""
+
+
+def test_a_chapter_runs_cell_by_cell_and_its_page_shows_each_cells_output(tmp_path, monkeypatch):
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path / "out"))
+    chapters = tmp_path / "chapters"
+    chapters.mkdir()
+    path = chapters / "99_test.py"
+    path.write_text(CHAPTER)
+    assert [kind for kind, _ in transcript.cells(CHAPTER)] == [
+        "markdown",
+        "code",
+        "markdown",
+        "code",
+    ]
+    assert transcript.run(path, []) == 0
+    outputs = tmp_path / "out"
+    t = json.loads((outputs / "transcripts" / "99_test.json").read_text())
+    code = [c for c in t["cells"] if c["kind"] == "code"]
+    assert code[0]["output"] == "hello from the first cell\n" and code[0]["figures"] == []
+    assert code[1]["figures"] == ["figures/99_t.png"] and t["exit_code"] == 0
+    page = book.page(t, CHAPTER, {"figures/99_t.png": "99_t.png"})
+    assert f"`{t['commit']}`" in page and "hello from the first cell" in page
+    assert "(30 lines cut)" in page and "line 79" in page and "line 45" not in page
+    assert "![99_t](figures/99_t.png)" in page and "has changed since this run" not in page
+    assert "has changed since this run" in book.page(t, CHAPTER + "\n# edited\n", {})
+    data = book.shrink(outputs / "figures" / "99_t.png")
+    from io import BytesIO
+
+    from PIL import Image
+
+    assert Image.open(BytesIO(data)).width == book.WIDTH_PX
+    # an error stops the run there, its traceback kept
+    path.write_text(CHAPTER.replace('print("hello', 'raise RuntimeError("boom")\nprint("hello'))
+    assert transcript.run(path, []) == 1
+    t = json.loads((outputs / "transcripts" / "99_test.json").read_text())
+    assert "RuntimeError: boom" in t["cells"][1]["output"] and t["exit_code"] == 1
