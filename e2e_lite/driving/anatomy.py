@@ -52,13 +52,15 @@ KINDS = (
 
 @dataclass
 class Moment:
-    """One decision of one car: its state ``(5,)``, its lane-frame segment hint, its world, and
-    the driver's plan ``(5, 2)`` there (None: the driver has none)."""
+    """One decision of one car: its state ``(5,)``, its lane-frame segment hint, its world, the
+    driver's plan ``(5, 2)`` there (None: the driver has none) and the command it gave
+    ``(steer [rad], accel [m/s^2])``."""
 
     state: np.ndarray
     seg: int
     world: World
     plan: np.ndarray | None
+    command: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass
@@ -68,9 +70,11 @@ class Collision:
 
     Attributes:
         car: the car's index in its drive; step: its decision count at the impact.
-        contact: ``"car"`` or ``"rail"``; parked: the parked car's index (-1: a rail).
+        contact: ``"car"`` or ``"rail"``; parked: the parked car's index (-1: a rail); what the
+            last moment's command, driven again, ran into (:func:`contact`).
         moments: its last :data:`HISTORY_S` of decisions.
-        saved: per hand-over time [s], whether the expert taking over then avoided it.
+        saved: per hand-over time [s], whether the expert taking over then avoided it (None: the
+            moments do not reach that far back: the car was placed less long before).
         plan_hit: whether any of the driver's plans of the last :data:`PLAN_WINDOW_S`, followed
             exactly, hits a parked car (None: the driver has no plans).
         apart_m: per moment, the largest distance between the driver's plan and the expert's
@@ -80,10 +84,10 @@ class Collision:
 
     car: int
     step: int
-    contact: str
-    parked: int
     moments: list[Moment]
-    saved: dict[float, bool] = field(default_factory=dict)
+    contact: str = ""
+    parked: int = -1
+    saved: dict[float, bool | None] = field(default_factory=dict)
     plan_hit: bool | None = None
     apart_m: np.ndarray | None = None
     kind: str = ""
@@ -91,7 +95,7 @@ class Collision:
     @property
     def latest_savable_s(self) -> float | None:
         """The latest hand-over (fewest seconds before the impact) that avoided it (None: none
-        of :data:`HAND_OVER_S`)."""
+        of those tried)."""
         ok = [t for t, saved in self.saved.items() if saved]
         return min(ok) if ok else None
 
@@ -125,12 +129,14 @@ class Witness:
             self._file(i, obs)
         act = self.driver.act(obs)
         plans = getattr(self.driver, "last", {}).get("points")
+        steer, accel = np.asarray(act.steer_rad), np.asarray(act.accel_mps2)
         for i, world in enumerate(obs.worlds):
             if obs.respawned[i]:
                 self.buffers[i].clear()
             plan = None if plans is None else np.array(plans[i])
             seg = int(world.track.segment_index(float(obs.s[i])))
-            moment = Moment(obs.state[i].copy(), seg, world, plan)
+            command = (float(steer[i]), float(accel[i]))
+            moment = Moment(obs.state[i].copy(), seg, world, plan, command)
             self.buffers[i].append(moment)
             if self.steps[i] % self.every == self.every - 1:
                 self.ordinary.append(moment)
@@ -140,25 +146,20 @@ class Witness:
     def _file(self, i: int, obs: Observation) -> None:
         """Car ``i`` collided since its last decision: file its moments."""
         moments = list(self.buffers[i])
-        if not moments:
-            return
-        contact, parked = _contact(moments[-1])
-        self.collisions.append(Collision(i, int(self.steps[i]), contact, parked, moments))
+        if moments:
+            self.collisions.append(Collision(i, int(self.steps[i]), moments))
 
 
-def _contact(last: Moment) -> tuple[str, int]:
-    """What the car hit from its last moment: the nearest parked car within a car's length of
-    its path ahead, else a rail."""
-    world, state = last.world, last.state
-    s, d = (float(v) for v in world.track.to_frenet(state[0], state[1]))
-    cars = world.cars
-    near = cars.between(s - 10.0, s + 20.0)
-    best, best_dist = -1, math.inf
-    for j in range(near.start, near.stop):
-        dist = math.hypot(float(cars.s[j]) - s, float(cars.d[j]) - d)
-        if abs(float(cars.d[j]) - d) < 2.5 and dist < best_dist:
-            best, best_dist = j, dist
-    return ("car", best) if best >= 0 else ("rail", -1)
+def contact(last: Moment, world_cfg: WorldConfig) -> tuple[str, int]:
+    """What the car ran into: its last moment's command driven again from its state in a fresh
+    copy of its world (the world is deterministic): ``("car", parked index)`` or ``("rail", -1)``
+    (``("", -1)`` if it touches nothing: the collision then came from another cause)."""
+    fleet = _fresh_fleet(last, world_cfg)
+    hits = fleet.step(np.array([last.command[0]]), np.array([last.command[1]]))[0]
+    if not hits:
+        return "", -1
+    kind, index = hits[0]
+    return (kind, int(index)) if kind == "car" else (kind, -1)
 
 
 def _fresh_fleet(moment: Moment, world_cfg: WorldConfig) -> Fleet:
@@ -197,6 +198,7 @@ def savable(
     for t in HAND_OVER_S:
         back = round(t / period)
         if back > len(c.moments):
+            out[t] = None  # (the car was placed less long before the impact)
             continue
         hit = drive_from(c.moments[-back], expert, world_cfg, t + AFTER_S)
         out[t] = hit is None
@@ -205,8 +207,8 @@ def savable(
 
 def plan_collides(moment: Moment, margin_m: float = 0.2) -> bool:
     """Would the car, its rear axle following the plan exactly (a perfect tracker), touch a
-    parked car within the plan's 1.5 s? The body is a box around the path, aligned with the
-    road (lane-frame overlap of the two boxes, ``margin_m`` of slack)."""
+    parked car or a guard rail within the plan's 1.5 s? The body is a box around the path,
+    aligned with the road (lane-frame overlap of the two boxes, ``margin_m`` of slack)."""
     if moment.plan is None:
         return False
     world, state = moment.world, moment.state
@@ -217,6 +219,8 @@ def plan_collides(moment: Moment, margin_m: float = 0.2) -> bool:
     wx = state[0] + c * (x + ahead) - s_ * y
     wy = state[1] + s_ * (x + ahead) + c * y
     s, d = world.track.to_frenet(wx, wy)
+    if np.any(np.abs(d) + veh.width_m / 2.0 - margin_m > world.track.rail_d):
+        return True
     cars = world.cars
     near = cars.between(float(np.min(s)) - 10.0, float(np.max(s)) + 10.0)
     reach_s = (veh.length_m + cars.length_m) / 2.0 - margin_m
@@ -251,8 +255,8 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
     parked car in another lane than the car's at the window's start (into an occupied lane); the
     expert, at those states, changing lanes where the driver's plans kept to the lane (missed) or
     moved later (late); the expert braking to follow (braking short); else other."""
-    if c.contact == "rail":
-        return "rail"
+    if c.contact != "car":
+        return "rail" if c.contact == "rail" else "other"
     period = world_cfg.sim.policy_period_s
     window = c.moments[-round(window_s / period) :]
     track = window[0].world.track
@@ -280,6 +284,7 @@ def dissect(c: Collision, world_cfg: WorldConfig) -> Collision:
     """Fill ``c``'s findings: the hand-overs that save it, whether its last plan hits, the
     plans' disagreement with the expert's labels, its kind."""
     expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    c.contact, c.parked = contact(c.moments[-1], world_cfg)
     c.saved = savable(c, world_cfg, expert)
     period = world_cfg.sim.policy_period_s
     last = [m for m in c.moments[-round(PLAN_WINDOW_S / period) :] if m.plan is not None]
@@ -290,16 +295,19 @@ def dissect(c: Collision, world_cfg: WorldConfig) -> Collision:
 
 
 def table(collisions: list[Collision]) -> dict[str, Any]:
-    """What the anatomy found, added up: per hand-over time the share of collisions the expert
-    saved, the latest savable moment's counts, the tracker's share (collisions whose plans of the
-    last :data:`PLAN_WINDOW_S` were all clear), and the kinds."""
+    """What the anatomy found, added up: per hand-over time how many collisions the expert saved
+    and how many it could not be tried on (the car placed less long before), the latest savable
+    moment's counts (``"none tried"``: no hand-over tried saved it), the tracker's share
+    (collisions whose plans of the last :data:`PLAN_WINDOW_S` were all clear), and the kinds."""
     n = len(collisions)
-    saved = {t: sum(c.saved.get(t, False) for c in collisions) for t in HAND_OVER_S}
+    saved = {t: sum(c.saved.get(t) is True for c in collisions) for t in HAND_OVER_S}
+    untried = {t: sum(c.saved.get(t) is None for c in collisions) for t in HAND_OVER_S}
     latest = {str(t): sum(c.latest_savable_s == t for c in collisions) for t in HAND_OVER_S}
-    latest["none"] = sum(c.latest_savable_s is None for c in collisions)
+    latest["none tried"] = sum(c.latest_savable_s is None for c in collisions)
     return {
         "collisions": n,
         "saved_by_hand_over": {str(t): saved[t] for t in HAND_OVER_S},
+        "untried_by_hand_over": {str(t): untried[t] for t in HAND_OVER_S},
         "latest_savable": latest,
         "plan_clear": sum(c.plan_hit is False for c in collisions),
         "kinds": {k: sum(c.kind == k for c in collisions) for k in KINDS},

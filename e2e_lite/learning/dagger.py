@@ -252,7 +252,9 @@ def dart_noise(learner_cmd: np.ndarray, expert_cmd: np.ndarray, scale: float = 1
     [m/s^2]), at the states it was measured on, times ``scale``."""
     err = np.asarray(learner_cmd, dtype=float) - np.asarray(expert_cmd, dtype=float)
     steer, accel = (float(x) for x in scale * err.std(axis=0))
-    return NoiseConfig(rate_per_s=0.0, dart_steer_rad=min(steer, 0.5), dart_accel_mps2=accel)
+    return NoiseConfig(
+        rate_per_s=0.0, dart_steer_rad=min(steer, 0.5), dart_accel_mps2=min(accel, 10.0)
+    )
 
 
 def aggregate_draw(parts: list[DrivingData], n_rows: int, seed: int, r: int) -> DrivingData:
@@ -348,7 +350,7 @@ def run(
             new, shift, found, collection = None, {}, {}, {}
             if arm != "no_new_data":
                 new = spec.samples(model, progress)
-                shift = covariate_shift(new, aggregate)
+                shift = covariate_shift(new, aggregate[:1])  # against chapter 04's data
                 found, collection = new.info.get("gate", {}), new.info.get("collection", {})
                 aggregate.append(new)
             data = aggregate_draw(aggregate, cfg.steps_samples, seed, r)
