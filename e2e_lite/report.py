@@ -298,6 +298,8 @@ def course_run_table(run: dict[str, Any] | None, record: Record | None = None) -
             f"A run cut after chapter {last} (chapters {', '.join(done)} complete, {total:.0f} min)"
         )
     note = "; " + run["note"] if run.get("note") else ""
+    if run.get("outputs_bytes"):
+        note += f"; its outputs folder {run['outputs_bytes'] / 1e9:.1f} GB on disk"
     lines += ["", f"*{what} on {run['machine']}, torch {run['torch']}{note}.*"]
     if record is not None:
         lines += ["", _one_run_against_the_record(record)]

@@ -51,13 +51,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..simulation.geometry import wrap_angle
+from ..simulation.geometry import Track, wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
 from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S
 from .rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear
-from .tracker import LaneChangePath, LQRTracker, default_tracker, lane_reference
+from .tracker import LaneChangePath, LQRTracker, default_tracker
 
 QUINTIC_PEAK = 10.0 / math.sqrt(3.0)  # max |b''| of the quintic blend: 5.77
 #: the quintic blend b(u) = u^3 (10 - 15 u + 6 u^2) on a grid, to read u off a change's progress
@@ -223,12 +223,12 @@ class Expert:
             car = _Car(worlds[i], float(s[i]), float(d[i]), v, v * math.sin(he))
             decision, gap, path = self._choose(car)
             decisions.append(decision)
+            k = float(curvature[i])
             if path is not None:
-                e[i], psi[i], kap[i] = path.reference(car.s, car.d, he, float(curvature[i]))
-            else:
-                centre = car.world.track.lane_center(decision.target)
-                ei, pi, ki = lane_reference(car.d, heading_error[i], curvature[i], centre)
-                e[i], psi[i], kap[i] = float(ei), float(pi), float(ki)
+                e[i], psi[i], kap[i] = path.reference(car.s, car.d, he, k)
+            else:  # the target lane's centre line (tracker.lane_reference, in scalars)
+                centre = _centre(car.world.track, decision.target)
+                e[i], psi[i], kap[i] = car.d - centre, he, k / (1.0 - k * centre)
             v_ref[i], brake[i] = self._speed_reference(decision, car, gap)
         steer = self.tracker.steer(e, psi, kap, speeds)
         accel = self.tracker.accel(speeds, v_ref)
@@ -239,7 +239,7 @@ class Expert:
         """The state table for one car: its decision, the gap ahead in the lane it drives for
         [m], and its lane-change path (None: it follows its target lane's centre)."""
         track = car.world.track
-        here = int(track.lane_index(car.d))
+        here = _lane_of(track, car.d)
         home = (track.n_lanes - 1) // 2
         gap, j = self._gap(car, here)
         if j >= 0 and gap < self.draws(car.world, j).trigger_m:  # should overtake
@@ -256,7 +256,7 @@ class Expert:
                 side = 1 if target > here else -1
                 path = self._path(car, here, target, draws, g_back)
                 return Decision(CHANGE, target, side, False), g_back, path
-        centre = float(track.lane_center(here))
+        centre = _centre(track, here)
         toward = 1 if centre > car.d else -1
         if abs(car.d - centre) > self.COMMIT_M and car.v_lat * toward > self.COMMIT_MPS:
             # the end of a lane change, past the dashed line: the tracker brings it in
@@ -290,7 +290,7 @@ class Expert:
     def _under_way(self, car: _Car, here: int, target: int) -> bool:
         """Whether ``car`` is already moving from lane ``here`` towards ``target``."""
         side = 1 if target > here else -1
-        from_centre = (car.d - float(car.world.track.lane_center(here))) * side
+        from_centre = (car.d - _centre(car.world.track, here)) * side
         return from_centre > -self.COMMIT_M and car.v_lat * side > self.COMMIT_MPS
 
     def _overtake_lane(self, car: _Car, here: int, home: int, gap: float, j: int) -> int | None:
@@ -370,7 +370,7 @@ class Expert:
         """How far along its quintic a change from lane ``here`` to ``target`` is, read off how far
         across the car is: ``u`` with ``b(u)`` the share crossed (at least :attr:`U_MIN`)."""
         track = car.world.track
-        c_from, c_to = float(track.lane_center(here)), float(track.lane_center(target))
+        c_from, c_to = _centre(track, here), _centre(track, target)
         crossed = min(1.0, max(0.0, (car.d - c_from) / (c_to - c_from)))
         return max(self.U_MIN, float(np.interp(crossed, _BLEND, _U)))
 
@@ -388,7 +388,7 @@ class Expert:
         track = car.world.track
         u = self._progress(car, here, target)
         length = self._path_length(draws, car.v, gap, u)
-        c_from, c_to = float(track.lane_center(here)), float(track.lane_center(target))
+        c_from, c_to = _centre(track, here), _centre(track, target)
         return LaneChangePath(car.s - u * length, length, c_from, c_to)
 
     def _speed_reference(self, decision: Decision, car: _Car, gap: float) -> tuple[float, float]:
@@ -405,6 +405,18 @@ class Expert:
         elif decision.state != KEEP and math.isfinite(gap):
             v_ref = min(v_ref, math.sqrt(2.0 * cfg.approach_brake_mps2 * max(room, 0.0)))
         return v_ref, brake
+
+
+def _centre(track: Track, lane: int) -> float:
+    """Lane ``lane``'s centre offset [m]: :meth:`~e2e_lite.simulation.geometry.Track.lane_center`
+    in scalars (the same float, without numpy's overhead on one number)."""
+    return (lane - (track.n_lanes - 1) / 2.0) * track.lane_width + 0.0
+
+
+def _lane_of(track: Track, d: float) -> int:
+    """The lane whose centre is nearest offset ``d`` [m]:
+    :meth:`~e2e_lite.simulation.geometry.Track.lane_index` in scalars."""
+    return min(max(math.floor(d / track.lane_width + track.n_lanes / 2.0), 0), track.n_lanes - 1)
 
 
 def _started(before: Decision, now: Decision) -> str | None:

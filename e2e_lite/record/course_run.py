@@ -13,7 +13,8 @@ from typing import Any
 def course_run_record(outputs: Path) -> dict[str, Any]:
     """A full-profile run of the course, read from its outputs folder: each chapter's wall time
     (``course_times.json``) and the headline figures it wrote (``metrics/<chapter>.json``), with
-    the machine and torch. A chapter whose metrics are another profile's is refused."""
+    the machine, torch and the outputs folder's size on disk [bytes]. A chapter whose metrics
+    are another profile's is refused."""
     import torch
 
     from ..course import TIMES_FILE
@@ -33,4 +34,10 @@ def course_run_record(outputs: Path) -> dict[str, Any]:
             "headline": headline,
         }
     machine = f"{cpu_name()}, {os.cpu_count()} cores"
-    return {"machine": machine, "torch": torch.__version__, "chapters": chapters}
+    size = sum(p.stat().st_size for p in outputs.rglob("*") if p.is_file())
+    return {
+        "machine": machine,
+        "torch": torch.__version__,
+        "outputs_bytes": size,
+        "chapters": chapters,
+    }

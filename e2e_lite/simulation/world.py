@@ -195,7 +195,7 @@ class ParkedCars:
 
     def between(self, s_lo: float, s_hi: float) -> slice:
         """The slice of cars with centre ``s`` in ``[s_lo, s_hi)``."""
-        return slice(int(np.searchsorted(self.s, s_lo)), int(np.searchsorted(self.s, s_hi)))
+        return slice(int(self.s.searchsorted(s_lo)), int(self.s.searchsorted(s_hi)))
 
 
 def place_parked_cars(track: Track, cfg: TrafficConfig, rng: np.random.Generator) -> ParkedCars:
