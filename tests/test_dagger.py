@@ -124,6 +124,24 @@ def test_a_round_drives_fresh_training_roads_and_the_arms_differ_only_in_who_dri
         DataConfig(split="test")
 
 
+def test_an_exercises_rounds_are_stored_under_names_of_their_own_and_the_courses_stay():
+    """Other settings (an exercise's DART scale) name their rounds apart, so they never overwrite
+    the course's; the course's rounds keep the plain names their stored files carry."""
+    course = dagger.DaggerConfig.for_profile(QUICK)
+    scaled = dagger.DaggerConfig.for_profile(QUICK, dart_scale=2.0)
+    plain = dagger.RoundSpec(QUICK, course, 1, 0, "control")
+    other = dagger.RoundSpec(QUICK, scaled, 1, 0, "control")
+    assert plain.samples_name == "12_control_seed1_round1.npz"
+    assert plain.network_name == "12_control_round1_seed1"
+    assert other.samples_name != plain.samples_name and other.network_name != plain.network_name
+    assert other.stem.startswith("12_control_")
+    torch.manual_seed(0)
+    net = build_model(ModelConfig(head="trajectory", fusion_width=16))
+    assert other.samples_key(net) != plain.samples_key(net)
+    with pytest.raises(ValueError, match="dart_scale"):
+        dagger.DaggerConfig.for_profile(QUICK, dart_scale=-1.0)
+
+
 def test_the_gate_keeps_the_seconds_before_a_collision_then_the_widest_disagreements():
     drive = synthetic_data(10)
     apart = np.array([0.1, 3.0, 0.5, 2.0, 0.2, 1.5, 0.3, 0.4, 0.05, 0.6])

@@ -188,11 +188,12 @@ def drive_from(
 
 
 def savable(
-    c: Collision, world_cfg: WorldConfig, expert: Expert | None = None
-) -> dict[float, bool]:
-    """For each of :data:`HAND_OVER_S` that the moments reach: does the expert, taking the car
-    over that long before the impact, avoid it for :data:`AFTER_S` past it?"""
-    expert = expert or Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = None
+) -> dict[float, bool | None]:
+    """For each of :data:`HAND_OVER_S` [s]: does ``hand_over`` (default the expert), taking the
+    car over that long before the impact, avoid it for :data:`AFTER_S` past it? ``None`` where
+    the moments do not reach that far back (the car was placed less long before the impact)."""
+    expert = hand_over or Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
     period = world_cfg.sim.policy_period_s
     out = {}
     for t in HAND_OVER_S:
@@ -280,12 +281,12 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
     return "other"
 
 
-def dissect(c: Collision, world_cfg: WorldConfig) -> Collision:
-    """Fill ``c``'s findings: the hand-overs that save it, whether its last plan hits, the
-    plans' disagreement with the expert's labels, its kind."""
+def dissect(c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = None) -> Collision:
+    """Fill ``c``'s findings: the hand-overs that save it (to ``hand_over``, default the
+    expert), whether its plans hit, the plans' disagreement with the expert's labels, its kind."""
     expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
     c.contact, c.parked = contact(c.moments[-1], world_cfg)
-    c.saved = savable(c, world_cfg, expert)
+    c.saved = savable(c, world_cfg, hand_over or expert)
     period = world_cfg.sim.policy_period_s
     last = [m for m in c.moments[-round(PLAN_WINDOW_S / period) :] if m.plan is not None]
     c.plan_hit = any(plan_collides(m) for m in last) if last else None

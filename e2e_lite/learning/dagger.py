@@ -77,6 +77,7 @@ class DaggerConfig:
         beta: the share of decisions the expert executes in DAgger's drives (Ross et al.'s
             first round, the expert alone, is chapter 04's data).
         val_miles: validation miles every iterate of a seed drives, to be chosen on [mi].
+        dart_scale: the control's DART noise over the network's measured command errors.
     """
 
     rounds: int = 4
@@ -86,6 +87,7 @@ class DaggerConfig:
     gate_m: float = 1.0
     beta: float = 0.0
     val_miles: float = 25.0
+    dart_scale: float = 1.0
 
     def __post_init__(self) -> None:
         o = "DaggerConfig"
@@ -96,6 +98,7 @@ class DaggerConfig:
         check_range(o, "gate_m", self.gate_m, 0.0, 100.0)
         check_range(o, "beta", self.beta, 0.0, 1.0)
         check_range(o, "val_miles", self.val_miles, 0.0, lo_open=True)
+        check_range(o, "dart_scale", self.dart_scale, 0.0, 10.0)
 
     @classmethod
     def for_profile(cls, profile: Profile, **changes: Any) -> DaggerConfig:
@@ -159,14 +162,22 @@ class RoundSpec:
         )
 
     @property
+    def stem(self) -> str:
+        """The stored names' stem: the arm, and for rounds of other settings than the profile's
+        a tag of them (an exercise's rounds never overwrite the course's)."""
+        default = DaggerConfig.for_profile(self.profile)
+        tag = "" if self.cfg == default else "_" + settings_key(self.cfg, length=6)
+        return f"12_{self.arm}{tag}"
+
+    @property
     def samples_name(self) -> str:
         """The file of the round's kept samples under ``<outputs>/data/``."""
-        return seeded(f"12_{self.arm}", self.seed) + f"_round{self.index + 1}.npz"
+        return seeded(self.stem, self.seed) + f"_round{self.index + 1}.npz"
 
     @property
     def network_name(self) -> str:
         """The checkpoint name of the network the round fine-tunes."""
-        return seeded(f"12_{self.arm}_round{self.index + 1}", self.seed, plain_zero=True)
+        return seeded(f"{self.stem}_round{self.index + 1}", self.seed, plain_zero=True)
 
     def on_policy(self, learner: DrivingModel) -> OnPolicy:
         """How the round drives: DAgger's network (the expert executing ``cfg.beta`` of the
@@ -181,6 +192,8 @@ class RoundSpec:
         noise is DART's fit to these weights (:meth:`dart`), so they key it too."""
         gate = (self.cfg.samples, self.cfg.gate_m, OnPolicy.BEFORE_COLLISION_S)
         dart = ("dart", DART_PILOT) if self.arm == "control" else ()
+        if self.arm == "control" and self.cfg.dart_scale != 1.0:  # (the course's keys stay)
+            dart += (self.cfg.dart_scale,)
         return settings_key(self.on_policy(learner).key(self.data()), "gate", *gate, *dart)
 
     def dart(self, learner: DrivingModel, progress: bool = True) -> NoiseConfig:
@@ -191,7 +204,7 @@ class RoundSpec:
         drive = collect(pilot, progress, on_policy=self.on_policy(learner))
         side = drive.info["on_policy"]
         learner_cmd = np.stack([side["learner_steer_rad"], side["learner_accel_mps2"]], axis=1)
-        return dart_noise(learner_cmd, drive.arrays["actuators"])
+        return dart_noise(learner_cmd, drive.arrays["actuators"], self.cfg.dart_scale)
 
     def samples(self, learner: DrivingModel, progress: bool = True) -> DrivingData:
         """The round's kept samples (:func:`gate` of its drive), stored and reused while the
