@@ -51,6 +51,8 @@ RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.report -->"
 RUN_END = "<!-- /course run -->"
 FINDINGS_BEGIN = "<!-- sessions' findings: rendered by python -m e2e_lite.report -->"
 FINDINGS_END = "<!-- /sessions' findings -->"
+NEEDS_BEGIN = "<!-- machine needs: rendered by python -m e2e_lite.report -->"
+NEEDS_END = "<!-- /machine needs -->"
 #: each session's chapters and the record's steps it teaches (teaching.md's sessions)
 SESSIONS = {
     1: (("01", "02", "03"), ()),
@@ -298,12 +300,48 @@ def course_run_table(run: dict[str, Any] | None, record: Record | None = None) -
             f"A run cut after chapter {last} (chapters {', '.join(done)} complete, {total:.0f} min)"
         )
     note = "; " + run["note"] if run.get("note") else ""
-    if run.get("outputs_bytes"):
-        note += f"; its outputs folder {run['outputs_bytes'] / 1e9:.1f} GB on disk"
     lines += ["", f"*{what} on {run['machine']}, torch {run['torch']}{note}.*"]
     if record is not None:
         lines += ["", _one_run_against_the_record(record)]
     return "\n".join(lines)
+
+
+def machine_needs_list(run: dict[str, Any] | None) -> str:
+    """docs/teaching.md's list of what a machine needs, as the recorded course run measured it
+    (only what was measured is said)."""
+    if run is None:
+        return "*No full-profile run is recorded yet.*"
+    needs = run.get("needs", {})
+    gb = {k: f"{v / 1e9:.2f} GB" for k, v in needs.items() if k.endswith("_bytes")}
+    items = []
+    if "download_bytes" in gb:
+        items.append(
+            f"**Download**: {gb['download_bytes']} of packages (torch's CPU wheel, the project "
+            "and its test extras, as `pip download` fetched them)."
+        )
+    if "venv_bytes" in gb:
+        items.append(f"**The venv** on disk: {gb['venv_bytes']}.")
+    sizes = []
+    if "outputs_bytes" in run:
+        sizes.append(f"{run['outputs_bytes'] / 1e9:.2f} GB after the full course")
+    if "quick_outputs_bytes" in gb:
+        sizes.append(f"{gb['quick_outputs_bytes']} after the quick one")
+    if sizes:
+        items.append(f"**`outputs/`** on disk: {', '.join(sizes)}.")
+    if "peak_memory_kib" in needs:
+        items.append(
+            f"**Memory**: the largest process of the full run (a chapter or one of its workers) "
+            f"held {needs['peak_memory_kib'] / 2**20:.1f} GiB resident."
+        )
+    done = [ch for ch in run["chapters"].values() if ch["complete"]]
+    minutes = sum(ch["minutes"] for ch in done)
+    items.append(f"**Time**: {minutes:.0f} min for the {len(done)} chapters on {run['machine']}.")
+    if "system" in needs:
+        items.append(
+            f"**Systems**: the course and its tests ran on {needs['system']}, Python "
+            f"{needs['python']}; no other system is tested here."
+        )
+    return "\n".join(f"- {item}" for item in items)
 
 
 def _one_run_against_the_record(record: Record) -> str:
@@ -376,7 +414,8 @@ def renders(record: Record) -> dict[Path, str]:
         block = course_run_table(run, record)
         teaching = _replace(TEACHING.read_text(), RUN_BEGIN, RUN_END, block)
         findings = session_findings(run, record)
-        wanted[TEACHING] = _replace(teaching, FINDINGS_BEGIN, FINDINGS_END, findings)
+        teaching = _replace(teaching, FINDINGS_BEGIN, FINDINGS_END, findings)
+        wanted[TEACHING] = _replace(teaching, NEEDS_BEGIN, NEEDS_END, machine_needs_list(run))
     return wanted
 
 

@@ -192,6 +192,32 @@ def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp
         course_run_record(tmp_path)
 
 
+def test_what_a_machine_needs_is_measured_and_only_what_was_measured_is_said(tmp_path) -> None:
+    """The kit's machine needs come from measurements: folder sizes (a hard link counted once),
+    the peak memory a '/usr/bin/time -v' log reports, and the system the run was on."""
+    from e2e_lite.record.course_run import course_run_record, peak_memory_kib
+
+    full, quick = tmp_path / "full", tmp_path / "quick"
+    for d in (full, quick):
+        (d / "data").mkdir(parents=True)
+    (full / "course_times.json").write_text(json.dumps({"01_highway": {"seconds": 60.0}}))
+    (full / "data" / "a.npz").write_bytes(b"x" * 1000)
+    (quick / "data" / "a.npz").write_bytes(b"x" * 300)
+    (quick / "data" / "b.npz").hardlink_to(quick / "data" / "a.npz")
+    log = tmp_path / "time.log"
+    log.write_text("chapter output\n\tMaximum resident set size (kbytes): 3145728\n")
+    assert peak_memory_kib(log) == 3145728
+    run = course_run_record(full, time_log=log, quick_outputs=quick)
+    assert run["outputs_bytes"] > 1000 and run["needs"]["quick_outputs_bytes"] == 300
+    text = report.machine_needs_list(run)
+    assert "3.0 GiB resident" in text and "after the quick one" in text
+    assert "Download" not in text and "venv" not in text  # not measured: not said
+    assert run["needs"]["system"] in text and run["needs"]["python"] in text
+    (tmp_path / "empty.log").write_text("no report here")
+    with pytest.raises(ValueError, match="time -v"):
+        peak_memory_kib(tmp_path / "empty.log")
+
+
 def test_the_committed_record_drives_a_sealed_block_and_states_its_power() -> None:
     """The record of record names its block of test roads (not the open one), the block's range
     and the commit of its frozen recipes, and docs/results.md states its power at its own +

@@ -60,6 +60,12 @@ def _parser() -> argparse.ArgumentParser:
         "rendered into docs/teaching.md)",
     )
     course.add_argument("outputs", type=Path, metavar="OUTPUTS")
+    course.add_argument("--time-log", type=Path, help="the run's '/usr/bin/time -v' output")
+    course.add_argument("--quick-outputs", type=Path, help="a quick course run's outputs folder")
+    course.add_argument("--venv", type=Path, help="the venv the run used")
+    course.add_argument(
+        "--downloads", type=Path, help="a folder of what 'pip download' fetched for the install"
+    )
     return parser
 
 
@@ -123,7 +129,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .course_run import course_run_record
 
     with atomic_write(COURSE_RUN, "w") as f:
-        json.dump(course_run_record(args.outputs), f, indent=1)
+        needs = {k: getattr(args, k) for k in ("time_log", "quick_outputs", "venv", "downloads")}
+        json.dump(course_run_record(args.outputs, **needs), f, indent=1)
     print(f"wrote {COURSE_RUN.relative_to(ROOT)}: render it with python -m e2e_lite.report")
     return 0
 
