@@ -116,7 +116,7 @@ def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
         info = CHAPTERS.get(number)
         purpose = info.purpose if info else ""
         link = f"[{t['chapter'][3:].replace('_', ' ')}]({t['chapter']}.md)"
-        rows.append(f"| {number:02d} | {link} | {purpose} | {minutes:.0f} |")
+        rows.append(f"| {number:02d} | {link} | {purpose} | {minutes:.1f} |")
         commits.add(t["commit"])
     if image_bytes > BUDGET_BYTES:
         raise SystemExit(f"the book's images weigh {image_bytes:,} bytes, over {BUDGET_BYTES:,}")
