@@ -62,17 +62,22 @@ starts = [recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0] for k i
 # deterministic and the expert's decision is a function of the state, so the expert can take
 # the car over from any of those states (`anatomy.savable`); the network's plans are checked for
 # a clash with a parked car or a rail as if followed exactly (`anatomy.plan_collides`), and
-# compared with the expert's labels at the same states (`anatomy.disagreement`).
+# compared with the expert's labels at the same states (`anatomy.disagreement`). The witnessed
+# drives are stored and reused, as every drive of the course is (`ablation.witnessed`).
 
 # %%
 miles = 2.0 if profile.quick else 150.0  # validation miles per seed
-witnesses = []
-for k, start in zip(seeds, starts):
-    run = dagger.val_run(profile, k, miles)
-    witness = anatomy.Witness(TrajectoryAgent(start), world_cfg.sim.policy_period_s)
-    evaluate(witness, world_cfg, run, desc=f"anatomy, seed {k}")
-    witnesses.append(witness)
-collisions = [c for w in witnesses for c in w.collisions][: 8 if profile.quick else None]
+witnessed = [
+    ablation.witnessed(
+        f"12_anatomy_seed{k}",
+        f"anatomy, seed {k}",
+        TrajectoryAgent(start),
+        world_cfg,
+        dagger.val_run(profile, k, miles),
+    )
+    for k, start in zip(seeds, starts)
+]  # per seed: (collisions, ordinary moments), stored and reused like a drive's result
+collisions = [c for hits, _ in witnessed for c in hits][: 8 if profile.quick else None]
 for c in collisions:
     anatomy.dissect(c, world_cfg)
 found = anatomy.table(collisions)
@@ -87,7 +92,7 @@ print(f"kinds: {found['kinds']}")
 
 # %%
 expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
-ordinary = [m for w in witnesses for m in w.ordinary[:100]]  # (every seed alike)
+ordinary = [m for _, moments in witnessed for m in moments[:100]]  # (every seed alike)
 cruise = np.nanmedian(anatomy.disagreement(ordinary, world_cfg, expert)) if ordinary else np.nan
 period = world_cfg.sim.policy_period_s
 before = [np.r_[np.full(60 - len(c.apart_m), np.nan), c.apart_m][-60:] for c in collisions]

@@ -11,11 +11,8 @@ trained (seeded) when not.
 Each learned row is trained with several seeds (:func:`build_seeded_drivers`; seed 0 is the
 chapters' own checkpoint, seeds 1, 2, ... are ``10_<name>_seed<k>``); the row's miles are shared
 among the seeds and their counts pooled (:func:`~e2e_lite.driving.evaluation.pool_results`), each seed's
-result kept under ``seeds``.
-
-A closed-loop result is kept in ``<outputs>/evaluations/<driver>.json`` (``<driver>_seed<k>.json``
-per seed) under a key made of the driver's weights, its settings and the evaluation's settings;
-running the chapter again reuses it when nothing changed.
+result kept under ``seeds``. A drive is stored under a key of the driver's weights and settings and
+the evaluation's, and read back while nothing changed (:func:`evaluate_stored`).
 """
 
 from __future__ import annotations
@@ -39,6 +36,7 @@ from .artifacts import (
 from .config import Profile, precision
 from .control.expert import Expert
 from .control.oracle import Oracle
+from .driving import anatomy
 from .driving.evaluation import evaluate
 from .driving.metrics import EvalResult, pool_results, result_dict, result_info, results_table
 from .driving.rollout import EvalConfig, disjoint_runs
@@ -218,9 +216,7 @@ CONTROLS = (
     ),
 )
 #: Rows beyond the paper that the record drives (chapter 12): DAgger's kept iterate, its control
-#: (the expert's DART-noised states, gated, labelled and aggregated alike) and the same fine-tunes
-#: on no new data: does DAgger step beyond + CVaR, is it the network's states, and what do the
-#: fine-tunes alone do?
+#: (the expert's noisy states: is it the network's?) and its fine-tunes on no new data.
 BEYOND = (
     Driver(
         "dagger", "+ DAgger (chapter 12), its kept iterate", build=lambda b: _dagger(b, "dagger")
@@ -237,10 +233,8 @@ BEYOND = (
     ),
 )
 #: Drivers of the exercises and the lab notes, which the course does not drive: the affordance
-#: head on the fused features (the paper's Fig. 1) instead of the trunk's; the GMM following the
-#: mixture's mean, with one mode, and with the paper's learned sigmas; CVaR and its control with the
-#: mixture's sigmas open, as the paper's NLL trains them (the course holds them at 1,
-#: :data:`~e2e_lite.learning.recipes.CVAR_SIGMA`).
+#: head on the fused features (Fig. 1); the GMM by its mean, with one mode, with learned sigmas;
+#: CVaR and its control with sigmas open (:data:`~e2e_lite.learning.recipes.CVAR_SIGMA`: 1).
 DIAGNOSTICS = (
     Driver(
         "gmm_affordance_fused",
@@ -384,18 +378,12 @@ def evaluate_drivers(
     progress: bool = True,
     workers: int | None = None,
 ) -> dict[str, EvalResult | dict[str, Any]]:
-    """Every driver on the same tracks with the same seeds (``cfg``).
-
-    Every driver runs in ``workers`` shards (default: every core; the results do not depend on
-    it). A driver given as a list (one policy per training
-    seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed, each seed on
-    tracks of its own (:func:`~e2e_lite.driving.evaluation.disjoint_runs`; seed ``k`` of every driver on
-    the same tracks), and its result is :func:`~e2e_lite.driving.evaluation.pool_results`
-    of theirs (a dict with ``seeds``). With ``reuse``, a result stored for the same driver
-    (:func:`fingerprint`), world, evaluation settings and precision is read back instead of
-    driven again (as a dict, the shape of ``EvalResult.to_dict()``); every other driver is
-    evaluated and stored.
-    """
+    """Every driver on the same tracks with the same seeds (``cfg``), in ``workers`` shards
+    (default: every core; the results do not depend on it). A driver given as a list (one policy
+    per training seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed,
+    seed ``k`` of every driver on the same tracks (:func:`~e2e_lite.driving.evaluation.disjoint_runs`),
+    and its result pools theirs (a dict with ``seeds``). With ``reuse``, a stored result is read
+    back as a dict (:func:`evaluate_stored`); every other driver is evaluated and stored."""
     out: dict[str, EvalResult | dict[str, Any]] = {}
     for key, policy in drivers.items():
         label = BY_KEY[key].label if key in BY_KEY else key
@@ -439,16 +427,40 @@ def evaluate_stored(
 
     if not reuse:
         return run()
-    run_key = settings_key(
-        versioned("evaluation"), fingerprint(policy), world_cfg, cfg, precision(), torch.__version__
-    )
-    # the settings' key is part of the name: two evaluations of one driver with other settings
-    # (chapter 11 drives chapter 10's network over other miles) keep a file each
-    path = artifact_path("evaluations", f"{file}-{run_key}.json")
+    path, run_key = _stored_at(file, policy, world_cfg, cfg)
     result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
     if progress and not isinstance(result, EvalResult):
         print(f"{label}: reusing {path.name} ({result['miles']:.3g} mi)", flush=True)
     return result
+
+
+def witnessed(
+    file: str, label: str, driver: Policy, world_cfg: WorldConfig, cfg: EvalConfig
+) -> tuple[list[anatomy.Collision], list[anatomy.Moment]]:
+    """``driver``'s collisions and ordinary moments on ``cfg``'s roads, witnessed
+    (:class:`~e2e_lite.driving.anatomy.Witness`), stored and read back as :func:`evaluate_stored`
+    stores a result (each moment back in a fresh copy of its world)."""
+
+    witness = anatomy.Witness(driver, world_cfg.sim.policy_period_s)
+
+    def drive() -> dict[str, Any]:
+        evaluate(witness, world_cfg, cfg, desc=label)
+        return anatomy.witnessed_to_dict(witness)
+
+    kept = (versioned("witness"), anatomy.HISTORY_S, witness.every)
+    path, key = _stored_at(file, driver, world_cfg, cfg, *kept)
+    stored = cached(path, key, drive, anatomy.save_witnessed, anatomy.load_witnessed)
+    return anatomy.witnessed_from_dict(stored, world_cfg)
+
+
+def _stored_at(
+    file: str, policy: Policy, world_cfg: WorldConfig, cfg: EvalConfig, *what: Any
+) -> tuple[Path, str]:
+    """Where a drive of ``policy`` is stored, and its key (the driver's :func:`fingerprint`, world,
+    settings, precision and ``what`` else), which is in the name: each drive's settings a file."""
+    parts = (fingerprint(policy), world_cfg, cfg, precision(), torch.__version__)
+    key = settings_key(versioned("evaluation"), *what, *parts)
+    return artifact_path("evaluations", f"{file}-{key}.json"), key
 
 
 def _save_result(path: Path, result: EvalResult, key: str) -> None:

@@ -223,3 +223,44 @@ def test_the_anatomy_redrives_a_collision_to_the_same_step_and_hands_it_to_the_e
     anatomy.dissect(c, WORLD)
     assert c.kind == "lane change missed" and c.plan_hit is None
     assert c.saved[max(c.saved)] and c.latest_savable_s is not None
+
+
+def test_a_witnessed_drive_is_stored_and_read_back_to_the_same_collisions_and_findings(
+    monkeypatch, tmp_path
+):
+    """The anatomy's drive is stored like a drive's result: read back from its file (a second
+    call drives nothing), every collision and ordinary moment holds the same state, segment,
+    command and track, a network's plans come back as they were, and dissecting a collision read
+    back finds what dissecting the driven one finds."""
+    from e2e_lite import ablation
+    from e2e_lite.driving import anatomy
+    from e2e_lite.driving.evaluation import EvalConfig, evaluate
+
+    cfg = EvalConfig(miles=2.0, n_worlds=4, split="val")
+    witness = anatomy.Witness(LaneKeeper(), WORLD.sim.policy_period_s)
+    evaluate(witness, WORLD, cfg, progress=False)
+    ablation.witnessed("w", "w", LaneKeeper(), WORLD, cfg)  # drives and stores
+    monkeypatch.setattr(ablation, "evaluate", lambda *a, **k: pytest.fail("drove again"))
+    stored, ordinary = ablation.witnessed("w", "w", LaneKeeper(), WORLD, cfg)  # reads the file
+    assert len(stored) == len(witness.collisions) > 0 and len(ordinary) == len(witness.ordinary) > 0
+    pairs = [
+        (m, n) for a, b in zip(witness.collisions, stored) for m, n in zip(a.moments, b.moments)
+    ]
+    pairs += list(zip(witness.ordinary, ordinary))
+    for a, b in zip(witness.collisions, stored):
+        assert (a.car, a.step, len(a.moments)) == (b.car, b.step, len(b.moments))
+    for m, n in pairs:
+        assert np.array_equal(m.state, n.state) and (m.seg, m.command) == (n.seg, n.command)
+        assert m.world.track.track_id == n.world.track.track_id and n.plan is None
+    for a, b in zip(witness.collisions[:2], stored[:2]):
+        anatomy.dissect(a, WORLD)
+        anatomy.dissect(b, WORLD)
+        assert (a.contact, a.parked, a.saved, a.kind) == (b.contact, b.parked, b.saved, b.kind)
+    rng = np.random.default_rng(0)
+    witness.ordinary = [dataclasses.replace(m, plan=rng.random((5, 2))) for m in ordinary]
+    anatomy.save_witnessed(tmp_path / "w.json", anatomy.witnessed_to_dict(witness), "k")
+    back, key = anatomy.load_witnessed(tmp_path / "w.json")
+    _, planned = anatomy.witnessed_from_dict(back, WORLD)
+    assert key == "k" and all(
+        np.array_equal(m.plan, n.plan) for m, n in zip(witness.ordinary, planned)
+    )

@@ -22,10 +22,12 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..artifacts import load_json, save_json
 from ..control.expert import Expert
 from ..control.labels import CHANGE, FOLLOW, interpolated_path
 from ..simulation.policy import Actuation, Observation, Policy, observe
@@ -148,6 +150,64 @@ class Witness:
         moments = list(self.buffers[i])
         if moments:
             self.collisions.append(Collision(i, int(self.steps[i]), moments))
+
+
+def witnessed_to_dict(witness: Witness) -> dict[str, Any]:
+    """What a :class:`Witness` kept, as JSON-able lists: each moment's world by its track's id
+    (the world is rebuilt from it: :func:`witnessed_from_dict`), its arrays as lists of floats."""
+
+    def moment(m: Moment) -> dict[str, Any]:
+        plan = None if m.plan is None else m.plan.tolist()
+        track = list(m.world.track.track_id)
+        return {
+            "state": m.state.tolist(),
+            "seg": m.seg,
+            "track": track,
+            "plan": plan,
+            "command": list(m.command),
+        }
+
+    return {
+        "collisions": [
+            {"car": c.car, "step": c.step, "moments": [moment(m) for m in c.moments]}
+            for c in witness.collisions
+        ],
+        "ordinary": [moment(m) for m in witness.ordinary],
+    }
+
+
+def witnessed_from_dict(
+    stored: dict[str, Any], world_cfg: WorldConfig
+) -> tuple[list[Collision], list[Moment]]:
+    """:func:`witnessed_to_dict`'s collisions and ordinary moments back, each moment in a fresh
+    copy of its world (one per track: a world's parked cars are a function of its track's id)."""
+    worlds: dict[tuple[str, int], World] = {}
+
+    def moment(m: dict[str, Any]) -> Moment:
+        key = (str(m["track"][0]), int(m["track"][1]))
+        if key not in worlds:
+            worlds[key] = make_world(world_cfg, *key)
+        world = worlds[key]
+        plan = None if m["plan"] is None else np.array(m["plan"], dtype=float)
+        state = np.array(m["state"], dtype=float)
+        return Moment(state, int(m["seg"]), world, plan, tuple(m["command"]))
+
+    collisions = [
+        Collision(c["car"], c["step"], [moment(m) for m in c["moments"]])
+        for c in stored["collisions"]
+    ]
+    return collisions, [moment(m) for m in stored["ordinary"]]
+
+
+def save_witnessed(path: Path, stored: dict[str, Any], key: str) -> None:
+    """Write :func:`witnessed_to_dict`'s dict with its key (for :func:`~e2e_lite.artifacts.cached`)."""
+    save_json(path, {"key": key, **stored})
+
+
+def load_witnessed(path: Path) -> tuple[dict[str, Any], str]:
+    """:func:`save_witnessed`'s dict and key back."""
+    stored = load_json(path)
+    return stored, stored.pop("key")
 
 
 def contact(last: Moment, world_cfg: WorldConfig) -> tuple[str, int]:
