@@ -50,10 +50,13 @@ def shrink(png: Path, width_px: int = WIDTH_PX) -> bytes:
     return buf.getvalue()
 
 
-def page(transcript: dict[str, Any], source: str, figures: dict[str, str]) -> str:
+def page(
+    transcript: dict[str, Any], source: str, figures: dict[str, str], outputs: str = ""
+) -> str:
     """One chapter's page from its ``transcript``; ``source``: the chapter's current text (a
     page whose source changed since the run says so); ``figures``: each saved figure's path in
-    the outputs and its file name in the book."""
+    the outputs and its file name in the book; ``outputs``: the run's outputs folder, shown in
+    printed lines as ``outputs`` (the folder a reader's own run writes to)."""
     profile = "quick" if "--quick" in transcript.get("flags", []) else "full"
     lines = [
         f"*Rendered from the {profile}-profile run at commit `{transcript['commit']}` on"
@@ -72,8 +75,11 @@ def page(transcript: dict[str, Any], source: str, figures: dict[str, str]) -> st
             lines += [cell["text"], ""]
             continue
         lines += ["```python", cell["text"], "```", ""]
-        if cell.get("output", "").strip():
-            lines += ["```text", cut(cell["output"]), "```", ""]
+        output = cell.get("output", "")
+        if outputs:
+            output = output.replace(outputs.rstrip("/"), "outputs")
+        if output.strip():
+            lines += ["```text", cut(output), "```", ""]
         for fig in cell.get("figures", []):
             if fig in figures:
                 lines += [f"![{Path(fig).stem}](figures/{figures[fig]})", ""]
@@ -98,7 +104,7 @@ def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
     times = (
         json.loads((outputs / TIMES_FILE).read_text()) if (outputs / TIMES_FILE).exists() else {}
     )
-    rows, commits, image_bytes = [], set(), 0
+    rows, commits, image_bytes, total = [], {}, 0, 0.0
     for path in transcripts:
         t = json.loads(path.read_text())
         figures = {}
@@ -111,13 +117,14 @@ def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
                 figures[fig] = name
         number = int(t["chapter"][:2])
         source = paths[number].read_text() if number in paths else ""
-        (book / f"{t['chapter']}.md").write_text(page(t, source, figures))
-        minutes = (times.get(t["chapter"]) or {}).get("seconds", 0.0) / 60.0
+        (book / f"{t['chapter']}.md").write_text(page(t, source, figures, str(outputs)))
+        seconds = (times.get(t["chapter"]) or {}).get("seconds", 0.0)
         info = CHAPTERS.get(number)
         purpose = info.purpose if info else ""
         link = f"[{t['chapter'][3:].replace('_', ' ')}]({t['chapter']}.md)"
-        rows.append(f"| {number:02d} | {link} | {purpose} | {minutes:.1f} |")
-        commits.add(t["commit"])
+        rows.append(f"| {number:02d} | {link} | {purpose} | {duration(seconds)} |")
+        commits.setdefault(t["commit"], []).append(f"{number:02d}")
+        total += seconds
     if image_bytes > BUDGET_BYTES:
         raise SystemExit(f"the book's images weigh {image_bytes:,} bytes, over {BUDGET_BYTES:,}")
     date = max(json.loads(p.read_text())["date"] for p in transcripts)
@@ -130,16 +137,50 @@ def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
         " verdicts and their power, not the last digit). Rendered by `python -m e2e_lite.book`"
         " from the run's transcripts; do not edit by hand.",
         "",
-        f"*The run: commit `{', '.join(sorted(commits))}`, {date}, on {cpu_name()}; chapter"
-        " minutes as that run took them.*",
+        f"*The run: {date}, on {cpu_name()}, at {at_commits(commits)}; each chapter's time as"
+        " that run took it.*",
         "",
-        "| # | chapter | the idea | minutes |",
+        "| # | chapter | the idea | time |",
         "|---|---|---|---:|",
         *rows,
+        f"| | **the course** | | {duration(total)} |",
         "",
     ]
     (book / "README.md").write_text("\n".join(index))
     return {"chapters": len(rows), "commits": sorted(commits), "image_bytes": image_bytes}
+
+
+def duration(seconds: float) -> str:
+    """``"3 s"`` under a minute, ``"16.8 min"`` under an hour, else ``"2 h 05 min"``."""
+    if seconds < 60.0:
+        return f"{seconds:.0f} s"
+    if seconds < 3600.0:
+        return f"{seconds / 60.0:.1f} min"
+    hours, minutes = divmod(round(seconds / 60.0), 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+def at_commits(chapters: dict[str, list[str]]) -> str:
+    """Which chapters ran at which commit: ``"commit `abc1234`"`` for one, else ``"commits
+    `abc1234` (chapters 01-06) and `def5678` (07-12)"``."""
+    if len(chapters) == 1:
+        return f"commit `{next(iter(chapters))}`"
+    parts = [
+        f"`{c}` ({'chapters ' if k == 0 else ''}{', '.join(_ranges(ns))})"
+        for k, (c, ns) in enumerate(sorted(chapters.items(), key=lambda kv: min(kv[1])))
+    ]
+    return "commits " + ", ".join(parts[:-1]) + " and " + parts[-1]
+
+
+def _ranges(numbers: list[str]) -> list[str]:
+    """``["01", "02", "03", "05"]`` -> ``["01-03", "05"]``."""
+    out: list[list[int]] = []
+    for n in sorted(int(x) for x in numbers):
+        if out and n == out[-1][-1] + 1:
+            out[-1].append(n)
+        else:
+            out.append([n])
+    return [f"{r[0]:02d}-{r[-1]:02d}" if len(r) > 1 else f"{r[0]:02d}" for r in out]
 
 
 def main(argv: list[str] | None = None) -> int:

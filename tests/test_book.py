@@ -63,3 +63,17 @@ def test_a_chapter_runs_cell_by_cell_and_its_page_shows_each_cells_output(tmp_pa
     assert transcript.run(path, []) == 1
     t = json.loads((outputs / "transcripts" / "99_test.json").read_text())
     assert "RuntimeError: boom" in t["cells"][1]["output"] and t["exit_code"] == 1
+
+
+def test_the_index_says_which_chapters_ran_at_which_commit_and_times_read_as_times():
+    """A run across commits names each commit with its chapters; a printed path into the run's
+    outputs folder reads as the reader's own ``outputs``."""
+    assert book.at_commits({"abc1234": ["01", "02"]}) == "commit `abc1234`"
+    ran = {"def5678": ["07", "08", "10"], "abc1234": ["01", "02", "03", "05"]}
+    assert (
+        book.at_commits(ran) == "commits `abc1234` (chapters 01-03, 05) and `def5678` (07-08, 10)"
+    )
+    assert [book.duration(s) for s in (2.7, 1006.0, 7500.0)] == ["3 s", "16.8 min", "2 h 05 min"]
+    t = {"chapter": "99_t", "commit": "abc1234", "date": "2026-11-29", "source_sha256": ""}
+    t["cells"] = [{"kind": "code", "text": "print(p)", "output": "saved /runs/x/figures/a.png\n"}]
+    assert "saved outputs/figures/a.png" in book.page(t, "", {}, "/runs/x/")
