@@ -77,7 +77,8 @@ def page(
         lines += ["```python", cell["text"], "```", ""]
         output = cell.get("output", "")
         if outputs:
-            output = output.replace(outputs.rstrip("/"), "outputs")
+            root = outputs.rstrip("/")
+            output = output.replace(root + "/", "outputs/").replace(root, "outputs/")
         if output.strip():
             lines += ["```text", cut(output), "```", ""]
         for fig in cell.get("figures", []):

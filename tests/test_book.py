@@ -75,5 +75,7 @@ def test_the_index_says_which_chapters_ran_at_which_commit_and_times_read_as_tim
     )
     assert [book.duration(s) for s in (2.7, 1006.0, 7500.0)] == ["3 s", "16.8 min", "2 h 05 min"]
     t = {"chapter": "99_t", "commit": "abc1234", "date": "2026-11-29", "source_sha256": ""}
-    t["cells"] = [{"kind": "code", "text": "print(p)", "output": "saved /runs/x/figures/a.png\n"}]
-    assert "saved outputs/figures/a.png" in book.page(t, "", {}, "/runs/x/")
+    printed = "outputs in /runs/x\nsaved /runs/x/figures/a.png\n"
+    t["cells"] = [{"kind": "code", "text": "print(p)", "output": printed}]
+    shown = book.page(t, "", {}, "/runs/x/")
+    assert "outputs in outputs/\nsaved outputs/figures/a.png" in shown and "/runs" not in shown
