@@ -82,7 +82,9 @@ for c in collisions:
     anatomy.dissect(c, world_cfg)
 found = anatomy.table(collisions)
 print(f"{len(seeds)} seeds x {miles:g} mi of validation roads: {found['collisions']} collisions")
-print(f"saved by the expert taking over this long before: {found['saved_by_hand_over']}")
+tried = {t: found["collisions"] - n for t, n in found["untried_by_hand_over"].items()}
+saved = {f"{t} s": f"{n} of {tried[t]}" for t, n in found["saved_by_hand_over"].items()}
+print(f"saved by the expert taking over this long before (of those tried there): {saved}")
 print(f"latest savable moment [s]: {found['latest_savable']}")
 print(
     f"the network's plans of the last second all clear (the tracker's share): "
