@@ -25,12 +25,12 @@ def folder_bytes(path: Path) -> int:
 
 
 def peak_memory_kib(time_log: Path) -> int:
-    """The largest resident set of any one process of the run [KiB], as ``/usr/bin/time -v``
-    wrote it at the end of ``time_log``."""
+    """The largest resident set of any one process of the run [KiB], the largest of the
+    ``/usr/bin/time -v`` reports in ``time_log`` (a run resumed across sittings writes one each)."""
     found = re.findall(r"Maximum resident set size \(kbytes\): (\d+)", time_log.read_text())
     if not found:
         raise ValueError(f"{time_log}: no '/usr/bin/time -v' report in it")
-    return int(found[-1])
+    return max(int(k) for k in found)
 
 
 def operating_system() -> str:
