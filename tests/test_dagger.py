@@ -264,3 +264,15 @@ def test_a_witnessed_drive_is_stored_and_read_back_to_the_same_collisions_and_fi
     assert key == "k" and all(
         np.array_equal(m.plan, n.plan) for m, n in zip(witness.ordinary, planned)
     )
+
+
+def test_a_short_drive_keeps_ordinary_moments_counted_over_all_its_cars():
+    """Every ``every``-th decision of all cars together is an ordinary moment: a drive whose cars
+    each decide fewer than ``every`` times (the quick profile's) still keeps some to compare with."""
+    from e2e_lite.driving import anatomy
+    from e2e_lite.driving.evaluation import EvalConfig, evaluate
+
+    witness = anatomy.Witness(LaneKeeper(), WORLD.sim.policy_period_s, every=50)
+    evaluate(witness, WORLD, EvalConfig(miles=0.5, n_worlds=8, split="val"), progress=False)
+    assert witness.steps.max() < witness.every  # no car alone reached ``every`` decisions
+    assert len(witness.ordinary) == witness.decisions // witness.every > 0

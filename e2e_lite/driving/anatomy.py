@@ -105,9 +105,11 @@ class Collision:
 class Witness:
     """A policy wrapper that drives ``driver`` unchanged and keeps, for every car, its last
     :data:`HISTORY_S` of moments; a car's collision files them in :attr:`collisions`, and every
-    ``every``-th decision of every car is kept in :attr:`ordinary` (driving with no collision in
-    sight, to compare with). A network's plan is read from ``driver.last["points"]``. It keeps
-    its states in this process, so an evaluation drives it in one shard (it has no ``fork``)."""
+    ``every``-th decision of all cars together, counted across the drive, is kept in
+    :attr:`ordinary` (driving with no collision in sight, to compare with; counted per car, a
+    short drive whose cars each decide fewer than ``every`` times kept none). A network's plan
+    is read from ``driver.last["points"]``. It keeps its states in this process, so an
+    evaluation drives it in one shard (it has no ``fork``)."""
 
     def __init__(self, driver: Policy, period_s: float, every: int = 200) -> None:
         self.driver, self.every = driver, every
@@ -125,6 +127,7 @@ class Witness:
         self.driver.reset(n_worlds)
         self.buffers: list[deque[Moment]] = [deque(maxlen=self.history) for _ in range(n_worlds)]
         self.steps = np.zeros(n_worlds, dtype=np.int64)
+        self.decisions = 0  # of all cars in this drive
 
     def act(self, obs: Observation) -> Actuation:
         for i in np.flatnonzero(obs.collided if obs.collided is not None else []).tolist():
@@ -140,7 +143,8 @@ class Witness:
             command = (float(steer[i]), float(accel[i]))
             moment = Moment(obs.state[i].copy(), seg, world, plan, command)
             self.buffers[i].append(moment)
-            if self.steps[i] % self.every == self.every - 1:
+            self.decisions += 1
+            if self.decisions % self.every == 0:
                 self.ordinary.append(moment)
         self.steps += 1
         return act
