@@ -73,19 +73,16 @@ human = Camera(CameraConfig.human())
 #
 # | state | does | leaves when |
 # |---|---|---|
-# | `keep` | the home (middle) lane's centre | a car ahead nearer than *trigger*: `change` if a |
-# | | at the speed limit | neighbour is free (a coin picks when both are), else `follow` |
-# | `change` | a quintic path, then the new centre | the car reaches the new lane |
-# | `pass` | another lane's centre | *finish* metres past the car, home lane free: `change` |
+# | `keep` | follow the lane centre | a car ahead nearer than *trigger*: `change` if a neighbour |
+# | | at the speed limit | is free (a coin picks when both are), else `follow` |
+# | `change` | follow a quintic path | at its end: `pass` (an overtake) or `keep` (a return) |
+# | `pass` | follow the new lane | *finish* metres past the car, original lane free: `change` |
 # | `follow` | stop 15 m behind the car | a lane becomes free (slower: a shorter lane change) |
 #
-# The state is **read off the world at every decision**, never remembered: the lane the car is
-# in, whether it is moving towards a free neighbour, and the parked cars say which row applies,
-# and how far across the car already is says where on its quintic path it stands. So the
-# expert's label is a function of the state alone (chapter 12 needs that). Each parked car
-# carries its own draws, seeded by the expert's seed, the track and the car: the trigger
-# (45-75 m: at 25 m/s a comfortable lane change needs ~60 m), the finish (5-40 m), the change's
-# duration (2.5-3.5 s) and the side coin.
+# Per manoeuvre, each car draws from its own seeded generator: the trigger (45-75 m: at 25 m/s a
+# comfortable lane change needs ~60 m), the finish (5-40 m), the change's duration (2.5-3.5 s) and
+# the side coin. The expert **carries its plan** (state, path, draws) from decision to decision;
+# chapter 12 needs a labeller that reads it off the state instead, and says why.
 
 # %%
 straight = Track([0.0], [0.0], [0.0], [0.0], [900.0])
@@ -211,8 +208,8 @@ print("oracle:", res_oracle.summary())
 # expert would do from each recorded state:
 #
 # * actuators: its command **before** the burst is added;
-# * trajectory: a rollout of a copy of the car, driven by the same rules, for 1.5 s without noise
-#   (no physics, no rendering), recorded every 0.3 s in the car frame at the sample time.
+# * trajectory: a rollout of copies of the car and its plan for 1.5 s without noise (no physics,
+#   no rendering), recorded every 0.3 s in the car frame at the sample time.
 #
 # ## 5. The dataset
 #
@@ -404,7 +401,7 @@ print(
 #
 # 1. Set `ExpertConfig(trigger_m=(25.0, 35.0))`. Does the expert still drive without collisions?
 #    What does `_change_length` do with such short triggers, and what does the expert do instead?
-# 2. Make the side coin always pick the left (`coin=0.0` in `Expert.draws`). Which share in the
+# 2. Make the side coin always pick the left (`coin=0.0` in `Plan.draw`). Which share in the
 #    dataset statistics changes, and what would a network trained on it never learn?
 # 3. Collect a dataset with `NoiseConfig(rate_per_s=0.0)`. Compare the distribution of the
 #    `center_offset_m` affordance with and without noise. Which states are missing without it?

@@ -33,9 +33,9 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import ablation, artifacts
-from e2e_lite.control.expert import Expert
+from e2e_lite.control.expert import Expert, WipedExpert
 from e2e_lite.control.oracle import Oracle
-from e2e_lite.control.remembering import RememberingExpert, WipedExpert
+from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving import anatomy
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, result_dict
 from e2e_lite.driving.verdicts import compare_seeds, power, seed_counts
@@ -59,8 +59,8 @@ starts = [recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0] for k i
 #
 # Each seed's start network drives its own validation roads inside a `Witness`, which keeps every
 # car's last 6 s of states and plans and files them at each collision. The world is
-# deterministic and the expert's decision is a function of the state, so the expert can take
-# the car over from any of those states (`anatomy.savable`); the network's plans are checked for
+# deterministic and the state expert's decision (section 2) is a function of the state, so it
+# can take the car over from any of those states (`anatomy.savable`); the network's plans are checked for
 # a clash with a parked car or a rail as if followed exactly (`anatomy.plan_collides`), and
 # compared with the expert's labels at the same states (`anatomy.disagreement`). The witnessed
 # drives are stored and reused, as every drive of the course is (`ablation.witnessed`).
@@ -93,7 +93,7 @@ print(
 print(f"kinds: {found['kinds']}")
 
 # %%
-expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+expert = StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
 ordinary = [m for _, moments in witnessed for m in moments[:100]]  # (every seed alike)
 cruise = np.nanmedian(anatomy.disagreement(ordinary, world_cfg, expert)) if ordinary else np.nan
 period = world_cfg.sim.policy_period_s
@@ -116,12 +116,15 @@ print(f"median plan-label distance, ordinary driving {cruise:.2f} m; saved {png_
 # ## 2. One labeller, and a label is a driver
 #
 # DAgger labels states the learner drove into, where no plan of the expert's led. The course's
-# expert reads its plan off the state at every decision (`control.expert`): the same state gets
-# the same label whatever drove there, so it labels chapter 04's data too, and every network
-# learns from one labeller. Its first expert (`control.remembering`) carried its plan
-# from decision to decision; wiped before each label, as chapter 12 once labelled DAgger's
-# rounds, it restarts every manoeuvre in "keep". A label is only as good as the driver it
-# describes, so drive each: the oracle is the tracker following a labeller at every decision.
+# expert (chapter 04, `control.expert`) carries its plan from decision to decision; wiped before
+# each label, as this chapter once labelled DAgger's rounds, it restarts every manoeuvre in
+# "keep". The **state expert** (`control.state_expert`) runs the same state machine but reads
+# its plan off the state at every decision: the same state gets the same label whatever drove
+# there. It labels every round, and it **relabels chapter 04's data** as Learning by Cheating
+# relabels its buffer, so every sample a fine-tune draws, old or new, carries one labeller's
+# label. Chapter 04's data keeps the course's expert: networks learned its labels better (lab
+# note "Do networks learn the labeller?"). A label is only as good as the driver it describes,
+# so drive each: the oracle is the tracker following a labeller at every decision.
 
 # %%
 check = dagger.val_roads(1.0 if profile.quick else 20.0, 32)
@@ -130,6 +133,7 @@ check = dagger.val_roads(1.0 if profile.quick else 20.0, 32)
 drives = {
     "the expert": Expert(sim=world_cfg.sim),
     "the oracle on the expert's labels": Oracle(Expert(sim=world_cfg.sim)),
+    "the oracle on the state expert's labels": Oracle(StateExpert(sim=world_cfg.sim)),
     "the oracle on the wiped labels": Oracle(WipedExpert(sim=world_cfg.sim)),
 }
 labellers = {}
@@ -140,24 +144,26 @@ for name, policy in drives.items():
         f"{name}: {r['collisions']} collisions in {r['miles']:.1f} mi "
         f"({r['collisions_per_100mi']:.1f} per 100 mi) at {r['mean_speed_mph']:.1f} mph"
     )
-apart = anatomy.labellers_apart(RememberingExpert(sim=world_cfg.sim), world_cfg, check)
+ends = train.trajectory[:, -1] - train.arrays["state_trajectory"][:, -1]  # (the 1.5 s points)
+apart = np.linalg.norm(ends, axis=-1)
 print(
-    f"at the first expert's own states, its label's end and the course's lie more than 1 m "
-    f"apart in {np.mean(apart > 1.0):.1%} of {len(apart):,} states"
+    f"relabelled: at chapter 04's states, the two experts' labels end more than 1 m apart in "
+    f"{np.mean(apart > 1.0):.1%} of {len(apart):,} samples"
 )
 
 # %% [markdown]
 # ## 3. DAgger aimed at the failing states, and its two controls
 #
 # A round (`dagger.run`, one `RoundSpec` per round): the network drives `drive` times more
-# decisions than the round keeps, on fresh training roads; the expert labels every state; the
-# **gate** keeps the seconds before each collision first, then the states where the network's
-# plan lay farthest from the expert's label (`dagger.gate`). The network is fine-tuned on rows
-# drawn from **the whole aggregate** (chapter 04's data and every round's), chapter 09's mean
-# fine-tune. Two arms differ from it in one thing each: the **control** lets the expert drive,
-# with white noise on its commands as large as the network's measured command error (DART,
-# Laskey et al. 2017), and gates, labels and aggregates the same way; **no new data** runs the
-# same fine-tunes on chapter 04's data alone.
+# decisions than the round keeps, on fresh training roads; the state expert labels every state;
+# the **gate** keeps the seconds before each collision first, then the states where the
+# network's plan lay farthest from the label (`dagger.gate`). The network is fine-tuned on rows
+# drawn from **the whole aggregate** (chapter 04's data, relabelled, and every round's), chapter
+# 09's mean fine-tune. Two arms differ from it in one thing each: the **control** lets the state
+# expert drive, with white noise on its commands as large as the network's measured command
+# error (DART, Laskey et al. 2017), and gates, labels and aggregates the same way; **no new
+# data** runs the same fine-tunes on chapter 04's relabelled data alone: what the fine-tunes and
+# the relabelling do without a new state.
 
 # %%
 cfg = dagger.DaggerConfig.for_profile(profile)
@@ -295,6 +301,8 @@ headline = {
     "tracker's share (plans clear)": found["plan_clear"],
     "not saved by any hand-over tried": found["latest_savable"]["none tried"],
     "oracle on the expert, per 100 mi": labellers["the oracle on the expert's labels"],
+    "oracle on the state expert, per 100 mi": labellers["the oracle on the state expert's labels"],
+    "labels apart at chapter 04's states (> 1 m)": float(np.mean(apart > 1.0)),
     "oracle on the wiped labels, per 100 mi": labellers["the oracle on the wiped labels"],
     "start collisions/100mi": rate["start"],
     "DAgger collisions/100mi": rate["dagger"],
@@ -332,12 +340,12 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # %% [markdown]
 # ## Summary
 #
-# * Dissect before fixing: a collision's latest savable moment (the expert taking over from the
-#   very state), the tracker's share (plans that were clear) and its kind say which states a fix
+# * Dissect before fixing: a collision's latest savable moment (the state expert taking over from
+#   the very state), the tracker's share (plans that were clear) and its kind say which states a fix
 #   must reach (section 1 prints them for this run).
-# * A label is a driver: the oracle on the expert's labels and on the wiped labels drive the same
-#   roads very differently (section 2's lines), so DAgger's labeller must be the expert whose
-#   label is a function of the state, and it labels chapter 04's data too: one labeller.
+# * A label is a driver: the oracle on the expert's labels, on the state expert's and on the wiped
+#   labels drive the same roads (section 2's lines); DAgger's labeller must be a function of the
+#   state, and it relabels chapter 04's data so that a fine-tune learns one labeller.
 # * The theory's recipe: rounds that drive far more than they keep and gate what they keep,
 #   fine-tunes on the whole aggregate, and the iterate chosen on validation roads.
 # * A data method needs two controls: the same rounds with the expert driving (is it the
@@ -352,7 +360,7 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # 2. More rounds: `rounds=8`. Which iterate does each seed keep? Prakash et al. (2020) saw plain
 #    DAgger get worse after its second round: does the kept iterate protect against that?
 # 3. The anatomy's hand-over with the oracle instead of the expert (`anatomy.dissect(c,
-#    world_cfg, hand_over=Oracle(Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)))`): which
+#    world_cfg, hand_over=Oracle(StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)))`): which
 #    collisions does the trajectory plus tracker still save, and what does that say about the
 #    tracker's share?
 # 4. DART's noise: scale it (`DaggerConfig.for_profile(profile, dart_scale=2.0)`). Does the

@@ -329,12 +329,13 @@ def write_metrics(
 #: (``tests/test_reference.py`` refuses to record a changed behaviour under the same versions).
 ARTIFACT_VERSIONS = {
     # 5: the expert reads its plan off the state at every decision (its labels are a function of
-    # the state alone)
-    "dataset": 5,
+    # the state alone); 6: the course's expert carries its plan again (networks learned it
+    # better), and every sample also holds the state expert's label (DAgger's relabelling)
+    "dataset": 6,
     # 3: the precision (fp32 / tf32) is part of the key
     "checkpoint": 3,
-    # 3: the expert (and so the oracle) reads its plan off the state
-    "evaluation": 3,
+    # 3: the expert (and so the oracle) reads its plan off the state; 4: they carry it again
+    "evaluation": 4,
     "head-refit": 1,
     # what a witnessed drive keeps (chapter 12's anatomy: ``driving.anatomy.Witness``); 2: its
     # ordinary moments counted over all cars (a short drive's cars kept none)

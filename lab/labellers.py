@@ -1,6 +1,7 @@
-"""Does the labeller drive? The course's expert (its plan read off the state) and the course's
-first expert (its plan remembered), each driving, each followed by the tracker at every decision
-(the oracle on its labels), and the first expert's labels with its plans wiped before every label
+"""Does the labeller drive? The state expert (its plan read off the state; the course's expert at
+e4eddca, named "expert" here) and the course's expert (its plan carried; "remembering" here),
+each driving, each followed by the tracker at every decision (the oracle on its labels), and the
+course's expert's labels with its plans wiped before every label
 (chapter 12's old DAgger labeller), on validation roads of the full profile's world: collisions,
 speed, manoeuvres and the lateral acceleration of the expert's own driving.
 
@@ -20,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from e2e_lite.config import FULL
-from e2e_lite.control.expert import Expert
+from e2e_lite.control.expert import Expert, WipedExpert
 from e2e_lite.control.oracle import Oracle
-from e2e_lite.control.remembering import RememberingExpert, WipedExpert
+from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
 from e2e_lite.simulation.world import WorldConfig
 
@@ -71,7 +72,7 @@ def main() -> None:
     world = WorldConfig.for_profile(FULL)
     ev = EvalConfig(miles=args.miles, n_worlds=32, split="val", first_track=5_000)
     out = {"roads": "validation, first track 5,000, 32 cars, the full profile's world"}
-    for name, kind in (("expert", Expert), ("remembering", RememberingExpert)):
+    for name, kind in (("expert", StateExpert), ("remembering", Expert)):
         lateral = Lateral(kind(sim=world.sim))
         out[name] = drive(lateral, world, ev, workers=1)
         a = np.concatenate(lateral.a_lat)

@@ -1,10 +1,12 @@
-"""Do networks learn the course's expert as well as its first one? The same recipe (chapter 07's
-GMM), the same training seeds and the same validation roads, on chapter 04's data labelled (and
-driven) by the course's expert, whose plan is read off the state, or by the first expert, which
-carried its plan (`control/remembering.py`). Each labeller's run keeps its own outputs folder
-(chapter 04's data and the GMMs are stored there and reused, so a cut run goes on where it
-stopped); `--compare` reads both and tests them with the training seed as the unit: a rank test,
-declared before the runs, the course's expert's seeds against the first one's.
+"""Do networks learn the state expert as well as the course's expert? The same recipe (chapter
+07's GMM), the same training seeds and the same validation roads, on chapter 04's data labelled
+(and driven) by the state expert, whose plan is read off the state (`control/state_expert.py`;
+the course's expert at 21afcad, so ``--labeller expert`` here), or by the course's expert, which
+carries its plan (`control/expert.py`; ``--labeller remembering``, its name at 21afcad). Each
+labeller's run keeps its own outputs folder (chapter 04's data and the GMMs are stored there and
+reused, so a cut run goes on where it stopped); `--compare` reads both and tests them with the
+training seed as the unit: a rank test, declared before the runs, the state expert's seeds
+against the course's expert's.
 
     python lab/labels_learned.py --labeller expert --outputs DIR_A
     python lab/labels_learned.py --labeller remembering --outputs DIR_B
@@ -29,27 +31,17 @@ def run(labeller: str, outputs: Path, seeds: int, miles: float, quick: bool) -> 
     os.environ["E2E_LITE_OUTPUTS"] = str(outputs)
     from e2e_lite import ablation
     from e2e_lite.config import FULL, QUICK
-    from e2e_lite.control.remembering import RememberingExpert
     from e2e_lite.driving.evaluation import EvalConfig, result_dict
     from e2e_lite.learning import collector, recipes
     from e2e_lite.learning.agents import TrajectoryAgent
     from e2e_lite.simulation.world import WorldConfig
 
-    class Remembering(RememberingExpert):
-        """The first expert as the collector reads an expert: its plans are its decisions (their
-        state, side and overtaking, as the course's expert's ``Decision``)."""
-
-        @property
-        def decisions(self) -> list:
-            return self.plans
-
     profile = QUICK if quick else FULL
-    if labeller == "remembering":  # collected in this process, so the swap reaches every car
-        collector.Expert = Remembering
-        os.environ["E2E_LITE_WORKERS"] = "1"
-    train = collector.load_or_collect(collector.DataConfig.for_profile(profile, "train"))
-    val = collector.load_or_collect(collector.DataConfig.for_profile(profile, "val"))
-    os.environ.pop("E2E_LITE_WORKERS", None)
+    driver = "state" if labeller == "expert" else "expert"  # (the names of 21afcad, see above)
+    train = collector.load_or_collect(
+        collector.DataConfig.for_profile(profile, "train", driver=driver)
+    )
+    val = collector.load_or_collect(collector.DataConfig.for_profile(profile, "val", driver=driver))
     models = [
         recipes.gmm(profile, train, val, seed=k, name=recipes.seeded_name("07_gmm", k))[0]
         for k in range(seeds)

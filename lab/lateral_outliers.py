@@ -1,7 +1,8 @@
-"""Where does the expert's lateral acceleration peak? The course's expert drives the roads of
-lab/labellers.py (validation, first track 5,000, 32 cars, the full profile's world), and every
-decision whose commanded lateral acceleration, less the road's, exceeds a threshold is kept with
-its state and its decision (which branch of the state table chose it).
+"""Where does the expert's lateral acceleration peak? The state expert (the course's expert at
+a73c5b7) drives the roads of lab/labellers.py (validation, first track 5,000, 32 cars, the full
+profile's world), and every decision whose commanded lateral acceleration, less the road's,
+exceeds a threshold is kept with its state and its decision (which branch of the state table
+chose it).
 
     python lab/lateral_outliers.py [--miles 300] [--over 5.0]
 
@@ -19,8 +20,8 @@ import numpy as np
 from labellers import Lateral, drive
 
 from e2e_lite.config import FULL
-from e2e_lite.control.expert import Expert
 from e2e_lite.control.labels import STATE_NAMES as NAMES
+from e2e_lite.control.state_expert import StateExpert as Expert
 from e2e_lite.driving.evaluation import EvalConfig
 from e2e_lite.simulation.world import WorldConfig
 

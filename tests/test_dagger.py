@@ -13,7 +13,7 @@ import torch
 
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
-from e2e_lite.control.expert import Expert
+from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.learning import dagger
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.collector import DataConfig, NoiseConfig, OnPolicy, collect
@@ -26,9 +26,10 @@ WORLD = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_c
 
 
 def small(n_worlds: int = 8, n_samples: int = 160, **changes) -> DataConfig:
+    """A small collection driven by the state expert (DAgger's labeller)."""
     return DataConfig(
-        n_samples=n_samples, n_tracks=2, n_worlds=n_worlds, world=WORLD, **changes
-    )  # fmt: skip
+        n_samples=n_samples, n_tracks=2, n_worlds=n_worlds, world=WORLD, driver="state", **changes
+    )
 
 
 class Shadow(LaneKeeper):
@@ -54,7 +55,7 @@ def test_on_policy_samples_are_the_experts_labels_of_the_states_the_learner_visi
     learner = Shadow()
     data = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(learner, beta=0.0))
     # a fresh expert of the same seed, shown the same states in the same order, labels them so
-    expert = Expert(cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed)
+    expert = StateExpert(cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed)
     expert.seed_cars(np.arange(cfg.n_worlds))
     expert.reset(cfg.n_worlds)
     quota = cfg.n_samples // cfg.n_worlds

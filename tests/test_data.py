@@ -254,3 +254,29 @@ def test_road_lateral_removes_heading_and_curve():
     np.testing.assert_allclose(road_lateral(turned, np.array([0.02]), np.zeros(1)), [0.0])
     np.testing.assert_allclose(road_lateral(bend, np.zeros(1), np.array([0.002])), [0.0])
     np.testing.assert_allclose(road_lateral(straight, np.array([0.02]), np.zeros(1)), [0.75])
+
+
+def test_every_sample_also_holds_the_state_experts_label_and_relabelled_trains_on_it():
+    """Chapter 04's data is driven and labelled by the expert, which carries its plan; beside each
+    label lies the state expert's (DAgger's labeller) at the same state: the same at many states,
+    apart at others (two labellers, not one: the state expert heads back to the middle lane, the
+    expert keeps any lane it is in). Driven by
+    the state expert, the two are one label. ``relabelled`` trains on the state expert's labels
+    under the data's own normalisation and another key; an on-policy collection needs it."""
+    from e2e_lite.control.drivers import LaneKeeper
+    from e2e_lite.learning.collector import OnPolicy
+    from e2e_lite.learning.dataset import relabelled
+
+    cfg = small_cfg(n_samples=400, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
+    data = collect(cfg, progress=False)
+    apart = np.linalg.norm(data.trajectory - data.arrays["state_trajectory"], axis=-1).max(-1)
+    assert (apart < 1e-3).mean() > 0.25 and apart.max() > 0.5
+    own = collect(dataclasses.replace(cfg, driver="state"), progress=False)
+    assert np.array_equal(own.trajectory, own.arrays["state_trajectory"])
+    state = relabelled(data)
+    assert np.array_equal(state.trajectory, data.arrays["state_trajectory"])
+    assert state.stats == data.stats and state.info["key"] != data.info["key"]
+    with pytest.raises(ValueError, match="driver='state'"):
+        collect(cfg, progress=False, on_policy=OnPolicy(LaneKeeper()))
+    with pytest.raises(ValueError, match=r"DataConfig\.driver"):
+        DataConfig(driver="remembering")

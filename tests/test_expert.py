@@ -1,4 +1,5 @@
-"""The expert: collision-free driving, random sides, clean labels, the oracle."""
+"""The expert and the state expert (DAgger's labeller): collision-free driving, random sides,
+clean labels, the oracle."""
 
 from __future__ import annotations
 
@@ -7,29 +8,36 @@ import pytest
 from conftest import straight_world
 
 from e2e_lite.control import rules
-from e2e_lite.control.expert import Expert, expert_labels
+from e2e_lite.control.expert import Expert, WipedExpert
 from e2e_lite.control.labels import CHANGE, PASS
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear, speed_profile
+from e2e_lite.control.state_expert import StateExpert, expert_labels
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe
 from e2e_lite.simulation.geometry import RoadConfig, Track
 from e2e_lite.simulation.world import Fleet, TrafficConfig, World, WorldConfig, make_world
+
+#: both experts drive by the same rules: the course's, which carries its plan, and DAgger's
+#: labeller, which reads it off the state
+BOTH = pytest.mark.parametrize("kind", [Expert, StateExpert], ids=["expert", "state_expert"])
 
 
 def small_world_cfg() -> WorldConfig:
     return WorldConfig(road=RoadConfig(length_m=2_000.0), traffic=TrafficConfig())
 
 
-def test_expert_drives_seeded_tracks_without_collision():
+@BOTH
+def test_expert_drives_seeded_tracks_without_collision(kind):
     cfg = small_world_cfg()
-    expert = Expert()
+    expert = kind()
     res = evaluate(expert, cfg, EvalConfig(miles=6.0, n_worlds=4, n_tracks=4), progress=False)
     assert res.collisions == 0 and res.stalls == 0
     assert expert.manoeuvres["left"] > 0 and expert.manoeuvres["right"] > 0
     assert res.mean_speed_mph > 45.0
 
 
-def test_both_sides_occur_when_both_are_free():
+@BOTH
+def test_both_sides_occur_when_both_are_free(kind):
     """A parked car in the middle lane of a straight road: over many seeds the expert overtakes
     on the left in some runs and on the right in others."""
     world = straight_world([300.0], [1], length=1_000.0)
@@ -38,7 +46,7 @@ def test_both_sides_occur_when_both_are_free():
     for seed in range(16):
         fleet = Fleet([world], cfg)
         fleet.place(0, 100.0, 0.0, 25.0)
-        expert = Expert(seed=seed)
+        expert = kind(seed=seed)
         expert.reset(1)
         side = 0
         for k in range(120):
@@ -53,13 +61,14 @@ def test_both_sides_occur_when_both_are_free():
     assert 0 not in sides
 
 
-def test_trigger_distance_is_drawn_in_its_range():
+@BOTH
+def test_trigger_distance_is_drawn_in_its_range(kind):
     world = straight_world([400.0], [1], length=1_000.0)
     starts = []
     for seed in range(10):
         fleet = Fleet([world], WorldConfig())
         fleet.place(0, 100.0, 0.0, 25.0)
-        expert = Expert(seed=seed)
+        expert = kind(seed=seed)
         expert.reset(1)
         for k in range(200):
             obs = observe(fleet, respawned=k == 0)
@@ -75,12 +84,13 @@ def test_trigger_distance_is_drawn_in_its_range():
     assert max(starts) - min(starts) > 5.0  # randomised, not one fixed distance
 
 
-def test_blocked_expert_stops_behind_the_car():
+@BOTH
+def test_blocked_expert_stops_behind_the_car(kind):
     """Cars in all three lanes side by side: nothing is free, so it must stop, not crash."""
     world = straight_world([300.0, 302.0, 304.0], [0, 1, 2], length=1_000.0)
     fleet = Fleet([world], WorldConfig())
     fleet.place(0, 150.0, 0.0, 25.0)
-    expert = Expert()
+    expert = kind()
     expert.reset(1)
     for k in range(300):
         act = expert.act(observe(fleet, respawned=k == 0))
@@ -89,33 +99,35 @@ def test_blocked_expert_stops_behind_the_car():
     assert fleet.state[0, 3] < 0.5 and s[0] < 300.0 - 2.25 - 3.6
 
 
-def test_label_on_a_straight_empty_road_is_constant_speed_points():
+@BOTH
+def test_label_on_a_straight_empty_road_is_constant_speed_points(kind):
     world = straight_world([], [], length=1_000.0)
     fleet = Fleet([world], WorldConfig())
     v = ExpertConfig().top_speed_mps
     fleet.place(0, 100.0, 0.0, v)
-    expert = Expert()
+    expert = kind()
     expert.reset(1)
     label = expert.trajectory_label(observe(fleet, respawned=True))
     expected = np.stack([v * 0.3 * np.arange(1, 6), np.zeros(5)], axis=-1)
     np.testing.assert_allclose(label[0], expected, atol=1e-6)
 
 
-def test_label_is_the_clean_rollout_not_the_noisy_future():
+@BOTH
+def test_label_is_the_clean_rollout_not_the_noisy_future(kind):
     """Drive 1.5 s with a steering offset: the label taken at the start equals a noise-free
     replay, and differs from where the noisy car actually went."""
     world = straight_world([], [], length=1_000.0)
     cfg = WorldConfig()
     fleet = Fleet([world], cfg)
     fleet.place(0, 100.0, 0.0, 22.0)
-    expert = Expert()
+    expert = kind()
     expert.reset(1)
     obs0 = observe(fleet, respawned=True)
     label = expert.trajectory_label(obs0)[0]
     # noise-free replay with the real machinery
     replay_fleet = Fleet([world], cfg)
     replay_fleet.place(0, 100.0, 0.0, 22.0)
-    replay = Expert()
+    replay = kind()
     replay.reset(1)
     noisy_xy, clean_xy = [], []
     for k in range(15):
@@ -163,7 +175,7 @@ def test_a_label_depends_on_the_state_alone():
     cfg = WorldConfig()
     fleet = Fleet([world], cfg)
     fleet.place(0, 100.0, 0.0, 25.0)
-    expert = Expert(seed=3)
+    expert = StateExpert(seed=3)
     expert.reset(1)
     seen = {}
     for k in range(200):
@@ -178,7 +190,7 @@ def test_a_label_depends_on_the_state_alone():
     for car_state, seg, label, decision in seen.values():
         other = Fleet([world], cfg)
         other.state[0], other.seg[0] = car_state, seg
-        fresh = Expert(seed=3)
+        fresh = StateExpert(seed=3)
         fresh.reset(1)
         obs = observe(other, respawned=True)
         np.testing.assert_array_equal(fresh.trajectory_label(obs), label)
@@ -186,19 +198,19 @@ def test_a_label_depends_on_the_state_alone():
         assert fresh.decisions[0] == decision
 
 
-def test_the_oracle_on_the_experts_labels_drives_as_the_expert_and_a_label_with_memory_does_not():
+def test_the_oracle_on_either_experts_labels_drives_as_the_expert_and_a_wiped_memory_does_not():
     """A label is a driver: the tracker following the expert's labels at every decision (the
-    oracle) drives validation roads without a collision, as the expert does; the tracker following
-    the labels of the course's first expert with its memory wiped at every decision (chapter 12's
-    old labeller: every plan restarted in keep) runs into parked cars on the same roads."""
-    from e2e_lite.control.remembering import WipedExpert
-
+    oracle), or the state expert's (DAgger's labeller), drives validation roads without a
+    collision, as the expert does; the tracker following the expert's labels with its memory
+    wiped at every decision (chapter 12's old labeller: every plan restarted in keep) runs into
+    parked cars on the same roads."""
     cfg = small_world_cfg()
     ev = EvalConfig(miles=4.0, n_worlds=8, split="val")
     expert = evaluate(Expert(), cfg, ev, progress=False, workers=1)
     oracle = evaluate(Oracle(Expert()), cfg, ev, progress=False, workers=1)
+    labeller = evaluate(Oracle(StateExpert()), cfg, ev, progress=False, workers=1)
     wiped = evaluate(Oracle(WipedExpert()), cfg, ev, progress=False, workers=1)
-    assert expert.collisions == 0 and oracle.collisions == 0
+    assert expert.collisions == 0 and oracle.collisions == 0 and labeller.collisions == 0
     assert wiped.collisions >= 3
 
 
@@ -256,8 +268,8 @@ def test_bad_expert_settings_raise():
 
 
 def test_the_expert_and_the_oracle_drive_alike_in_any_shards_and_count_their_manoeuvres():
-    """The expert's draws are the parked cars', so the expert and the oracle drive the same events
-    in one shard or in three worker processes; the manoeuvres started in the workers come back
+    """Every car's draws are its own (seeded by its index), so the expert and the oracle drive the
+    same events in one shard or in three worker processes; the manoeuvres started in the workers come back
     through the results' info."""
     from e2e_lite.driving.evaluation import close_shard_workers
 

@@ -43,6 +43,12 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
   its plan off the state at every decision (its label is a function of the state alone), so the
   quick dataset's labels, the expert's drive and the trained networks changed. Recorded on the
   project's 2-core AMD EPYC with the code of the commit that made the change.
+* 2026-11-29, every entry, with ``dataset`` 6 and ``evaluation`` 4 (lab note "Do networks learn
+  the labeller?"): the expert that carries its plan drives and labels the data again, and every
+  sample also holds the state expert's label. The expert's drive is the one recorded before the
+  previous entry to the metre (0.501008 mi), the quick L2 and GMM collide as they did then (5 and
+  2, the same car and rail split) with validation losses within 2.4e-4 (relative); the dataset's
+  digest differs by its new field. Recorded on the project's 2-core AMD EPYC (AVX2).
 """
 
 from __future__ import annotations

@@ -5,14 +5,15 @@ A driver drives inside :class:`Witness`, which keeps each car's last :data:`HIST
 (and the driver's plans, when it has them) and, at every collision, files them as a
 :class:`Collision`. Then, from those states alone:
 
-* **the latest savable moment** (:func:`savable`): the expert takes the car over at 0.5, 1, 2, 3
-  and 5 s before the impact, from the very state the car was in (the world is deterministic and
-  the expert's decision a function of the state), and drives on: does it avoid the collision?
+* **the latest savable moment** (:func:`savable`): the expert that reads its plan off the state
+  (:class:`~e2e_lite.control.state_expert.StateExpert`, DAgger's labeller) takes the car over at
+  0.5, 1, 2, 3 and 5 s before the impact, from the very state the car was in (the world is
+  deterministic and its decision a function of the state), and drives on: does it avoid it?
 * **the tracker's share** (:func:`plan_collides`): would the driver's own plans of the last
   second, followed exactly (a perfect tracker), have hit the car? A collision whose plans were
   all clear is the tracker's;
-* **how far the plans lay apart** (:func:`disagreement`): the driver's plan against the expert's
-  label at the same states, over the seconds before the impact, beside ordinary driving;
+* **how far the plans lay apart** (:func:`disagreement`): the driver's plan against that
+  expert's label at the same states, over the seconds before the impact, beside ordinary driving;
 * **the kind** (:func:`kind`): a rail, or a parked car hit by a lane change missed, late or
   into an occupied lane, by braking short, or other.
 """
@@ -28,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from ..artifacts import load_json, save_json
-from ..control.expert import Expert
 from ..control.labels import CHANGE, FOLLOW, interpolated_path
+from ..control.state_expert import StateExpert
 from ..simulation.policy import Actuation, Observation, Policy, observe
 from ..simulation.world import Fleet, World, WorldConfig, make_world
 
@@ -254,10 +255,10 @@ def drive_from(
 def savable(
     c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = None
 ) -> dict[float, bool | None]:
-    """For each of :data:`HAND_OVER_S` [s]: does ``hand_over`` (default the expert), taking the
-    car over that long before the impact, avoid it for :data:`AFTER_S` past it? ``None`` where
-    the moments do not reach that far back (the car was placed less long before the impact)."""
-    expert = hand_over or Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    """For each of :data:`HAND_OVER_S` [s]: does ``hand_over`` (default the state expert), taking
+    the car over that long before the impact, avoid it for :data:`AFTER_S` past it? ``None``
+    where the moments do not reach that far back (the car was placed less long before it)."""
+    expert = hand_over or StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
     period = world_cfg.sim.policy_period_s
     out = {}
     for t in HAND_OVER_S:
@@ -304,7 +305,7 @@ def _observe_moment(moment: Moment, world_cfg: WorldConfig) -> Observation:
     return observe(fleet, respawned=True)
 
 
-def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: Expert) -> np.ndarray:
+def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: StateExpert) -> np.ndarray:
     """Per moment, the largest distance over the 5 points between the driver's plan and the
     expert's label at the same state [m] (NaN where the driver had no plan)."""
     out = np.full(len(moments), np.nan)
@@ -315,7 +316,7 @@ def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: Expert) 
     return out
 
 
-def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float = 3.0) -> str:
+def kind(c: Collision, world_cfg: WorldConfig, expert: StateExpert, window_s: float = 3.0) -> str:
     """What kind of collision ``c`` was (:data:`KINDS`), from its last ``window_s``: a rail; the
     parked car in another lane than the car's at the window's start (into an occupied lane); the
     expert, at those states, changing lanes where the driver's plans kept to the lane (missed) or
@@ -347,8 +348,8 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
 
 def dissect(c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = None) -> Collision:
     """Fill ``c``'s findings: the hand-overs that save it (to ``hand_over``, default the
-    expert), whether its plans hit, the plans' disagreement with the expert's labels, its kind."""
-    expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    state expert), whether its plans hit, the plans' disagreement with its labels, its kind."""
+    expert = StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
     c.contact, c.parked = contact(c.moments[-1], world_cfg)
     c.saved = savable(c, world_cfg, hand_over or expert)
     period = world_cfg.sim.policy_period_s
@@ -377,37 +378,3 @@ def table(collisions: list[Collision]) -> dict[str, Any]:
         "plan_clear": sum(c.plan_hit is False for c in collisions),
         "kinds": {k: sum(c.kind == k for c in collisions) for k in KINDS},
     }
-
-
-class _TwoLabellers:
-    """Drives ``driver`` (an expert with its own labels) and, at every decision, also asks
-    ``other`` for its label at the same state: the distance between the two labels' last points
-    [m] is kept per decision."""
-
-    camera = None
-
-    def __init__(self, driver: Any, other: Expert) -> None:
-        self.driver, self.other, self.sim = driver, other, driver.sim
-        self.apart_m: list[np.ndarray] = []
-
-    def seed_cars(self, cars: np.ndarray) -> None:
-        self.driver.seed_cars(cars)
-
-    def reset(self, n_worlds: int) -> None:
-        self.driver.reset(n_worlds)
-
-    def act(self, obs: Observation) -> Actuation:
-        own, theirs = self.driver.trajectory_label(obs), self.other.trajectory_label(obs)
-        self.apart_m.append(np.linalg.norm(own[:, -1] - theirs[:, -1], axis=-1))
-        return self.driver.act(obs)
-
-
-def labellers_apart(driver: Any, world_cfg: WorldConfig, cfg: Any) -> np.ndarray:
-    """Drive ``driver`` (an expert, e.g. the remembering one) over ``cfg``'s roads and return, at
-    every state it drove through, how far its label's last point lies from the course's expert's
-    label there [m]."""
-    from .evaluation import evaluate
-
-    both = _TwoLabellers(driver, Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim))
-    evaluate(both, world_cfg, cfg, progress=False, workers=1)
-    return np.concatenate(both.apart_m)

@@ -36,6 +36,7 @@ from ..control.labels import (  # noqa: F401 (re-exported, as above)
     throttle_brake,
 )
 from ..control.rules import ExpertConfig
+from ..control.state_expert import StateExpert
 from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
@@ -75,6 +76,10 @@ class DataConfig:
         n_worlds: cars driven in lockstep.
         world: roads, traffic, car, time steps.
         expert: the expert's settings.
+        driver: who drives and labels: ``"expert"``, the course's expert, which carries its plan
+            (:class:`~e2e_lite.control.expert.Expert`, chapter 04's data), or ``"state"``, the
+            one that reads its plan off the state (DAgger's rounds and their control, chapter
+            12). Every sample also holds the latter's label (``state_trajectory``).
         noise: the noise bursts.
         camera: the camera (66 x 200 by default).
         restart_rate_per_s: take-overs per second of driving [1/s], re-placing the car as the
@@ -94,6 +99,7 @@ class DataConfig:
     n_worlds: int = 16
     world: WorldConfig = field(default_factory=WorldConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
+    driver: str = "expert"
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     restart_rate_per_s: float = 0.05
@@ -104,6 +110,8 @@ class DataConfig:
         o = "DataConfig"
         if self.split not in ("train", "val"):
             raise ValueError(f"{o}.split={self.split!r} is invalid: must be 'train' or 'val'")
+        if self.driver not in ("expert", "state"):
+            raise ValueError(f"{o}.driver={self.driver!r} is invalid: must be 'expert' or 'state'")
         check_range(o, "n_samples", self.n_samples, 1, integer=True)
         if self.n_tracks is not None:
             check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
@@ -147,9 +155,10 @@ def car_quotas(cfg: DataConfig) -> np.ndarray:
 
 @dataclass(frozen=True)
 class OnPolicy:
-    """A DAgger collection (chapter 12), passed to :func:`collect`: ``learner`` drives, the expert
-    executing a share ``beta`` of the decisions and labelling every state (its label is a function
-    of the state, so it labels the learner's states as its own)."""
+    """A DAgger collection (chapter 12), passed to :func:`collect` with ``driver="state"``:
+    ``learner`` drives, the state expert executing a share ``beta`` of the decisions and labelling
+    every state (its label is a function of the state, so it labels the learner's states as its
+    own; the course's expert has no plan for a state it did not drive into)."""
 
     learner: Any
     beta: float = 1.0
@@ -190,8 +199,14 @@ class _Recorder:
         # the mixing draws: a stream of their own, so the expert's and the noise's are untouched
         self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
-        self.expert = Expert(
-            cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed
+        kind = Expert if cfg.driver == "expert" else StateExpert
+        self.expert = kind(cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed)
+        self.labeller = (  # the state expert's labels, beside the driver's own
+            self.expert
+            if cfg.driver == "state"
+            else StateExpert(
+                cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed
+            )
         )
         self.quota = car_quotas(cfg)[cars]
         self.offset = np.concatenate([[0], np.cumsum(self.quota)[:-1]])  # car i's first row
@@ -225,7 +240,8 @@ class _Recorder:
         return self.count >= self.quota
 
     def act(self, obs: Observation) -> Actuation:
-        traj = self.expert.trajectory_label(obs)  # a function of the state alone
+        traj = self.expert.trajectory_label(obs)  # (the expert's plans before it acts)
+        relabel = traj if self.labeller is self.expert else self.labeller.trajectory_label(obs)
         clean = self.expert.act(obs)
         u = np.stack([r.random(self.DRAWS) for r in self.rngs])  # (B, DRAWS) in [0, 1)
         self.bursts.update(u, obs.speed)
@@ -236,7 +252,7 @@ class _Recorder:
         if len(rows):
             if learned is not None:
                 self._record_learner(learned, traj, rows)
-            self._record(obs, clean, traj, rows)
+            self._record(obs, clean, traj, relabel, rows)
         period = self.cfg.world.sim.policy_period_s
         deep = self.bursts.slow_to > 0  # braked whatever the expert commands
         steer, accel = clean.steer_rad, clean.accel_mps2
@@ -275,8 +291,16 @@ class _Recorder:
             end = self.offset[i] + self.count[i]
             self.side["before_collision"][max(self.offset[i], end - back) : end] = True
 
-    def _record(self, obs: Observation, clean: Actuation, traj: np.ndarray, t: np.ndarray) -> None:
-        """Record cars ``t`` (rows of ``obs``), each at its next row of the arrays."""
+    def _record(
+        self,
+        obs: Observation,
+        clean: Actuation,
+        traj: np.ndarray,
+        relabel: np.ndarray,
+        t: np.ndarray,
+    ) -> None:
+        """Record cars ``t`` (rows of ``obs``), each at its next row of the arrays (``traj``: the
+        driver's labels, ``relabel``: the state expert's)."""
         sl = self.offset[t] + self.count[t]
         a, decisions = self.a, [self.expert.decisions[i] for i in t.tolist()]
         worlds = [obs.worlds[i] for i in t.tolist()]
@@ -285,6 +309,7 @@ class _Recorder:
         a["actuators"][sl, 0] = clean.steer_rad[t]
         a["actuators"][sl, 1] = clean.accel_mps2[t]
         a["trajectory"][sl] = traj[t]
+        a["state_trajectory"][sl] = relabel[t]
         a["affordances"][sl] = affordances(worlds, obs.s[t], obs.d[t], obs.heading_error[t])
         a["track"][sl] = [w.track.track_id[1] for w in worlds]
         a["s"][sl], a["d"][sl] = obs.s[t], obs.d[t]
@@ -335,6 +360,8 @@ def collect(
     if workers is None:  # every core, but no worker for fewer samples than its start is worth
         workers = min(default_workers(), max(1, cfg.n_samples // MIN_SAMPLES_PER_WORKER))
     check_range("collect", "workers", workers, 1, integer=True)
+    if on_policy is not None and cfg.driver != "state":
+        raise ValueError("an on-policy collection needs driver='state' (OnPolicy)")
     bar = tqdm(
         total=cfg.n_samples,
         desc=f"collect {cfg.split}",

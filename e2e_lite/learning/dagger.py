@@ -7,8 +7,10 @@ states the expert never showed, where it errs more: over a horizon of T decision
 can grow as ``eps T^2``. Training on the learner's own states, labelled by the expert, bounds
 them by ``eps T`` (their Theorem 3.1). Four things make the course's rounds the theory's:
 
-* **one labeller**: the course's expert, whose label is a function of the state alone
-  (:mod:`e2e_lite.control.expert`), labelled chapter 04's data and labels every round;
+* **one labeller**: the expert that reads its plan off the state, whose label is a function of
+  the state alone (:mod:`e2e_lite.control.state_expert`), labels every round, and relabels
+  chapter 04's data (:func:`~e2e_lite.learning.dataset.relabelled`, as Learning by Cheating
+  relabels its buffer): every sample a fine-tune draws carries its label;
 * **rare states reached**: a round drives :attr:`DaggerConfig.drive` times more decisions than
   it keeps, and keeps the states where the network's plan and the expert's disagree most and the
   seconds before each collision (:func:`gate`: Prakash et al.'s filter, HG-DAgger's gate);
@@ -22,7 +24,8 @@ Three arms (:data:`ARMS`) differ in one thing each. ``dagger``: the network driv
 the expert drives, with white noise on its commands fitted to the network's measured command
 error (DART, Laskey et al. 2017, :func:`dart_noise`), gated, labelled and aggregated the same
 way: only the states differ. ``no_new_data``: the same fine-tunes on chapter 04's data alone,
-which says what the fine-tunes themselves do. Every round of every arm stores its samples and its
+relabelled, which says what the fine-tunes themselves do (the start network learned the course's
+expert; every arm's fine-tunes learn the state expert's labels). Every round of every arm stores its samples and its
 network (:class:`RoundSpec`), so a cut run goes on where it stopped.
 """
 
@@ -41,7 +44,7 @@ from . import recipes
 from .agents import TrajectoryAgent
 from .checkpoints import train_or_load, training_data_key
 from .collector import DataConfig, NoiseConfig, OnPolicy, collect, load_dataset, save_dataset
-from .dataset import DrivingData, allocate
+from .dataset import DrivingData, allocate, relabelled
 from .models import DrivingModel
 
 #: the three arms: the network drives; the expert drives with DART's noise; no new data
@@ -159,6 +162,7 @@ class RoundSpec:
             seed=1_000 + self.seed,
             noise=noise or NoiseConfig(rate_per_s=0.0),
             restart_rate_per_s=0.0,
+            driver="state",
         )
 
     @property
@@ -354,8 +358,9 @@ def run(
     start_name = recipes.seeded_name("09_gmm_affordance_cvar", seed)
     objective, tcfg = recipes.finetune_settings(profile, weight, seed, "mean")
     out: dict[str, list[Round]] = {}
+    old, val_state = relabelled(train), relabelled(val)  # one labeller, old and new samples
     for arm in arms:
-        aggregate, parent, model = [train], start_name, start
+        aggregate, parent, model = [old], start_name, start
         parent_key = training_data_key(train, val)
         rounds = []
         for r in range(cfg.rounds):
@@ -373,7 +378,7 @@ def run(
                 tcfg,
                 objective,
                 data,
-                val,
+                val_state,
                 init_from=parent,
                 parent_data_key=parent_key,
                 carry_optimizer=True,
@@ -384,6 +389,6 @@ def run(
             rounds.append(
                 Round(arm, r + 1, kept, size, shift, found, spec.network_name, model, collection)
             )
-            parent, parent_key = spec.network_name, training_data_key(data, val)
+            parent, parent_key = spec.network_name, training_data_key(data, val_state)
         out[arm] = rounds
     return start, out

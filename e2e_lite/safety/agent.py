@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 
 from ..config import check_range
-from ..control.expert import expert_labels
 from ..control.labels import affordances
 from ..control.rules import ExpertConfig, SpeedLimits
+from ..control.state_expert import expert_labels
 from ..simulation.policy import Actuation, Observation
 from ..simulation.world import SimConfig
 from .rule import RESULTS_VERSION, SafetyConfig, check, choose
