@@ -4,7 +4,7 @@
 # The course's best learned driver (**GMM + affordance + CVaR**, chapter 09) still collides more
 # often than the **oracle**, the same LQR tracker following the expert's own 5-point plans on
 # the same roads (chapter 10 and the record print both). This chapter asks why, and measures the
-# answer before choosing a fix: for each of its collisions on validation roads, could the expert
+# answer before choosing a fix: for each of its collisions on validation roads, could an expert
 # still have saved it by taking over 0.5, 1, 2, 3 or 5 s before the impact? Would the network's
 # own plans, followed exactly, have avoided it (then the tracker is to blame)? How far did its
 # plans lie from the expert's in the seconds before? What kind of mistake was it?
@@ -62,7 +62,7 @@ starts = [recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0] for k i
 # deterministic and the state expert's decision (section 2) is a function of the state, so it
 # can take the car over from any of those states (`anatomy.savable`); the network's plans are checked for
 # a clash with a parked car or a rail as if followed exactly (`anatomy.plan_collides`), and
-# compared with the expert's labels at the same states (`anatomy.disagreement`). The witnessed
+# compared with the state expert's labels at the same states (`anatomy.disagreement`). The witnessed
 # drives are stored and reused, as every drive of the course is (`ablation.witnessed`).
 
 # %%
@@ -188,7 +188,7 @@ for k, (_, arms) in runs.items():
 # collisions a DAgger round meets"): the lines above say how many of this recipe's kept samples
 # come from the seconds before a collision. The shift is the share of a round's kept samples
 # outside the range of the middle of chapter 04's data in at least one feature; the control's,
-# the expert's own states with DART's noise, gated alike, is the baseline DAgger's is read by.
+# the state expert's own states with DART's noise, gated alike, is the baseline DAgger's is read by.
 
 # %%
 iterates = {
@@ -366,6 +366,6 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # 4. DART's noise: scale it (`DaggerConfig.for_profile(profile, dart_scale=2.0)`). Does the
 #    control reach the network's states (the kept samples' shift) and drive better?
 # 5. The old recipe (the course before this chapter's rewrite, commit 785b4d7): two rounds of
-#    8,000 samples, labels of the wiped first expert, the last round kept. Check it out, run its
+#    8,000 samples, labels of the wiped expert, the last round kept. Check it out, run its
 #    chapter 12, and compare its lab notes ("Who labels DAgger's states", "DAgger's states or its
 #    labeller") with section 2's oracle lines.

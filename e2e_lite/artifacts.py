@@ -330,8 +330,9 @@ def write_metrics(
 ARTIFACT_VERSIONS = {
     # 5: the expert reads its plan off the state at every decision (its labels are a function of
     # the state alone); 6: the course's expert carries its plan again (networks learned it
-    # better), and every sample also holds the state expert's label (DAgger's relabelling)
-    "dataset": 6,
+    # better), and every sample also holds the state expert's label (DAgger's relabelling); 7: a
+    # return's change_side is the side it moves to again (6 recorded its overtake's)
+    "dataset": 7,
     # 3: the precision (fp32 / tf32) is part of the key
     "checkpoint": 3,
     # 3: the expert (and so the oracle) reads its plan off the state; 4: they carry it again

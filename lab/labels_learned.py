@@ -13,7 +13,9 @@ against the course's expert's.
     python lab/labels_learned.py --compare DIR_A DIR_B
 
 Writes ``labels_learned.json`` in each outputs folder and, with ``--compare``,
-docs/results/lab/labels_learned.json (lab note "Do networks learn the labeller?").
+docs/results/lab/labels_learned.json (lab note "Do networks learn the labeller?"), whose keys keep
+21afcad's names: "course's expert" is the state expert, "first expert" the one that carries its
+plan.
 """
 
 from __future__ import annotations

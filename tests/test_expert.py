@@ -287,3 +287,22 @@ def test_the_expert_and_the_oracle_drive_alike_in_any_shards_and_count_their_man
     alone = evaluate(Expert(), world, ev, progress=False, workers=1)
     assert res.info["manoeuvres"] == alone.info["manoeuvres"]
     assert res.info["manoeuvres"]["left"] + res.info["manoeuvres"]["right"] > 0
+
+
+def test_a_return_is_recorded_with_the_side_it_moves_to():
+    """What the data records of the expert's decisions: the overtake's side, then the return's,
+    which moves the other way (a plan keeps its overtake's side in ``Plan.side``)."""
+    world = straight_world([300.0], [1], length=1_000.0)
+    fleet = Fleet([world], WorldConfig())
+    fleet.place(0, 100.0, 0.0, 25.0)
+    expert = Expert(seed=1)
+    expert.reset(1)
+    changes = []
+    for k in range(400):
+        act = expert.act(observe(fleet, respawned=k == 0))
+        decision = expert.decisions[0]
+        if decision.state == CHANGE and (decision.side, decision.overtaking) not in changes:
+            changes.append((decision.side, decision.overtaking))
+        fleet.step(act.steer_rad, act.accel_mps2)
+    (side, overtake), (back, ret) = changes
+    assert overtake and not ret and side in (1, -1) and back == -side

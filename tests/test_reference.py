@@ -49,6 +49,9 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
   previous entry to the metre (0.501008 mi), the quick L2 and GMM collide as they did then (5 and
   2, the same car and rail split) with validation losses within 2.4e-4 (relative); the dataset's
   digest differs by its new field. Recorded on the project's 2-core AMD EPYC (AVX2).
+* 2026-11-29, ``dataset`` 7 only: a return's recorded ``change_side`` is the side it moves to
+  again (6 recorded its overtake's side); the quick dataset holds no return, so its digest and
+  every entry are unchanged.
 """
 
 from __future__ import annotations

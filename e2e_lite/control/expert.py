@@ -18,8 +18,10 @@ state       what it does, and when it leaves
 ``change``  follow a quintic lane-change path; at its end -> ``pass`` (overtaking) or ``keep``
             (returning).
 ``pass``    follow the overtaking lane's centre; once ``finish`` metres past the overtaken car,
-            return to the original lane when it is free -> ``change``.
-``follow``  no lane is free: brake to stop ``follow_margin`` behind the car.
+            return to the original lane when it is free -> ``change``. A car ahead nearer than
+            ``trigger`` is handled as in ``keep``, preferring the original lane.
+``follow``  no lane is free: brake to stop ``follow_margin`` behind the car, and keep looking
+            for a free lane (a slower car needs a shorter lane change).
 ==========  =====================================================================================
 
 The trigger and finish distances, the lane change's duration and the side coin are drawn per
@@ -60,6 +62,15 @@ from .tracker import (
 )
 
 QUINTIC_PEAK = 10.0 / math.sqrt(3.0)  # max |b''| of the quintic blend: 5.77
+
+
+class Decision(NamedTuple):
+    """What the data records of a car's decision: its state (``KEEP`` ...), the side its lane
+    change moves to (+1 left, -1 right, 0 none) and whether the change is an overtake."""
+
+    state: int
+    side: int
+    overtaking: bool
 
 
 @dataclass
@@ -190,10 +201,21 @@ class Expert:
         return np.array([p.state for p in self.plans], dtype=np.int64)
 
     @property
-    def decisions(self) -> list[Plan]:
-        """Each car's plan, read as :class:`~e2e_lite.control.state_expert.StateExpert`'s
-        decisions are (its ``state``, ``side`` and ``overtaking``: what the data records)."""
-        return self.plans
+    def decisions(self) -> list[Decision]:
+        """Each car's plan as the data records a decision (as
+        :class:`~e2e_lite.control.state_expert.StateExpert`'s): its state, the side its current
+        lane change moves to (a return's too; a plan's ``side`` is its overtake's) and whether
+        the change is an overtake."""
+        return [
+            Decision(
+                p.state,
+                0
+                if p.state != CHANGE or p.path is None
+                else (1 if p.path.d_to > p.path.d_from else -1),
+                p.state == CHANGE and p.overtaking,
+            )
+            for p in self.plans
+        ]
 
     # ------------------------------------------------------------------ labels
     def trajectory_label(self, obs: Observation) -> np.ndarray:

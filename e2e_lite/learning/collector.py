@@ -302,7 +302,8 @@ class _Recorder:
         """Record cars ``t`` (rows of ``obs``), each at its next row of the arrays (``traj``: the
         driver's labels, ``relabel``: the state expert's)."""
         sl = self.offset[t] + self.count[t]
-        a, decisions = self.a, [self.expert.decisions[i] for i in t.tolist()]
+        every = self.expert.decisions  # (read once: the expert's is built from its plans)
+        a, decisions = self.a, [every[i] for i in t.tolist()]
         worlds = [obs.worlds[i] for i in t.tolist()]
         a["images"][sl] = obs.images[t]
         a["speed"][sl] = obs.speed[t]
