@@ -52,7 +52,7 @@ from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation, seeded_cars
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
-from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S
+from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S, Decision
 from .rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear
 from .tracker import (
     LaneChangePath,
@@ -62,15 +62,6 @@ from .tracker import (
 )
 
 QUINTIC_PEAK = 10.0 / math.sqrt(3.0)  # max |b''| of the quintic blend: 5.77
-
-
-class Decision(NamedTuple):
-    """What the data records of a car's decision: its state (``KEEP`` ...), the side its lane
-    change moves to (+1 left, -1 right, 0 none) and whether the change is an overtake."""
-
-    state: int
-    side: int
-    overtaking: bool
 
 
 @dataclass
@@ -111,6 +102,15 @@ class Plan:
         self.finish_m = float(self.rng.uniform(*cfg.finish_m))
         self.change_time_s = float(self.rng.uniform(*cfg.change_time_s))
         self.coin = float(self.rng.random())
+
+    @property
+    def decision(self) -> Decision:
+        """The plan as a :class:`~e2e_lite.control.labels.Decision` (what the data records): its
+        ``side`` is the side the current lane change moves to, a return's too (``Plan.side``
+        keeps the overtake's)."""
+        moving = self.state == CHANGE and self.path is not None
+        side = (1 if self.path.d_to > self.path.d_from else -1) if moving else 0
+        return Decision(self.state, self.lane, side, self.state == CHANGE and self.overtaking)
 
     def rollout_copy(self) -> Plan:
         """A copy without the generator (see ``rng``)."""
@@ -202,20 +202,9 @@ class Expert:
 
     @property
     def decisions(self) -> list[Decision]:
-        """Each car's plan as the data records a decision (as
-        :class:`~e2e_lite.control.state_expert.StateExpert`'s): its state, the side its current
-        lane change moves to (a return's too; a plan's ``side`` is its overtake's) and whether
-        the change is an overtake."""
-        return [
-            Decision(
-                p.state,
-                0
-                if p.state != CHANGE or p.path is None
-                else (1 if p.path.d_to > p.path.d_from else -1),
-                p.state == CHANGE and p.overtaking,
-            )
-            for p in self.plans
-        ]
+        """Each car's plan as a decision (:attr:`Plan.decision`), as the state expert reports
+        its own: what the data records."""
+        return [p.decision for p in self.plans]
 
     # ------------------------------------------------------------------ labels
     def trajectory_label(self, obs: Observation) -> np.ndarray:

@@ -16,7 +16,7 @@ collector, :mod:`e2e_lite.learning.collector`, and the safety module's audits); 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -37,6 +37,18 @@ TRAJECTORY_DIMS = N_POINTS * POINT_DIMS
 #: The expert's manoeuvre states (:class:`~e2e_lite.control.expert.Expert`), as recorded in the dataset.
 KEEP, CHANGE, PASS, FOLLOW = 0, 1, 2, 3
 STATE_NAMES = ("keep", "change", "pass", "follow")
+
+
+class Decision(NamedTuple):
+    """One car's decision, as either expert reports it and the dataset records it: its state
+    (``KEEP`` ...), the lane it drives for, the side of a lane change under way (+1 left, -1
+    right, 0 none), and whether that change is an overtake."""
+
+    state: int
+    target: int
+    side: int
+    overtaking: bool
+
 
 GAP_CAP_M = 60.0
 AFFORDANCE_NAMES = (

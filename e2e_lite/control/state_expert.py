@@ -57,7 +57,7 @@ from ..simulation.geometry import Track, wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
-from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S
+from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S, Decision
 from .rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear
 from .tracker import LaneChangePath, LQRTracker, default_tracker
 
@@ -76,16 +76,6 @@ class Draws(NamedTuple):
     finish_m: float
     change_time_s: float
     coin: float
-
-
-class Decision(NamedTuple):
-    """One car's decision: its state (``KEEP`` ...), the lane it drives for, the side of a lane
-    change under way (+1 left, -1 right, 0 none), and whether that change is an overtake."""
-
-    state: int
-    target: int
-    side: int
-    overtaking: bool
 
 
 class _Car(NamedTuple):

@@ -199,14 +199,12 @@ class _Recorder:
         # the mixing draws: a stream of their own, so the expert's and the noise's are untouched
         self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
-        kind = Expert if cfg.driver == "expert" else StateExpert
-        self.expert = kind(cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed)
-        self.labeller = (  # the state expert's labels, beside the driver's own
-            self.expert
+        world = cfg.world
+        self.labeller = StateExpert(cfg.expert, vehicle=world.vehicle, sim=world.sim, seed=cfg.seed)
+        self.expert = (  # who drives and labels; the state expert's labels lie beside its own
+            self.labeller
             if cfg.driver == "state"
-            else StateExpert(
-                cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed
-            )
+            else Expert(cfg.expert, vehicle=world.vehicle, sim=world.sim, seed=cfg.seed)
         )
         self.quota = car_quotas(cfg)[cars]
         self.offset = np.concatenate([[0], np.cumsum(self.quota)[:-1]])  # car i's first row

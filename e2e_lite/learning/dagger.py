@@ -20,13 +20,14 @@ them by ``eps T`` (their Theorem 3.1). Four things make the course's rounds the 
   so every iterate drives validation roads and the one that collides least is kept
   (:func:`kept_iterate`), as the kept epoch is.
 
-Three arms (:data:`ARMS`) differ in one thing each. ``dagger``: the network drives. ``control``:
-the state expert drives, with white noise on its commands fitted to the network's measured command
-error (DART, Laskey et al. 2017, :func:`dart_noise`), gated, labelled and aggregated the same
-way: only the states differ. ``no_new_data``: the same fine-tunes on chapter 04's data alone,
-relabelled, which says what the fine-tunes themselves do (the start network learned the course's
-expert; every arm's fine-tunes learn the state expert's labels). Every round of every arm stores its samples and its
-network (:class:`RoundSpec`), so a cut run goes on where it stopped.
+Three arms (:data:`ARMS`) differ in one thing each. ``dagger``: the network drives.
+``control``: the state expert drives, with white noise on its commands fitted to the network's
+measured command error (DART, Laskey et al. 2017, :func:`dart_noise`), gated, labelled and
+aggregated the same way: only the states differ. ``no_new_data``: the same fine-tunes on chapter
+04's data alone, relabelled, which says what the fine-tunes themselves do (the start network
+learned the course's expert; every arm's fine-tunes learn the state expert's labels). Every round
+of every arm stores its samples and its network (:class:`RoundSpec`), so a cut run goes on where
+it stopped.
 """
 
 from __future__ import annotations
