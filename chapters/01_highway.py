@@ -214,9 +214,11 @@ for name, res in results.items():
 # * A track is a chain of straights and arcs; the lane frame `(s, d)` is the one reference every
 #   later layer (camera, tracker, expert, affordance labels) asks.
 # * The car is a kinematic bicycle integrated exactly per step; pymunk is the referee that reports
-#   contacts, each collision counted once, followed by a documented re-spawn.
+#   contacts, each collision counted once (`tests/test_world.py`), followed by a documented
+#   re-spawn.
 # * The same road gives wildly different counts to drivers that see different things: the lane
-#   keeper hits every parked car in its lane, the lane changer, with a 70 m look-ahead, few or none.
+#   keeper drives into the parked cars in its lane, the lane changer, with a 70 m look-ahead,
+#   few or none.
 #   A collision rate is a property of driver *and* world, and it comes with an interval.
 #
 # ## Exercises

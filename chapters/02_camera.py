@@ -52,7 +52,8 @@ print(f"network camera {cam.shape}, human camera {human.shape}")
 # `z = f cos θ - u sin θ`, `y = -(f sin θ + u cos θ)`, `x = -l`.
 #
 # **The field of view is a design choice with consequences.** At 90° a 1.8 m wide car 60 m ahead
-# (where the expert starts to overtake) is 3 px wide at 200 px: barely there. We use 50°.
+# (about where chapter 04's expert starts to overtake, its trigger drawn per manoeuvre) is 3 px
+# wide at 200 px: barely there. We use 50°.
 
 # %%
 for hfov in (90.0, 50.0):

@@ -15,7 +15,7 @@
 # 4. what a sample holds: a 66 x 200 frame, the speed, clean actuators, a 5-point trajectory and
 #    DeepDriving-style affordances;
 # 5. the **ceiling** (the expert's collisions per 100 miles) and the **oracle** (the LQR tracker
-#    following the expert's 5-point trajectories): the representation is enough to drive;
+#    following the expert's 5-point trajectories): what does the representation lose?
 # 6. **covariate shift**: a learned driver visits states the expert never shows it, unless the
 #    data is collected so that it does.
 #
@@ -39,6 +39,7 @@ from e2e_lite.control.oracle import Oracle
 from e2e_lite.driving.evaluation import (
     SPEED_BINS,
     EvalConfig,
+    compare_rates,
     drive,
     evaluate,
     observe,
@@ -197,6 +198,7 @@ print(f"  manoeuvres: {manoeuvres}")
 oracle = Oracle()
 res_oracle = evaluate(oracle, world_cfg, ev, desc="oracle")
 print("oracle:", res_oracle.summary())
+print("oracle vs expert:", compare_rates(res_oracle, res_expert)["verdict"])
 
 # %% [markdown]
 # ## 4. Noise and clean labels
@@ -289,11 +291,10 @@ hist_png = save_figure(fig, artifacts.artifact_path("figures", "04_label_tails.p
 #
 # A cloned driver is trained on the states the *expert* visits, then judged on the states *it*
 # visits. The two differ. The evaluator starts every car at 20 m/s and, after every collision,
-# puts it back 15 m past the obstacle at 20 m/s (the roads' cruise speed is 25 m/s): a driver that
-# collides every half mile spends much of its time getting back to speed, in states an expert that
-# never collides rarely shows. In the course's first run the training data held almost no
-# sample below 22 m/s, and the GMM of chapter 07, restarted there over and over, picked the
-# "slow, keep lane" mode and never got back to speed (lab notes).
+# puts it back 15 m past the obstacle at 20 m/s (the roads' cruise speed is 25 m/s): does a
+# driver that collides spend more of its time getting back to speed than the expert shows it? In
+# the course's first run the training data lacked those restart states (lab note "The GMM's
+# first failures were the course's"); the old way of collecting, re-run below, shows how few.
 #
 # The classic answer is DAgger (let the learner drive, label what it visits with the expert,
 # retrain). The cheaper one used here: the collector **takes the car over** now and then (once per
@@ -391,9 +392,10 @@ print(
 #   passed on the left in some samples and on the right in others.
 # * Noise bursts put off-centre states and recoveries into the data; the labels stay what the
 #   expert would do, not what the noisy car did.
-# * A learned driver visits states the expert does not (covariate shift): here, restarts below
-#   cruise speed after every collision. Take-overs that re-place the car as the evaluator does,
-#   and braking bursts, put those states and the expert's way out of them into the data.
+# * A driver that collides visits states the expert shows less often (covariate shift): here,
+#   restarts below cruise speed (section 6's lane keeper stands in for a learned driver).
+#   Take-overs that re-place the car as the evaluator does, and braking bursts, put those states
+#   and the expert's way out of them into the data.
 # * Straight lane keeping dominates; overtakes and curves are the minority the later chapters
 #   (GMM, CVaR) are about.
 #

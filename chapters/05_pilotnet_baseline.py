@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from e2e_lite import artifacts
-from e2e_lite.driving.evaluation import EvalConfig, evaluate, results_table
+from e2e_lite.driving.evaluation import EvalConfig, compare_rates, evaluate, results_table
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import ActuatorAgent, SteeringAgent
 from e2e_lite.learning.collector import DataConfig, DrivingDataset, concat, load_or_collect
@@ -245,21 +245,12 @@ print(
     "paper (TORCS): Baseline E2E 183.3 per 100 mi; seed 002 (CARLA): time to collision 10.2 s vs 1.1 s"
 )
 
-# Is the difference between the two PilotNets more than chance? Compare the 95 % intervals.
+# Is the difference between the two PilotNets more than chance? The exact test of two rates
+# (`compare_rates`: given the total, how the collisions split by miles; overlapping intervals
+# are no test).
 plain, aug = results["PilotNet (steering)"], results["PilotNet + recovery views"]
-overlap = (
-    plain.ci95_per_100mi[0] <= aug.ci95_per_100mi[1]
-    and aug.ci95_per_100mi[0] <= plain.ci95_per_100mi[1]
-)
-verdict = (
-    "the intervals overlap: at this mileage the views make no difference we can measure"
-    if overlap
-    else "the intervals do not overlap: the difference is larger than chance"
-)
-print(
-    f"recovery views: {aug.collisions_per_100mi:.1f} vs {plain.collisions_per_100mi:.1f} per 100 mi "
-    f"without; {verdict}"
-)
+verdict = "recovery views vs without: " + compare_rates(aug, plain)["verdict"]
+print(verdict)
 
 # %% [markdown]
 # ## 6. What the network saw

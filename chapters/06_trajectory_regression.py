@@ -11,10 +11,11 @@
 #   so the network does not have to learn the car's dynamics.
 #
 # The targets are normalised per coordinate with the dataset's statistics: otherwise the far
-# longitudinal points (tens of metres, spread of a metre) would dominate the near and lateral ones
-# (centimetres). The loss is L2 on the normalised target. Its textbook failure is the question
-# at the end: where the expert has two right answers, does L2 predict their **mean**? The scene
-# built to show it answers for this run (lab note "Why L2 passes the overtake scenes").
+# longitudinal points (tens of metres, spread of a metre or two) would dominate the near ones
+# (spread of centimetres; section 1 prints each). The loss is L2 on the normalised target. Its
+# textbook failure is the question at the end: where the expert has two right answers, does L2
+# predict their **mean**? Section 5's one frame answers for this network; chapter 07's scenes
+# answer in closed loop, and the two need not agree (lab note "Why L2 passes the overtake scenes").
 #
 # Run it with `python chapters/06_trajectory_regression.py` (add `--quick` for a run of seconds).
 
@@ -229,8 +230,8 @@ artifacts.write_metrics(
 #
 # * The network now proposes a trajectory and the LQR tracker drives it: the same controller
 #   for every network, and an output a person (or a safety module) can check.
-# * Normalising each coordinate keeps the lateral centimetres from drowning under the
-#   longitudinal metres.
+# * Normalising each coordinate keeps the near points' centimetres from drowning under the far
+#   points' metres (section 1's spreads).
 # * The table compares it with chapter 05's actuator baselines on the same tracks and seeds.
 # * L2 is minimised by the conditional mean: where one image has two right answers, the mean
 #   points between them, at the obstacle. Whether this network does is measured, not assumed:
