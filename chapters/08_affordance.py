@@ -360,7 +360,7 @@ artifacts.write_metrics(
 # * A network kept for how it drives carries the head of that epoch; training the head alone on
 #   the kept trunk afterwards (`recipes.perceiving`) moves no weight that drives. Whether it beats
 #   the joint head is printed in section 4 (lab note "The affordance head refit on the kept
-#   trunk": once by about 40 %, once not; when it does not, which head to read is *open*).
+#   trunk": once it did, once not; when it does not, which head to read is *open*).
 # * Whether the auxiliary task lowers collisions here is the verdict line above, on the same roads
 #   as chapter 07 (the paper reports its step from 12.7 to 0.83 per 100 miles). It compares two
 #   *training runs*, one per setting. **The test of the loss is the w = 0 control** (the same
