@@ -85,10 +85,8 @@ for alpha in (0.0, 0.5, 0.9, 0.99):
 # the training loss: gradients reach the tail only
 t = torch.tensor(x, requires_grad=True)
 cvar_loss(t, 0.9, min_tail=1).backward()
-print(
-    f"CVaR-90 of 37 losses: {int((t.grad > 0).sum())} samples get a gradient "
-    f"({(1 - 0.9) * 37:.1f} in the tail: 3 whole + the 4th at weight 0.7)"
-)
+g = np.sort(t.grad.numpy()[t.grad.numpy() > 0])[::-1] * (1 - 0.9) * 37  # 1: a whole sample
+print(f"CVaR-90 of 37 losses: {len(g)} get a gradient, weights {np.round(g, 2).tolist()}")
 
 # %% [markdown]
 # Rockafellar and Uryasev wrote the same number without a sort, as a minimum over a threshold
@@ -144,8 +142,8 @@ print(
 # ## 3. What the tail is made of (the paper's Fig. 4)
 #
 # Replay the fine-tune's batching on training samples with the chapter-08 model: in each random
-# batch of 256, which samples are above the batch's 90 % quantile? Those are the samples CVaR
-# trains on. Compare their situations with random samples.
+# batch of 256, which samples are above the batch's 90 % quantile? Those are the samples the
+# fine-tune's first steps train on. Compare their situations with random samples.
 #
 # *What* is ranked is a choice. The paper ranks by the loss trained on; with sigma held at 1 that
 # is the modes' squared error, softly minimised over the modes and weighted by their mixing
@@ -216,8 +214,8 @@ print(f"saved {grid_png} (top row: the 8 worst samples; bottom row: 8 random one
 # sigma is held at 1 (`recipes.CVAR_SIGMA`; section 6 says why). The fine-tune **continues the
 # chapter-08 training's Adam state** (its moment
 # estimates, `train_or_load(..., carry_optimizer=True)`) at a tenth of its learning rate: a fresh
-# Adam's first steps move every weight by about the learning rate whatever its gradient, which
-# is a restart, not a fine-tune.
+# Adam's bias-corrected first step is the learning rate times the gradient's *sign*, for every
+# weight whatever its gradient's size: a restart, not a fine-tune.
 #
 # Any fine-tune changes a model, so CVaR is judged against a **control**: the identical
 # fine-tune (parent, epoch, batches, rate, optimiser state) reducing each batch by its mean
@@ -255,7 +253,7 @@ ax.set_ylabel("CVaR_alpha of the held-out loss (sigma at 1)")
 ax.set_title("the paper's Fig. 5 on held-out frames: base, control and CVaR")
 ax.legend()
 curve_png = save_figure(fig, artifacts.artifact_path("figures", "09_cvar_curve.png"))
-lower = tuned_curve < base_curve
+lower, under = tuned_curve < base_curve, tuned_curve < control_curve
 
 
 def spans(percent: np.ndarray) -> str:
@@ -275,6 +273,7 @@ print(
     f"(alpha [%]: {spans(pct[lower])}) and not lower at alpha [%]: {spans(pct[~lower])}; "
     f"saved {curve_png}"
 )
+print(f"it is lower than its control's at {int(under.sum())}: alpha [%] {spans(pct[under])}")
 
 # %% [markdown]
 # ## 5. Closed loop: base, control and CVaR, over the training seeds
@@ -312,8 +311,8 @@ for what, test in verdicts.items():
 # %% [markdown]
 # A rate per mile says nothing about how the miles were driven. Section 3 measured which
 # situations the tail holds; where it holds lane changes and frames with a parked car close ahead,
-# where the expert brakes or swerves, a network fine-tuned on them may learn to hold back. So
-# read the speed and the
+# where the expert brakes or swerves, a network fine-tuned on them may learn to hold back. Does
+# it? Read the speed and the
 # **stalls** (a car stopped for too long is restarted by the evaluator, an
 # intervention that is not a collision) beside each rate, seed by seed, and compare each
 # fine-tune with its control before crediting the tail: whatever the control also gains is the
@@ -414,15 +413,15 @@ artifacts.write_metrics(
 # * `CVaR_α` is the mean of the worst `1 - α` of the losses; as a training loss it sends gradients
 #   only to the samples above the batch's quantile, so the batch must hold enough of them.
 # * The tail is not a random sample: section 3 shows which situations it over-represents, and
-#   that ranking by the loss and ranking by the followed trajectory's error pick different
-#   samples.
+#   how many samples ranking by the loss and by the followed trajectory's error share.
 # * A fine-tune continues its base's optimiser, and it is judged against its control: the same
 #   fine-tune with the mean. Only the difference between the two is CVaR's.
-# * One epoch of CVaR-90 moves the per-percentile curve; the plot shows where it gains and what it
-#   costs on the easy cases, and the closed-loop verdicts (over the training seeds) say whether
-#   that reaches the road.
-# * A rate per mile is read with the speed and the stalls: a driver that learns from a tail rich
-#   in braking and swerving can buy fewer collisions per hour by not driving.
+# * One epoch of CVaR-90 moves the per-percentile curve: section 4 prints at which alphas it lies
+#   below the base's and its control's, and the closed-loop verdicts (over the training seeds)
+#   say whether that reaches the road.
+# * A rate per mile is read with the speed and the stalls: a driver fine-tuned on a tail rich in
+#   lane changes and close cars could buy fewer collisions per mile by driving slower or stalling
+#   (section 5 prints both per seed).
 # * With a GMM, the fine-tune's sigmas are a second change beside the reduction: held at 1, the
 #   fine-tunes differ in the reduction alone.
 #
