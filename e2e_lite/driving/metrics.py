@@ -270,9 +270,7 @@ def compare_rates(
     rate_a, rate_b = 100.0 * ka / ma, 100.0 * kb / mb
     different = p < 1.0 - level
     if not different:
-        verdict = (
-            f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: no difference beyond chance (p = {p:.2f})"
-        )
+        verdict = f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: a difference not shown (p = {p:.2f})"
     else:
         word = "fewer" if rate_a < rate_b else "more"
         verdict = f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: {word} collisions beyond chance (p = {p:.2g})"
