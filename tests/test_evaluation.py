@@ -91,6 +91,12 @@ def test_compare_rates_uses_the_exact_conditional_test():
     # unequal miles enter as the binomial's p: 10 in 200 mi vs 5 in 100 mi is the same rate
     assert compare_rates(_result(10, 200.0), _result(5, 100.0))["p_value"] == pytest.approx(1.0)
     assert compare_rates(_result(0, 100.0), _result(0, 100.0))["ratio"] is None
+    # two drives of one budget end metres apart: the p must not jump when the share crosses 1/2
+    # (scipy's default two-sided binomial p gave 0.077 here against 0.118 at equal miles)
+    equal = compare_rates(_result(4, 300.0), _result(11, 300.0))["p_value"]
+    for metres in (-10.0, 10.0):
+        nudged = compare_rates(_result(4, 300.0 + metres / 1609.344), _result(11, 300.0))
+        assert nudged["p_value"] == pytest.approx(equal, rel=1e-3)
 
 
 def test_results_table_has_a_row_per_driver():
