@@ -596,6 +596,13 @@ def test_compare_seeds_is_an_exact_seed_level_test_that_treats_ties_as_ties():
     paired = compare_seeds(aff, gmm, paired=True)
     assert paired["test"] == "paired sign-flip" and paired["p_fewer"] == pytest.approx(2 / 32)
     assert paired["p_unpaired"] == pytest.approx(step["p_fewer"])
+    # four seeds, every one worse: the bootstrap interval excludes 1 where the exact test cannot
+    # reach 0.05 (chapter 11's run printed 1.55 [1.20, 1.80] beside "not shown"): the verdict says
+    # which to read
+    narrow = compare_seeds(_row([4, 5, 4, 4]), _row([3, 3, 2, 3]), paired=True)
+    assert narrow["ratio_ci"][0] > 1.0 and "not shown" in narrow["verdict"]
+    assert "too narrow to read" in narrow["verdict"]
+    assert "too narrow" not in step["verdict"]  # (its interval holds 1)
 
 
 def test_the_seed_level_test_keeps_its_false_positive_rate_and_states_its_power():

@@ -223,6 +223,8 @@ def compare_seeds(
         p = min(main["p_fewer"], main["p_more"])
         reach = "" if main["min_p"] < cut else f"; these seeds cannot reach p < {1 - level:.2g}"
         verdict = f"{med}: not shown at the seed level ({test} p = {p:.2g}{reach})"
+        if hi < 1.0 or lo > 1.0:  # a percentile bootstrap over a few seeds is too narrow
+            verdict += f"; the interval, bootstrapped over {len(ca)} seeds, is too narrow to read"
     return {
         "p_fewer": main["p_fewer"],
         "p_more": main["p_more"],
