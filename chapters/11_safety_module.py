@@ -6,7 +6,8 @@
 # was beyond the scope of this work". A trajectory, unlike a steering angle, says where the car
 # means to be in the next 1.5 s, so **a proposed trajectory can be checked**. This chapter builds
 # the check, tries it on trajectories known to be safe, calibrates it for a learned perception,
-# and drives chapter 10's best affordance-predicting driver with and without it.
+# and drives the affordance-predicting driver of chapter 10 with the lower pooled rate (no step
+# between the two is shown there) with and without it.
 #
 # ## The rule
 #
@@ -95,7 +96,7 @@ candidates = ("gmm_affordance", "gmm_affordance_cvar")  # the GMM drivers that p
 ten = artifacts.read_metrics("10_ablation", profile.name)
 if ten is not None and all(k in ten.get("results", {}) for k in candidates):
     key = min(candidates, key=lambda k: ten["results"][k]["collisions_per_100mi"])
-    print(f"chapter 10's best GMM driver with an affordance head: {key}")
+    print(f"chapter 10's GMM driver with an affordance head, lower pooled rate: {key}")
 else:
     key = "gmm_affordance"
     print("chapter 10 has no results in this profile: using GMM + affordance")
@@ -225,10 +226,10 @@ for label, m in bins:
 
 # %% [markdown]
 # Which check raises the false alarms? For each, the rule that rejected the expert's trajectory
-# with the predicted affordances, and the lane it concerned. At cruise speed the stopping
-# distance (`SafetyConfig.stopping_m`) is longer than the camera's 60 m, so **any** car perceived
-# in the lane where the 1.5 s end is a reason to leave it or brake: on frames with no car within
-# 60 m, the question is how often the head's gap falls under `gap_free_m`.
+# with the predicted affordances, and the lane it concerned. At cruise speed the 1.5 s path plus
+# the stopping distance (`SafetyConfig.stopping_m`) is longer than the camera's 60 m, so **any**
+# car perceived in the lane where the 1.5 s end is a reason to leave it or brake: on frames with
+# no car within 60 m, how often does the head's gap fall under `gap_free_m`, in which lane?
 
 # %%
 false_alarm = expert_true & ~expert_pred
@@ -256,9 +257,9 @@ print(
 # where that noise lies. `calibrate_gap_free` takes, for each training seed's head, the 1 %
 # quantile of its predicted gaps on **training** frames whose lane is free (the evaluation's
 # roads play no part), once for the ego lane and once for the two side lanes pooled: a head sees
-# its own lane more sharply than its neighbours. With them, at most about 1 % of free lanes see a
-# car that is not there; the price is that a car beyond a threshold counts as unseen until it
-# comes nearer. Here, the same validation frames checked again with seed 0's thresholds:
+# its own lane more sharply than its neighbours. With them, by construction, that quantile's share
+# of free *training* lanes sees a car that is not there; the price is that a car beyond a threshold
+# counts as unseen until it comes nearer. Here, the validation frames again, with seed 0's:
 
 
 # %%
@@ -389,10 +390,10 @@ print(f"saved {rows_png}")
 # A safer row that drives slower is not the same claim: read the mph column beside each rate.
 # And whose collisions are they? Each collision has a cause (`safety.agent.IMPACT_CAUSES`): the
 # module's own manoeuvre (its fallback or the other mode drove the last decision), the network
-# within 2 s of the module handing the car back (often slowed, at speeds the expert's data rarely
-# shows, chapter 04), or the network with the module silent (it saw nothing wrong, or too late).
-# Without the module every collision is the network's. The difference between a row and the
-# driver alone, cause by cause, is what the module added or removed.
+# within 2 s of the module handing the car back, or the network with the module silent (it saw
+# nothing wrong, or too late). Without the module every collision is the network's. A row's
+# counts beside the driver alone's, cause by cause, show where the module's collisions came from;
+# whether it added or removed any is the verdict lines' question.
 
 # %%
 speed_bins = ((0.0, 10.0), (10.0, 20.0), (20.0, np.inf))
@@ -514,15 +515,16 @@ artifacts.write_metrics(
 #   alone, seed by seed, with the speed beside each rate.
 # * A fallback is a driver too: who drove the last decision before each collision, and at what
 #   speed, says whether the collisions left are the network's or the module's own.
-# * A safety layer is only as good as its perception and its fallbacks. Even on the truth its
-#   own manoeuvres (the other mode, the fallback) can drive into a rail or a car; on perceived
-#   affordances it adds the network's collisions after each hand-back. In the course's own run
-#   the module on perception collided more than no module at all (lab note "The safety module
-#   on the course's own driver"); the verdict lines and the causes above say what it did in
-#   this run.
+# * A safety layer is only as good as its perception and its fallbacks: even on the truth its
+#   own manoeuvres (the other mode, the fallback) can drive into a rail or a car, and on
+#   perceived affordances the network drives on after each hand-back; the causes table counts
+#   each, and the verdict lines say whether a row differs from the driver alone. In an earlier
+#   run on perception it collided more, pooled though not seed by seed (lab note "The safety
+#   module on the course's own driver").
 # * A fallback is only as good as what it reads: braking to a lane centre needs the perceived
-#   lane geometry, braking along the network's own path does not. Whether the car's full brake,
-#   kept as headroom, helps a stop that comes late is a measured verdict (its row), not a given.
+#   lane geometry, braking along the network's own path does not for a parked car (road-edge
+#   rejections still brake to a lane). Whether the car's full brake, kept as headroom, helps a
+#   stop that comes late is its row's question: the causes table says what it changed.
 #
 # ## Exercises
 #
