@@ -425,7 +425,7 @@ for name, m in masks.items() if opened else ():
 res_learned = evaluate(TrajectoryAgent(learned), world_cfg, ev, desc="GMM, learned sigmas")
 free_sigma = f"GMM, learned sigmas{'' if opened else ', kept warm-up'}"
 print(results_table([("GMM, sigma held (the course's)", res), (free_sigma, res_learned)]))
-sigma_verdict = "held vs learned sigmas: " + compare_rates(res, res_learned)["verdict"]
+sigma_verdict = f"held vs {free_sigma[5:]}: " + compare_rates(res, res_learned)["verdict"]
 print(sigma_verdict)
 
 # %% [markdown]

@@ -89,9 +89,11 @@ def page(
     return "\n".join(lines).rstrip() + "\n"
 
 
-def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
+def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
     """Write the book from the full run in ``outputs``: a page per transcript, its figures, the
-    index. Returns what it wrote: the chapters, the commit(s) and the images' bytes."""
+    index (``note``: a line under the run's, for what the run's files cannot say). A chapter of
+    the course with no transcript yet is listed as not in the run. Returns what it wrote: the
+    chapters, the commit(s) and the images' bytes."""
     from .course import CHAPTERS, TIMES_FILE, find_chapters
     from .estimate import cpu_name
 
@@ -126,6 +128,11 @@ def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
         rows.append(f"| {number:02d} | {link} | {purpose} | {duration(seconds)} |")
         commits.setdefault(t["commit"], []).append(f"{number:02d}")
         total += seconds
+    ran = {int(json.loads(p.read_text())["chapter"][:2]) for p in transcripts}
+    for number in sorted(set(CHAPTERS) - ran):
+        name = paths[number].stem[3:].replace("_", " ") if number in paths else ""
+        rows.append(f"| {number:02d} | {name} | {CHAPTERS[number].purpose} | not in this run yet |")
+    rows.sort(key=lambda row: row[2:4])
     if image_bytes > BUDGET_BYTES:
         raise SystemExit(f"the book's images weigh {image_bytes:,} bytes, over {BUDGET_BYTES:,}")
     date = max(json.loads(p.read_text())["date"] for p in transcripts)
@@ -141,6 +148,7 @@ def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
         f"*The run: {date}, on {cpu_name()}, at {at_commits(commits)}; each chapter's time as"
         " that run took it.*",
         "",
+        *([note, ""] if note else []),
         "| # | chapter | the idea | time |",
         "|---|---|---|---:|",
         *rows,
@@ -148,7 +156,7 @@ def render(outputs: Path, book: Path = BOOK) -> dict[str, Any]:
         "",
     ]
     (book / "README.md").write_text("\n".join(index))
-    return {"chapters": len(rows), "commits": sorted(commits), "image_bytes": image_bytes}
+    return {"chapters": len(transcripts), "commits": sorted(commits), "image_bytes": image_bytes}
 
 
 def duration(seconds: float) -> str:
@@ -187,8 +195,9 @@ def _ranges(numbers: list[str]) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m e2e_lite.book", description=__doc__)
     parser.add_argument("outputs", type=Path, help="the full-profile run's outputs folder")
+    parser.add_argument("--note", default="", help="a line for the index, under the run's")
     args = parser.parse_args(argv)
-    wrote = render(args.outputs)
+    wrote = render(args.outputs, note=args.note)
     print(f"wrote {BOOK.relative_to(ROOT)}: {wrote}")
     return 0
 

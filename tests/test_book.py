@@ -79,3 +79,22 @@ def test_the_index_says_which_chapters_ran_at_which_commit_and_times_read_as_tim
     t["cells"] = [{"kind": "code", "text": "print(p)", "output": printed}]
     shown = book.page(t, "", {}, "/runs/x/")
     assert "outputs in outputs/\nsaved outputs/figures/a.png" in shown and "/runs" not in shown
+
+
+def test_the_index_lists_a_chapter_not_yet_run_and_carries_a_note(tmp_path):
+    """A run cut before its last chapter makes a book of the chapters it ran; the index lists
+    the others as not in the run, and a note says what the run's files cannot."""
+    from e2e_lite.course import CHAPTERS
+
+    out = tmp_path / "out"
+    (out / "transcripts").mkdir(parents=True)
+    cell = {"kind": "code", "text": "print(1)", "output": "1\n"}
+    t = {"chapter": "01_highway", "commit": "abc1234", "date": "2026-11-29"}
+    t |= {"source_sha256": "", "cells": [cell], "exit_code": 0}
+    (out / "transcripts" / "01_highway.json").write_text(json.dumps(t))
+    wrote = book.render(out, tmp_path / "book", note="*A note.*")
+    index = (tmp_path / "book" / "README.md").read_text()
+    assert wrote["chapters"] == 1 and "*A note.*" in index
+    rows = [r for r in index.splitlines() if r[:4].strip("| ").isdigit()]
+    assert [r[2:4] for r in rows] == [f"{n:02d}" for n in sorted(CHAPTERS)]
+    assert sum("not in this run yet" in r for r in rows) == len(CHAPTERS) - 1
