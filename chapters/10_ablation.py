@@ -175,7 +175,7 @@ for st in (st for st in STEPS if st.family == "paper"):
     steps.append({**which, "pooled_p_value": pooled, "paper_ratio": paper, "outcome": outcome})
     lo, hi = seeds["ratio_ci"]
     size = "no CI" if np.isnan(hi) else "inside the CI" if lo <= paper <= hi else "outside the CI"
-    tail = f"pooled p = {pooled:.2g}: {outcome} (the paper's ratio {paper:.2g}: {size})"
+    tail = f"verdict: {outcome} (the paper's ratio {paper:.2g}: {size}); pooled p = {pooled:.2g}"
     print(f"{st.what}: {seeds['verdict']}; {tail}")
 
 # %% [markdown]
