@@ -250,7 +250,7 @@ chart_png = save_figure(
     collision_chart(
         rows,
         title=f"{miles_text(ev.miles)} per row of the paper ({profile.ablation_seeds} training "
-        f"seeds each), {miles_text(reference_ev.miles)} for the others; the same roads",
+        f"seeds each), {miles_text(reference_ev.miles)} for the others (seed 0's roads)",
         marks=marks,
         marks_label="seed 000, Table 1",
         log=True,
