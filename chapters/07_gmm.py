@@ -288,11 +288,8 @@ chart = collision_chart(
 chart_png = save_figure(chart, artifacts.artifact_path("figures", "07_collisions.png"))
 print(f"saved {chart_png}")
 l2 = dict(earlier).get("trajectory L2 + LQR")
-verdict = (
-    "GMM vs L2: " + compare_rates(res, l2)["verdict"]
-    if l2 is not None
-    else "run chapter 06 first to compare with L2"
-)
+vs_l2 = compare_rates(res, l2) if l2 is not None else None
+verdict = "GMM vs L2: " + vs_l2["verdict"] if vs_l2 else "run chapter 06 first to compare with L2"
 print(verdict)
 
 
@@ -328,7 +325,7 @@ shows = scene_results["L2"].pass_rate < scene_results["GMM"].pass_rate
 rates = {n: f"{scene_results[n].pass_rate:.0%}" for n in ("L2", "GMM")}
 found = "the scenes show averaging" if shows else "no averaging shows (L2 fails no more)"
 print(f"L2 passed {rates['L2']}, the GMM {rates['GMM']}: {found}")
-if not shows and l2 is not None and compare_rates(res, l2)["different"]:
+if not shows and vs_l2 and vs_l2["different"]:
     print(f"so section 4's verdict ({verdict}) has a cause these scenes do not show: open")
 fig = Figure(figsize=(10, 3.4))
 axes = fig.subplots(1, 3, sharey=True)

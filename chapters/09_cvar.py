@@ -85,7 +85,8 @@ for alpha in (0.0, 0.5, 0.9, 0.99):
 # the training loss: gradients reach the tail only
 t = torch.tensor(x, requires_grad=True)
 cvar_loss(t, 0.9, min_tail=1).backward()
-g = np.sort(t.grad.numpy()[t.grad.numpy() > 0])[::-1] * (1 - 0.9) * 37  # 1: a whole sample
+grad = t.grad.numpy()
+g = np.sort(grad[grad > 0])[::-1] * (1 - 0.9) * 37  # each tail sample's weight (1: a whole one)
 print(f"CVaR-90 of 37 losses: {len(g)} get a gradient, weights {np.round(g, 2).tolist()}")
 
 # %% [markdown]

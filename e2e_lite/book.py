@@ -107,9 +107,10 @@ def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
     times = (
         json.loads((outputs / TIMES_FILE).read_text()) if (outputs / TIMES_FILE).exists() else {}
     )
-    rows, commits, image_bytes, total = [], {}, 0, 0.0
+    rows, commits, image_bytes, total, dates = [], {}, 0, 0.0, []
     for path in transcripts:
         t = json.loads(path.read_text())
+        dates.append(t["date"])
         figures = {}
         for cell in t["cells"]:
             for fig in cell.get("figures", []):
@@ -128,14 +129,13 @@ def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
         rows.append(f"| {number:02d} | {link} | {purpose} | {duration(seconds)} |")
         commits.setdefault(t["commit"], []).append(f"{number:02d}")
         total += seconds
-    ran = {int(json.loads(p.read_text())["chapter"][:2]) for p in transcripts}
-    for number in sorted(set(CHAPTERS) - ran):
+    for number in sorted(set(CHAPTERS) - {int(c) for ns in commits.values() for c in ns}):
         name = paths[number].stem[3:].replace("_", " ") if number in paths else ""
         rows.append(f"| {number:02d} | {name} | {CHAPTERS[number].purpose} | not in this run yet |")
     rows.sort(key=lambda row: row[2:4])
     if image_bytes > BUDGET_BYTES:
         raise SystemExit(f"the book's images weigh {image_bytes:,} bytes, over {BUDGET_BYTES:,}")
-    date = max(json.loads(p.read_text())["date"] for p in transcripts)
+    date = max(dates)
     index = [
         "# The course as a book",
         "",
