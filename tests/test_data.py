@@ -135,6 +135,22 @@ def test_dataset_is_saved_reused_and_rebuilt_on_other_settings(capsys):
     assert "other settings" in capsys.readouterr().out
 
 
+def test_a_saved_dataset_is_compressed_and_a_raw_one_still_loads(tmp_path):
+    from e2e_lite.learning.dataset import load_dataset, save_dataset, synthetic_data
+
+    data = synthetic_data(32)
+    data.arrays["images"][:] = 90  # the camera's flat colours (random noise would not deflate)
+    save_dataset(tmp_path / "d.npz", data, key="k")
+    raw = sum(a.nbytes for a in data.arrays.values())
+    assert (tmp_path / "d.npz").stat().st_size < raw / 10
+    back, key = load_dataset(tmp_path / "d.npz")
+    assert key == "k"
+    for name, array in data.arrays.items():
+        np.testing.assert_array_equal(array, back.arrays[name])
+    np.savez(tmp_path / "raw.npz", **np.load(tmp_path / "d.npz"))  # as earlier versions wrote
+    np.testing.assert_array_equal(load_dataset(tmp_path / "raw.npz")[0].images, data.images)
+
+
 def test_stats_and_shares():
     data = collect(small_cfg(), progress=False)
     assert data.stats["trajectory_mean"].shape == (5, 2)
