@@ -415,6 +415,11 @@ def test_shares_of_the_record_pool_into_what_one_run_gives_and_what_does_not_bel
         )
         return dataclasses.replace(share, rows=rows)
 
+    for row in pooled.rows:  # each seed's interventions, of which its collisions are some
+        assert all(s.interventions >= s.collisions for s in row.seeds)
+        assert row.interventions == sum(s.interventions for s in row.seeds)
+    unkept = with_runs(b, lambda run: dataclasses.replace(run, interventions=None)).sealed()
+    assert all(r.interventions is None for r in pool([("a", a), ("b", unkept)]).rows)
     edited = with_runs(b, lambda run: dataclasses.replace(run, collisions=run.collisions + 1))
     refused(edited, r"bad.json: .*edited after it was written")
     refused(both, "bad.json: training seed 0 is in a too")

@@ -102,10 +102,15 @@ def pool_row(parts: list[tuple[ShareRow, int]], single: bool, commit: str) -> Ro
     mph = round(miles / hours, 2) if hours else 0.0
     stalls = sum(r.stalls for r, _ in runs)
     car, rail = sum(r.car for r, _ in runs), sum(r.rail for r, _ in runs)
+    kept = [r.interventions for r, _ in runs]
+    interventions = None if None in kept else sum(kept)  # (every share must have kept them)
     if single:
-        seeds = (SeedRun(0, car + rail, round(miles, 3), mph, stalls),)
+        seeds = (SeedRun(0, car + rail, round(miles, 3), mph, stalls, None, interventions),)
     else:
-        seeds = tuple(SeedRun(r.seed, r.collisions, r.miles, r.mph, r.stalls, m) for r, m in runs)
+        seeds = tuple(
+            SeedRun(r.seed, r.collisions, r.miles, r.mph, r.stalls, m, r.interventions)
+            for r, m in runs
+        )
     row = parts[0][0]
     return Row(
         key=row.key,
@@ -118,6 +123,7 @@ def pool_row(parts: list[tuple[ShareRow, int]], single: bool, commit: str) -> Ro
         stalls=stalls,
         commit=commit,
         control=row.control,
+        interventions=interventions,
     )
 
 

@@ -70,6 +70,8 @@ class SeedRun(_Json):
         mph: mean speed [mph] (None: not recorded).
         stalls: re-placements after standing still (None: not recorded).
         machine: index into :attr:`Record.machines` (None: a row without training seeds).
+        interventions: the autonomy metric's interventions, collisions and off-centre episodes
+            (:mod:`~e2e_lite.driving.metrics`; None: not recorded, as in shares before 2026-11-29).
     """
 
     seed: int
@@ -78,8 +80,9 @@ class SeedRun(_Json):
     mph: float | None = None
     stalls: int | None = None
     machine: int | None = None
+    interventions: int | None = None
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("mph", "stalls", "machine")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("mph", "stalls", "machine", "interventions")
 
 
 @dataclass(frozen=True)
@@ -95,6 +98,8 @@ class Row(_Json):
         stalls: re-placements over every seed (None: not recorded).
         commit: the recipes' commit that trained and drove it (None: not recorded).
         control: whether the row is a control (a method's twin without it).
+        interventions: the autonomy metric's interventions over every seed, collisions and
+            off-centre episodes (None: not recorded in every share).
     """
 
     key: str
@@ -107,8 +112,9 @@ class Row(_Json):
     stalls: int | None
     commit: str | None = None
     control: bool | None = None
+    interventions: int | None = None
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("commit", "control")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("commit", "control", "interventions")
     NESTED: ClassVar[dict[str, type[_Json]]] = {"seeds": SeedRun}
 
     @property
@@ -229,7 +235,9 @@ SHARE_FORMAT = "e2e-lite record share"
 @dataclass(frozen=True)
 class SeedDrive(_Json):
     """One training seed's drive of one row in a share: from which track of the block it drove,
-    its collisions (car and rail), miles [mi], mean speed [mph] and stalls."""
+    its collisions (car and rail), miles [mi], mean speed [mph], stalls and the autonomy metric's
+    interventions (collisions and off-centre episodes; None in shares written before they were
+    kept: chapter 12's DAgger iterates drove off-centre far more often than their start)."""
 
     seed: int
     first_track: int
@@ -239,6 +247,9 @@ class SeedDrive(_Json):
     miles: float
     mph: float
     stalls: int
+    interventions: int | None = None
+
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("interventions",)
 
 
 @dataclass(frozen=True)

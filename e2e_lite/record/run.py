@@ -112,6 +112,7 @@ def _seed_drive(seed: int, first_track: int, result: Any) -> SeedDrive:
         miles=round(r["miles"], 3),
         mph=round(r["mean_speed_mph"], 2),
         stalls=r["stalls"],
+        interventions=r["interventions"],
     )
 
 
