@@ -183,6 +183,10 @@ for k, (_, arms) in runs.items():
                 f"{g['before_collision']} from before a collision, {g['beyond_gate']:,} "
                 f"beyond {cfg.gate_m:g} m; outside the data {r.shift['any']:.1%}"
             )
+for arm in ("dagger", "control"):
+    shift = np.array([[r.shift["any"] for r in arms[arm]] for _, arms in runs.values()])
+    by_round = ", ".join(f"{x:.1%}" for x in np.median(shift, 0))
+    print(f"{arm}: kept samples outside the data by round, median of seeds: {by_round}")
 
 # %% [markdown]
 # The old recipe's rounds drove a few miles each and seldom met a collision (lab note "How many
@@ -190,6 +194,9 @@ for k, (_, arms) in runs.items():
 # come from the seconds before a collision. The shift is the share of a round's kept samples
 # outside the range of the middle of chapter 04's data in at least one feature; the control's,
 # the state expert's own states with DART's noise, gated alike, is the baseline DAgger's is read by.
+# The two median lines say whether the network's states lay farther from the data than the
+# expert's noisy ones, and whether DAgger's moved outward round by round, as the network's own
+# drift took it farther from the data it learned (the theory's reason to aggregate).
 
 # %%
 iterates = {
@@ -272,11 +279,18 @@ for what, v in verdicts.items():
 rate = {k: result_dict(r)["collisions_per_100mi"] for k, r in test.items()}
 mph = {k: result_dict(r)["mean_speed_mph"] for k, r in test.items()}
 print("test roads: " + ", ".join(f"{k} {rate[k]:.1f} per 100 mi at {mph[k]:.1f} mph" for k in rate))
+off = {k: result_dict(r)["interventions"] - result_dict(r)["collisions"] for k, r in test.items()}
+print("off-centre episodes (over 1 m from every lane centre for 3 s): " + str(off))
 
 # %% [markdown]
 # In words, from the verdicts above: DAgger's step is credited to the network's states only if
 # it beats its start *and* its control; a step that the control shares is new data's, and one
-# that no new data shares is the fine-tunes'.
+# that no new data shares is the fine-tunes'. A driver is more than its collisions: the
+# off-centre line counts the episodes PilotNet's autonomy metric charges (README, "How a drive
+# is judged"; chapter 01 prints it), the car over a metre from every lane centre for longer than
+# a lane change takes. Read it beside the rates: fewer collisions bought with lingering between
+# lanes is a different driver. Why DAgger's iterates would linger is open (lab note "DAgger's
+# iterates off the lane centre").
 
 
 # %%
@@ -310,6 +324,8 @@ headline = {
     "control collisions/100mi": rate["control"],
     "no new data collisions/100mi": rate["no_new_data"],
     "DAgger mph": mph["dagger"],
+    "start off-centre episodes": off["start"],
+    "DAgger off-centre episodes": off["dagger"],
 }
 tested = {
     k: {"verdict": v["verdict"], "p": v["p_fewer"], "ratio": v["ratio"]}
@@ -353,6 +369,8 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #   network's states?) and the same fine-tunes on no new data (is it data at all?). Section 4
 #   says, in words, what this run's seeds can credit: with four seeds a paired test cannot reach
 #   p < 0.05 (its power line prints the smallest p they can reach), so the record's seeds decide.
+# * A driver is more than its collisions: section 4 prints each arm's off-centre episodes beside
+#   its rate; where DAgger's iterates linger between lanes, why is open.
 #
 # ## Exercises
 #
@@ -370,3 +388,7 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    8,000 samples, labels of the wiped expert, the last round kept. Check it out, run its
 #    chapter 12, and compare its lab notes ("Who labels DAgger's states", "DAgger's states or its
 #    labeller") with section 2's oracle lines.
+# 6. Off the lane centre: drive one seed's kept DAgger iterate (`iterates["dagger"][k]`) on
+#    validation roads inside an `anatomy.Witness(..., every=10)` and, at its moments more than
+#    1 m from every lane centre, compare the network's plan with the state expert's label and
+#    state. Is it a lane change the labeller reads as under way, one the network never finishes?
