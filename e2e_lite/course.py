@@ -82,15 +82,15 @@ CHAPTERS: dict[int, ChapterInfo] = {
     3: ChapterInfo(
         "LQR tracking: following a trajectory with steering and acceleration", "3.1", 2, 1
     ),
-    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 5, 1),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 7, 10),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 5, 3),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 6, 6),
-    8: ChapterInfo("the affordance auxiliary loss", "3.5", 7, 5),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 17),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 17),
-    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 6),
-    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 75, 45),
+    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 5, 9),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 7, 27),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 5, 7),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 6, 15),
+    8: ChapterInfo("the affordance auxiliary loss", "3.5", 7, 15),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 52),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 46),
+    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 17),
+    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 75, 79),
 }
 
 
