@@ -196,3 +196,26 @@ def test_the_sessions_assign_core_exercises_and_the_kit_names_every_paper_a_sess
     findings = teaching.split("<!-- sessions' findings", 1)[1].split("<!-- /sessions'", 1)[0]
     assert all(f"**Session {k}**" in findings for k in range(1, 7))  # rendered from the runs
     assert '"not shown" or "the opposite"' in teaching
+
+
+def test_the_kit_says_what_a_machine_needs_as_measured_and_the_book_has_every_chapter():
+    """What a machine needs is rendered from the recorded course run, every need measured
+    (download, venv, outputs after the full and the quick course, peak memory, the system the
+    tests ran on); the book holds a page per chapter naming the commit it shows, is linked from
+    the README and the kit, and its images stay within the budget."""
+    from e2e_lite import book
+    from e2e_lite.course import CHAPTERS
+
+    teaching = (ROOT / "docs" / "teaching.md").read_text()
+    needs = teaching.split("<!-- machine needs", 1)[1].split("<!-- /machine needs", 1)[0]
+    for what in ("Download", "venv", "after the full course", "after the quick one", "Memory"):
+        assert what in needs, what
+    assert "Systems" in needs and "no other system is tested" in needs
+    pages = {p.stem: p.read_text() for p in book.BOOK.glob("[0-9][0-9]_*.md")}
+    assert sorted(int(s[:2]) for s in pages) == sorted(CHAPTERS)
+    for stem, text in pages.items():
+        assert re.search(r"at commit `[0-9a-f]{7,}`", text), stem
+    images = sum(p.stat().st_size for p in (book.BOOK / "figures").glob("*.png"))
+    assert 0 < images <= book.BUDGET_BYTES
+    for doc in ("README.md", "docs/teaching.md"):
+        assert "book/README.md" in (ROOT / doc).read_text(), doc
