@@ -17,9 +17,8 @@
 # failing states**, training on **the whole aggregate**, and **choosing the iterate** (no-regret
 # only promises that some iterate is good). The course's rounds are built to aim at all four
 # (section 3 prints how many failing states they reached), and two controls say what the step is
-# made of. What you will learn: how to dissect a failure
-# before fixing it, that a label is a driver, and what DAgger's step is worth against its
-# controls.
+# made of. What you will learn: how to dissect a failure before fixing it, that a label is a
+# driver, and what DAgger's step is worth against its controls.
 #
 # Run it with `python chapters/12_dagger.py` (add `--quick` for a run of seconds).
 
@@ -285,22 +284,23 @@ pairs = {
 verdicts = {what: compare_seeds(test[a], test[b], paired=True) for what, (a, b) in pairs.items()}
 for what, v in verdicts.items():
     print(f"{what}: {v['verdict']}")
-rate = {k: result_dict(r)["collisions_per_100mi"] for k, r in test.items()}
-mph = {k: result_dict(r)["mean_speed_mph"] for k, r in test.items()}
+got = {k: result_dict(r) for k, r in test.items()}
+rate = {k: r["collisions_per_100mi"] for k, r in got.items()}
+mph = {k: r["mean_speed_mph"] for k, r in got.items()}
 print("test roads: " + ", ".join(f"{k} {rate[k]:.1f} per 100 mi at {mph[k]:.1f} mph" for k in rate))
-off = {k: result_dict(r)["interventions"] - result_dict(r)["collisions"] for k, r in test.items()}
+off = {k: r["interventions"] - r["collisions"] for k, r in got.items()}
 print("off-centre episodes (over 1 m from every lane centre for 3 s): " + str(off))
 
 # %% [markdown]
 # In words, from the verdicts above: DAgger's step is credited to the network's states only if
 # it beats its start *and* its control; a step that the control shares is new data's, and one
 # that no new data shares is the fine-tunes' (the control against no new data asks whether new
-# data mattered at all). A driver is more than its collisions: the
-# off-centre line counts the episodes PilotNet's autonomy metric charges (README, "How a drive
-# is judged"; chapter 01 prints it), the car over a metre from every lane centre for longer than
-# a lane change takes. Read it beside the rates: a lower rate that comes with lingering between
-# lanes is a different driver. Why DAgger's iterates would linger is open (lab note "DAgger's
-# iterates off the lane centre").
+# data mattered at all). A driver is more than its collisions: the off-centre line counts the
+# episodes PilotNet's autonomy metric charges (README, "How a drive is judged"; chapter 01
+# prints it), the car over a metre from every lane centre for longer than a lane change takes.
+# Read it beside the rates: a lower rate that comes with lingering between lanes is a different
+# driver. Why DAgger's iterates would linger is open (lab note "DAgger's iterates off the lane
+# centre").
 
 
 # %%
@@ -358,7 +358,7 @@ metrics = {
     "labellers": labellers,
     "kept_iterates": kept,
     "validation_per_seed": per_seed,
-    "test": {k: {**result_dict(r), "events": None} for k, r in test.items()},
+    "test": {k: {**r, "events": None} for k, r in got.items()},
     "verdicts": tested,
     "power": {**reach, "dispersion": spread_k, "rate_per_100mi": start_rate},
 }
@@ -374,8 +374,8 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #   labels drive the same roads (section 2's lines); DAgger's labeller must be a function of the
 #   state *and* drive well (the wiped labels are a function of the state too: see how they
 #   drive), and it relabels chapter 04's data so that a fine-tune learns one labeller.
-# * The course's recipe, after the theory's: rounds that drive far more than they keep and gate what they keep,
-#   fine-tunes on the whole aggregate, and the iterate chosen on validation roads.
+# * The course's recipe, after the theory's: rounds that drive far more than they keep and gate
+#   what they keep, fine-tunes on the whole aggregate, and the iterate chosen on validation roads.
 # * A data method needs two controls: the same rounds with the expert driving (is it the
 #   network's states?) and the same fine-tunes on no new data (is it data at all?). Section 4
 #   says, in words, what this run's seeds can credit: with four seeds a paired test cannot reach

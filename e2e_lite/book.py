@@ -129,7 +129,7 @@ def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
         rows.append(f"| {number:02d} | {link} | {purpose} | {duration(seconds)} |")
         commits.setdefault(t["commit"], []).append(f"{number:02d}")
         total += seconds
-    for number in sorted(set(CHAPTERS) - {int(c) for ns in commits.values() for c in ns}):
+    for number in sorted(set(CHAPTERS) - {int(p.stem[:2]) for p in transcripts}):
         name = paths[number].stem[3:].replace("_", " ") if number in paths else ""
         rows.append(f"| {number:02d} | {name} | {CHAPTERS[number].purpose} | not in this run yet |")
     rows.sort(key=lambda row: row[2:4])

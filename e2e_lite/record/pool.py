@@ -105,7 +105,7 @@ def pool_row(parts: list[tuple[ShareRow, int]], single: bool, commit: str) -> Ro
     kept = [r.interventions for r, _ in runs]
     interventions = None if None in kept else sum(kept)  # (every share must have kept them)
     if single:
-        seeds = (SeedRun(0, car + rail, round(miles, 3), mph, stalls, None, interventions),)
+        seeds = (SeedRun(0, car + rail, round(miles, 3), mph, stalls, interventions=interventions),)
     else:
         seeds = tuple(
             SeedRun(r.seed, r.collisions, r.miles, r.mph, r.stalls, m, r.interventions)
@@ -123,7 +123,6 @@ def pool_row(parts: list[tuple[ShareRow, int]], single: bool, commit: str) -> Ro
         stalls=stalls,
         commit=commit,
         control=row.control,
-        interventions=interventions,
     )
 
 

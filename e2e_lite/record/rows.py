@@ -98,8 +98,6 @@ class Row(_Json):
         stalls: re-placements over every seed (None: not recorded).
         commit: the recipes' commit that trained and drove it (None: not recorded).
         control: whether the row is a control (a method's twin without it).
-        interventions: the autonomy metric's interventions over every seed, collisions and
-            off-centre episodes (None: not recorded in every share).
     """
 
     key: str
@@ -112,10 +110,16 @@ class Row(_Json):
     stalls: int | None
     commit: str | None = None
     control: bool | None = None
-    interventions: int | None = None
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("commit", "control", "interventions")
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("commit", "control")
     NESTED: ClassVar[dict[str, type[_Json]]] = {"seeds": SeedRun}
+
+    @property
+    def interventions(self) -> int | None:
+        """The autonomy metric's interventions over every seed, collisions and off-centre
+        episodes (None: not recorded for every seed)."""
+        kept = [s.interventions for s in self.seeds]
+        return None if None in kept else sum(kept)
 
     @property
     def miles(self) -> float:
