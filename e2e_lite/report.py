@@ -27,6 +27,7 @@ import numpy as np
 
 from .artifacts import atomic_write, save_figure
 from .driving.metrics import seed_rates
+from .driving.rollout import EvalConfig
 from .record import COURSE_RUN, RECORD, ROOT
 from .record.rows import SLOW_SHARE, Record, Row, load_record
 from .record.stats import (
@@ -109,6 +110,20 @@ def _row_cells(row: Row, expert_mph: float | None) -> list[str]:
     ]
 
 
+def _off_centre(row: Row) -> str:
+    """Off-centre episodes per 100 miles: the autonomy metric's interventions that were not
+    collisions (more than 1 m from every lane centre for more than 3 s; "-": not recorded)."""
+    if row.interventions is None:
+        return "-"
+    return f"{100.0 * (row.interventions - row.collisions) / row.miles:.1f}"
+
+
+def _kept_interventions(record: Record) -> bool:
+    """Whether any row of ``record`` kept its interventions (records before 2026-11-29 did not:
+    their tables have no off-centre column)."""
+    return any(row.interventions is not None for row in record.rows)
+
+
 def _between(row: Row) -> str:
     """The mean driving time between two collisions [min] ("-" without a collision)."""
     minutes = row.minutes_between()
@@ -148,21 +163,36 @@ def _table_note(record: Record) -> str:
         f"{commits}. Ties are ties: a seed's count is its collisions over the row's common budget."
         f" A rate ratio below 1: the later row collides less.{family_line(record)}"
         f"{power_line(record)} Slow: more than {100 * (1 - SLOW_SHARE):.0f} % slower than the"
-        f" expert. The paper's drivers averaged {record.paper_mph:g} mph.*"
+        f" expert.{_off_centre_line(record)} The paper's drivers averaged {record.paper_mph:g}"
+        " mph.*"
+    )
+
+
+def _off_centre_line(record: Record) -> str:
+    """What the off-centre column counts, when the table has one."""
+    if not _kept_interventions(record):
+        return ""
+    cfg = EvalConfig()
+    return (
+        f" Off-centre: the autonomy metric's interventions that were not collisions, the car more"
+        f" than {cfg.offcentre_m:g} m from every lane centre for more than"
+        f" {cfg.offcentre_grace_s:g} s."
     )
 
 
 def table1(record: Record) -> str:
     """The README's Table 1: every row with each seed's rate, then the table of steps, what the
     controls found, and the note on what the record holds."""
+    off = _kept_interventions(record)
     lines = [
         "| driver | per seed, per 100 mi | median [range] | pooled [95 % CI] | mph | stalls "
-        "| min between collisions | paper |",
-        "|---|---|---|---|---:|---:|---:|---:|",
+        "| min between collisions | paper |" + (" off-centre per 100 mi |" if off else ""),
+        "|---|---|---|---|---:|---:|---:|---:|" + ("---:|" if off else ""),
     ]
     expert_mph = record.expert_mph
     for row in record.rows:
-        lines.append("| " + " | ".join(_row_cells(row, expert_mph)) + " |")
+        cells = _row_cells(row, expert_mph) + ([_off_centre(row)] if off else [])
+        lines.append("| " + " | ".join(cells) + " |")
     lines += ["", *_steps_table(record)]
     controls = controls_line(steps(record))
     if controls:

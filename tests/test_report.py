@@ -373,3 +373,16 @@ def test_a_verdict_says_whether_the_papers_size_lies_in_its_interval() -> None:
     assert tested["Baseline E2E -> trajectory GMM"].cell == (
         "reproduces: the direction only, not the paper's size"
     )
+
+
+def test_a_record_that_kept_interventions_renders_off_centre_episodes_beside_each_row() -> None:
+    record = spread_record()
+    assert "off-centre" not in report.table1(record)  # the records before 2026-11-29 kept none
+    kept = row("gmm", [2, 0, 1])
+    seeds = tuple(dataclasses.replace(s, interventions=s.collisions + 5) for s in kept.seeds)
+    kept = dataclasses.replace(kept, seeds=seeds)  # 15 off-centre episodes in 300 mi
+    table = report.table1(with_rows(record, row("actuators", [9, 8, 7]), kept))
+    header, _, unkept, gmm = table.splitlines()[:4]
+    assert header.endswith("| off-centre per 100 mi |")
+    assert unkept.endswith("| - |") and gmm.endswith("| 5.0 |")
+    assert "for more than 3 s" in table
