@@ -212,7 +212,7 @@ def compare_seeds(
     )
     med = (
         f"median {np.median(ca) * scale:.1f} vs {np.median(cb) * scale:.1f} per 100 mi "
-        f"({len(ca)} vs {len(cb)} seeds), ratio {ratio_text}"
+        f"({len(ca)} vs {len(cb)} seeds), pooled ratio {ratio_text}"
     )
     test = "paired sign-flip" if main is flip else "rank"
     if fewer:
