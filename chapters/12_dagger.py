@@ -84,14 +84,15 @@ for c in collisions:
 found = anatomy.table(collisions)
 print(f"{len(seeds)} seeds x {miles:g} mi of validation roads: {found['collisions']} collisions")
 tried = {t: found["collisions"] - n for t, n in found["untried_by_hand_over"].items()}
-saved = {f"{t} s": f"{n} of {tried[t]}" for t, n in found["saved_by_hand_over"].items()}
+saved = ", ".join(f"{t} s {n} of {tried[t]}" for t, n in found["saved_by_hand_over"].items())
 print(f"saved by the expert taking over this long before (of those tried there): {saved}")
-print(f"latest savable moment [s]: {found['latest_savable']}")
+latest = ", ".join(f"{t}: {n}" for t, n in found["latest_savable"].items())
+print(f"collisions by their latest savable moment [s]: {latest}")
 print(
     f"the network's plans of the last second all clear (the tracker's share): "
     f"{found['plan_clear']} of {found['collisions']}"
 )
-print(f"kinds: {found['kinds']}")
+print("kinds: " + ", ".join(f"{kind} {n}" for kind, n in found["kinds"].items()))
 
 # %%
 expert = StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
@@ -227,14 +228,17 @@ fig = Figure(figsize=(8, 3.6), layout="constrained")
 ax = fig.subplots()
 x = np.arange(cfg.rounds + 1)
 for arm, color, dx in (
-    ("dagger", "C0", -0.08),
+    ("dagger", "C0", -0.15),
     ("control", "C1", 0.0),
-    ("no_new_data", "C2", 0.08),
+    ("no_new_data", "C2", 0.15),
 ):
     rates = np.array([per_seed["start"], *(per_seed[f"{arm} {j + 1}"] for j in range(cfg.rounds))])
-    for col in rates.T:
-        ax.scatter(x + dx, col, color=color, s=12, alpha=0.6)
+    for k, col in enumerate(rates.T):  # each seed a little apart, so equal rates do not hide
+        xs = x + dx + 0.03 * (k - (len(rates.T) - 1) / 2)
+        ax.scatter(xs, col, color=color, s=12, alpha=0.6)
+        ax.scatter(xs[kept[arm][k]], col[kept[arm][k]], s=60, facecolors="none", edgecolors=color)
     ax.plot(x + dx, np.median(rates, axis=1), color=color, lw=2, label=f"{arm}: median of seeds")
+ax.scatter([], [], s=60, facecolors="none", edgecolors="0.3", label="a seed's kept iterate")
 oracle = labellers["the oracle on the expert's labels"]
 ax.axhline(oracle, color="0.5", ls="--", label="oracle on the expert's labels (section 2's roads)")
 ax.set(xticks=x, xlabel="iterate (0: the start)")
@@ -289,7 +293,10 @@ rate = {k: r["collisions_per_100mi"] for k, r in got.items()}
 mph = {k: r["mean_speed_mph"] for k, r in got.items()}
 print("test roads: " + ", ".join(f"{k} {rate[k]:.1f} per 100 mi at {mph[k]:.1f} mph" for k in rate))
 off = {k: r["interventions"] - r["collisions"] for k, r in got.items()}
-print("off-centre episodes (over 1 m from every lane centre for 3 s): " + str(off))
+print(
+    "off-centre episodes (over 1 m from every lane centre for 3 s): "
+    + ", ".join(f"{k} {n}" for k, n in off.items())
+)
 
 # %% [markdown]
 # In words, from the verdicts above: DAgger's step is credited to the network's states only if
