@@ -204,6 +204,9 @@ for arm in ("dagger", "control"):
 # by round? Why they moved as they did, this run does not show. Each iterate then drives
 # `val_miles` of validation roads, so one collision is a large step of rate and ties are common;
 # among ties the latest iterate is kept (`dagger.kept_iterate`), and a kept iterate 0 is the start.
+# Each line also counts every iterate's off-centre episodes on those roads, the episodes PilotNet's
+# autonomy metric charges (README, "How a drive is judged"; chapter 01 prints it): the car over a
+# metre from every lane centre for longer than a lane change takes.
 
 # %%
 iterates = {
@@ -212,16 +215,17 @@ iterates = {
         for k in seeds
     ]
     for arm in dagger.ARMS
-}  # per arm, per seed: (networks, validation rates, the kept one)
-per_seed = {"start": [rates[0] for _, rates, _ in iterates["dagger"]]}
+}  # per arm, per seed: its networks, their validation drives and the kept one
+per_seed = {"start": [it.rates[0] for it in iterates["dagger"]]}
 for arm, per in iterates.items():
     for j in range(cfg.rounds):
-        per_seed[f"{arm} {j + 1}"] = [rates[j + 1] for _, rates, _ in per]
+        per_seed[f"{arm} {j + 1}"] = [it.rates[j + 1] for it in per]
     print(
-        f"{arm}: kept iterate per seed {[i for _, _, i in per]} (0: the start), validation "
-        f"per 100 mi {[round(rates[i], 1) for _, rates, i in per]}"
+        f"{arm}: kept iterate per seed {[it.kept for it in per]} (0: the start), validation "
+        f"per 100 mi {[round(it.rates[it.kept], 1) for it in per]}; off-centre episodes by "
+        f"iterate, sum of seeds {np.sum([it.off_centre for it in per], 0).tolist()}"
     )
-kept = {arm: [i for _, _, i in per] for arm, per in iterates.items()}
+kept = {arm: [it.kept for it in per] for arm, per in iterates.items()}
 
 # %%
 fig = Figure(figsize=(8, 3.6), layout="constrained")
@@ -262,7 +266,7 @@ print(f"saved {png_rounds}")
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
 chosen = {"start": [TrajectoryAgent(s) for s in starts]}
 for arm, per in iterates.items():
-    chosen[arm] = [TrajectoryAgent(nets[i][1]) for nets, _, i in per]
+    chosen[arm] = [TrajectoryAgent(it.networks[it.kept][1]) for it in per]
 keys = {
     "start": "gmm_affordance_cvar",
     "dagger": "dagger",
@@ -302,12 +306,13 @@ print(
 # In words, from the verdicts above: DAgger's step is credited to the network's states only if
 # it beats its start *and* its control; a step that the control shares is new data's, and one
 # that no new data shares is the fine-tunes' (the control against no new data asks whether new
-# data mattered at all). A driver is more than its collisions: the off-centre line counts the
-# episodes PilotNet's autonomy metric charges (README, "How a drive is judged"; chapter 01
-# prints it), the car over a metre from every lane centre for longer than a lane change takes.
-# Read it beside the rates: a lower rate that comes with lingering between lanes is a different
-# driver. Why DAgger's iterates would linger is open (lab note "DAgger's iterates off the lane
-# centre").
+# data mattered at all). A driver is more than its collisions: read the off-centre line beside
+# the rates, for a lower rate that comes with lingering between lanes is a different driver.
+# Section 3's lines say when the lingering starts: compare the arms' off-centre counts iterate by
+# iterate. If the arm with no new data rises too, the fine-tunes on the state expert's labels move
+# the driver off the lane centre whoever drove, and only DAgger's excess over that arm can be its
+# states'. Which part of the labels does it, and why DAgger's states add to it, is open (lab note
+# "DAgger's iterates off the lane centre"; exercise 12.6).
 
 
 # %%
@@ -365,6 +370,7 @@ metrics = {
     "labellers": labellers,
     "kept_iterates": kept,
     "validation_per_seed": per_seed,
+    "validation_off_centre": {arm: [it.off_centre for it in per] for arm, per in iterates.items()},
     "test": {k: {**r, "events": None} for k, r in got.items()},
     "verdicts": tested,
     "power": {**reach, "dispersion": spread_k, "rate_per_100mi": start_rate},
@@ -406,7 +412,8 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    8,000 samples, labels of the wiped expert, the last round kept. Check it out, run its
 #    chapter 12, and compare its lab notes ("Who labels DAgger's states", "DAgger's states or its
 #    labeller") with section 2's oracle lines.
-# 6. Off the lane centre: drive one seed's kept DAgger iterate (`iterates["dagger"][k]`) on
-#    validation roads inside an `anatomy.Witness(..., every=10)` and, at its moments more than
-#    1 m from every lane centre, compare the network's plan with the state expert's label and
-#    state. Is it a lane change the labeller reads as under way, one the network never finishes?
+# 6. Off the lane centre: drive one seed's kept DAgger iterate (`it = iterates["dagger"][k]`,
+#    its network `it.networks[it.kept][1]`) on validation roads inside an
+#    `anatomy.Witness(..., every=10)` and, at its moments more than 1 m from every lane centre,
+#    compare the network's plan with the state expert's label and state. Is it a lane change the
+#    labeller reads as under way, one the network never finishes?

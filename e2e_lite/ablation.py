@@ -114,30 +114,46 @@ def _finetune(b: Build, reduction: str, sigma: str = recipes.CVAR_SIGMA) -> Poli
 
 def _dagger(b: Build, arm: str) -> Policy:
     """Chapter 12's kept iterate of ``arm`` for this seed (:func:`dagger_iterates`)."""
-    iterates, _, kept = dagger_iterates(b, arm)
-    return TrajectoryAgent(iterates[kept][1])
+    found = dagger_iterates(b, arm)
+    return TrajectoryAgent(found.networks[found.kept][1])
 
 
-def dagger_iterates(
-    b: Build, arm: str, cfg: dagger.DaggerConfig | None = None
-) -> tuple[list[tuple[str, Any]], list[float], int]:
-    """``arm``'s iterates for this seed, the CVaR network it started from first, as
-    ``[(name, network), ...]``, each one's collisions per 100 mi on the seed's own validation
-    roads (each drive stored), and the index of the one kept: the one that collided least
-    (:func:`~e2e_lite.learning.dagger.kept_iterate`). The rounds are
+@dataclass(frozen=True)
+class Iterates:
+    """One arm's iterates for one seed and their drives on the seed's validation roads.
+
+    Attributes:
+        networks: ``[(name, network), ...]``, the CVaR network the rounds started from first.
+        rates: each one's collisions per 100 mi on the validation roads.
+        off_centre: each one's off-centre episodes there (the autonomy metric's interventions
+            that were not collisions).
+        kept: the index of the one kept (:func:`~e2e_lite.learning.dagger.kept_iterate`).
+    """
+
+    networks: list[tuple[str, Any]]
+    rates: list[float]
+    off_centre: list[int]
+    kept: int
+
+
+def dagger_iterates(b: Build, arm: str, cfg: dagger.DaggerConfig | None = None) -> Iterates:
+    """``arm``'s iterates for this seed, each driven on the seed's own validation roads (each
+    drive stored), and the one kept: the one that collided least. The rounds are
     :func:`~e2e_lite.learning.dagger.run`'s."""
     cfg = cfg or dagger.DaggerConfig.for_profile(b.profile)
     start, arms = dagger.run(*b.data, b.weight(), b.seed, cfg, arms=(arm,), **b.kw)
     start_name = recipes.seeded_name("09_gmm_affordance_cvar", b.seed)
-    iterates = [(start_name, start), *((r.name, r.model) for r in arms[arm])]
+    networks = [(start_name, start), *((r.name, r.model) for r in arms[arm])]
     run = dagger.val_run(b.profile, b.seed, cfg.val_miles)
     world_cfg = WorldConfig.for_profile(b.profile)
-    rates = []
-    for name, model in iterates:
+    rates, off_centre = [], []
+    for name, model in networks:
         label = f"{name} on validation roads"
         res = evaluate_stored(f"{name}_val", label, TrajectoryAgent(model), world_cfg, run, **b.kw)
-        rates.append(result_dict(res)["collisions_per_100mi"])
-    return iterates, rates, dagger.kept_iterate(rates)
+        got = result_dict(res)
+        rates.append(got["collisions_per_100mi"])
+        off_centre.append(got["interventions"] - got["collisions"])
+    return Iterates(networks, rates, off_centre, dagger.kept_iterate(rates))
 
 
 def _w0(b: Build) -> Policy:

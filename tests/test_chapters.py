@@ -88,6 +88,13 @@ def test_chapter_runs_in_quick_profile(path, quick_course):
                 for r in rounds:
                     assert r["aggregate"] == before + r["samples"] == before + kept
                     before = r["aggregate"]
+        # every iterate's validation drive counts its off-centre episodes, the start alike in
+        # every arm (each arm's iterate 0 is the same network on the same roads)
+        off = metrics["validation_off_centre"]
+        assert set(off) == set(metrics["kept_iterates"])
+        starts = {tuple(seed[0] for seed in per_seed) for per_seed in off.values()}
+        assert len(starts) == 1 and all(n >= 0 for per in off.values() for s in per for n in s)
+        assert all(len(s) == metrics["config"]["rounds"] + 1 for per in off.values() for s in per)
 
 
 def test_a_chapter_run_again_after_the_later_ones_stores_the_same_metrics(quick_course):
