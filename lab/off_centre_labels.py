@@ -1,0 +1,123 @@
+"""Do the state expert's labels move chapter 12's fine-tunes off the lane centre? Chapter 12's arm
+with no new data fine-tunes each seed's CVaR network, round after round, on chapter 04's data
+relabelled by the state expert; this script runs the same fine-tunes on the same data with the
+course's expert's own labels (the ones the start network learned), and every iterate of both
+drives the seed's own validation roads (the roads chapter 12's iterates drive). The two arms
+differ in one thing, the labels. Off-centre episodes: the autonomy metric's interventions that
+were not collisions (more than 1 m from every lane centre for more than 3 s).
+
+    E2E_LITE_OUTPUTS=<a full-profile course run's outputs> python lab/off_centre_labels.py
+
+Reads chapter 12's stored arm (its rounds and drives are reused, or made if missing), stores its
+own fine-tunes as ``lab12_expert_labels_round<r>_seed<k>`` beside them, and writes
+docs/results/lab/off_centre_labels.json (lab note "DAgger's iterates off the lane centre").
+Declared before the run: one paired sign-flip test over the seeds, the relabelled arm's
+off-centre episodes at its last iterate against the expert-labelled arm's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from e2e_lite import ablation
+from e2e_lite.config import FULL, QUICK
+from e2e_lite.driving.metrics import result_dict
+from e2e_lite.driving.verdicts import sign_flip_test
+from e2e_lite.learning import dagger, recipes
+from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.learning.checkpoints import train_or_load, training_data_key
+from e2e_lite.learning.collector import DataConfig, load_or_collect
+from e2e_lite.simulation.world import WorldConfig
+
+OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "off_centre_labels.json"
+
+
+def drive(name: str, model, profile, seed: int, cfg: dagger.DaggerConfig) -> dict:
+    """``model``'s drive of training seed ``seed``'s validation roads (stored as chapter 12's)."""
+    run = dagger.val_run(profile, seed, cfg.val_miles)
+    res = ablation.evaluate_stored(
+        f"{name}_val",
+        f"{name} on validation roads",
+        TrajectoryAgent(model),
+        WorldConfig.for_profile(profile),
+        run,
+    )
+    got = result_dict(res)
+    off = got["interventions"] - got["collisions"]
+    return {"off_centre": off, "collisions": got["collisions"], "miles": got["miles"]}
+
+
+def expert_labels(profile, train, val, weight: float, seed: int, cfg) -> list[dict]:
+    """The arm with no new data, its labels the course's expert's: each round fine-tunes on rows
+    drawn from chapter 04's data as :func:`~e2e_lite.learning.dagger.run` does, then drives."""
+    recipes.gmm_affordance_cvar(profile, train, val, weight, seed)  # the start, stored first
+    objective, tcfg = recipes.finetune_settings(profile, weight, seed, "mean")
+    parent = recipes.seeded_name("09_gmm_affordance_cvar", seed)
+    parent_key = training_data_key(train, val)
+    drives = []
+    for r in range(cfg.rounds):
+        name = f"lab12_expert_labels_round{r + 1}_seed{seed}"
+        data = dagger.aggregate_draw([train], cfg.steps_samples, seed, r)
+        model, _ = train_or_load(
+            name,
+            recipes.AFFORDANCE_CFG,
+            tcfg,
+            objective,
+            data,
+            val,
+            init_from=parent,
+            parent_data_key=parent_key,
+            carry_optimizer=True,
+        )
+        drives.append(drive(name, model, profile, seed, cfg))
+        parent, parent_key = name, training_data_key(data, val)
+    return drives
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, default=4, help="training seeds 0 .. N-1")
+    ap.add_argument("--quick", action="store_true", help="the quick profile (tests the script)")
+    args = ap.parse_args()
+    profile = QUICK if args.quick else FULL
+    cfg = dagger.DaggerConfig.for_profile(profile)
+    train = load_or_collect(DataConfig.for_profile(profile, "train"))
+    val = load_or_collect(DataConfig.for_profile(profile, "val"))
+    weight = recipes.affordance_weight(profile, train, val)
+    arms: dict[str, list[list[int]]] = {"state expert's labels": [], "expert's labels": []}
+    rates: dict[str, list[list[float]]] = {a: [] for a in arms}
+    for k in range(args.seeds):
+        found = ablation.dagger_iterates(ablation.Build(profile, train, val, seed=k), "no_new_data")
+        own = expert_labels(profile, train, val, weight, k, cfg)
+        arms["state expert's labels"].append(found.off_centre)
+        arms["expert's labels"].append([found.off_centre[0], *(d["off_centre"] for d in own)])
+        rates["state expert's labels"].append([round(x, 2) for x in found.rates])
+        own_rates = [100.0 * d["collisions"] / d["miles"] for d in own]
+        rates["expert's labels"].append([round(x, 2) for x in (found.rates[0], *own_rates)])
+        for a in arms:
+            print(f"seed {k}, {a}: off-centre episodes by iterate (0: the start) {arms[a][-1]}")
+    last = {a: [per[-1] for per in v] for a, v in arms.items()}
+    test = sign_flip_test(last["state expert's labels"], last["expert's labels"])
+    result = {
+        "profile": profile.name,
+        "config": {
+            "rounds": cfg.rounds,
+            "steps_samples": cfg.steps_samples,
+            "val_miles": cfg.val_miles,
+        },
+        "off_centre_by_iterate": arms,
+        "collisions_per_100mi_by_iterate": rates,
+        "declared_test": "paired sign-flip, last iterate: state expert's labels vs expert's labels",
+        "p_more_with_state_labels": test["p_more"],
+        "min_p": test["min_p"],
+    }
+    print(json.dumps({k: v for k, v in result.items() if k != "config"}, indent=1))
+    if not args.quick:
+        OUT.write_text(json.dumps(result, indent=1) + "\n")
+        print(f"wrote {OUT}")
+
+
+if __name__ == "__main__":
+    main()
