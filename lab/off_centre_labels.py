@@ -12,17 +12,23 @@ Reads chapter 12's stored arm (its rounds and drives are reused, or made if miss
 own fine-tunes as ``lab12_expert_labels_round<r>_seed<k>`` beside them, and writes
 docs/results/lab/off_centre_labels.json (lab note "DAgger's iterates off the lane centre").
 Declared before the run: one paired sign-flip test over the seeds, the relabelled arm's
-off-centre episodes at its last iterate against the expert-labelled arm's.
+off-centre episodes at its last iterate against the expert-labelled arm's. Beside it (added after
+the run, descriptive): where chapter 04's two labels lie apart, by the car's distance from its
+lane centre.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
+import numpy as np
+
 from e2e_lite import ablation
 from e2e_lite.config import FULL, QUICK
+from e2e_lite.control.labels import AFFORDANCE_INDEX
 from e2e_lite.driving.metrics import result_dict
 from e2e_lite.driving.verdicts import sign_flip_test
 from e2e_lite.learning import dagger, recipes
@@ -76,6 +82,33 @@ def expert_labels(profile, train, val, weight: float, seed: int, cfg) -> list[di
     return drives
 
 
+def labels_apart(train, over_m: float = 1.0) -> dict:
+    """Where chapter 04's two labels lie more than ``over_m`` apart at 1.5 s (the measure chapter
+    12 prints), by the car's distance from its lane centre, and how far to the side each ends."""
+    ends = train.trajectory[:, -1] - train.arrays["state_trajectory"][:, -1]
+    apart = np.linalg.norm(ends, axis=-1) > over_m
+    offset = np.abs(train.arrays["affordances"][:, AFFORDANCE_INDEX["center_offset_m"]])
+    bins = [0.0, 0.25, 0.5, 1.0, 1.75, np.inf]
+    by_offset = {}
+    for lo, hi in itertools.pairwise(bins):
+        rows = (offset >= lo) & (offset < hi)
+        by_offset[f"{lo:g}-{hi:g} m"] = {
+            "share_of_states": float(rows.mean()),
+            "share_apart": float(apart[rows].mean()),
+        }
+    side_expert = np.abs(train.trajectory[apart, -1, 1])
+    side_state = np.abs(train.arrays["state_trajectory"][apart, -1, 1])
+    return {
+        "share_apart": float(apart.mean()),
+        "by_distance_from_lane_centre": by_offset,
+        "where_apart_median_side_m": {
+            "expert": float(np.median(side_expert)),
+            "state expert": float(np.median(side_state)),
+        },
+        "where_apart_state_label_farther_to_the_side": float(np.mean(side_state > side_expert)),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=4, help="training seeds 0 .. N-1")
@@ -112,6 +145,7 @@ def main() -> None:
         "declared_test": "paired sign-flip, last iterate: state expert's labels vs expert's labels",
         "p_more_with_state_labels": test["p_more"],
         "min_p": test["min_p"],
+        "labels_apart_at_chapter_04_states": labels_apart(train),
     }
     print(json.dumps({k: v for k, v in result.items() if k != "config"}, indent=1))
     if not args.quick:
