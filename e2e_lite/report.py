@@ -389,9 +389,17 @@ def _one_run_against_the_record(record: Record) -> str:
     )
     seeds = len(record.row("gmm").seeds)
     return (
-        f"*One run is one training seed. The record ({seeds} seeds per row, docs/results.md),"
+        f"*One run is one training seed. The record ({_recipes(record)}{seeds} seeds per row,"
+        " docs/results.md),"
         f" pooled per 100 mi: {rates}; {controls}.*"
     )
+
+
+def _recipes(record: Record) -> str:
+    """ "recipes <commit>; " where the record names the commit of its recipes, else "" (a course
+    run's chapters may be newer than the recipes the record drove)."""
+    commit = record.block.recipes_commit if record.block else None
+    return f"recipes {commit}; " if commit else ""
 
 
 def session_findings(run: dict[str, Any] | None, record: Record) -> str:
@@ -412,7 +420,9 @@ def session_findings(run: dict[str, Any] | None, record: Record) -> str:
             if name in tested
         ]
         run_text = "; ".join(shown) if shown else "no full-profile run recorded"
-        record_text = f" The record: {'; '.join(verdicts)}." if verdicts else ""
+        recipes = _recipes(record).rstrip("; ")
+        the_record = f"The record ({recipes})" if recipes else "The record"
+        record_text = f" {the_record}: {'; '.join(verdicts)}." if verdicts else ""
         lines.append(
             f"- **Session {session}** (chapters {', '.join(chapters)}). One run: {run_text}.{record_text}"
         )

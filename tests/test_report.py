@@ -386,3 +386,18 @@ def test_a_record_that_kept_interventions_renders_off_centre_episodes_beside_eac
     assert header.endswith("| off-centre per 100 mi |")
     assert unkept.endswith("| - |") and gmm.endswith("| 5.0 |")
     assert "for more than 3 s" in table
+
+
+def test_the_kit_names_the_recipes_its_record_drove() -> None:
+    """A course run's chapters may be newer than the record's recipes (chapter 12 was rewritten
+    after the record of 321f6a9): the kit's record sentences name the recipes' commit."""
+    record = report.load()
+    commit = record.block.recipes_commit
+    findings = report.session_findings(None, record)
+    assert findings.count(f"The record (recipes {commit}): ") == sum(
+        1 for _, steps_taught in report.SESSIONS.values() if steps_taught
+    )
+    unnamed = dataclasses.replace(
+        record, block=dataclasses.replace(record.block, recipes_commit=None)
+    )
+    assert "The record: " in report.session_findings(None, unnamed)
