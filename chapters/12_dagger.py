@@ -313,9 +313,10 @@ print(
 # driver off the lane centre whoever drove, and only DAgger's excess over that arm can be its
 # states'. `lab/off_centre_labels.py` runs that arm once more with one thing changed, the expert's
 # own labels instead of the state expert's: in the book's run its iterates stayed near the start
-# on every seed (lab note "The state expert's labels teach the lingering"), so there the labels
-# did it, not the fine-tuning. Why those labels teach it, and why DAgger's states add to it, is
-# open (exercise 12.6).
+# on every seed, as far as four seeds can show (lab note "The lingering comes with the state
+# expert's labels"). So in that arm the drift came with the state expert's labels, not with
+# fine-tuning as such. How those labels move a network, and why DAgger's states add to the
+# drift, is open (exercise 12.6).
 
 
 # %%
@@ -397,8 +398,9 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #   says, in words, what this run's seeds can credit: with four seeds a paired test cannot reach
 #   p < 0.05 (its power line prints the smallest p they can reach), so the record's seeds decide.
 # * A driver is more than its collisions: section 4 prints each arm's off-centre episodes beside
-#   its rate. In the book's run the lingering came with the state expert's labels (lab note "The
-#   state expert's labels teach the lingering"); why those labels teach it is open.
+#   its rate. In the book's run the arm with no new data drifted on its validation roads with the
+#   state expert's labels and not with the expert's (lab note "The lingering comes with the state
+#   expert's labels"); how, and DAgger's larger drift, are open.
 #
 # ## Exercises
 #
@@ -416,11 +418,12 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    8,000 samples, labels of the wiped expert, the last round kept. Check it out, run its
 #    chapter 12, and compare its lab notes ("Who labels DAgger's states", "DAgger's states or its
 #    labeller") with section 2's oracle lines.
-# 6. Off the lane centre: the state expert's labels teach the lingering (lab note "The state
-#    expert's labels teach the lingering"). Where do its labels and the expert's lie more than
-#    1 m apart at chapter 04's states (`train.arrays["state_trajectory"]` against
-#    `train.arrays["trajectory"]`), by the car's offset from its lane centre? Then drive one
-#    seed's kept DAgger iterate (`it = iterates["dagger"][k]`, its network
-#    `it.networks[it.kept][1]`) inside an `anatomy.Witness(..., every=10)` and, at its moments
-#    more than 1 m from every lane centre, compare its plan with the state expert's label. Is it
-#    a lane change the labeller reads as under way, one the network never finishes?
+# 6. Off the lane centre: in the arm with no new data the drift came with the state expert's
+#    labels (lab note "The lingering comes with the state expert's labels"). Where do its labels
+#    and the expert's lie more than 1 m apart at chapter 04's states
+#    (`train.arrays["state_trajectory"]` against `train.arrays["trajectory"]`), by the car's
+#    offset from its lane centre? Then drive one seed's kept DAgger iterate
+#    (`it = iterates["dagger"][k]`, its network `it.networks[it.kept][1]`) inside an
+#    `anatomy.Witness(..., every=10)` and, at its moments more than 1 m from every lane centre,
+#    compare its plan with the state expert's label. Is it a lane change the labeller reads as
+#    under way, one the network never finishes?

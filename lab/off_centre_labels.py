@@ -10,7 +10,9 @@ were not collisions (more than 1 m from every lane centre for more than 3 s).
 
 Reads chapter 12's stored arm (its rounds and drives are reused, or made if missing), stores its
 own fine-tunes as ``lab12_expert_labels_round<r>_seed<k>`` beside them, and writes
-docs/results/lab/off_centre_labels.json (lab note "DAgger's iterates off the lane centre").
+docs/results/lab/off_centre_labels.json (lab note "The lingering comes with the state expert's
+labels"). The fine-tunes' validation set carries each arm's labels too (one epoch: it chooses
+nothing, but it keys the checkpoints).
 Declared before the run: one paired sign-flip test over the seeds, the relabelled arm's
 off-centre episodes at its last iterate against the expert-labelled arm's. Beside it (added after
 the run, descriptive): where chapter 04's two labels lie apart, by the car's distance from its
@@ -23,11 +25,12 @@ import argparse
 import itertools
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from e2e_lite import ablation
-from e2e_lite.config import FULL, QUICK
+from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.labels import AFFORDANCE_INDEX
 from e2e_lite.driving.metrics import result_dict
 from e2e_lite.driving.verdicts import sign_flip_test
@@ -35,13 +38,18 @@ from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.checkpoints import train_or_load, training_data_key
 from e2e_lite.learning.collector import DataConfig, load_or_collect
+from e2e_lite.learning.dataset import DrivingData
+from e2e_lite.learning.models import DrivingModel
 from e2e_lite.simulation.world import WorldConfig
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "off_centre_labels.json"
 
 
-def drive(name: str, model, profile, seed: int, cfg: dagger.DaggerConfig) -> dict:
-    """``model``'s drive of training seed ``seed``'s validation roads (stored as chapter 12's)."""
+def drive(
+    name: str, model: DrivingModel, profile: Profile, seed: int, cfg: dagger.DaggerConfig
+) -> dict[str, float]:
+    """``model``'s drive of training seed ``seed``'s validation roads (stored as chapter 12's):
+    its off-centre episodes and collisions (counts) and its miles [mi]."""
     run = dagger.val_run(profile, seed, cfg.val_miles)
     res = ablation.evaluate_stored(
         f"{name}_val",
@@ -55,7 +63,14 @@ def drive(name: str, model, profile, seed: int, cfg: dagger.DaggerConfig) -> dic
     return {"off_centre": off, "collisions": got["collisions"], "miles": got["miles"]}
 
 
-def expert_labels(profile, train, val, weight: float, seed: int, cfg) -> list[dict]:
+def expert_labels(
+    profile: Profile,
+    train: DrivingData,
+    val: DrivingData,
+    weight: float,
+    seed: int,
+    cfg: dagger.DaggerConfig,
+) -> list[dict[str, float]]:
     """The arm with no new data, its labels the course's expert's: each round fine-tunes on rows
     drawn from chapter 04's data as :func:`~e2e_lite.learning.dagger.run` does, then drives."""
     recipes.gmm_affordance_cvar(profile, train, val, weight, seed)  # the start, stored first
@@ -82,9 +97,10 @@ def expert_labels(profile, train, val, weight: float, seed: int, cfg) -> list[di
     return drives
 
 
-def labels_apart(train, over_m: float = 1.0) -> dict:
+def labels_apart(train: DrivingData, over_m: float = 1.0) -> dict[str, Any]:
     """Where chapter 04's two labels lie more than ``over_m`` apart at 1.5 s (the measure chapter
-    12 prints), by the car's distance from its lane centre, and how far to the side each ends."""
+    12 prints; ``over_m`` [m]), by the car's distance from its lane centre (shares of states, 0-1),
+    and how far to the side each ends there [m]."""
     ends = train.trajectory[:, -1] - train.arrays["state_trajectory"][:, -1]
     apart = np.linalg.norm(ends, axis=-1) > over_m
     offset = np.abs(train.arrays["affordances"][:, AFFORDANCE_INDEX["center_offset_m"]])
