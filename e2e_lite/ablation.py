@@ -12,40 +12,29 @@ Each learned row is trained with several seeds (:func:`build_seeded_drivers`; se
 chapters' own checkpoint, seeds 1, 2, ... are ``10_<name>_seed<k>``); the row's miles are shared
 among the seeds and their counts pooled (:func:`~e2e_lite.driving.evaluation.pool_results`), each seed's
 result kept under ``seeds``. A drive is stored under a key of the driver's weights and settings and
-the evaluation's, and read back while nothing changed (:func:`evaluate_stored`).
+the evaluation's, and read back while nothing changed (:func:`~e2e_lite.stored.evaluate_stored`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-import torch
-
-from .artifacts import (
-    artifact_path,
-    cached,
-    load_json,
-    save_json,
-    seeded,
-    settings_key,
-    versioned,
-)
-from .config import Profile, precision
+from .artifacts import cached, seeded, versioned
+from .config import Profile
 from .control.expert import Expert
 from .control.oracle import Oracle
 from .driving import anatomy
 from .driving.evaluation import evaluate
-from .driving.metrics import EvalResult, pool_results, result_dict, result_info, results_table
+from .driving.metrics import EvalResult, pool_results, result_dict, results_table
 from .driving.rollout import EvalConfig, disjoint_runs
 from .learning import dagger, recipes
-from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
-from .learning.checkpoints import weights_digest
+from .learning.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
 from .learning.collector import DataConfig, DrivingData, load_or_collect
 from .simulation.policy import Policy
 from .simulation.world import WorldConfig
+from .stored import evaluate_stored, stored_at
 
 
 @dataclass
@@ -357,34 +346,6 @@ def first(policy: Policy | Sequence[Policy]) -> Policy:
     return policy[0] if isinstance(policy, (list, tuple)) else policy
 
 
-def fingerprint(policy: Policy) -> str:
-    """What identifies a driver's behaviour: its class, its settings and, for a network, a digest
-    of its weights and normalisation buffers."""
-    parts: list[Any] = [type(policy).__name__]
-    if isinstance(policy, NetworkAgent):
-        parts += [
-            weights_digest(policy.model),
-            repr(policy.model.cfg),
-            getattr(policy, "speed", None),
-        ]
-        parts += [getattr(policy, "preview_s", 0.0)]
-        if getattr(policy, "decode", "top") != "top":  # (so the stored keys of "top" stay)
-            parts.append(policy.decode)
-        parts += [repr(policy.camera), str(policy.device)]
-    for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
-        if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
-            parts.append(repr(getattr(policy, attr)))
-    if isinstance(policy, Oracle):  # its noise draws depend on its seed
-        parts += [repr(policy.expert.cfg), policy.seed]
-    inner = getattr(policy, "agent", None)  # a wrapper (the safety module) around a driver
-    if inner is not None:
-        parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
-        # what the safety module reports (its audits and examples) is stored with the result
-        parts += [getattr(policy, a, None) for a in ("audit", "audit_every", "keep_examples")]
-        parts.append(("results version", getattr(policy, "RESULTS_VERSION", None)))
-    return settings_key(*parts)
-
-
 def evaluate_drivers(
     drivers: dict[str, Policy | Sequence[Policy]],
     world_cfg: WorldConfig,
@@ -399,7 +360,8 @@ def evaluate_drivers(
     per training seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed,
     seed ``k`` of every driver on the same tracks (:func:`~e2e_lite.driving.evaluation.disjoint_runs`),
     and its result pools theirs (a dict with ``seeds``). With ``reuse``, a stored result is read
-    back as a dict (:func:`evaluate_stored`); every other driver is evaluated and stored."""
+    back as a dict (:func:`~e2e_lite.stored.evaluate_stored`); every other driver is evaluated
+    and stored."""
     out: dict[str, EvalResult | dict[str, Any]] = {}
     for key, policy in drivers.items():
         label = BY_KEY[key].label if key in BY_KEY else key
@@ -418,44 +380,12 @@ def evaluate_drivers(
     return out
 
 
-def evaluate_stored(
-    file: str,
-    label: str,
-    policy: Policy,
-    world_cfg: WorldConfig,
-    cfg: EvalConfig,
-    *,
-    reuse: bool = True,
-    progress: bool = True,
-    workers: int | None = None,
-) -> EvalResult | dict[str, Any]:
-    """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` with what the
-    policy reported (``result.info``, which must be JSON-able; read it back with
-    :func:`~e2e_lite.driving.metrics.result_info`), and read back instead of driven again while
-    the driver (:func:`fingerprint`), world, settings and precision are the same (see
-    :func:`evaluate_drivers`)."""
-
-    def run() -> EvalResult:
-        res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
-        if progress:
-            print(f"{label}: {res.summary()}", flush=True)
-        return res
-
-    if not reuse:
-        return run()
-    path, run_key = _stored_at(file, policy, world_cfg, cfg)
-    result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
-    if progress and not isinstance(result, EvalResult):
-        print(f"{label}: reusing {path.name} ({result['miles']:.3g} mi)", flush=True)
-    return result
-
-
 def witnessed(
     file: str, label: str, driver: Policy, world_cfg: WorldConfig, cfg: EvalConfig
 ) -> tuple[list[anatomy.Collision], list[anatomy.Moment]]:
     """``driver``'s collisions and ordinary moments on ``cfg``'s roads, witnessed
-    (:class:`~e2e_lite.driving.anatomy.Witness`), stored and read back as :func:`evaluate_stored`
-    stores a result (each moment back in a fresh copy of its world)."""
+    (:class:`~e2e_lite.driving.anatomy.Witness`), stored and read back as
+    :func:`~e2e_lite.stored.evaluate_stored` stores a result (each moment back in a fresh copy of its world)."""
 
     witness = anatomy.Witness(driver, world_cfg.sim.policy_period_s)
 
@@ -464,30 +394,9 @@ def witnessed(
         return anatomy.witnessed_to_dict(witness)
 
     kept = (versioned("witness"), anatomy.HISTORY_S, witness.every)
-    path, key = _stored_at(file, driver, world_cfg, cfg, *kept)
+    path, key = stored_at(file, driver, world_cfg, cfg, *kept)
     stored = cached(path, key, drive, anatomy.save_witnessed, anatomy.load_witnessed)
     return anatomy.witnessed_from_dict(stored, world_cfg)
-
-
-def _stored_at(
-    file: str, policy: Policy, world_cfg: WorldConfig, cfg: EvalConfig, *what: Any
-) -> tuple[Path, str]:
-    """Where a drive of ``policy`` is stored, and its key (the driver's :func:`fingerprint`, world,
-    settings, precision and ``what`` else), which is in the name: each drive's settings a file."""
-    parts = (fingerprint(policy), world_cfg, cfg, precision(), torch.__version__)
-    key = settings_key(versioned("evaluation"), *what, *parts)
-    return artifact_path("evaluations", f"{file}-{key}.json"), key
-
-
-def _save_result(path: Path, result: EvalResult, key: str) -> None:
-    info = {"info": result_info(result)} if result_info(result) else {}
-    save_json(path, {"key": key, "result": result.to_dict(), **info})
-
-
-def _load_result(path: Path) -> tuple[dict[str, Any], str]:
-    stored = load_json(path)
-    info = {"info": stored["info"]} if "info" in stored else {}
-    return {**stored["result"], **info}, stored["key"]
 
 
 def _fmt(value: float | None, unit: str = "") -> str:

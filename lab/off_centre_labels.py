@@ -41,6 +41,7 @@ from e2e_lite.learning.collector import DataConfig, load_or_collect
 from e2e_lite.learning.dataset import DrivingData
 from e2e_lite.learning.models import DrivingModel
 from e2e_lite.simulation.world import WorldConfig
+from e2e_lite.stored import evaluate_stored
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "off_centre_labels.json"
 
@@ -51,7 +52,7 @@ def drive(
     """``model``'s drive of training seed ``seed``'s validation roads (stored as chapter 12's):
     its off-centre episodes and collisions (counts) and its miles [mi]."""
     run = dagger.val_run(profile, seed, cfg.val_miles)
-    res = ablation.evaluate_stored(
+    res = evaluate_stored(
         f"{name}_val",
         f"{name} on validation roads",
         TrajectoryAgent(model),

@@ -17,6 +17,7 @@ from e2e_lite.learning.agents import SteeringAgent, TrajectoryAgent
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
+from e2e_lite.stored import fingerprint
 
 WORLD = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_cars=(8, 8)))
 CFG = EvalConfig(miles=0.2, n_worlds=4, n_tracks=2)
@@ -82,13 +83,13 @@ def test_table_has_every_driver_with_the_papers_figures():
 
 def test_fingerprint_follows_weights_and_settings():
     a, b = TrajectoryAgent(_tiny("gmm")), TrajectoryAgent(_tiny("gmm"))
-    assert ablation.fingerprint(a) == ablation.fingerprint(b)
+    assert fingerprint(a) == fingerprint(b)
     with torch.no_grad():
         next(b.model.parameters()).add_(1e-3)
-    assert ablation.fingerprint(a) != ablation.fingerprint(b)
+    assert fingerprint(a) != fingerprint(b)
     cruise = TrajectoryAgent(_tiny("gmm"), speed="cruise")
-    assert ablation.fingerprint(a) != ablation.fingerprint(cruise)
-    assert ablation.fingerprint(Expert()) != ablation.fingerprint(Oracle())
+    assert fingerprint(a) != fingerprint(cruise)
+    assert fingerprint(Expert()) != fingerprint(Oracle())
 
 
 def test_unknown_driver_is_refused():

@@ -16,7 +16,6 @@ import pytest
 import torch
 
 from e2e_lite import artifacts
-from e2e_lite.ablation import evaluate_stored
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.driving.evaluation import EvalConfig
@@ -29,6 +28,7 @@ from e2e_lite.learning.probes import HeadRefit
 from e2e_lite.learning.training import TrainConfig, model_stats
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
+from e2e_lite.stored import evaluate_stored
 
 
 def flip_a_bit(path: Path, at: float = 0.6) -> None:

@@ -141,7 +141,8 @@ LAYERS = ("simulation", "control", "driving", "learning", "safety")
 BASE = ("config", "artifacts")  # used by every layer
 #: beside the layers, free to import any of them, and what each owns
 TOP = {
-    "ablation": "chapter 10's drivers, their stored results and the table beside the paper's",
+    "ablation": "chapter 10's drivers, how each is built and the table beside the paper's",
+    "stored": "drives stored and read back under a key of the driver, world and settings",
     "record": "the numbers of record: typed rows and shares, their tests, pooling and running",
     "report": "rendering the committed record and the course's tables, and nothing else",
     "viz": "figures the chapters share",

@@ -390,7 +390,7 @@ def test_trajectory_agent_keeps_every_mode():
     np.testing.assert_allclose(mean_agent.last["modes"], last["modes"])
     with pytest.raises(ValueError, match="decode"):
         TrajectoryAgent(model, decode="median")
-    from e2e_lite.ablation import fingerprint
+    from e2e_lite.stored import fingerprint
 
     assert fingerprint(mean_agent) != fingerprint(agent)
     with_aff = prepare(

@@ -366,8 +366,8 @@ def test_the_rollout_tells_the_policy_of_each_collision_with_its_next_decision()
 
 
 def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(tmp_path, monkeypatch):
-    from e2e_lite.ablation import evaluate_stored, fingerprint
     from e2e_lite.driving.metrics import result_info
+    from e2e_lite.stored import evaluate_stored, fingerprint
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))

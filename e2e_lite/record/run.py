@@ -23,7 +23,6 @@ from ..ablation import (
     SEED_ZERO_ONLY,
     UNTRAINED,
     build_drivers,
-    evaluate_stored,
 )
 from ..artifacts import seeded, settings_key
 from ..config import FULL, Profile, check_range, default_workers, precision
@@ -34,6 +33,7 @@ from ..estimate import Work, cpu_name, plan_text
 from ..learning.collector import DataConfig, load_or_collect
 from ..learning.models import pick_device
 from ..simulation.world import WorldConfig
+from ..stored import evaluate_stored
 from .pool import pool, record_block, seed_run
 from .rows import SHARE_FORMAT, Block, Record, SeedDrive, Share, ShareRow
 from .stats import family

@@ -136,7 +136,7 @@ class SafeAgent:
         keep_examples: interventions kept per shard for figures (JSON-able, see above).
     """
 
-    #: in every stored guarded evaluation's key (:func:`e2e_lite.ablation.fingerprint`)
+    #: in every stored guarded evaluation's key (:func:`e2e_lite.stored.fingerprint`)
     RESULTS_VERSION = RESULTS_VERSION
 
     def __init__(

@@ -68,7 +68,7 @@ _A = AFFORDANCE_INDEX
 #: What the module may fall back to (:attr:`SafetyConfig.fallback`).
 FALLBACKS = ("lanes", "path", "keep-lane")
 #: The version of what the module computes: part of every stored guarded evaluation's key
-#: (:func:`e2e_lite.ablation.fingerprint`). Bump it when a change to the rule, its fallback or
+#: (:func:`e2e_lite.stored.fingerprint`). Bump it when a change to the rule, its fallback or
 #: the driver's reports changes what a stored result would hold.
 RESULTS_VERSION = 3  # 3: a collision's cause splits the network's (a hand-back, or silent)
 

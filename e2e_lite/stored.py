@@ -1,0 +1,105 @@
+"""Drives stored and read back: a closed-loop evaluation is saved as
+``evaluations/<file>-<key>.json`` under a key of everything that decides what it drives (the
+driver's :func:`fingerprint`, the world, the evaluation's settings, the precision and torch), and
+read back instead of driven again while none of them changed. Chapter 10's ablation, chapter 11's
+guarded drives, chapter 12's iterates and the record all drive through :func:`evaluate_stored`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .artifacts import artifact_path, cached, load_json, save_json, settings_key, versioned
+from .config import precision
+from .control.oracle import Oracle
+from .driving.evaluation import evaluate
+from .driving.metrics import EvalResult, result_info
+from .driving.rollout import EvalConfig
+from .learning.agents import NetworkAgent
+from .learning.checkpoints import weights_digest
+from .simulation.policy import Policy
+from .simulation.world import WorldConfig
+
+
+def fingerprint(policy: Policy) -> str:
+    """What identifies a driver's behaviour: its class, its settings and, for a network, a digest
+    of its weights and normalisation buffers."""
+    parts: list[Any] = [type(policy).__name__]
+    if isinstance(policy, NetworkAgent):
+        parts += [
+            weights_digest(policy.model),
+            repr(policy.model.cfg),
+            getattr(policy, "speed", None),
+        ]
+        parts += [getattr(policy, "preview_s", 0.0)]
+        if getattr(policy, "decode", "top") != "top":  # (so the stored keys of "top" stay)
+            parts.append(policy.decode)
+        parts += [repr(policy.camera), str(policy.device)]
+    for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
+        if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
+            parts.append(repr(getattr(policy, attr)))
+    if isinstance(policy, Oracle):  # its noise draws depend on its seed
+        parts += [repr(policy.expert.cfg), policy.seed]
+    inner = getattr(policy, "agent", None)  # a wrapper (the safety module) around a driver
+    if inner is not None:
+        parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
+        # what the safety module reports (its audits and examples) is stored with the result
+        parts += [getattr(policy, a, None) for a in ("audit", "audit_every", "keep_examples")]
+        parts.append(("results version", getattr(policy, "RESULTS_VERSION", None)))
+    return settings_key(*parts)
+
+
+def evaluate_stored(
+    file: str,
+    label: str,
+    policy: Policy,
+    world_cfg: WorldConfig,
+    cfg: EvalConfig,
+    *,
+    reuse: bool = True,
+    progress: bool = True,
+    workers: int | None = None,
+) -> EvalResult | dict[str, Any]:
+    """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` with what the
+    policy reported (``result.info``, which must be JSON-able; read it back with
+    :func:`~e2e_lite.driving.metrics.result_info`), and read back instead of driven again while
+    the driver (:func:`fingerprint`), world, settings and precision are the same (see
+    :func:`~e2e_lite.ablation.evaluate_drivers`)."""
+
+    def run() -> EvalResult:
+        res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
+        if progress:
+            print(f"{label}: {res.summary()}", flush=True)
+        return res
+
+    if not reuse:
+        return run()
+    path, run_key = stored_at(file, policy, world_cfg, cfg)
+    result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
+    if progress and not isinstance(result, EvalResult):
+        print(f"{label}: reusing {path.name} ({result['miles']:.3g} mi)", flush=True)
+    return result
+
+
+def stored_at(
+    file: str, policy: Policy, world_cfg: WorldConfig, cfg: EvalConfig, *what: Any
+) -> tuple[Path, str]:
+    """Where a drive of ``policy`` is stored, and its key (the driver's :func:`fingerprint`, world,
+    settings, precision and ``what`` else), which is in the name: each drive's settings a file."""
+    parts = (fingerprint(policy), world_cfg, cfg, precision(), torch.__version__)
+    key = settings_key(versioned("evaluation"), *what, *parts)
+    return artifact_path("evaluations", f"{file}-{key}.json"), key
+
+
+def _save_result(path: Path, result: EvalResult, key: str) -> None:
+    info = {"info": result_info(result)} if result_info(result) else {}
+    save_json(path, {"key": key, "result": result.to_dict(), **info})
+
+
+def _load_result(path: Path) -> tuple[dict[str, Any], str]:
+    stored = load_json(path)
+    info = {"info": stored["info"]} if "info" in stored else {}
+    return {**stored["result"], **info}, stored["key"]
