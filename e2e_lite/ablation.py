@@ -27,7 +27,13 @@ from .control.expert import Expert
 from .control.oracle import Oracle
 from .driving import anatomy
 from .driving.evaluation import evaluate
-from .driving.metrics import EvalResult, pool_results, result_dict, results_table
+from .driving.metrics import (
+    EvalResult,
+    off_centre_episodes,
+    pool_results,
+    result_dict,
+    results_table,
+)
 from .driving.rollout import EvalConfig, disjoint_runs
 from .learning import dagger, recipes
 from .learning.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
@@ -139,9 +145,8 @@ def dagger_iterates(b: Build, arm: str, cfg: dagger.DaggerConfig | None = None) 
     for name, model in networks:
         label = f"{name} on validation roads"
         res = evaluate_stored(f"{name}_val", label, TrajectoryAgent(model), world_cfg, run, **b.kw)
-        got = result_dict(res)
-        rates.append(got["collisions_per_100mi"])
-        off_centre.append(got["interventions"] - got["collisions"])
+        rates.append(result_dict(res)["collisions_per_100mi"])
+        off_centre.append(off_centre_episodes(res))
     return Iterates(networks, rates, off_centre, dagger.kept_iterate(rates))
 
 

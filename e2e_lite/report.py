@@ -388,18 +388,18 @@ def _one_run_against_the_record(record: Record) -> str:
         if st.credits is not None
     )
     seeds = len(record.row("gmm").seeds)
+    recipes = f"recipes {_recipes(record)}; " if _recipes(record) else ""
     return (
-        f"*One run is one training seed. The record ({_recipes(record)}{seeds} seeds per row,"
+        f"*One run is one training seed. The record ({recipes}{seeds} seeds per row,"
         " docs/results.md),"
         f" pooled per 100 mi: {rates}; {controls}.*"
     )
 
 
-def _recipes(record: Record) -> str:
-    """ "recipes <commit>; " where the record names the commit of its recipes, else "" (a course
-    run's chapters may be newer than the recipes the record drove)."""
-    commit = record.block.recipes_commit if record.block else None
-    return f"recipes {commit}; " if commit else ""
+def _recipes(record: Record) -> str | None:
+    """The commit of the recipes ``record`` drove, where it names one (a course run's chapters may
+    be newer than the recipes the record drove)."""
+    return record.block.recipes_commit if record.block else None
 
 
 def session_findings(run: dict[str, Any] | None, record: Record) -> str:
@@ -420,8 +420,8 @@ def session_findings(run: dict[str, Any] | None, record: Record) -> str:
             if name in tested
         ]
         run_text = "; ".join(shown) if shown else "no full-profile run recorded"
-        recipes = _recipes(record).rstrip("; ")
-        the_record = f"The record ({recipes})" if recipes else "The record"
+        recipes = _recipes(record)
+        the_record = f"The record (recipes {recipes})" if recipes else "The record"
         record_text = f" {the_record}: {'; '.join(verdicts)}." if verdicts else ""
         lines.append(
             f"- **Session {session}** (chapters {', '.join(chapters)}). One run: {run_text}.{record_text}"

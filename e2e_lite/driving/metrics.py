@@ -131,6 +131,13 @@ def result_events(r: EvalResult | dict[str, Any]) -> list[dict[str, Any]]:
     return r.events if isinstance(r, EvalResult) else r.get("events", [])
 
 
+def off_centre_episodes(r: EvalResult | dict[str, Any]) -> int:
+    """A result's off-centre episodes: its interventions that were not collisions (the car more
+    than ``EvalConfig.offcentre_m`` from every lane centre for longer than its grace)."""
+    got = result_dict(r)
+    return int(got["interventions"] - got["collisions"])
+
+
 def result_info(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
     """What the policy reported with its decisions, added up (``EvalResult.info``, or the
     ``"info"`` a stored result kept; ``{}`` when none)."""
