@@ -709,6 +709,18 @@ def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p
 
     ratio, low, high = ratio_interval([2, 3, 4, 5], [0, 1, 0, 0], paired=True)
     assert ratio == 14.0 and np.isfinite(low) and high == np.inf
+    # a row that never collided has no spread to resample: the bootstrap alone says [0, 0]; the
+    # interval holds the pooled counts' exact one instead (0 of 5: p < 1 - 0.025^(1/5))
+    ratio, low, high = ratio_interval([0, 0, 0, 0], [2, 1, 0, 2], paired=True)
+    p_high = 1.0 - 0.025 ** (1 / 5)
+    assert ratio == 0.0 and low == 0.0 and high == pytest.approx(p_high / (1.0 - p_high))
+    ratio, low, high = ratio_interval([1, 0, 2, 0], [0, 0, 0, 0])
+    assert (
+        ratio == np.inf
+        and high == np.inf
+        and low == pytest.approx(0.025 ** (1 / 3) / (1 - 0.025 ** (1 / 3)))
+    )
+    assert np.isnan(ratio_interval([0, 0], [0, 0])[1])
 
 
 def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():

@@ -12,7 +12,7 @@ so a seed's result is a whole number of collisions. Two rows are compared on tho
   roads and start lanes and (for a fine-tune and its control) grew from the same parent network:
   the per-seed differences' signs are flipped in every way.
 * :func:`ratio_interval`: the effect size, the rows' pooled rate ratio, with a bootstrap
-  interval over the seeds.
+  interval over the seeds (and, where a row never collided, the pooled counts' exact interval).
 * :func:`power`: how often a record of its seeds and miles finds a true step of a given size,
   and the smallest p-value it can reach at all (3 seeds against 3: 0.05, never below it).
 
@@ -159,7 +159,13 @@ def ratio_interval(
     neither row collided).
 
     The seeds of each row are resampled with replacement (``paired``: seed pairs together); a
-    resample whose ``b`` row never collided gives ``inf``. A ratio below 1: ``a`` collides less."""
+    resample whose ``b`` row never collided gives ``inf``. A ratio below 1: ``a`` collides less.
+
+    When one row never collided its seeds have no spread to resample (every resample of a row of
+    zeros gives 0, so the bootstrap alone would say ``[0, 0]``, or ``[1, inf]`` the other way):
+    the interval then also holds the exact conditional one of the pooled counts (Clopper-Pearson
+    on ``sum(a)`` of ``sum(a) + sum(b)``, :func:`pooled_ratio_interval`), which treats a row's
+    miles as one draw: the least uncertainty the counts allow."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     rng = np.random.default_rng(seed)
     ia = rng.integers(0, len(a), (n_boot, len(a)))
@@ -174,7 +180,32 @@ def ratio_interval(
     # interpolating between two infinite ratios gives NaN: with any, read the order statistics
     method = "linear" if np.isfinite(boot).all() else "inverted_cdf"
     low, high = np.percentile(boot, [tail, 100.0 - tail], method=method)
+    if a.sum() == 0 or b.sum() == 0:
+        exact_low, exact_high = pooled_ratio_interval(a, b, level)
+        low, high = min(low, exact_low), max(high, exact_high)
     return float(ratio), float(low), float(high)
+
+
+def pooled_ratio_interval(
+    a: Sequence[float], b: Sequence[float], level: float = 0.95
+) -> tuple[float, float]:
+    """The exact conditional (Clopper-Pearson) interval of the rate ratio of two rows' pooled
+    counts, each seed of either row driving the same budget: given ``n = sum(a) + sum(b)``,
+    ``sum(a) ~ Binomial(n, p)`` with ``p = r m_a / (r m_a + m_b)`` for the ratio ``r`` and the
+    rows' miles ``m_a, m_b`` (here their numbers of seeds). ``(low, high)``; ``high`` is ``inf``
+    when ``b`` never collided; NaN when neither did."""
+    from scipy.stats import beta  # (here: an evaluation worker never loads scipy.stats)
+
+    k_a, k_b = float(np.sum(a)), float(np.sum(b))
+    if k_a + k_b == 0:
+        return math.nan, math.nan
+    tail = (1.0 - level) / 2.0
+    p_low = float(beta.ppf(tail, k_a, k_b + 1)) if k_a > 0 else 0.0
+    p_high = float(beta.ppf(1.0 - tail, k_a + 1, k_b)) if k_b > 0 else 1.0
+    exposure = len(b) / len(a)  # m_b / m_a
+    low = p_low / (1.0 - p_low) * exposure
+    high = math.inf if p_high >= 1.0 else p_high / (1.0 - p_high) * exposure
+    return low, high
 
 
 def compare_seeds(
