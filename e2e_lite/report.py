@@ -112,7 +112,8 @@ def _row_cells(row: Row, expert_mph: float | None) -> list[str]:
 
 def _off_centre(row: Row) -> str:
     """Off-centre episodes per 100 miles: the autonomy metric's interventions that were not
-    collisions (more than 1 m from every lane centre for more than 3 s; "-": not recorded)."""
+    collisions (the car farther from every lane centre than ``EvalConfig.offcentre_m`` for longer
+    than ``EvalConfig.offcentre_grace_s``, as :func:`_off_centre_line` says; "-": not recorded)."""
     if row.interventions is None:
         return "-"
     return f"{100.0 * (row.interventions - row.collisions) / row.miles:.1f}"
