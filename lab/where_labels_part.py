@@ -11,7 +11,10 @@ Reads chapter 04's training data and chapter 12's stored rounds (only the fields
 drives validation roads (chapter 12's section 2's), and writes
 docs/results/lab/where_labels_part.json (lab note "The two experts part over the home lane").
 A label's end across the road is its 1.5 s point turned into the lane frame with the road's
-curvature at the sample taken as constant over the 1.5 s (checked: the JSON's "geometry_check").
+curvature at the sample taken as constant over the 1.5 s (checked: the JSON's "geometry_check";
+within about 30 m of where a straight meets an arc it can be off by up to about 2 m). "Along the
+road": the car's heading within 0.01 rad of the road's at that instant (the turning point of an
+abandoned change passes through it too).
 """
 
 from __future__ import annotations
@@ -26,17 +29,27 @@ import numpy as np
 from e2e_lite.artifacts import artifact_path
 from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.expert import Expert
-from e2e_lite.control.labels import AFFORDANCE_INDEX, KEEP, STATE_NAMES
+from e2e_lite.control.labels import AFFORDANCE_INDEX, CHANGE, KEEP, STATE_NAMES
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving.evaluation import evaluate, result_dict
 from e2e_lite.driving.metrics import off_centre_episodes
 from e2e_lite.learning import dagger
 from e2e_lite.learning.collector import DataConfig, dataset_path
+from e2e_lite.learning.dataset import road_lateral
 from e2e_lite.simulation.world import WorldConfig
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "where_labels_part.json"
-FIELDS = ("trajectory", "state_trajectory", "affordances", "curvature", "d", "lane", "expert_state")
+FIELDS = (
+    "trajectory",
+    "state_trajectory",
+    "affordances",
+    "curvature",
+    "d",
+    "lane",
+    "expert_state",
+    "overtaking",
+)
 OFF_M = 1.0  # a label or a car more than this from every lane centre is off-centre [m]
 
 
@@ -49,12 +62,11 @@ def fields(path: Path) -> dict[str, np.ndarray]:
 
 
 def label_end(z: dict[str, np.ndarray], field: str) -> np.ndarray:
-    """Where the 1.5 s point of each label of ``field`` lies across the road: its lateral offset
-    in the lane frame [m] (the car's ``d``, plus the point turned by the car's heading to the
-    road, less the road's own bend over the point's distance ahead, ``kappa x^2 / 2``)."""
-    x, y = z[field][:, -1, 0], z[field][:, -1, 1]
+    """Where the 1.5 s point of each label of ``field`` lies across the road: the car's ``d``
+    plus the point's offset from its lane-keeping path (:func:`~e2e_lite.learning.dataset.
+    road_lateral`, the road's curvature at the sample taken as constant over the 1.5 s) [m]."""
     psi = z["affordances"][:, AFFORDANCE_INDEX["heading_rad"]]
-    return z["d"] + x * np.sin(psi) + y * np.cos(psi) - z["curvature"] * x**2 / 2.0
+    return z["d"] + road_lateral(z[field], psi, z["curvature"])
 
 
 def from_centre(d: np.ndarray, centres: np.ndarray) -> np.ndarray:
@@ -77,6 +89,8 @@ def where_apart(z: dict[str, np.ndarray], centres: np.ndarray, middle: int) -> d
     side_keep = keep & (z["lane"] != middle)
     toward_middle = heads_for_middle(z, "state_trajectory", centres[middle])
     centred = keep & (np.abs(z["affordances"][:, AFFORDANCE_INDEX["center_offset_m"]]) < 0.25)
+    own_end = from_centre(label_end(z, "trajectory"), centres)
+    curved = centred & (np.abs(z["curvature"]) > 1.0 / 500.0)
     by_lane = {}
     for lane in range(len(centres)):
         rows = keep & (z["lane"] == lane)
@@ -88,9 +102,11 @@ def where_apart(z: dict[str, np.ndarray], centres: np.ndarray, middle: int) -> d
     return {
         "geometry_check": {
             "expert's keep states within 0.25 m of a centre: its label's end from a centre, "
-            "median and 90th percentile [m]": np.percentile(
-                from_centre(label_end(z, "trajectory")[centred], centres), [50, 90]
-            ).tolist(),
+            "median and 90th percentile [m]": np.percentile(own_end[centred], [50, 90]).tolist(),
+            "the same on curves of radius under 500 m": (
+                np.percentile(own_end[curved], [50, 90]).tolist() if curved.any() else None
+            ),
+            "share of those states on such curves": float(curved[centred].mean()),
         },
         "share_apart": float(apart.mean()),
         "of those, the expert keeping in a side lane": float(side_keep[apart].mean()),
@@ -116,8 +132,21 @@ def rounds(profile: Profile, arm: str, seeds: int, centres: np.ndarray) -> list[
         off = from_centre(z["d"], centres) > OFF_M
         level = np.abs(z["affordances"][:, AFFORDANCE_INDEX["heading_rad"]]) < 0.01
         lingering = off & level
-        inward = heads_for_middle(z, "trajectory", centres[len(centres) // 2])
+        middle = len(centres) // 2
+        inward = heads_for_middle(z, "trajectory", centres[middle])
+        nearest = np.argmin(np.abs(z["d"][:, None] - centres[None]), axis=1)
         states = np.bincount(z["expert_state"][off], minlength=len(STATE_NAMES))
+        returns = (z["expert_state"] == CHANGE) & ~z["overtaking"]
+        along = {}
+        for where, rows in (("side", nearest != middle), ("middle", nearest == middle)):
+            at = lingering & rows
+            along[f"nearest a {where} lane's centre"] = {
+                "share of the round": float(at.mean()),
+                "the label heads for the middle": float(inward[at].mean()) if at.any() else None,
+                "the labeller returns (a change, not an overtake)": (
+                    float(returns[at].mean()) if at.any() else None
+                ),
+            }
         out.append(
             {
                 "samples": len(z["d"]),
@@ -126,13 +155,11 @@ def rounds(profile: Profile, arm: str, seeds: int, centres: np.ndarray) -> list[
                     for c in centres
                 ],
                 "off-centre": float(off.mean()),
-                "off-centre and along the road": float(lingering.mean()),
+                "off-centre and along the road, all": float(lingering.mean()),
                 "off-centre: the labeller's state": dict(
                     zip(STATE_NAMES, (states / max(1, off.sum())).tolist())
                 ),
-                "off-centre and along the road: the label heads for the middle": (
-                    float(inward[lingering].mean()) if lingering.any() else None
-                ),
+                "off-centre and along the road": along,
             }
         )
     return out
