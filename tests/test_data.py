@@ -119,6 +119,19 @@ def test_train_and_validation_tracks_never_overlap():
     data = collect(cfg, progress=False)
     assert data.info["split"] == "train" and set(np.unique(data.track)) <= set(range(cfg.n_tracks))
     assert DataConfig.for_profile(QUICK, "val").key != DataConfig.for_profile(QUICK, "train").key
+    # the state expert's home lane keys a dataset only when it is not the course's (the middle)
+    middle = DataConfig.for_profile(QUICK, "train", home_lane="middle")
+    assert middle.key == DataConfig.for_profile(QUICK, "train").key
+    assert DataConfig.for_profile(QUICK, "train", home_lane="own").key != middle.key
+    with pytest.raises(ValueError, match=r"DataConfig\.home_lane"):
+        DataConfig(home_lane="left")
+    # and it changes the state expert's labels alone: the expert drives and labels as before
+    own = collect(dataclasses.replace(cfg, home_lane="own"), progress=False)
+    np.testing.assert_array_equal(own.trajectory, data.trajectory)
+    side = data.arrays["lane"] != 1
+    assert side.any() and not np.allclose(
+        own.arrays["state_trajectory"][side], data.arrays["state_trajectory"][side]
+    )
 
 
 def test_dataset_is_saved_reused_and_rebuilt_on_other_settings(capsys):

@@ -9,7 +9,7 @@ from conftest import straight_world
 
 from e2e_lite.control import rules
 from e2e_lite.control.expert import Expert, WipedExpert
-from e2e_lite.control.labels import CHANGE, PASS
+from e2e_lite.control.labels import CHANGE, KEEP, PASS
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear, speed_profile
 from e2e_lite.control.state_expert import StateExpert, expert_labels
@@ -196,6 +196,29 @@ def test_a_label_depends_on_the_state_alone():
         np.testing.assert_array_equal(fresh.trajectory_label(obs), label)
         fresh.act(obs)
         assert fresh.decisions[0] == decision
+
+
+def test_the_state_experts_home_lane_is_the_middle_or_its_own():
+    """In a side lane with nothing ahead, the state expert heads home to the middle lane (a return:
+    a change, not an overtake); with ``home="own"`` it keeps the lane it is in. Both drive
+    validation roads without a collision when the tracker follows their labels."""
+    world = straight_world([900.0], [2], length=1_000.0)
+    fleet = Fleet([world], WorldConfig())
+    fleet.place(0, 100.0, -3.7, 25.0)  # the centre of lane 0, the rightmost
+    found = {}
+    for home in StateExpert.HOMES:
+        expert = StateExpert(seed=3, home=home)
+        expert.reset(1)
+        expert.act(observe(fleet, respawned=True))
+        found[home] = expert.decisions[0]
+    assert found["middle"].state == CHANGE and found["middle"].target == 1
+    assert not found["middle"].overtaking
+    assert found["own"].state == KEEP and found["own"].target == 0
+    ev = EvalConfig(miles=4.0, n_worlds=8, split="val")
+    own = evaluate(Oracle(StateExpert(home="own")), small_world_cfg(), ev, progress=False)
+    assert own.collisions == 0
+    with pytest.raises(ValueError, match="home"):
+        StateExpert(home="left")
 
 
 def test_the_oracle_on_either_experts_labels_drives_as_the_expert_and_a_wiped_memory_does_not():

@@ -100,6 +100,11 @@ class StateExpert:
         tracker: the LQR tracker it drives with (None: default weights at ``sim``'s policy period).
         vehicle, sim: the car and time steps of the rollouts (must match the world's).
         seed: seeds the parked cars' draws (:meth:`draws`).
+        home: the lane it returns to once past: ``"middle"`` (the course's labeller) or ``"own"``,
+            the lane it is in (it never returns: after an overtake it keeps the new lane; the
+            course's expert keeps whichever lane it is in and returns to the lane an overtake
+            left, a plan this one cannot read off the state). Lab note "The two experts part over
+            the home lane".
 
     Attributes:
         decisions: each car's last :class:`Decision` (what the data records).
@@ -113,6 +118,7 @@ class StateExpert:
     COMMIT_MPS, COMMIT_M = 0.05, 0.3
     #: the least progress of a lane change's path (a change from a lane's centre has to begin)
     U_MIN = 0.1
+    HOMES = ("middle", "own")
 
     def __init__(
         self,
@@ -121,7 +127,11 @@ class StateExpert:
         vehicle: VehicleParams | None = None,
         sim: SimConfig | None = None,
         seed: int = 0,
+        home: str = "middle",
     ) -> None:
+        if home not in self.HOMES:
+            raise ValueError(f"StateExpert: home={home!r} is invalid: must be one of {self.HOMES}")
+        self.home = home
         self.cfg = cfg or ExpertConfig()
         self.vehicle = vehicle or VehicleParams()
         self.sim = sim or SimConfig()
@@ -232,7 +242,7 @@ class StateExpert:
         [m], and its lane-change path (None: it follows its target lane's centre)."""
         track = car.world.track
         here = _lane_of(track, car.d)
-        home = (track.n_lanes - 1) // 2
+        home = (track.n_lanes - 1) // 2 if self.home == "middle" else here
         gap, j = self._gap(car, here)
         if j >= 0 and gap < self.draws(car.world, j).trigger_m:  # should overtake
             target = self._overtake_lane(car, here, home, gap, j)

@@ -88,10 +88,12 @@ class DataConfig:
         seed: seeds the expert's draws, the noise and the start lanes.
         first_track: index of the split's first track the cars drive (DAgger's rounds and their
             control drive fresh training roads, chapter 12).
+        home_lane: the state expert's home lane (:class:`~e2e_lite.control.state_expert.
+            StateExpert`'s ``home``): ``"middle"`` or ``"own"``.
     """
 
     #: added after the course's datasets were keyed: at their defaults those keys stay
-    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("first_track",)
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("first_track", "home_lane")
 
     split: str = "train"
     n_samples: int = 48_000
@@ -105,9 +107,14 @@ class DataConfig:
     restart_rate_per_s: float = 0.05
     seed: int = 0
     first_track: int = 0
+    home_lane: str = "middle"
 
     def __post_init__(self) -> None:
         o = "DataConfig"
+        if self.home_lane not in StateExpert.HOMES:
+            raise ValueError(
+                f"{o}.home_lane={self.home_lane!r} is invalid: must be one of {StateExpert.HOMES}"
+            )
         if self.split not in ("train", "val"):
             raise ValueError(f"{o}.split={self.split!r} is invalid: must be 'train' or 'val'")
         if self.driver not in ("expert", "state"):
@@ -200,7 +207,9 @@ class _Recorder:
         self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
         world = cfg.world
-        self.labeller = StateExpert(cfg.expert, vehicle=world.vehicle, sim=world.sim, seed=cfg.seed)
+        self.labeller = StateExpert(
+            cfg.expert, vehicle=world.vehicle, sim=world.sim, seed=cfg.seed, home=cfg.home_lane
+        )
         self.expert = (  # who drives and labels; the state expert's labels lie beside its own
             self.labeller
             if cfg.driver == "state"
