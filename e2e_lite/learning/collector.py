@@ -428,11 +428,17 @@ def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:
     return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}'}.npz")
 
 
-def load_or_collect(cfg: DataConfig, progress: bool = True, name: str | None = None) -> DrivingData:
-    """The dataset of ``cfg`` from disk if it was made by these settings; else collect and save it
-    (``name``: see :func:`dataset_path`)."""
+def load_or_collect(
+    cfg: DataConfig, progress: bool = True, name: str | None = None, workers: int | None = None
+) -> DrivingData:
+    """The dataset of ``cfg`` from disk if it was made by these settings; else collect it (on
+    ``workers`` processes, see :func:`collect`) and save it (``name``: see :func:`dataset_path`)."""
     return cached(
-        dataset_path(cfg, name), cfg.key, lambda: collect(cfg, progress), save_dataset, load_dataset
+        dataset_path(cfg, name),
+        cfg.key,
+        lambda: collect(cfg, progress, workers),
+        save_dataset,
+        load_dataset,
     )
 
 
