@@ -110,6 +110,8 @@ def arm(
     objective, tcfg = recipes.finetune_settings(profile, weight, seed, "mean")
     model, meta = start(seed)
     state = meta["optimizer"]
+    if state is None:  # (as train_or_load refuses: a fresh Adam would be another fine-tune)
+        raise SystemExit(f"the start network of seed {seed} kept no Adam state to carry on")
     drives = []
     for r in range(rounds):
         name = f"lab12_home_{home}_round{r + 1}_seed{seed}"

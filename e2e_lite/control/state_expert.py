@@ -12,7 +12,8 @@ It sees the world as it is (the true positions of the parked cars) and follows t
 ==========  =====================================================================================
 state       what it does, read off the state at every decision
 ==========  =====================================================================================
-``keep``    in the home lane (the middle one), on its centre. A parked car ahead nearer than
+``keep``    in the home lane (the middle one; with ``home="own"`` the lane it is in, so it never
+            passes or returns), on its centre. A parked car ahead nearer than
             ``trigger``: a free neighbour (at random when both are free) -> ``change``; none free
             or the change would be too sharp -> ``follow``.
 ``change``  heading for a neighbouring lane: a quintic path from its lane's centre, whose progress
@@ -101,10 +102,12 @@ class StateExpert:
         vehicle, sim: the car and time steps of the rollouts (must match the world's).
         seed: seeds the parked cars' draws (:meth:`draws`).
         home: the lane it returns to once past: ``"middle"`` (the course's labeller) or ``"own"``,
-            the lane it is in (it never returns: after an overtake it keeps the new lane; the
-            course's expert keeps whichever lane it is in and returns to the lane an overtake
-            left, a plan this one cannot read off the state). Lab note "The two experts part over
-            the home lane".
+            the lane it is in (it never returns: after an overtake it keeps the new lane, in
+            ``keep``, so the speed cap of ``pass`` near a parked car ahead no longer applies
+            there either; every lane change is an overtake. The course's expert keeps whichever
+            lane it is in and returns to the lane an overtake left, a plan this one cannot read
+            off the state). Lab notes "The two experts part over the home lane", "The drift comes
+            mostly with the home lane".
 
     Attributes:
         decisions: each car's last :class:`Decision` (what the data records).
@@ -262,7 +265,9 @@ class StateExpert:
         toward = 1 if centre > car.d else -1
         if abs(car.d - centre) > self.COMMIT_M and car.v_lat * toward > self.COMMIT_MPS:
             # the end of a lane change, past the dashed line: the tracker brings it in
-            return Decision(CHANGE, here, toward, here != home), gap, None
+            # (with its own lane as home there are no returns: every change is an overtake)
+            overtaking = here != home or self.home == "own"
+            return Decision(CHANGE, here, toward, overtaking), gap, None
         return Decision(KEEP if here == home else PASS, here, 0, False), gap, None
 
     def draws(self, world: World, j: int) -> Draws:
