@@ -315,8 +315,10 @@ print(
 # own labels instead of the state expert's: in the book's run its iterates stayed near the start
 # on every seed, as far as four seeds can show (lab note "The lingering comes with the state
 # expert's labels"). So in that arm the drift came with the state expert's labels, not with
-# fine-tuning as such. How those labels move a network, and why DAgger's states add to the
-# drift, is open (exercise 12.6).
+# fine-tuning as such, and mostly with one rule of them: its home is the middle lane, where the
+# expert keeps any lane it is in (lab notes "The two experts part over the home lane" and "The
+# drift comes mostly with the home lane", four seeds). Why DAgger's states add to the drift is
+# open (exercise 12.6).
 
 
 # %%
@@ -400,7 +402,8 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # * A driver is more than its collisions: section 4 prints each arm's off-centre episodes beside
 #   its rate. In the book's run the arm with no new data drifted on its validation roads with the
 #   state expert's labels and not with the expert's (lab note "The lingering comes with the state
-#   expert's labels"); how, and DAgger's larger drift, are open.
+#   expert's labels"); on a lent GPU, mostly with its home-lane rule (lab note "The drift comes
+#   mostly with the home lane"). DAgger's larger drift is open.
 #
 # ## Exercises
 #
