@@ -61,8 +61,7 @@ def data(profile: Profile, split: str, home: str, workers: int | None, store: bo
     cfg = DataConfig.for_profile(profile, split, home_lane=home)
     if not store:
         return collect(cfg, workers=workers)
-    name = None if home == "middle" else f"{split}-{cfg.n_samples}-home-{home}"
-    return load_or_collect(cfg, name=name, workers=workers)
+    return load_or_collect(cfg, workers=workers)
 
 
 def drive(name: str, model: DrivingModel, profile: Profile, seed: int, miles: float) -> dict:

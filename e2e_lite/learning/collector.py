@@ -423,9 +423,11 @@ def collect(
 
 
 def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:
-    """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz``, or
+    """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz`` (with
+    ``-home-<home_lane>`` when the state expert's home is not the middle lane), or
     ``<outputs>/data/<name>.npz`` for a variant kept beside it."""
-    return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}'}.npz")
+    home = "" if cfg.home_lane == "middle" else f"-home-{cfg.home_lane}"
+    return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}{home}'}.npz")
 
 
 def load_or_collect(

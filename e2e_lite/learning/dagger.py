@@ -32,19 +32,29 @@ it stopped.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from ..artifacts import artifact_path, cached, seeded, settings_key
 from ..config import Profile, check_range
 from ..control.labels import AFFORDANCE_INDEX
+from ..control.state_expert import StateExpert
 from ..driving.rollout import EvalConfig
 from . import recipes
 from .agents import TrajectoryAgent
 from .checkpoints import train_or_load, training_data_key
-from .collector import DataConfig, NoiseConfig, OnPolicy, collect, load_dataset, save_dataset
+from .collector import (
+    DataConfig,
+    NoiseConfig,
+    OnPolicy,
+    collect,
+    load_dataset,
+    load_or_collect,
+    save_dataset,
+)
 from .dataset import DrivingData, allocate, relabelled
 from .models import DrivingModel
 
@@ -82,7 +92,13 @@ class DaggerConfig:
             first round, the expert alone, is chapter 04's data).
         val_miles: validation miles every iterate of a seed drives, to be chosen on [mi].
         dart_scale: the control's DART noise over the network's measured command errors.
+        home_lane: the state expert's home lane, for every label the fine-tunes learn (the
+            rounds' and chapter 04's relabelled data): ``"middle"`` (the course's) or ``"own"``
+            (lab note "The drift comes mostly with the home lane").
     """
+
+    #: added after the course's rounds were stored: at their defaults their names stay
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("home_lane",)
 
     rounds: int = 4
     samples: int = 8_000
@@ -92,9 +108,14 @@ class DaggerConfig:
     beta: float = 0.0
     val_miles: float = 25.0
     dart_scale: float = 1.0
+    home_lane: str = "middle"
 
     def __post_init__(self) -> None:
         o = "DaggerConfig"
+        if self.home_lane not in StateExpert.HOMES:
+            raise ValueError(
+                f"{o}.home_lane={self.home_lane!r} is invalid: must be one of {StateExpert.HOMES}"
+            )
         check_range(o, "rounds", self.rounds, 1, 20, integer=True)
         check_range(o, "samples", self.samples, 1, integer=True)
         check_range(o, "drive", self.drive, 1.0, 100.0)
@@ -164,6 +185,7 @@ class RoundSpec:
             noise=noise or NoiseConfig(rate_per_s=0.0),
             restart_rate_per_s=0.0,
             driver="state",
+            home_lane=self.cfg.home_lane,
         )
 
     @property
@@ -340,6 +362,26 @@ class Round:
     collection: dict[str, Any]
 
 
+def relabel_source(
+    profile: Profile, train: DrivingData, val: DrivingData, home_lane: str
+) -> tuple[DrivingData, DrivingData]:
+    """The data whose state expert's labels the fine-tunes learn: ``train`` and ``val`` for the
+    course's middle home; for another, chapter 04's data of the profile with that home's labels
+    beside the expert's (the same states and images, stored as their own files)."""
+    if home_lane == "middle":
+        return train, val
+    out = []
+    for split, data in (("train", train), ("val", val)):
+        cfg = DataConfig.for_profile(profile, split)
+        if data.info.get("key") != cfg.key:
+            raise ValueError(
+                f"home_lane={home_lane!r} relabels the profile's own chapter 04 {split} data; "
+                "this one was collected with other settings"
+            )
+        out.append(load_or_collect(dataclasses.replace(cfg, home_lane=home_lane)))
+    return out[0], out[1]
+
+
 def run(
     profile: Profile,
     train: DrivingData,
@@ -359,7 +401,7 @@ def run(
     start_name = recipes.seeded_name("09_gmm_affordance_cvar", seed)
     objective, tcfg = recipes.finetune_settings(profile, weight, seed, "mean")
     out: dict[str, list[Round]] = {}
-    old, val_state = relabelled(train), relabelled(val)  # one labeller, old and new samples
+    old, val_state = (relabelled(d) for d in relabel_source(profile, train, val, cfg.home_lane))
     for arm in arms:
         aggregate, parent, model = [old], start_name, start
         parent_key = training_data_key(train, val)
