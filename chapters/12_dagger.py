@@ -430,3 +430,8 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    `anatomy.Witness(..., every=10)` and, at its moments more than 1 m from every lane centre,
 #    compare its plan with the state expert's label. Is it a lane change the labeller reads as
 #    under way, one the network never finishes?
+# 7. The home lane: the state expert heads for the middle lane where the expert keeps any lane
+#    it is in (lab note "The two experts part over the home lane"). Run the rounds with a labeller
+#    that keeps its own lane, `DaggerConfig.for_profile(profile, home_lane="own")` (its rounds and
+#    relabelled data are stored under names of their own). Do the iterates drift less off the
+#    lane centre, and do they collide less or more?
