@@ -38,7 +38,7 @@ from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving.evaluation import evaluate
-from e2e_lite.driving.metrics import off_centre_episodes, result_dict
+from e2e_lite.driving.metrics import drive_counts
 from e2e_lite.driving.verdicts import sign_flip_test
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
@@ -74,12 +74,7 @@ def drive(name: str, model: DrivingModel, profile: Profile, seed: int, miles: fl
         WorldConfig.for_profile(profile),
         dagger.val_run(profile, seed, miles),
     )
-    got = result_dict(res)
-    return {
-        "off_centre": off_centre_episodes(res),
-        "collisions": got["collisions"],
-        "miles": got["miles"],
-    }
+    return drive_counts(res)
 
 
 def start(seed: int) -> tuple[DrivingModel, dict[str, Any]]:
@@ -140,12 +135,7 @@ def labellers(profile: Profile, miles: float) -> dict[str, dict[str, float]]:
         res = evaluate(
             Oracle(StateExpert(sim=world.sim, home=home)), world, dagger.val_roads(miles, 32)
         )
-        got = result_dict(res)
-        out[home] = {
-            "miles": got["miles"],
-            "collisions": got["collisions"],
-            "off_centre": off_centre_episodes(res),
-        }
+        out[home] = drive_counts(res)
     return out
 
 

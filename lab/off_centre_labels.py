@@ -32,7 +32,7 @@ import numpy as np
 from e2e_lite import ablation
 from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.labels import AFFORDANCE_INDEX
-from e2e_lite.driving.metrics import off_centre_episodes, result_dict
+from e2e_lite.driving.metrics import drive_counts
 from e2e_lite.driving.verdicts import sign_flip_test
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
@@ -59,12 +59,7 @@ def drive(
         WorldConfig.for_profile(profile),
         run,
     )
-    got = result_dict(res)
-    return {
-        "off_centre": off_centre_episodes(res),
-        "collisions": got["collisions"],
-        "miles": got["miles"],
-    }
+    return drive_counts(res)
 
 
 def expert_labels(

@@ -32,8 +32,8 @@ from e2e_lite.control.expert import Expert
 from e2e_lite.control.labels import AFFORDANCE_INDEX, CHANGE, KEEP, STATE_NAMES
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
-from e2e_lite.driving.evaluation import evaluate, result_dict
-from e2e_lite.driving.metrics import off_centre_episodes
+from e2e_lite.driving.evaluation import evaluate
+from e2e_lite.driving.metrics import drive_counts
 from e2e_lite.learning import dagger
 from e2e_lite.learning.collector import DataConfig, dataset_path
 from e2e_lite.learning.dataset import road_lateral
@@ -173,12 +173,7 @@ def drives(profile: Profile, miles: float) -> dict[str, dict[str, float]]:
     out = {}
     for name, labeller in (("expert", Expert), ("state expert", StateExpert)):
         res = evaluate(Oracle(labeller(sim=world.sim)), world, check, desc=name, workers=1)
-        got = result_dict(res)
-        out[f"the oracle on the {name}'s labels"] = {
-            "miles": got["miles"],
-            "collisions": got["collisions"],
-            "off_centre": off_centre_episodes(res),
-        }
+        out[f"the oracle on the {name}'s labels"] = drive_counts(res)
     return out
 
 

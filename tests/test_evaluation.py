@@ -747,3 +747,12 @@ def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():
         power(10, 100.0, 3.0, dispersion=-0.1)
     # Holm: 0.01, 0.04, 0.03 in a family of three -> 0.03, 0.06, 0.06
     assert holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
+
+
+def test_a_drives_counts_are_its_off_centre_episodes_collisions_and_miles():
+    """Off-centre episodes are the interventions that were not collisions; the lab scripts keep
+    them with the collisions and miles."""
+    from e2e_lite.driving.metrics import drive_counts
+
+    got = drive_counts({"interventions": 7, "collisions": 2, "miles": 25.1})
+    assert got == {"off_centre": 5, "collisions": 2, "miles": 25.1}

@@ -138,6 +138,17 @@ def off_centre_episodes(r: EvalResult | dict[str, Any]) -> int:
     return int(got["interventions"] - got["collisions"])
 
 
+def drive_counts(r: EvalResult | dict[str, Any]) -> dict[str, float]:
+    """A drive's off-centre episodes (:func:`off_centre_episodes`) and collisions (counts) and its
+    miles [mi]: what the lab scripts keep of each drive."""
+    got = result_dict(r)
+    return {
+        "off_centre": off_centre_episodes(r),
+        "collisions": got["collisions"],
+        "miles": got["miles"],
+    }
+
+
 def result_info(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
     """What the policy reported with its decisions, added up (``EvalResult.info``, or the
     ``"info"`` a stored result kept; ``{}`` when none)."""
