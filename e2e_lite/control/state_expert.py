@@ -132,8 +132,7 @@ class StateExpert:
         seed: int = 0,
         home: str = "middle",
     ) -> None:
-        if home not in self.HOMES:
-            raise ValueError(f"StateExpert: home={home!r} is invalid: must be one of {self.HOMES}")
+        check_home("StateExpert", "home", home)
         self.home = home
         self.cfg = cfg or ExpertConfig()
         self.vehicle = vehicle or VehicleParams()
@@ -412,6 +411,13 @@ class StateExpert:
         elif decision.state != KEEP and math.isfinite(gap):
             v_ref = min(v_ref, math.sqrt(2.0 * cfg.approach_brake_mps2 * max(room, 0.0)))
         return v_ref, brake
+
+
+def check_home(owner: str, name: str, home: str) -> None:
+    """Raise ``ValueError`` naming ``owner.name`` unless ``home`` is one of
+    :attr:`StateExpert.HOMES`."""
+    if home not in StateExpert.HOMES:
+        raise ValueError(f"{owner}.{name}={home!r} is invalid: must be one of {StateExpert.HOMES}")
 
 
 def _centre(track: Track, lane: int) -> float:

@@ -36,7 +36,7 @@ from ..control.labels import (  # noqa: F401 (re-exported, as above)
     throttle_brake,
 )
 from ..control.rules import ExpertConfig
-from ..control.state_expert import StateExpert
+from ..control.state_expert import StateExpert, check_home
 from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
@@ -111,10 +111,7 @@ class DataConfig:
 
     def __post_init__(self) -> None:
         o = "DataConfig"
-        if self.home_lane not in StateExpert.HOMES:
-            raise ValueError(
-                f"{o}.home_lane={self.home_lane!r} is invalid: must be one of {StateExpert.HOMES}"
-            )
+        check_home(o, "home_lane", self.home_lane)
         if self.split not in ("train", "val"):
             raise ValueError(f"{o}.split={self.split!r} is invalid: must be 'train' or 'val'")
         if self.driver not in ("expert", "state"):

@@ -41,7 +41,7 @@ import numpy as np
 from ..artifacts import artifact_path, cached, seeded, settings_key
 from ..config import Profile, check_range
 from ..control.labels import AFFORDANCE_INDEX
-from ..control.state_expert import StateExpert
+from ..control.state_expert import check_home
 from ..driving.rollout import EvalConfig
 from . import recipes
 from .agents import TrajectoryAgent
@@ -112,10 +112,7 @@ class DaggerConfig:
 
     def __post_init__(self) -> None:
         o = "DaggerConfig"
-        if self.home_lane not in StateExpert.HOMES:
-            raise ValueError(
-                f"{o}.home_lane={self.home_lane!r} is invalid: must be one of {StateExpert.HOMES}"
-            )
+        check_home(o, "home_lane", self.home_lane)
         check_range(o, "rounds", self.rounds, 1, 20, integer=True)
         check_range(o, "samples", self.samples, 1, integer=True)
         check_range(o, "drive", self.drive, 1.0, 100.0)
@@ -366,8 +363,9 @@ def relabel_source(
     profile: Profile, train: DrivingData, val: DrivingData, home_lane: str
 ) -> tuple[DrivingData, DrivingData]:
     """The data whose state expert's labels the fine-tunes learn: ``train`` and ``val`` for the
-    course's middle home; for another, chapter 04's data of the profile with that home's labels
-    beside the expert's (the same states and images, stored as their own files)."""
+    course's middle home; for another, ``train`` and ``val`` with that home's state labels (from
+    chapter 04's data of the profile collected with it and stored as its own files: the same
+    states, so only its labels are kept, beside these arrays, under its key)."""
     if home_lane == "middle":
         return train, val
     out = []
@@ -378,7 +376,11 @@ def relabel_source(
                 f"home_lane={home_lane!r} relabels the profile's own chapter 04 {split} data; "
                 "this one was collected with other settings"
             )
-        out.append(load_or_collect(dataclasses.replace(cfg, home_lane=home_lane)))
+        other = load_or_collect(dataclasses.replace(cfg, home_lane=home_lane))
+        if not np.array_equal(other.trajectory, data.trajectory):
+            raise ValueError(f"the {split} data of home_lane={home_lane!r} drove other states")
+        labels = {"state_trajectory": other.arrays["state_trajectory"]}
+        out.append(DrivingData({**data.arrays, **labels}, dict(data.stats), other.info))
     return out[0], out[1]
 
 
