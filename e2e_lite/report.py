@@ -114,9 +114,8 @@ def _off_centre(row: Row) -> str:
     """Off-centre episodes per 100 miles: the autonomy metric's interventions that were not
     collisions (the car farther from every lane centre than ``EvalConfig.offcentre_m`` for longer
     than ``EvalConfig.offcentre_grace_s``, as :func:`_off_centre_line` says; "-": not recorded)."""
-    if row.interventions is None:
-        return "-"
-    return f"{100.0 * (row.interventions - row.collisions) / row.miles:.1f}"
+    episodes = row.off_centre
+    return "-" if episodes is None else f"{100.0 * episodes / row.miles:.1f}"
 
 
 def _kept_interventions(record: Record) -> bool:

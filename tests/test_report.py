@@ -381,6 +381,7 @@ def test_a_record_that_kept_interventions_renders_off_centre_episodes_beside_eac
     kept = row("gmm", [2, 0, 1])
     seeds = tuple(dataclasses.replace(s, interventions=s.collisions + 5) for s in kept.seeds)
     kept = dataclasses.replace(kept, seeds=seeds)  # 15 off-centre episodes in 300 mi
+    assert kept.off_centre == 15 and row("gmm", [2, 0, 1]).off_centre is None
     table = report.table1(with_rows(record, row("actuators", [9, 8, 7]), kept))
     header, _, unkept, gmm = table.splitlines()[:4]
     assert header.endswith("| off-centre per 100 mi |")

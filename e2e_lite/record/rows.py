@@ -122,6 +122,14 @@ class Row(_Json):
         return None if None in kept else sum(kept)
 
     @property
+    def off_centre(self) -> int | None:
+        """Off-centre episodes over every seed: the interventions that were not collisions (the
+        count :func:`~e2e_lite.driving.metrics.off_centre_episodes` takes of one drive; None: not
+        recorded for every seed)."""
+        kept = self.interventions
+        return None if kept is None else kept - self.collisions
+
+    @property
     def miles(self) -> float:
         """Miles driven over every seed [mi]."""
         return sum(s.miles for s in self.seeds)
