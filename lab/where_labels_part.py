@@ -185,7 +185,7 @@ def main() -> None:
     args = ap.parse_args()
     profile = QUICK if args.quick else FULL
     road = WorldConfig.for_profile(profile).road
-    centres = (np.arange(road.n_lanes) - (road.n_lanes - 1) / 2.0) * road.lane_width_m
+    centres = road.lane_centers()
     train = fields(dataset_path(DataConfig.for_profile(profile, "train")))
     result = {
         "profile": profile.name,

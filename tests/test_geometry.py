@@ -76,6 +76,8 @@ def test_lanes():
     assert t.half_width == pytest.approx(5.55)
     t4 = generate_track(RoadConfig(n_lanes=4), "val", 0)
     assert np.allclose(t4.lane_center(np.arange(4)), [-5.55, -1.85, 1.85, 5.55])
+    # the settings know the same centres before a track is made
+    assert np.allclose(RoadConfig(n_lanes=4).lane_centers(), [-5.55, -1.85, 1.85, 5.55])
 
 
 def test_generator_is_seeded_and_splits_differ():

@@ -85,6 +85,16 @@ class RoadConfig:
             )
         check_range(o, "seed", self.seed, 0, integer=True)
 
+    def lane_centers(self) -> np.ndarray:
+        """Lateral offset ``d`` of every lane's centre, lane 0 (the rightmost) first [m]."""
+        return lane_center(np.arange(self.n_lanes), self.n_lanes, self.lane_width_m)
+
+
+def lane_center(lane: int | np.ndarray, n_lanes: int, lane_width_m: float) -> float | np.ndarray:
+    """Lateral offset ``d`` of the centre of lane ``lane`` (0 = rightmost) on a road of
+    ``n_lanes`` lanes ``lane_width_m`` wide [m]."""
+    return (np.asarray(lane) - (n_lanes - 1) / 2.0) * lane_width_m + 0.0
+
 
 class Track:
     """A road made of straight and arc segments, with lanes, edges and guard rails.
@@ -145,7 +155,7 @@ class Track:
     # ------------------------------------------------------------------ lanes
     def lane_center(self, lane: int | np.ndarray) -> float | np.ndarray:
         """Lateral offset ``d`` of the centre of lane ``lane`` (0 = rightmost) [m]."""
-        return (np.asarray(lane) - (self.n_lanes - 1) / 2.0) * self.lane_width + 0.0
+        return lane_center(lane, self.n_lanes, self.lane_width)
 
     def lane_index(self, d: float | np.ndarray) -> int | np.ndarray:
         """Index of the lane whose centre is nearest to offset ``d`` [m], clipped to the road."""
