@@ -45,11 +45,15 @@ torch.manual_seed(0)
 model = prepare(build_model(ModelConfig(head="trajectory", fusion_width=16)), torch.device("cpu"))
 policy = TrajectoryAgent(model.eval())
 try:
-    if sys.argv[2] == "idle":  # one short evaluation; its workers are kept, idle
+    if sys.argv[2] in ("idle", "warm"):  # one short evaluation; its workers are kept, idle
         evaluate(policy, WorldConfig(), EvalConfig(miles=0.05, n_worlds=16), progress=False,
                  workers=2, parallel=sys.argv[1])
+    if sys.argv[2] == "idle":
         print("driving", flush=True)
         time.sleep(600)
+    if sys.argv[2] == "warm":  # the workers started: give them 3 s to answer (60 in the course)
+        from e2e_lite.driving import parallel
+        parallel.DEADLINE_S = 3.0
     print("driving", flush=True)
     evaluate(policy, WorldConfig(), EvalConfig(miles=1000.0, n_worlds=16), progress=False,
              workers=2, parallel=sys.argv[1])
@@ -136,6 +140,40 @@ def test_workers_whose_parent_is_killed_mid_drive_exit_quietly(tmp_path):
     assert _marked(marker) == []  # the workers ended by themselves
     err = proc.stderr.read()  # (the workers wrote to the same stderr)
     assert "Traceback" not in err and "BrokenPipeError" not in err, err[-3000:]
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs Linux's /proc")
+def test_a_drive_stopped_with_its_workers_and_continued_drives_on(tmp_path):
+    """Ctrl-Z, then ``fg`` after longer than the workers' deadline: the whole group stood
+    still, so the stop is not the workers' silence and the drive goes on (before, the parent
+    woke, saw no message for longer than the deadline and killed its workers)."""
+    proc, marker = _start("processes", "warm", tmp_path)  # the workers' deadline 3 s
+    try:
+        time.sleep(2.0)  # the shards are driving
+        os.killpg(proc.pid, signal.SIGSTOP)  # as Ctrl-Z stops a terminal's foreground group
+        time.sleep(5.0)  # longer than the deadline
+        os.killpg(proc.pid, signal.SIGCONT)
+        time.sleep(4.0)  # the deadline again, now watched: the shards are heard
+        assert proc.poll() is None, proc.stderr.read()
+        assert len(_marked(marker)) == 3  # the child and its two workers, none killed
+        os.killpg(proc.pid, signal.SIGINT)  # then stopped as Ctrl-C stops it
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, proc.stderr.read()
+
+
+def test_silence_counts_only_the_time_the_parent_watched():
+    from e2e_lite.driving.parallel import LOOK_GAP_S, Silence
+
+    silence = Silence(2, now=0.0)
+    for t in range(1, 9):  # looks every 0.5 s; shard 0 heard at each
+        silence.look(0.5 * t, heard=0)
+    assert silence.quiet == [0.0, 4.0] and silence.overdue(3.0, done={}) == 1
+    assert silence.overdue(3.0, done={1: "its result"}) is None
+    silence.look(4.0 + 600.0)  # the group stopped for 10 min, then continued
+    assert silence.quiet == [LOOK_GAP_S, 4.0 + LOOK_GAP_S]
 
 
 STUCK = """

@@ -22,7 +22,8 @@ progress bar: the pool stays ours.
 Stopping: Ctrl-C (or any exception) in the parent stops every shard at its next decision (a stop
 flag that the threads' shard loops check, the worker processes killed), and idle workers exit
 quietly on Ctrl-C and when their parent's pipe closes. A worker that sends nothing for
-:data:`DEADLINE_S` while it owes a result is killed, with one line naming it.
+:data:`DEADLINE_S` while it owes a result is killed, with one line naming it; the time a drive
+stood stopped with its workers (Ctrl-Z, then ``fg``) is not counted as their silence.
 
 Results do not depend on the number of shards: every random choice is a car's own
 (:func:`~e2e_lite.simulation.policy.car_rng`), a network sees its frames in the same groups
@@ -57,6 +58,9 @@ SHARD_TORCH_THREADS = 1
 #: a worker that owes a result and sends nothing for this long is killed [s] (a shard sends
 #: progress at least every 0.25 s while it drives)
 DEADLINE_S = 60.0
+#: the longest gap between two looks at the workers that counts as watching them [s]: a longer
+#: one is the parent stopped with its workers (Ctrl-Z, then ``fg``), not a worker's silence
+LOOK_GAP_S = 1.0
 
 
 @contextlib.contextmanager
@@ -245,6 +249,30 @@ def close_shard_workers() -> None:
 atexit.register(close_shard_workers)
 
 
+class Silence:
+    """How long each of ``n`` shards has sent nothing while the parent watched [s]. A gap
+    between two looks counts as at most :data:`LOOK_GAP_S`: a process group stopped and
+    continued (Ctrl-Z, then ``fg``) stood still as a whole, so its workers were not silent."""
+
+    def __init__(self, n: int, now: float) -> None:
+        self.quiet = [0.0] * n
+        self.last = now
+
+    def look(self, now: float, heard: int | None = None) -> None:
+        """A look at ``now`` [s, ``time.perf_counter``]; ``heard``: the shard a message came
+        from."""
+        watched = min(max(now - self.last, 0.0), LOOK_GAP_S)
+        self.last = now
+        self.quiet = [q + watched for q in self.quiet]
+        if heard is not None:
+            self.quiet[heard] = 0.0
+
+    def overdue(self, deadline_s: float, done: Any) -> int | None:
+        """The first shard not in ``done`` silent for longer than ``deadline_s`` [s], if any."""
+        late = (k for k, q in enumerate(self.quiet) if k not in done and q > deadline_s)
+        return next(late, None)
+
+
 def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> list[Any]:
     """Drive each job's shard in a worker process: no shared GIL, so one shard's rendering and
     physics never wait on the other's Python, and no ``fork`` of a process whose torch threads are
@@ -267,20 +295,21 @@ def drive_in_processes(jobs: list[tuple], advance: Callable[[float], None]) -> l
         for k, job in enumerate(jobs):
             _send(workers.procs[k].stdin, list(sys.path))
             _send(workers.procs[k].stdin, (per_shard, job))
-        heard = dict.fromkeys(range(len(jobs)), time.perf_counter())
+        silence = Silence(len(jobs), time.perf_counter())
         while len(results) < len(jobs):
             try:
                 k, (status, payload) = workers.messages.get(timeout=0.5)
             except queue.Empty:
-                now = time.perf_counter()
-                for k in range(len(jobs)):
-                    if k not in results and now - heard[k] > DEADLINE_S:
-                        raise RuntimeError(
-                            f"evaluation shard {k} (process {workers.procs[k].pid}) sent nothing "
-                            f"for {DEADLINE_S:.0f} s: stopped"
-                        ) from None
+                k = None
+            silence.look(time.perf_counter(), heard=k)
+            late = silence.overdue(DEADLINE_S, results)
+            if late is not None:
+                raise RuntimeError(
+                    f"evaluation shard {late} (process {workers.procs[late].pid}) sent nothing "
+                    f"for {DEADLINE_S:.0f} s: stopped"
+                )
+            if k is None:
                 continue
-            heard[k] = time.perf_counter()
             if status == "miles":
                 advance(payload)
             elif status == "ready":
