@@ -2,7 +2,8 @@
 # The record of record on a cluster: one SLURM array task per training seed, each writing one
 # share, then one pool. Submit from the repository root:
 #
-#   sbatch --array=24-37 docs/record-array.sh          # one share per seed (the plan's seeds)
+#   sbatch --array=38-51 docs/record-array.sh          # one share per seed; a class's seeds
+#                                                      # start at 38 (24-37: the record's)
 #   sbatch --dependency=afterok:<job id> --wrap \
 #     ".venv/bin/python -m e2e_lite.record pool outputs-*/shares/share-seeds-*.json"
 #

@@ -254,7 +254,7 @@ def precision(environ: dict | None = None) -> str:
     """The arithmetic the networks train and drive in: ``"fp32"`` (the default, on every device)
     or ``"tf32"`` (a GPU's tensor cores round inputs to 10 bits of mantissa; asked for with
     ``E2E_LITE_TF32=1``). Part of every checkpoint's and evaluation's key: on an H100, five GMM
-    seeds trained in TF32 drove worse than the same seeds in fp32 (docs/lab-notes.md)."""
+    seeds trained in TF32 drove worse than the same seeds in fp32 (as issue 56 reports)."""
     return "tf32" if tf32_allowed(environ) else "fp32"
 
 

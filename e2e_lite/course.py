@@ -75,7 +75,7 @@ class ChapterInfo(NamedTuple):
 
 #: ``python -m e2e_lite.course --quick``, every chapter in one interpreter from an empty outputs
 #: folder, on 2 cores with nothing else running [s] (``docs/benchmarks.md``)
-QUICK_COURSE_S = 35
+QUICK_COURSE_S = 106
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 2, 1),
     2: ChapterInfo("the rasterised front camera the networks see", "4.1", 1, 1),

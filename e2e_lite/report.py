@@ -60,8 +60,18 @@ SESSIONS = {
     2: (("04", "05"), ()),
     3: (("06", "07"), ("Baseline E2E -> trajectory GMM",)),
     4: (("08", "09"), ("GMM -> + affordance", "+ affordance -> + CVaR")),
-    5: (("10", "11"), ("CVaR against its control (the mean)",)),
-    6: (("12",), ("+ CVaR -> + DAgger",)),
+    5: (
+        ("10", "11"),
+        ("CVaR against its control (the mean)", "affordance loss against its control (w = 0)"),
+    ),
+    6: (
+        ("12",),
+        (
+            "+ CVaR -> + DAgger",
+            "DAgger against its control (the expert's samples)",
+            "DAgger's control against its fine-tunes on no new data",
+        ),
+    ),
 }
 
 
@@ -390,7 +400,8 @@ def _one_run_against_the_record(record: Record) -> str:
     seeds = len(record.row("gmm").seeds)
     recipes = f"recipes {_recipes(record)}; " if _recipes(record) else ""
     return (
-        f"*One run is one training seed. The record ({recipes}{seeds} seeds per row,"
+        "*One run: chapters 05-08 train each network on one seed; the learned rows of chapters"
+        f" 09-12 pool chapter 10's few training seeds. The record ({recipes}{seeds} seeds per row,"
         " docs/results.md),"
         f" pooled per 100 mi: {rates}; {controls}.*"
     )

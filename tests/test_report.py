@@ -11,7 +11,7 @@ import pytest
 
 from e2e_lite import report
 from e2e_lite.record.rows import Record, Row, SeedRun
-from e2e_lite.record.stats import controls_line, record_power, spread, steps
+from e2e_lite.record.stats import STEPS, controls_line, record_power, spread, steps
 
 ROOT = report.ROOT
 
@@ -387,6 +387,13 @@ def test_a_record_that_kept_interventions_renders_off_centre_episodes_beside_eac
     assert header.endswith("| off-centre per 100 mi |")
     assert unkept.endswith("| - |") and gmm.endswith("| 5.0 |")
     assert "for more than 3 s" in table
+
+
+def test_every_step_of_the_record_is_taught_in_one_session() -> None:
+    """The kit's sessions name the record's steps by their names: a renamed or a new step must
+    not drop out of the kit unnoticed."""
+    taught = [name for _, names in report.SESSIONS.values() for name in names]
+    assert sorted(taught) == sorted(st.what for st in STEPS)
 
 
 def test_the_kit_names_the_recipes_its_record_drove() -> None:
