@@ -413,7 +413,8 @@ for name, m in masks.items() if opened else ():
     print(f"| {name} | {r['frames']} | {sig} | {r['weight_y']:.2f} | {r['weight_x']:.2f} |")
 
 # %% [markdown]
-# A weight under 1 is a situation the learned-sigma GMM learns less from than from plain driving.
+# A weight under 1 is a situation the learned-sigma GMM learns less from than from plain driving
+# (a table only when the kept epoch trained its sigmas: the line above says whether it did).
 # Does it drive differently? The same roads as section 4, and the exact test of the two rates.
 # One training seed each: a rate of one network is not the recipe's (lab note "Every epoch on
 # the road" drove five seeds of each; chapter 10 drives the course's recipe over several).
@@ -465,18 +466,21 @@ artifacts.write_metrics(
 #   log-softmax, a floored log-sigma and a log-sum-exp (section 1 writes it line by line), and
 #   agrees with the textbook formula where that does not underflow.
 # * The course holds every sigma at 1: the modes and their weights are learned, their spreads
-#   are not. The paper's learned sigmas are trained beside it and driven on the same roads.
+#   are not. The paper's learned sigmas are trained beside it and driven on the same roads (its
+#   kept epoch may be the warm-up's, every sigma still 1: the run prints which).
 # * The epoch kept collides least on a few validation-road miles (ties: the decisive frames'
-#   error), not the lowest NLL (why: lab note "The GMM's worst seeds of record, epoch by epoch").
-# * Where the expert's behaviour splits (overtake left or right), the modes split too, and the
-#   followed mode takes one side (Fig. 3). Whether L2 averages instead is measured by section
-#   4b's scenes, not assumed: a trained L2 can break the tie from cues in the image.
+#   error), not the lowest NLL (why: lab note "The GMM's first failures were the course's").
+# * Where the expert's behaviour splits (overtake left or right), the modes take both sides and
+#   the followed mode one (Fig. 3; on a straight the weights put nearly all on one). Whether L2
+#   averages instead is measured by section 4b's scenes, not assumed: a trained L2 broke the tie
+#   from the car's small start offset (lab note "Why L2 passes the overtake scenes").
 # * Whether the mixture lowers collisions is measured against L2 on the same roads, with an exact
 #   test. Where section 4b's scenes show no averaging, what separates the two is *open*, as is
 #   whether the mixture adds a failure of its own (the wrong mode followed with confidence).
-# * A learned sigma is also a learned *weight*: the frames the network finds uncertain are
-#   learned least. Over five seeds the learned-sigma GMM collided more, and less alike, and the
-#   road mostly kept its warm-up (lab note "Every epoch on the road"; this run's: section 5).
+# * A learned sigma is also a learned *weight*: uncertain frames are learned least (an older
+#   recipe: lab note "Chapter 10 on the corrected evaluator"; this run: section 5). Over five
+#   seeds the learned-sigma GMM collided more, and less alike, and the road mostly kept its
+#   warm-up (lab note "Every epoch on the road").
 #
 # ## Exercises
 #

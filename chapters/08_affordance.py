@@ -25,8 +25,8 @@
 # *Where* the head reads is a choice too. The paper's Fig. 1 puts it on the fusion network's
 # output, beside the trajectory head. The course's head reads the image backbone's (trunk's)
 # features instead (`recipes.AFFORDANCE_FROM`): probes on the frozen features of both placements
-# read the gap ahead with half the error from the trunk (lab note "Where the affordance head
-# reads"; exercise 6).
+# read the gap ahead better from the trunk (lab note "Where the affordance head reads"; exercise
+# 6).
 #
 # Run it with `python chapters/08_affordance.py` (add `--quick` for a run of seconds).
 

@@ -86,7 +86,8 @@ print(f"{cfg}")
 # rule's own strictness; with the affordances the **network predicts** for the same frames, the
 # extra rejections are what imperfect perception adds. The network's affordances come from its
 # head refit on the kept trunk (chapter 08, `recipes.perceiving`): the driving is the network's
-# own, to the bit, and the head has trained to the end.
+# own, to the bit, and the head has trained to the end (whether it reads better than the joint
+# head is *open*: chapter 08 prints both).
 
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
@@ -309,8 +310,8 @@ for name, how in (("uncalibrated", cfg), ("calibrated", calibrated[0])):
 # * the module **on the truth** (the world's affordances): the rule with perfect perception;
 # * the module **on perception**: each seed's own head, with its calibrated thresholds; its
 #   fallback brakes along the network's own path (`fallback="path"`), because a lane fallback
-#   would steer by the very perceived offsets that are wrong when the module intervenes
-#   (exercise 2 drives it);
+#   steered by the very perceived offsets that are wrong when the module intervenes (lab note
+#   "The lane fallback on perception, in the lean chapter 11"; exercise 2 drives it);
 # * the same **with an emergency brake**: a car the module falls back for is braked at the car's
 #   full deceleration (`VehicleParams.max_brake_mps2`), while the rule still plans with the
 #   tracker's gentler `brake_mps2`: headroom the rule does not count on.
@@ -523,7 +524,9 @@ artifacts.write_metrics(
 #   module on the course's own driver").
 # * A fallback is only as good as what it reads: braking to a lane centre needs the perceived
 #   lane geometry, braking along the network's own path does not for a parked car (road-edge
-#   rejections still brake to a lane). Whether the car's full brake, kept as headroom, helps a
+#   rejections still brake to a lane; measured on an older module: lab notes "Which perceived
+#   affordances the module needs right" and "The lane fallback on perception, in the lean
+#   chapter 11"). Whether the car's full brake, kept as headroom, helps a
 #   stop that comes late is its row's question: the causes table says what it changed.
 #
 # ## Exercises
