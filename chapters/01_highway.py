@@ -44,8 +44,8 @@ print(
 # A highway is mostly straight. Our generator opens with a straight (where cars start) and then
 # alternates straights of 300-1200 m with arcs of radius 200-900 m turning 10-50°, left or right
 # at random, keeping the heading within ±60° of the start so a track never turns back on itself.
-# Curves are the minority of the distance: they are the *rare events* a learned driver will find
-# hardest (chapter 09 is about exactly that).
+# Curves are the minority of the distance, rare events of one kind (chapter 09's table of the
+# worst samples says which situations a learned driver finds hardest).
 #
 # Every point is named by its **lane frame** coordinates: arc length `s` along the road's centre
 # line and signed offset `d` to the left. On an arc of curvature `k` starting at `p0` with heading
@@ -176,7 +176,7 @@ print(f"figure: {png}")
 # Collisions are rare, random events: a count `k` over `m` miles is a Poisson sample. The exact
 # (Garwood) 95 % interval of the rate uses the chi-square quantiles
 # `[χ²(0.025; 2k) / 2, χ²(0.975; 2k + 2) / 2] / m`. Even **zero collisions in 100 miles** leaves
-# an interval reaching several collisions per 100 miles (the cell below prints it): this is why
+# an interval reaching a few collisions per 100 miles (the cell below prints it): this is why
 # the ablation (chapter 10) drives hundreds of miles per row, over several training seeds.
 
 # %%

@@ -52,8 +52,8 @@ print(f"network camera {cam.shape}, human camera {human.shape}")
 # `z = f cos θ - u sin θ`, `y = -(f sin θ + u cos θ)`, `x = -l`.
 #
 # **The field of view is a design choice with consequences.** At 90° a 1.8 m wide car 60 m ahead
-# (about where chapter 04's expert starts to overtake, its trigger drawn per manoeuvre) is 3 px
-# wide at 200 px: barely there. We use 50°.
+# (about where chapter 04's expert starts to overtake, its trigger drawn per manoeuvre) is a few
+# pixels wide at 200 px (the cell below prints how many): barely there. We use 50°.
 
 # %%
 for hfov in (90.0, 50.0):
@@ -266,8 +266,8 @@ print(f"| camera | frames/s |\n|---|---:|\n| 66 x 200, batches of {len(poses)} |
 #   extrinsics from the car's pose, the mount height and the pitch. Pitching down crops the sky.
 # * The rasteriser fills polygons far to near; anything reaching behind the lens is clipped at a
 #   near plane first, so nothing is projected through infinity.
-# * At 50° a parked car 60 m ahead is still about 6 px wide at the network's 200 px: the driver
-#   can see what it must avoid. A trajectory in the car frame projects onto the same image.
+# * At 50° a parked car 60 m ahead is about twice as wide in the image as at 90° (section 2
+#   prints both): the driver can see what it must avoid. A trajectory in the car frame projects onto the same image.
 # * Images are RGB uint8 everywhere; convert to BGR only when OpenCV writes a file.
 #
 # ## Exercises

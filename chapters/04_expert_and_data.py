@@ -385,9 +385,9 @@ print(
 #
 # * A privileged state machine on the LQR tracker drives the test tracks without a
 #   collision: that is the ceiling every learned driver is compared with.
-# * The oracle, the tracker following the expert's own 5-point trajectories, drives them too, with
-#   the few collisions printed above: what a 5-point plan and a controller lose, the least that
-#   any network predicting such a plan loses.
+# * The oracle, the tracker following the expert's own 5-point trajectories, drives them too; the
+#   verdict line above says whether a 5-point plan and a controller lose anything against the
+#   expert, and whatever they lose, a network predicting such a plan loses too.
 # * Randomised triggers, finishes and sides make the data multi-modal: the same parked car is
 #   passed on the left in some samples and on the right in others.
 # * Noise bursts put off-centre states and recoveries into the data; the labels stay what the
@@ -396,8 +396,8 @@ print(
 #   restarts below cruise speed (section 6's lane keeper stands in for a learned driver).
 #   Take-overs that re-place the car as the evaluator does, and braking bursts, put those states
 #   and the expert's way out of them into the data.
-# * Straight lane keeping dominates; overtakes and curves are the minority the later chapters
-#   (GMM, CVaR) are about.
+# * Curves, lane changes and passing are minorities of the data (the shares printed above), the
+#   situations the later chapters (GMM, CVaR) are about.
 #
 # ## Exercises
 #

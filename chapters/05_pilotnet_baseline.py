@@ -73,8 +73,8 @@ print(f"PilotNet (steering): {n_pilot:,} parameters;  image + speed -> actuators
 # rotated, labelled with the steering that brings the car back within 2 s. We render those views
 # exactly: the same road and cars, the car moved 0.3-1.2 m sideways and turned up to 3.4°, for
 # half of the samples. The label is the expert's steering plus the LQR tracker's correction
-# towards the expert's own trajectory from the moved pose (it settles a 1 m error in ~50 m: about
-# 2 s at highway speed). Our expert data already holds noise and its recoveries (chapter 04), so
+# towards the expert's own trajectory from the moved pose (chapter 03 prints how far it takes to
+# settle a 1 m error). Our expert data already holds noise and its recoveries (chapter 04), so
 # the question here is whether the views add anything on top.
 
 # %%
@@ -177,8 +177,8 @@ assert gap < 1e-6, gap
 # One loop for every chapter (`e2e_lite.learning.training.fit`): Adam at 1e-3 without weight decay (the
 # paper), batches of 64, per-epoch metrics JSON and a training curve in
 # `outputs/figures/train_<name>.png`. Of several epochs, the one kept is the one that collides
-# least when it drives 20 mi on validation roads (held-out errors do not predict the driving:
-# chapter 07 shows it epoch by epoch; with one epoch, as in the quick profile, there is nothing
+# least when it drives 20 mi on validation roads (held-out errors did not predict the driving:
+# lab note "The GMM's worst seeds of record, epoch by epoch"; with one epoch, as in the quick profile, there is nothing
 # to choose). A checkpoint carries the model's settings,
 # its normalisation statistics and the dataset's key; running the chapter again reuses it. The
 # settings of each trained driver live in `e2e_lite/learning/recipes.py`, so chapter 10 retrains or reuses
@@ -319,7 +319,8 @@ artifacts.write_metrics(
 #   clip, step); the library's loop runs exactly those, with bookkeeping around them.
 # * PilotNet and the all-actuators network learn the expert's commands to a small held-out error,
 #   and still collide in closed loop: a low loss on recorded frames does not say what happens once
-#   the network's own errors choose the next frame. The table above is the course's baseline.
+#   the network drives (that its own errors then choose the next frames, ones the data never
+#   showed, is the hypothesis chapter 12 measures). The table above is the course's baseline.
 # * The recovery views are cheap here (the renderer makes them exactly); compare the two PilotNet
 #   rows to see whether they help on top of the expert's own noise recoveries.
 # * The all-actuators network must also learn *when to brake and accelerate* from one frame and
