@@ -437,8 +437,8 @@ artifacts.write_metrics(
         "headline": {
             "trajectory GMM collisions/100mi": res.collisions_per_100mi,
             "val ADE [m]": held["ADE [m]"],
-            "GMM overtake scenes passed": scene_counts["GMM"]["pass_rate"],
-            "L2 overtake scenes passed": scene_counts["L2"]["pass_rate"],
+            "GMM overtake scenes passed, share": scene_counts["GMM"]["pass_rate"],
+            "L2 overtake scenes passed, share": scene_counts["L2"]["pass_rate"],
         },
         "result": res.to_dict(),
         "held_out": {"nll": float(val_losses.mean()), **held},
