@@ -17,17 +17,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from .artifacts import atomic_write, save_figure
 from .driving.metrics import seed_rates
 from .driving.rollout import EvalConfig
+from .kit import replace_block, teaching_with
 from .record import COURSE_RUN, RECORD, ROOT
 from .record.rows import SLOW_SHARE, Record, Row, load_record
 from .record.stats import (
@@ -48,31 +47,6 @@ TEACHING = ROOT / "docs" / "teaching.md"
 BEGIN, END = "<!-- table1: rendered by python -m e2e_lite.report -->", "<!-- /table1 -->"
 CHAPTERS_BEGIN = "<!-- chapters: rendered by python -m e2e_lite.report -->"
 CHAPTERS_END = "<!-- /chapters -->"
-RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.report -->"
-RUN_END = "<!-- /course run -->"
-FINDINGS_BEGIN = "<!-- sessions' findings: rendered by python -m e2e_lite.report -->"
-FINDINGS_END = "<!-- /sessions' findings -->"
-NEEDS_BEGIN = "<!-- machine needs: rendered by python -m e2e_lite.report -->"
-NEEDS_END = "<!-- /machine needs -->"
-#: each session's chapters and the record's steps it teaches (teaching.md's sessions)
-SESSIONS = {
-    1: (("01", "02", "03"), ()),
-    2: (("04", "05"), ()),
-    3: (("06", "07"), ("Baseline E2E -> trajectory GMM",)),
-    4: (("08", "09"), ("GMM -> + affordance", "+ affordance -> + CVaR")),
-    5: (
-        ("10", "11"),
-        ("CVaR against its control (the mean)", "affordance loss against its control (w = 0)"),
-    ),
-    6: (
-        ("12",),
-        (
-            "+ CVaR -> + DAgger",
-            "DAgger against its control (the expert's samples)",
-            "DAgger's control against its fine-tunes on no new data",
-        ),
-    ),
-}
 
 
 def load(path: Path = RECORD) -> Record:
@@ -308,150 +282,11 @@ def chapters_table() -> str:
     return "\n".join(lines)
 
 
-def _figure(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:,.3g}" if abs(value) < 100 else f"{value:,.0f}"
-    return str(value)
-
-
-def course_run_table(run: dict[str, Any] | None, record: Record | None = None) -> str:
-    """docs/teaching.md's table of what each chapter printed in a full-profile run, and (with
-    ``record``) what the record of many seeds says of the same rows."""
-    from .course import CHAPTERS
-
-    if run is None:
-        return (
-            "*No full-profile run is recorded yet: run `python -m e2e_lite.course`, then "
-            "`python -m e2e_lite.record course-run outputs` to record it and "
-            "`python -m e2e_lite.report` to render it.*"
-        )
-    lines = ["| chapter | minutes | what it printed (its headline figures) |", "|---|---:|---|"]
-    for stem, ch in run["chapters"].items():
-        figures = "; ".join(f"{k}: {_figure(v)}" for k, v in ch["headline"].items()) or "-"
-        cut = "" if ch["complete"] else " (cut)"
-        lines.append(f"| {stem} | {ch['minutes']:g}{cut} | {figures} |")
-    done = [stem[:2] for stem, ch in run["chapters"].items() if ch["complete"]]
-    total = sum(ch["minutes"] for ch in run["chapters"].values() if ch["complete"])
-    if len(done) == len(CHAPTERS):
-        what = f"The full course, {total:.0f} min"
-    else:
-        last = done[-1] if done else "-"
-        what = (
-            f"A run cut after chapter {last} (chapters {', '.join(done)} complete, {total:.0f} min)"
-        )
-    note = "; " + run["note"] if run.get("note") else ""
-    lines += ["", f"*{what} on {run['machine']}, torch {run['torch']}{note}.*"]
-    if record is not None:
-        lines += ["", _one_run_against_the_record(record)]
-    return "\n".join(lines)
-
-
-def machine_needs_list(run: dict[str, Any] | None) -> str:
-    """docs/teaching.md's list of what a machine needs, as the recorded course run measured it
-    (only what was measured is said)."""
-    if run is None:
-        return "*No full-profile run is recorded yet.*"
-    needs = run.get("needs", {})
-    gb = {k: f"{v / 1e9:.2f} GB" for k, v in needs.items() if k.endswith("_bytes")}
-    items = []
-    if "download_bytes" in gb:
-        items.append(
-            f"**Download**: {gb['download_bytes']} of packages (torch's CPU wheel, the project "
-            "and its test extras, as `pip download` fetched them)."
-        )
-    if "venv_bytes" in gb:
-        items.append(f"**The venv** on disk: {gb['venv_bytes']}.")
-    sizes = []
-    if "outputs_bytes" in run:
-        sizes.append(f"{run['outputs_bytes'] / 1e9:.2f} GB after the full course")
-    if "quick_outputs_bytes" in gb:
-        sizes.append(f"{gb['quick_outputs_bytes']} after the quick one")
-    if sizes:
-        items.append(f"**`outputs/`** on disk: {', '.join(sizes)}.")
-    if "peak_memory_kib" in needs:
-        items.append(
-            f"**Memory**: the largest process in the run's `/usr/bin/time -v` reports (a "
-            f"chapter or one of its workers) held {needs['peak_memory_kib'] / 2**20:.1f} GiB "
-            "resident (docs/benchmarks.md says which chapters they cover)."
-        )
-    done = [ch for ch in run["chapters"].values() if ch["complete"]]
-    minutes = sum(ch["minutes"] for ch in done)
-    items.append(f"**Time**: {minutes:.0f} min for the {len(done)} chapters on {run['machine']}.")
-    if "system" in needs:
-        items.append(
-            f"**Systems**: the course and its tests ran on {needs['system']}, Python "
-            f"{needs['python']}; no other system is tested here."
-        )
-    return "\n".join(f"- {item}" for item in items)
-
-
-def _one_run_against_the_record(record: Record) -> str:
-    """What one course run's seed 0 is worth beside the record: each paper row's pooled rate of
-    record and the verdicts of the controls, so a single run's "CVaR 2, control 5" is not read
-    as a result."""
-    keys = ("gmm_affordance", "gmm_affordance_cvar", "gmm_affordance_control")
-    rows = [record.row(k) for k in keys if record.row(k)]
-    rates = ", ".join(f"{r.label} {r.pooled()[0]:.1f}" for r in rows)
-    controls = "; ".join(
-        f"{st.step}: {st.verdict} (Holm p = {st.verdict_p:.2g})"
-        for st in steps(record)
-        if st.credits is not None
-    )
-    seeds = len(record.row("gmm").seeds)
-    recipes = f"recipes {_recipes(record)}; " if _recipes(record) else ""
-    return (
-        "*One run: chapters 05-08 train each network on one seed; the learned rows of chapters"
-        f" 09-12 pool chapter 10's few training seeds. The record ({recipes}{seeds} seeds per row,"
-        " docs/results.md),"
-        f" pooled per 100 mi: {rates}; {controls}.*"
-    )
-
-
-def _recipes(record: Record) -> str | None:
-    """The commit of the recipes ``record`` drove, where it names one (a course run's chapters may
-    be newer than the recipes the record drove)."""
-    return record.block.recipes_commit if record.block else None
-
-
-def session_findings(run: dict[str, Any] | None, record: Record) -> str:
-    """docs/teaching.md's list of what each session's full-profile run should show: the headline
-    figures its chapters printed in the recorded course run, and the record's verdicts on the
-    steps it teaches (many seeds: what one student's seed is a draw from)."""
-    tested = {st.step: st for st in steps(record)}
-    lines = []
-    for session, (chapters, step_names) in SESSIONS.items():
-        shown = []
-        for stem, ch in (run or {}).get("chapters", {}).items():
-            if stem[:2] in chapters:
-                figures = list(ch["headline"].items())[:4]
-                shown += [f"{k} {_figure(v)}" for k, v in figures]
-        verdicts = [
-            f"{name}: {tested[name].cell}, ratio {tested[name].ratio:.2f}"
-            for name in step_names
-            if name in tested
-        ]
-        run_text = "; ".join(shown) if shown else "no full-profile run recorded"
-        recipes = _recipes(record)
-        the_record = f"The record (recipes {recipes})" if recipes else "The record"
-        record_text = f" {the_record}: {'; '.join(verdicts)}." if verdicts else ""
-        lines.append(
-            f"- **Session {session}** (chapters {', '.join(chapters)}). One run: {run_text}.{record_text}"
-        )
-    return "\n".join(lines)
-
-
-def _replace(text: str, begin: str, end: str, block: str) -> str:
-    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
-    if not pattern.search(text):
-        raise ValueError(f"README.md has no block between {begin!r} and {end!r}")
-    return pattern.sub(lambda _: f"{begin}\n{block}\n{end}", text)
-
-
 def readme_with(readme: str, table: str, chapters: str | None = None) -> str:
     """``readme`` with its Table 1 block replaced by ``table`` and its chapters block by
     ``chapters`` (default: :func:`chapters_table`)."""
-    readme = _replace(readme, BEGIN, END, table)
-    return _replace(readme, CHAPTERS_BEGIN, CHAPTERS_END, chapters or chapters_table())
+    readme = replace_block(readme, BEGIN, END, table)
+    return replace_block(readme, CHAPTERS_BEGIN, CHAPTERS_END, chapters or chapters_table())
 
 
 def renders(record: Record) -> dict[Path, str]:
@@ -463,11 +298,7 @@ def renders(record: Record) -> dict[Path, str]:
     }
     if TEACHING.exists():
         run = json.loads(COURSE_RUN.read_text()) if COURSE_RUN.exists() else None
-        block = course_run_table(run, record)
-        teaching = _replace(TEACHING.read_text(), RUN_BEGIN, RUN_END, block)
-        findings = session_findings(run, record)
-        teaching = _replace(teaching, FINDINGS_BEGIN, FINDINGS_END, findings)
-        wanted[TEACHING] = _replace(teaching, NEEDS_BEGIN, NEEDS_END, machine_needs_list(run))
+        wanted[TEACHING] = teaching_with(TEACHING.read_text(), run, record)
     return wanted
 
 

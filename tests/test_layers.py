@@ -145,6 +145,7 @@ TOP = {
     "stored": "drives stored and read back under a key of the driver, world and settings",
     "record": "the numbers of record: typed rows and shares, their tests, pooling and running",
     "report": "rendering the committed record and the course's tables, and nothing else",
+    "kit": "the teacher's kit's rendered blocks: the course run, a machine's needs, the sessions",
     "viz": "figures the chapters share",
     "course": "running the chapters in order",
     "estimate": "how long a run should take here",

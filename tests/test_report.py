@@ -9,7 +9,7 @@ import re
 
 import pytest
 
-from e2e_lite import report
+from e2e_lite import kit, report
 from e2e_lite.record.rows import Record, Row, SeedRun
 from e2e_lite.record.stats import STEPS, controls_line, record_power, spread, steps
 
@@ -183,10 +183,10 @@ def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp
     (tmp_path / "metrics" / "01_highway.json").write_text(json.dumps(metrics))
     run = course_run_record(tmp_path)
     assert run["chapters"]["01_highway"]["headline"] == {"lane keeper collisions/100mi": 0.0}
-    table = report.course_run_table(run)
+    table = kit.course_run_table(run)
     assert "| 01_highway | 0.1 | lane keeper collisions/100mi: 0 |" in table
     assert "| 02_camera | 1.5 (cut) | - |" in table and "cut after chapter 01" in table
-    assert "No full-profile run" in report.course_run_table(None)
+    assert "No full-profile run" in kit.course_run_table(None)
     (tmp_path / "metrics" / "02_camera.json").write_text(json.dumps({"profile": "quick"}))
     with pytest.raises(ValueError, match="not a full-profile run"):
         course_run_record(tmp_path)
@@ -209,7 +209,7 @@ def test_what_a_machine_needs_is_measured_and_only_what_was_measured_is_said(tmp
     assert peak_memory_kib(log) == 3145728
     run = course_run_record(full, time_log=log, quick_outputs=quick)
     assert run["outputs_bytes"] > 1000 and run["needs"]["quick_outputs_bytes"] == 300
-    text = report.machine_needs_list(run)
+    text = kit.machine_needs_list(run)
     assert "3.0 GiB resident" in text and "after the quick one" in text
     assert "Download" not in text and "venv" not in text  # not measured: not said
     assert run["needs"]["system"] in text and run["needs"]["python"] in text
@@ -392,7 +392,7 @@ def test_a_record_that_kept_interventions_renders_off_centre_episodes_beside_eac
 def test_every_step_of_the_record_is_taught_in_one_session() -> None:
     """The kit's sessions name the record's steps by their names: a renamed or a new step must
     not drop out of the kit unnoticed."""
-    taught = [name for _, names in report.SESSIONS.values() for name in names]
+    taught = [name for _, names in kit.SESSIONS.values() for name in names]
     assert sorted(taught) == sorted(st.what for st in STEPS)
 
 
@@ -401,11 +401,11 @@ def test_the_kit_names_the_recipes_its_record_drove() -> None:
     after the record of 321f6a9): the kit's record sentences name the recipes' commit."""
     record = report.load()
     commit = record.block.recipes_commit
-    findings = report.session_findings(None, record)
+    findings = kit.session_findings(None, record)
     assert findings.count(f"The record (recipes {commit}): ") == sum(
-        1 for _, steps_taught in report.SESSIONS.values() if steps_taught
+        1 for _, steps_taught in kit.SESSIONS.values() if steps_taught
     )
     unnamed = dataclasses.replace(
         record, block=dataclasses.replace(record.block, recipes_commit=None)
     )
-    assert "The record: " in report.session_findings(None, unnamed)
+    assert "The record: " in kit.session_findings(None, unnamed)
