@@ -129,7 +129,7 @@ def _one_run_against_the_record(record: Record) -> str:
     record and the verdicts of the controls, so a single run's "CVaR 2, control 5" is not read
     as a result."""
     keys = ("gmm_affordance", "gmm_affordance_cvar", "gmm_affordance_control")
-    rows = [record.row(k) for k in keys if record.row(k)]
+    rows = [row for row in map(record.row, keys) if row]
     rates = ", ".join(f"{r.label} {r.pooled()[0]:.1f}" for r in rows)
     controls = "; ".join(
         f"{st.step}: {st.verdict} (Holm p = {st.verdict_p:.2g})"
@@ -137,7 +137,8 @@ def _one_run_against_the_record(record: Record) -> str:
         if st.credits is not None
     )
     seeds = len(record.row("gmm").seeds)
-    recipes = f"recipes {_recipes(record)}; " if _recipes(record) else ""
+    commit = _recipes(record)
+    recipes = f"recipes {commit}; " if commit else ""
     return (
         "*One run: chapters 05-08 train each network on one seed; the learned rows of chapters"
         f" 09-12 pool chapter 10's few training seeds. The record ({recipes}{seeds} seeds per row,"
@@ -157,6 +158,8 @@ def session_findings(run: dict[str, Any] | None, record: Record) -> str:
     figures its chapters printed in the recorded course run, and the record's verdicts on the
     steps it teaches (many seeds: what one student's seed is a draw from)."""
     tested = {st.step: st for st in steps(record)}
+    commit = _recipes(record)
+    the_record = f"The record (recipes {commit})" if commit else "The record"
     lines = []
     for session, (chapters, step_names) in SESSIONS.items():
         shown = []
@@ -170,8 +173,6 @@ def session_findings(run: dict[str, Any] | None, record: Record) -> str:
             if name in tested
         ]
         run_text = "; ".join(shown) if shown else "no full-profile run recorded"
-        recipes = _recipes(record)
-        the_record = f"The record (recipes {recipes})" if recipes else "The record"
         record_text = f" {the_record}: {'; '.join(verdicts)}." if verdicts else ""
         lines.append(
             f"- **Session {session}** (chapters {', '.join(chapters)}). One run: {run_text}.{record_text}"
