@@ -41,7 +41,7 @@ from e2e_lite.driving.evaluation import EvalConfig, evaluate, result_dict
 from e2e_lite.driving.verdicts import compare_seeds, power, seed_counts
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.collector import DataConfig, load_or_collect
+from e2e_lite.learning.collector import DataConfig, OnPolicy, load_or_collect
 from e2e_lite.record.stats import record_dispersion
 from e2e_lite.report import load
 from e2e_lite.simulation.world import WorldConfig
@@ -58,13 +58,12 @@ starts = [recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0] for k i
 # ## 1. The anatomy of a collision
 #
 # Each seed's start network drives its own validation roads inside a `Witness`, which keeps every
-# car's last 6 s of states and plans and files them at each collision. The world is
-# deterministic and the state expert's decision (section 2) is a function of the state, so it
-# can take the car over from any of those states (`anatomy.savable`); the network's plans are
-# checked for a clash with a parked car or a rail as if followed exactly
-# (`anatomy.plan_collides`), and compared with the state expert's labels at the same states
-# (`anatomy.disagreement`). The witnessed drives are stored and reused, as every drive of the
-# course is (`ablation.witnessed`).
+# car's last 6 s of states and plans and files them at each collision. The world is deterministic
+# and the state expert's decision (section 2) is a function of the state, so it can take the car
+# over from any of those states (`anatomy.savable`); the network's plans are checked for a clash
+# with a parked car or a rail as if followed exactly (`anatomy.plan_collides`), and compared with
+# the state expert's labels at the same states (`anatomy.disagreement`). The witnessed drives are
+# stored and reused (`ablation.witnessed`).
 
 # %%
 miles = 2.0 if profile.quick else 150.0  # validation miles per seed
@@ -111,10 +110,16 @@ if before:
         t, np.nanmedian(np.array(before), axis=0), color="C3", label="median of collisions"
     )
 ax_apart.axhline(cruise, color="0.4", ls="--", label="ordinary driving (median)")
-ax_apart.set(xlabel="time before impact [s]", ylabel="plan's end vs label's end [m]")
+ax_apart.set(xlabel="time before impact [s]", ylabel="plan vs label, farthest point [m]")
 ax_apart.legend(fontsize=8)
 png_anatomy = save_figure(fig, artifacts.artifact_path("figures", "12_anatomy.png"))
-print(f"median plan-label distance, ordinary driving {cruise:.2f} m; saved {png_anatomy}")
+window = round(OnPolicy.BEFORE_COLLISION_S / period)  # the seconds section 3's gate keeps first
+near = np.nanmedian(np.array(before)[:, -window:]) if before else np.nan
+print(
+    f"a plan's farthest point from the state expert's label, median: ordinary driving "
+    f"{cruise:.2f} m, the last {OnPolicy.BEFORE_COLLISION_S:g} s before a collision {near:.2f} m"
+)
+print(f"saved {png_anatomy}")
 
 # %% [markdown]
 # ## 2. One labeller, and a label is a driver
@@ -122,14 +127,16 @@ print(f"median plan-label distance, ordinary driving {cruise:.2f} m; saved {png_
 # DAgger labels states the learner drove into, where no plan of the expert's led. The course's
 # expert (chapter 04, `control.expert`) carries its plan from decision to decision; wiped before
 # each label, as this chapter once labelled DAgger's rounds, it restarts every manoeuvre in
-# "keep". The **state expert** (`control.state_expert`) runs the same state machine but reads
-# its plan off the state at every decision: the same state gets the same label whatever drove
-# there. It labels every round, and it **relabels chapter 04's data** as Learning by Cheating
-# relabels its buffer, so every sample a fine-tune draws, old or new, carries one labeller's
-# label. The start networks learned the course's expert's labels, which networks learned better
-# (lab note "Do networks learn the labeller?"); only the fine-tunes draw the relabelled copy.
-# A label is only as good as the driver it describes, so drive each: the oracle is the tracker
-# following a labeller at every decision.
+# "keep". The **state expert** (`control.state_expert`) runs its state machine with one rule
+# changed, its home lane (the middle one, where the expert keeps any lane it is in: lab note "The
+# two experts part over the home lane"), and reads its plan off the state at every decision: the
+# same state gets the same label whatever drove there. It labels every round and **relabels
+# chapter 04's data**, as Learning by Cheating relabels its buffer, so every sample a fine-tune
+# draws carries one labeller's label. The start networks learned the course's expert's labels:
+# networks on them collided less than on the state expert's, on every seed of the lab note "Do
+# networks learn the labeller?" (not shown at the seed level). A label is only as good as the
+# driver it describes, so drive each: the oracle is the tracker following a labeller at every
+# decision.
 
 # %%
 check = dagger.val_roads(1.0 if profile.quick else 20.0, 32)
@@ -161,14 +168,15 @@ print(
 #
 # A round (`dagger.run`, one `RoundSpec` per round): the network drives `drive` times more
 # decisions than the round keeps, on fresh training roads; the state expert labels every state;
-# the **gate** keeps the seconds before each collision first, then the states where the
-# network's plan lay farthest from the label (`dagger.gate`). The network is fine-tuned on rows
-# drawn from **the whole aggregate** (chapter 04's data, relabelled, and every round's), chapter
-# 09's mean fine-tune. Two arms differ from it in one thing each: the **control** lets the state
-# expert drive, with white noise on its commands as large as the network's measured command
-# error (DART, Laskey et al. 2017), and gates, labels and aggregates the same way; **no new
-# data** runs the same fine-tunes on chapter 04's relabelled data alone: what the fine-tunes and
-# the relabelling do without a new state.
+# the **gate** (`dagger.gate`) keeps what section 1 points at: the seconds before each collision
+# first (the window of section 1's distance line), then the states where the network's plan lay
+# farthest from the label. The network is fine-tuned on rows drawn from **the whole aggregate**
+# (chapter 04's data, relabelled, and every round's), chapter 09's mean fine-tune. Two arms
+# differ from it in one thing each: the **control** lets the state expert drive, with white noise
+# on its commands as large as the network's measured command error (DART, Laskey et al. 2017),
+# and gates, labels and aggregates the same way; **no new data** runs the same fine-tunes on
+# chapter 04's relabelled data alone: what the fine-tunes and the relabelling do without a new
+# state.
 
 # %%
 cfg = dagger.DaggerConfig.for_profile(profile)
@@ -187,21 +195,28 @@ for k, (_, arms) in runs.items():
                 f"{g['before_collision']} from before a collision, {g['beyond_gate']:,} "
                 f"beyond {cfg.gate_m:g} m; outside the data {r.shift['any']:.1%}"
             )
+median_shift = {}
 for arm in ("dagger", "control"):
     shift = np.array([[r.shift["any"] for r in arms[arm]] for _, arms in runs.values()])
-    by_round = ", ".join(f"{x:.1%}" for x in np.median(shift, 0))
+    median_shift[arm] = np.median(shift, 0)
+    by_round = ", ".join(f"{x:.1%}" for x in median_shift[arm])
     print(f"{arm}: kept samples outside the data by round, median of seeds: {by_round}")
+farther = [str(j + 1) for j, (d, c) in enumerate(zip(*median_shift.values())) if d > c]
+rose = bool(np.all(np.diff(median_shift["dagger"]) > 0))
+print(
+    f"in words: DAgger's kept samples lay outside the data more often than the control's in "
+    f"{'rounds ' + ', '.join(farther) if farther else 'no round'}; DAgger's share "
+    f"{'rose' if rose else 'did not rise'} every round"
+)
 
 # %% [markdown]
 # The old recipe's rounds drove a few miles each and seldom met a collision (lab note "How many
 # collisions a DAgger round meets"): the lines above say how many of this recipe's kept samples
 # come from the seconds before a collision. The shift is the share of a round's kept samples
-# outside the range of the middle of chapter 04's data in at least one feature; the control's,
-# the state expert's own states with DART's noise, gated alike, is the baseline DAgger's is read by.
-# Samples drawn like the data also fall outside that range, by chance (the range leaves out a
-# share of each feature), so read DAgger's median line against the control's: did the network's
-# states lie farther from the data than the expert's noisy ones, and did they move outward round
-# by round? Why they moved as they did, this run does not show. Each iterate then drives
+# outside the range of the middle of chapter 04's data in at least one feature. Samples drawn like
+# the data fall outside it too, by chance, so the control's (the state expert's own states with
+# DART's noise, gated alike) is the baseline DAgger's is read by; the line after the medians says
+# it in words. Why the states moved as they did, this run does not show. Each iterate then drives
 # `val_miles` of validation roads, so one collision is a large step of rate and ties are common;
 # among ties the latest iterate is kept (`dagger.kept_iterate`), and a kept iterate 0 is the start.
 # Each line also counts every iterate's off-centre episodes on those roads, the episodes PilotNet's
@@ -257,10 +272,9 @@ print(f"saved {png_rounds}")
 # The start and each arm's kept iterate drive chapter 10's test roads (seed `k` of each on the
 # same roads), and three paired sign-flip tests read them: **the step** (DAgger against its
 # start), **the states** (DAgger against its control, which differs in who drove) and **the
-# data** (the control against no new data, which differs in whether there was new data). The
-# power line says what these seeds can find: a true 2x step at the start's rate, with the
-# record's seed spread, and the smallest p they can reach. A handful of seeds cannot decide a
-# paired test at all; the record's seeds (README, Table 1) are there to decide.
+# data** (the control against no new data). The power line says what these seeds can find (a
+# true 2x step at the start's rate, with the record's seed spread) and the smallest p they can
+# reach; the record's seeds (README, Table 1) are there to decide.
 
 # %%
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
@@ -305,20 +319,17 @@ print(
 # %% [markdown]
 # In words, from the verdicts above: DAgger's step is credited to the network's states only if
 # it beats its start *and* its control; a step that the control shares is new data's, and one
-# that no new data shares is the fine-tunes' (the control against no new data asks whether new
-# data mattered at all). A driver is more than its collisions: read the off-centre line beside
-# the rates, for a lower rate that comes with lingering between lanes is a different driver.
-# Section 3's lines say when the lingering starts: compare the arms' off-centre counts iterate by
-# iterate. If the arm with no new data rises too, its fine-tunes on relabelled data move the
-# driver off the lane centre whoever drove, and only DAgger's excess over that arm can be its
-# states'. `lab/off_centre_labels.py` runs that arm once more with one thing changed, the expert's
-# own labels instead of the state expert's: in the book's run its iterates stayed near the start
-# on every seed, as far as four seeds can show (lab note "The lingering comes with the state
-# expert's labels"). So in that arm the drift came with the state expert's labels, not with
-# fine-tuning as such, and mostly with one rule of them: its home is the middle lane, where the
-# expert keeps any lane it is in (lab notes "The two experts part over the home lane" and "The
-# drift comes mostly with the home lane", four seeds). Why DAgger's states add to the drift is
-# open (exercise 12.6).
+# that no new data shares is the fine-tunes'. A driver is more than its collisions: a lower rate
+# that comes with lingering between lanes is a different driver, so the lines below also say
+# which arms' kept iterates left the lane centre more often than the start (section 3's lines say
+# when, iterate by iterate). Where the arm with no new data did, its fine-tunes on relabelled data
+# moved the driver with no new state at all; only what DAgger adds beyond its control can be its
+# states'. `lab/off_centre_labels.py` runs that arm once more with the expert's own labels instead
+# of the state expert's: in the book's run its iterates stayed near the start on every seed (lab
+# note "The lingering comes with the state expert's labels"; four seeds cannot go below p < 0.05).
+# So in that arm the drift came with the state expert's labels, not with fine-tuning as such; on a
+# lent GPU, mostly with its home lane (lab note "The drift comes mostly with the home lane", every
+# one of four seeds: a hypothesis). Why DAgger's states add to the drift is open (exercise 12.6).
 
 
 # %%
@@ -334,6 +345,11 @@ def said(v: dict, other: str) -> str:
 step, states, data = (verdicts[w] for w in pairs)
 print(f"DAgger {said(step, 'its start')}, and {said(states, 'its control')};")
 print(f"the control {said(data, 'the same fine-tunes on no new data')}.")
+left = [k for k in dagger.ARMS if off[k] > off["start"]]
+print(
+    f"off the lane centre more often than the start: {', '.join(left) or 'none'}; DAgger "
+    f"{'more' if off['dagger'] > off['control'] else 'not more'} often than its control"
+)
 
 # %% [markdown]
 # ## Headline figures
@@ -397,13 +413,13 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #   what they keep, fine-tunes on the whole aggregate, and the iterate chosen on validation roads.
 # * A data method needs two controls: the same rounds with the expert driving (is it the
 #   network's states?) and the same fine-tunes on no new data (is it data at all?). Section 4
-#   says, in words, what this run's seeds can credit: with four seeds a paired test cannot reach
-#   p < 0.05 (its power line prints the smallest p they can reach), so the record's seeds decide.
+#   says in words what this run's seeds can credit; its power line prints the smallest p they
+#   can reach, so the record's seeds decide.
 # * A driver is more than its collisions: section 4 prints each arm's off-centre episodes beside
-#   its rate. In the book's run the arm with no new data drifted on its validation roads with the
-#   state expert's labels and not with the expert's (lab note "The lingering comes with the state
-#   expert's labels"); on a lent GPU, mostly with its home-lane rule (lab note "The drift comes
-#   mostly with the home lane"). DAgger's larger drift is open.
+#   its rate. In the arm with no new data the drift came with the state expert's labels (lab note
+#   "The lingering comes with the state expert's labels"), on a lent GPU mostly with its home lane
+#   (lab note "The drift comes mostly with the home lane"; four seeds: a hypothesis). DAgger's
+#   larger drift is open.
 #
 # ## Exercises
 #
@@ -416,20 +432,17 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    which collisions does the trajectory plus tracker still save, and what does that say about
 #    the tracker's share?
 # 4. DART's noise: scale it (`DaggerConfig.for_profile(profile, dart_scale=2.0)`). Does the
-#    control reach the network's states (the kept samples' shift) and drive better?
-# 5. The old recipe (the course before this chapter's rewrite, commit 785b4d7): two rounds of
-#    8,000 samples, labels of the wiped expert, the last round kept. Check it out, run its
-#    chapter 12, and compare its lab notes ("Who labels DAgger's states", "DAgger's states or its
-#    labeller") with section 2's oracle lines.
-# 6. Off the lane centre: in the arm with no new data the drift came with the state expert's
-#    labels (lab note "The lingering comes with the state expert's labels"). Where do its labels
-#    and the expert's lie more than 1 m apart at chapter 04's states
-#    (`train.arrays["state_trajectory"]` against `train.arrays["trajectory"]`), by the car's
-#    offset from its lane centre? Then drive one seed's kept DAgger iterate
-#    (`it = iterates["dagger"][k]`, its network `it.networks[it.kept][1]`) inside an
-#    `anatomy.Witness(..., every=10)` and, at its moments more than 1 m from every lane centre,
-#    compare its plan with the state expert's label. Is it a lane change the labeller reads as
-#    under way, one the network never finishes?
+#    control's kept-sample shift (section 3's median lines) move towards DAgger's or away from
+#    it, and does the control drive better?
+# 5. The old recipe (commit 785b4d7: two rounds of 8,000 samples, the wiped expert's labels, the
+#    last round kept): run its chapter 12 and read its lab notes ("Who labels DAgger's states",
+#    "DAgger's states or its labeller") beside section 2's oracle lines.
+# 6. Off the lane centre: DAgger's kept iterates drifted more than the other arms' in the book's
+#    run (lab note "DAgger's iterates off the lane centre"), and why is open. Drive one seed's
+#    kept DAgger iterate (`it = iterates["dagger"][k]`, its network `it.networks[it.kept][1]`)
+#    inside an `anatomy.Witness(..., every=10)` and, at its moments more than 1 m from every lane
+#    centre, compare its plan with the state expert's label. Is it a lane change the labeller
+#    reads as under way, one the network never finishes?
 # 7. The home lane: the state expert heads for the middle lane where the expert keeps any lane
 #    it is in (lab note "The two experts part over the home lane"). Run the rounds with a labeller
 #    that keeps its own lane, `DaggerConfig.for_profile(profile, home_lane="own")` (its rounds and

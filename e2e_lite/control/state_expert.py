@@ -39,9 +39,9 @@ start would be too sharp is not begun.
 Trajectory labels (:meth:`StateExpert.trajectory_label`) are the expert's noise-free rollout: a
 copy of the car driven 1.5 s by the same rules (no physics), every 0.3 s in the car frame. The
 course's expert, :class:`~e2e_lite.control.expert.Expert`, carries its plan from decision to
-decision; it drives and labels chapter 04's data, because networks learned its labels better
-(lab note "Do networks learn the labeller?"), and this one relabels every sample DAgger trains
-on.
+decision; it drives and labels chapter 04's data, because networks on its labels collided less
+on every seed of the lab note "Do networks learn the labeller?" (not shown at the seed level),
+and this one relabels every sample DAgger trains on.
 """
 
 from __future__ import annotations
