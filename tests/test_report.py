@@ -409,3 +409,23 @@ def test_the_kit_names_the_recipes_its_record_drove() -> None:
         record, block=dataclasses.replace(record.block, recipes_commit=None)
     )
     assert "The record: " in kit.session_findings(None, unnamed)
+
+
+def test_the_status_says_seed_zero_rows_were_trained_on_each_machine_when_there_are_several():
+    """A share trains its own seed 0 for the single-seed rows: pooled from two machines, those
+    rows hold two networks, and the record's first sentence says so (one machine: it does not)."""
+    from types import SimpleNamespace
+
+    from e2e_lite.record.pool import status
+
+    def share(seeds: list[int]) -> SimpleNamespace:
+        return SimpleNamespace(seeds=seeds, miles_per_seed=200.0, single_seed_rows=["pilotnet"])
+
+    shares = [("a", share([24, 25])), ("b", share([26]))]
+    one = status(shares, ["AMD EPYC, 2 cores, 2 workers, cpu"])
+    two = status(
+        shares, ["AMD EPYC, 2 cores, 2 workers, cpu", "Intel Xeon, 2 cores, 2 workers, cpu"]
+    )
+    assert "seed 0 alone, 600 mi" in one and "2 shares on 1 machine of 1 kind" in one
+    assert "seed 0 alone, trained on each machine, 600 mi" in two
+    assert "on 2 machines of 2 kinds" in two
