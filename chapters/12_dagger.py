@@ -98,23 +98,22 @@ expert = StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
 ordinary = [m for _, moments in witnessed for m in moments[:100]]  # (every seed alike)
 cruise = np.nanmedian(anatomy.disagreement(ordinary, world_cfg, expert)) if ordinary else np.nan
 period = world_cfg.sim.policy_period_s
-before = [np.r_[np.full(60 - len(c.apart_m), np.nan), c.apart_m][-60:] for c in collisions]
+pad = [np.r_[np.full(60 - len(c.apart_m), np.nan), c.apart_m][-60:] for c in collisions]
+before = np.array(pad).reshape(-1, 60)  # (collisions, the last 60 decisions)
 fig = Figure(figsize=(10, 3.4), layout="constrained")
 ax_save, ax_apart = fig.subplots(1, 2)
 latest = [c.latest_savable_s or 0.0 for c in collisions]
 ax_save.bar(range(len(collisions)), latest, color="C0")
 ax_save.set(xlabel="collision", ylabel="latest savable hand-over [s] (0: none)")
-if before:
+if len(before):
     t = -period * np.arange(60, 0, -1)
-    ax_apart.plot(
-        t, np.nanmedian(np.array(before), axis=0), color="C3", label="median of collisions"
-    )
+    ax_apart.plot(t, np.nanmedian(before, axis=0), color="C3", label="median of collisions")
 ax_apart.axhline(cruise, color="0.4", ls="--", label="ordinary driving (median)")
 ax_apart.set(xlabel="time before impact [s]", ylabel="plan vs label, farthest point [m]")
 ax_apart.legend(fontsize=8)
 png_anatomy = save_figure(fig, artifacts.artifact_path("figures", "12_anatomy.png"))
 window = round(OnPolicy.BEFORE_COLLISION_S / period)  # the seconds section 3's gate keeps first
-near = np.nanmedian(np.array(before)[:, -window:]) if before else np.nan
+near = np.nanmedian(before[:, -window:]) if len(before) else np.nan
 print(
     f"a plan's farthest point from the state expert's label, median: ordinary driving "
     f"{cruise:.2f} m, the last {OnPolicy.BEFORE_COLLISION_S:g} s before a collision {near:.2f} m"
@@ -201,7 +200,7 @@ for arm in ("dagger", "control"):
     median_shift[arm] = np.median(shift, 0)
     by_round = ", ".join(f"{x:.1%}" for x in median_shift[arm])
     print(f"{arm}: kept samples outside the data by round, median of seeds: {by_round}")
-farther = [str(j + 1) for j, (d, c) in enumerate(zip(*median_shift.values())) if d > c]
+farther = [str(j + 1) for j in np.flatnonzero(median_shift["dagger"] > median_shift["control"])]
 rose = bool(np.all(np.diff(median_shift["dagger"]) > 0))
 print(
     f"in words: DAgger's kept samples lay outside the data more often than the control's in "
