@@ -75,22 +75,22 @@ class ChapterInfo(NamedTuple):
 
 #: ``python -m e2e_lite.course --quick``, every chapter in one interpreter from an empty outputs
 #: folder, on 2 cores with nothing else running [s] (``docs/benchmarks.md``)
-QUICK_COURSE_S = 106
+QUICK_COURSE_S = 61
 CHAPTERS: dict[int, ChapterInfo] = {
     1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 2, 1),
     2: ChapterInfo("the rasterised front camera the networks see", "4.1", 1, 1),
     3: ChapterInfo(
-        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 2, 1
+        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 3, 1
     ),
-    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 5, 9),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 7, 27),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 5, 7),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 6, 15),
-    8: ChapterInfo("the affordance auxiliary loss", "3.5", 7, 15),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 52),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 46),
-    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 5, 17),
-    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 75, 79),
+    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 8, 3),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 9, 12),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 6, 4),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 8, 8),
+    8: ChapterInfo("the affordance auxiliary loss", "3.5", 9, 7),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 10, 23),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 12, 23),
+    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 7, 9),
+    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 25, 46),
 }
 
 
