@@ -317,18 +317,19 @@ print(
 
 # %% [markdown]
 # In words, from the verdicts above: DAgger's step is credited to the network's states only if
-# it beats its start *and* its control; a step that the control shares is new data's, and one
-# that no new data shares is the fine-tunes'. A driver is more than its collisions: a lower rate
-# that comes with lingering between lanes is a different driver, so the lines below also say
-# which arms' kept iterates left the lane centre more often than the start (section 3's lines say
-# when, iterate by iterate). Where the arm with no new data did, its fine-tunes on relabelled data
-# moved the driver with no new state at all; only what DAgger adds beyond its control can be its
-# states'. `lab/off_centre_labels.py` runs that arm once more with the expert's own labels instead
-# of the state expert's: in the book's run its iterates stayed near the start on every seed (lab
-# note "The lingering comes with the state expert's labels"; four seeds cannot go below p < 0.05).
-# So in that arm the drift came with the state expert's labels, not with fine-tuning as such; on a
-# lent GPU, mostly with its home lane (lab note "The drift comes mostly with the home lane", every
-# one of four seeds: a hypothesis). Why DAgger's states add to the drift is open (exercise 12.6).
+# it beats its start *and* its control; a step that the control shares is new data's, and one that
+# no new data shares is the fine-tunes'. A driver is more than its collisions: a lower rate that
+# comes with lingering between lanes is a different driver, so the lines below also say which arms'
+# kept iterates left the lane centre more often than the start (section 3's lines say when, iterate
+# by iterate). Where the arm with no new data did, its fine-tunes on relabelled data moved the
+# driver with no new state at all; only what DAgger adds beyond its control can be its states'.
+# `lab/off_centre_labels.py` runs that arm once more with the expert's own labels instead of the
+# state expert's: in the first book's run (2026-11-29) its iterates stayed near the start on every
+# seed (lab note "The lingering comes with the state expert's labels"; four seeds cannot go below
+# p < 0.05). So in that arm the drift came with the state expert's labels, not with fine-tuning
+# as such; on a lent GPU, mostly with its home lane (lab note "The drift comes mostly with the home
+# lane", every one of four seeds: a hypothesis). Why DAgger's states add to the drift is open
+# (exercise 12.6).
 
 
 # %%
