@@ -225,7 +225,7 @@ print(
 # %%
 iterates = {
     arm: [
-        ablation.dagger_iterates(ablation.Build(profile, train, val, seed=k), arm, cfg)
+        ablation.dagger_iterates(ablation.Build(profile, train, val, seed=k), arm, cfg, runs[k])
         for k in seeds
     ]
     for arm in dagger.ARMS

@@ -131,12 +131,17 @@ class Iterates:
     kept: int
 
 
-def dagger_iterates(b: Build, arm: str, cfg: dagger.DaggerConfig | None = None) -> Iterates:
+def dagger_iterates(
+    b: Build, arm: str, cfg: dagger.DaggerConfig | None = None, ran: dagger.Run | None = None
+) -> Iterates:
     """``arm``'s iterates for this seed, each driven on the seed's own validation roads (each
     drive stored), and the one kept: the one that collided least. The rounds are
-    :func:`~e2e_lite.learning.dagger.run`'s."""
+    :func:`~e2e_lite.learning.dagger.run`'s: ``ran``, what it returned for this seed and ``cfg``
+    (chapter 12 has them; not read again from their files), or run (or read) here."""
     cfg = cfg or dagger.DaggerConfig.for_profile(b.profile)
-    start, arms = dagger.run(*b.data, b.weight(), b.seed, cfg, arms=(arm,), **b.kw)
+    if ran is None:
+        ran = dagger.run(*b.data, b.weight(), b.seed, cfg, arms=(arm,), **b.kw)
+    start, arms = ran
     start_name = recipes.seeded_name("09_gmm_affordance_cvar", b.seed)
     networks = [(start_name, start), *((r.name, r.model) for r in arms[arm])]
     run = dagger.val_run(b.profile, b.seed, cfg.val_miles)

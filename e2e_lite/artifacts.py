@@ -339,8 +339,9 @@ ARTIFACT_VERSIONS = {
     "evaluation": 4,
     "head-refit": 1,
     # what a witnessed drive keeps (chapter 12's anatomy: ``driving.anatomy.Witness``); 2: its
-    # ordinary moments counted over all cars (a short drive's cars kept none)
-    "witness": 2,
+    # ordinary moments counted over all cars (a short drive's cars kept none); 3: each car's at a
+    # phase of its own, and no car after its share (the same moments for any number of shards)
+    "witness": 3,
     "recovery": 1,
 }
 

@@ -14,7 +14,7 @@ import torch
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.control.state_expert import StateExpert
-from e2e_lite.learning import dagger
+from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.collector import DataConfig, NoiseConfig, OnPolicy, collect, dataset_path
 from e2e_lite.learning.dataset import synthetic_data
@@ -22,6 +22,7 @@ from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
 
+CPU = torch.device("cpu")
 WORLD = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_cars=(8, 8)))
 
 
@@ -293,8 +294,8 @@ def test_a_witnessed_drive_is_stored_and_read_back_to_the_same_collisions_and_fi
     )
 
 
-def test_a_short_drive_keeps_ordinary_moments_counted_over_all_its_cars():
-    """Every ``every``-th decision of all cars together is an ordinary moment: a drive whose cars
+def test_a_short_drive_keeps_ordinary_moments_at_each_cars_phase():
+    """Each car keeps the decisions ``n`` with ``n % every`` at its own phase: a drive whose cars
     each decide fewer than ``every`` times (the quick profile's) still keeps some to compare with."""
     from e2e_lite.driving import anatomy
     from e2e_lite.driving.evaluation import EvalConfig, evaluate
@@ -302,4 +303,60 @@ def test_a_short_drive_keeps_ordinary_moments_counted_over_all_its_cars():
     witness = anatomy.Witness(LaneKeeper(), WORLD.sim.policy_period_s, every=50)
     evaluate(witness, WORLD, EvalConfig(miles=0.5, n_worlds=8, split="val"), progress=False)
     assert witness.steps.max() < witness.every  # no car alone reached ``every`` decisions
-    assert len(witness.ordinary) == witness.decisions // witness.every > 0
+    due = sum(int(p < n) for p, n in zip(witness.phase, witness.steps))  # (no car finished early)
+    assert len(witness.ordinary) == due > 0
+
+
+class _ForkingKeeper(LaneKeeper):
+    """A lane keeper that forks (it keeps nothing between decisions)."""
+
+    def fork(self, k: int) -> list[_ForkingKeeper]:
+        return [_ForkingKeeper() for _ in range(k)]
+
+
+def test_a_witness_drives_in_threads_and_keeps_the_same_moments_for_any_number_of_shards():
+    """A witness of a driver that forks drives in threads (its forks file into its lists, never
+    in worker processes, which would keep them), and 1 or 2 shards witness the same collisions
+    and ordinary moments, in the same order, to the stored bytes."""
+    from e2e_lite.driving import anatomy
+    from e2e_lite.driving.evaluation import EvalConfig, evaluate
+
+    cfg = EvalConfig(miles=5.0, n_worlds=4, split="val")  # (long enough for processes)
+    stored = []
+    for workers in (1, 2):
+        witness = anatomy.Witness(_ForkingKeeper(), WORLD.sim.policy_period_s, every=50)
+        res = evaluate(witness, WORLD, cfg, progress=False, workers=workers)
+        assert res.collisions == len(witness.collisions) > 0 and witness.ordinary
+        stored.append(anatomy.witnessed_to_dict(witness))
+    assert stored[0] == stored[1]
+    with pytest.raises(ValueError, match="keeps its states"):
+        evaluate(witness, WORLD, cfg, progress=False, workers=2, parallel="processes")
+
+
+def test_an_arms_iterates_are_the_rounds_it_is_given_each_driven_on_validation_roads(monkeypatch):
+    """Given the rounds of its seed (chapter 12 has them), ``dagger_iterates`` drives those
+    networks, the start first, on the seed's validation roads, and runs no round again."""
+    from e2e_lite import ablation
+
+    torch.manual_seed(0)
+    nets = [
+        prepare(build_model(ModelConfig(head="trajectory", fusion_width=16)), CPU).eval()
+        for _ in range(2)
+    ]
+    cfg = dagger.DaggerConfig(rounds=1, samples=8, steps_samples=8, val_miles=0.2)
+    one = dagger.Round("control", 1, 8, 16, {}, {}, "12_control_round1", nets[1], {})
+    drove = []
+    real = ablation.evaluate_stored
+
+    def spy(name, label, agent, world_cfg, run, **kw):
+        drove.append((name, agent.model, run))
+        return real(name, label, agent, world_cfg, run, **kw)
+
+    monkeypatch.setattr(dagger, "run", lambda *a, **k: pytest.fail("ran the rounds again"))
+    monkeypatch.setattr(ablation, "evaluate_stored", spy)
+    b = ablation.Build(QUICK, None, None, seed=1, kw={"progress": False})
+    found = ablation.dagger_iterates(b, "control", cfg, (nets[0], {"control": [one]}))
+    names = [recipes.seeded_name("09_gmm_affordance_cvar", 1) + "_val", "12_control_round1_val"]
+    assert [(n, m) for n, m, _ in drove] == list(zip(names, nets))
+    assert all(r == dagger.val_run(QUICK, 1, cfg.val_miles) for *_, r in drove)
+    assert len(found.rates) == 2 and found.kept == dagger.kept_iterate(found.rates)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,9 @@ from ..simulation.world import Fleet, World, WorldConfig, make_world
 
 #: how long before each collision the witness keeps a car's states [s]
 HISTORY_S = 6.0
+#: the witness's ordinary moments: car ``c`` keeps its decisions ``n`` with ``n % every`` equal
+#: to ``PHASE_STRIDE * c % every`` (a stride prime to the course's ``every`` spreads the cars)
+PHASE_STRIDE = 61
 #: the hand-over times the anatomy tries, before the impact [s]
 HAND_OVER_S = (0.5, 1.0, 2.0, 3.0, 5.0)
 #: how long the expert drives on past the original impact to count as having avoided it [s]
@@ -105,22 +109,62 @@ class Collision:
 
 class Witness:
     """A policy wrapper that drives ``driver`` unchanged and keeps, for every car, its last
-    :data:`HISTORY_S` of moments; a car's collision files them in :attr:`collisions`, and every
-    ``every``-th decision of all cars together, counted across the drive, is kept in
-    :attr:`ordinary` (driving with no collision in sight, to compare with; counted per car, a
-    short drive whose cars each decide fewer than ``every`` times kept none). A network's plan
-    is read from ``driver.last["points"]``. It keeps its states in this process, so an
-    evaluation drives it in one shard (it has no ``fork``)."""
+    :data:`HISTORY_S` of moments; a car's collision files them in :attr:`collisions`, and each
+    car keeps one decision in every ``every`` of its own as an ordinary moment (driving with no
+    collision in sight, to compare with), at a phase of its own (:data:`PHASE_STRIDE` x its
+    index, modulo ``every``): the moments are spread over the cars and the drive, and a short
+    drive whose cars each decide fewer than ``every`` times keeps some too. A network's plan is
+    read from ``driver.last["points"]``.
+
+    It keeps its states in this process, so its shards are threads (:attr:`threads_only`): a
+    driver that forks gives a witness that forks, and the forks file into their parent's lists.
+    Both lists are read in the order of the drive (decision, then car), and a car is known by
+    its index in the whole drive, so what is witnessed is the same for any number of shards. A
+    car whose share of the miles is driven (``obs.active``) is no longer witnessed."""
+
+    #: its forks keep their states in this process: the evaluator drives them in threads
+    threads_only = True
 
     def __init__(self, driver: Policy, period_s: float, every: int = 200) -> None:
-        self.driver, self.every = driver, every
+        self.driver, self.period_s, self.every = driver, period_s, every
         self.camera = getattr(driver, "camera", None)
         self.sim = getattr(driver, "sim", None)
         self.history = round(HISTORY_S / period_s)
-        self.collisions: list[Collision] = []
-        self.ordinary: list[Moment] = []
+        self._filed: list[tuple[int, int, Collision]] = []  # (decision, car, collision)
+        self._ordinary: list[tuple[int, int, Moment]] = []  # (decision, car, moment)
+        self._cars: np.ndarray | None = None
+
+    @property
+    def collisions(self) -> list[Collision]:
+        """Every collision filed, by this witness or its forks, in the order of the drive."""
+        return [c for *_, c in sorted(self._filed, key=lambda x: x[:2])]
+
+    @property
+    def ordinary(self) -> list[Moment]:
+        """Every ordinary moment kept, by this witness or its forks, in the order of the drive."""
+        return [m for *_, m in sorted(self._ordinary, key=lambda x: x[:2])]
+
+    @ordinary.setter
+    def ordinary(self, moments: list[Moment]) -> None:
+        self._ordinary[:] = [(k, 0, m) for k, m in enumerate(moments)]
+
+    @property
+    def fork(self) -> Callable[[int], list[Witness]]:
+        """``fork(k)``: ``k`` witnesses of the driver's ``k`` forks, filing into this one's lists
+        (only where the driver forks: otherwise a witness drives in one shard)."""
+        if not hasattr(self.driver, "fork"):
+            raise AttributeError(f"{type(self.driver).__name__} does not fork")
+
+        def fork(k: int) -> list[Witness]:
+            out = [Witness(d, self.period_s, self.every) for d in self.driver.fork(k)]
+            for w in out:
+                w._filed, w._ordinary = self._filed, self._ordinary
+            return out
+
+        return fork
 
     def seed_cars(self, cars: np.ndarray) -> None:
+        self._cars = np.asarray(cars, dtype=np.int64).copy()
         if hasattr(self.driver, "seed_cars"):
             self.driver.seed_cars(cars)
 
@@ -128,33 +172,36 @@ class Witness:
         self.driver.reset(n_worlds)
         self.buffers: list[deque[Moment]] = [deque(maxlen=self.history) for _ in range(n_worlds)]
         self.steps = np.zeros(n_worlds, dtype=np.int64)
-        self.decisions = 0  # of all cars in this drive
+        unseeded = self._cars is None or len(self._cars) != n_worlds
+        self.cars = np.arange(n_worlds) if unseeded else self._cars  # their indices in the drive
+        self.phase = (self.cars * PHASE_STRIDE) % self.every
 
     def act(self, obs: Observation) -> Actuation:
         for i in np.flatnonzero(obs.collided if obs.collided is not None else []).tolist():
-            self._file(i, obs)
+            self._file(i)
         act = self.driver.act(obs)
         plans = getattr(self.driver, "last", {}).get("points")
         steer, accel = np.asarray(act.steer_rad), np.asarray(act.accel_mps2)
-        for i, world in enumerate(obs.worlds):
+        active = np.ones(len(obs.worlds), dtype=bool) if obs.active is None else obs.active
+        for i in np.flatnonzero(active).tolist():
             if obs.respawned[i]:
                 self.buffers[i].clear()
-            plan = None if plans is None else np.array(plans[i])
+            world, plan = obs.worlds[i], None if plans is None else np.array(plans[i])
             seg = int(world.track.segment_index(float(obs.s[i])))
             command = (float(steer[i]), float(accel[i]))
             moment = Moment(obs.state[i].copy(), seg, world, plan, command)
             self.buffers[i].append(moment)
-            self.decisions += 1
-            if self.decisions % self.every == 0:
-                self.ordinary.append(moment)
+            if self.steps[i] % self.every == self.phase[i]:
+                self._ordinary.append((int(self.steps[i]), int(self.cars[i]), moment))
         self.steps += 1
         return act
 
-    def _file(self, i: int, obs: Observation) -> None:
+    def _file(self, i: int) -> None:
         """Car ``i`` collided since its last decision: file its moments."""
         moments = list(self.buffers[i])
         if moments:
-            self.collisions.append(Collision(i, int(self.steps[i]), moments))
+            step, car = int(self.steps[i]), int(self.cars[i])
+            self._filed.append((step, car, Collision(car, step, moments)))
 
 
 def witnessed_to_dict(witness: Witness) -> dict[str, Any]:

@@ -133,7 +133,8 @@ def evaluate(
         parallel: how shards run: ``"auto"`` (processes where possible, see above, for a drive
             of at least :data:`MIN_MILES_PER_WORKER`; else threads),
             ``"threads"`` or ``"processes"`` (the policy must pickle; its forks' state stays in
-            the workers: report what the caller needs through ``Actuation.info``).
+            the workers: report what the caller needs through ``Actuation.info``; a policy
+            with ``threads_only`` set is refused).
     """
     t_wall = time.perf_counter()
     n = cfg.n_worlds
@@ -142,6 +143,10 @@ def evaluate(
     check_range("evaluate", "workers", workers, 1, integer=True)
     if parallel not in ("auto", "threads", "processes"):
         raise ValueError(f"parallel must be 'auto', 'threads' or 'processes', not {parallel!r}")
+    if parallel == "processes" and getattr(policy, "threads_only", False):
+        raise ValueError(
+            f"{type(policy).__name__} keeps its states in this process: not 'processes'"
+        )
     if stop_when is not None or not hasattr(policy, "fork"):
         workers = 1
     bar = tqdm(

@@ -90,8 +90,9 @@ def processes_ok(policy: Policy) -> bool:
     onto the device itself, which drove faster than threads sharing it in this process on a lent
     H200 (docs/benchmarks.md; ``python -m e2e_lite.bench scaling`` measures both on a GPU). What a policy's shards count
     comes home in their results (``Actuation.info``), so a policy never needs to know where it
-    runs."""
-    return type(policy).__module__ != "__main__"
+    runs. A policy whose forks keep their states in this process says so (``threads_only``,
+    e.g. the anatomy's witness) and is driven in threads."""
+    return type(policy).__module__ != "__main__" and not getattr(policy, "threads_only", False)
 
 
 def drive_in_threads(jobs: list[tuple], advance: Callable[[float], None]) -> list[Any]:

@@ -343,7 +343,9 @@ class _Shard:
         """What the policy sees and answers (its info added up; traces kept if asked)."""
         out, fleet = self.out, self.fleet
         tick = time.perf_counter()
-        obs = observe(fleet, self.respawned, self.t_sim, self.images, frame, self.collided)
+        obs = observe(
+            fleet, self.respawned, self.t_sim, self.images, frame, self.collided, self.active
+        )
         self.respawned[:] = self.collided[:] = False
         out.speed_hist += speed_histogram(fleet.state[self.active, V])
         act = self.policy.act(obs)

@@ -384,6 +384,10 @@ def relabel_source(
     return out[0], out[1]
 
 
+#: what :func:`run` returns: the start network, and each arm's rounds
+Run = tuple[DrivingModel, dict[str, list[Round]]]
+
+
 def run(
     profile: Profile,
     train: DrivingData,
@@ -394,7 +398,7 @@ def run(
     *,
     arms: tuple[str, ...] = ARMS,
     progress: bool = True,
-) -> tuple[DrivingModel, dict[str, list[Round]]]:
+) -> Run:
     """The rounds of ``arms`` for training ``seed``, from chapter 09's CVaR network of that seed
     (the start network, trained first if missing): ``(start, {arm: [Round, ...]})``. Every
     round's samples and fine-tune are stored and reused."""

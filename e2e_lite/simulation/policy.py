@@ -56,6 +56,8 @@ class Observation:
         images: camera frames ``(B, H, W, 3)`` RGB uint8 when the policy has a ``camera``, else None.
         collided: ``(B,)`` bool, True when car i collided since the last decision (it was then
             re-placed, so ``respawned`` is True too); None when the caller does not say.
+        active: ``(B,)`` bool, False for a car that has driven its share of an evaluation's
+            miles (it stands still while the others finish); None when the caller does not say.
     """
 
     state: np.ndarray
@@ -69,6 +71,7 @@ class Observation:
     worlds: list[World]
     images: np.ndarray | None = None
     collided: np.ndarray | None = None
+    active: np.ndarray | None = None
 
     @property
     def speed(self) -> np.ndarray:
@@ -122,9 +125,10 @@ def observe(
     images: np.ndarray | None = None,
     frame: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
     collided: np.ndarray | None = None,
+    active: np.ndarray | None = None,
 ) -> Observation:
     """The observation of a fleet's cars now (``frame``: a lane frame already computed;
-    ``collided``: which cars collided since the last decision)."""
+    ``collided``: which cars collided since the last decision; ``active``: which still drive)."""
     s, d, road_h, kappa = fleet.lane_frame() if frame is None else frame
     n = len(fleet)
     return Observation(
@@ -139,4 +143,5 @@ def observe(
         time_s=time_s,
         worlds=list(fleet.worlds),
         collided=None if collided is None else np.asarray(collided, dtype=bool).copy(),
+        active=None if active is None else np.asarray(active, dtype=bool).copy(),
     )
