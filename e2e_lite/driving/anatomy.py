@@ -120,7 +120,8 @@ class Witness:
     driver that forks gives a witness that forks, and the forks file into their parent's lists.
     Both lists are read in the order of the drive (decision, then car), and a car is known by
     its index in the whole drive, so what is witnessed is the same for any number of shards. A
-    car whose share of the miles is driven (``obs.active``) is no longer witnessed."""
+    car whose share of the miles is driven (``obs.active``) is no longer witnessed, nor is a
+    collision on its last step (a shard whose cars are all done decides no more)."""
 
     #: its forks keep their states in this process: the evaluator drives them in threads
     threads_only = True
@@ -177,12 +178,13 @@ class Witness:
         self.phase = (self.cars * PHASE_STRIDE) % self.every
 
     def act(self, obs: Observation) -> Actuation:
-        for i in np.flatnonzero(obs.collided if obs.collided is not None else []).tolist():
-            self._file(i)
+        active = np.ones(len(obs.worlds), dtype=bool) if obs.active is None else obs.active
+        if obs.collided is not None:
+            for i in np.flatnonzero(obs.collided & active).tolist():
+                self._file(i)
         act = self.driver.act(obs)
         plans = getattr(self.driver, "last", {}).get("points")
         steer, accel = np.asarray(act.steer_rad), np.asarray(act.accel_mps2)
-        active = np.ones(len(obs.worlds), dtype=bool) if obs.active is None else obs.active
         for i in np.flatnonzero(active).tolist():
             if obs.respawned[i]:
                 self.buffers[i].clear()
