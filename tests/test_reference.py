@@ -52,6 +52,9 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
 * 2026-11-29, ``dataset`` 7 only: a return's recorded ``change_side`` is the side it moves to
   again (6 recorded its overtake's side); the quick dataset holds no return, so its digest and
   every entry are unchanged.
+* 2026-11-30, ``witness`` 3 only: the anatomy's witness keeps each car's ordinary moments at a
+  phase of its own, and none of a car whose share is driven, the same for any number of shards;
+  the reference holds no witnessed drive, so every entry is unchanged.
 """
 
 from __future__ import annotations
