@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from .config import in_notebook, quick_requested
+from .config import QUICK_ENV, in_notebook, quick_requested
 
 if TYPE_CHECKING:  # matplotlib is imported by whoever makes the figure
     from matplotlib.figure import Figure
@@ -71,6 +71,23 @@ def outputs_dir(quick: bool | None = None) -> Path:
         root = root / "quick"
     root.mkdir(parents=True, exist_ok=True)
     return root
+
+
+@contextlib.contextmanager
+def profile_outputs(quick: bool) -> Iterator[Path]:
+    """Everything stored in the block goes to ``quick``'s profile's folder (:func:`outputs_dir`),
+    as ``E2E_LITE_QUICK`` says for the block (and for the processes it starts); given back after.
+    A command run from Python (a test, a notebook) has another script's arguments, so without it
+    a quick run would store its networks in the full profile's folder. Yields the folder."""
+    before = os.environ.get(QUICK_ENV)
+    os.environ[QUICK_ENV] = "1" if quick else "0"
+    try:
+        yield outputs_dir()
+    finally:
+        if before is None:
+            os.environ.pop(QUICK_ENV, None)
+        else:
+            os.environ[QUICK_ENV] = before
 
 
 def check_outputs_writable() -> Path:

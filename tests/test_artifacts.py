@@ -160,3 +160,20 @@ def test_a_killed_write_leaves_the_target_intact_and_the_next_run_removes_its_te
     assert artifacts.remove_stale_temporaries(target.parent) == 1
     assert not left[0].exists() and json.loads(target.read_text()) == {"old": True}
     assert (target.parent / "x.json.sha256").exists()  # (not a temporary: kept)
+
+
+def test_profile_outputs_pins_the_profiles_folder_for_its_block_and_gives_the_setting_back(
+    monkeypatch, tmp_path
+):
+    """Inside the block the outputs folder is the asked profile's, whatever ``E2E_LITE_QUICK``
+    said before (the variable set for the processes the block starts too); after it, as before."""
+    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
+    monkeypatch.delenv("E2E_LITE_QUICK", raising=False)
+    with artifacts.profile_outputs(True) as root:
+        assert root == artifacts.outputs_dir() == tmp_path / "quick"
+        assert os.environ["E2E_LITE_QUICK"] == "1"
+    assert "E2E_LITE_QUICK" not in os.environ and artifacts.outputs_dir() == tmp_path
+    monkeypatch.setenv("E2E_LITE_QUICK", "yes")
+    with artifacts.profile_outputs(False) as root:
+        assert root == artifacts.outputs_dir() == tmp_path
+    assert os.environ["E2E_LITE_QUICK"] == "yes"

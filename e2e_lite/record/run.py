@@ -24,7 +24,7 @@ from ..ablation import (
     UNTRAINED,
     build_drivers,
 )
-from ..artifacts import seeded, settings_key
+from ..artifacts import profile_outputs, seeded, settings_key
 from ..config import FULL, Profile, check_range, default_workers, precision
 from ..driving.metrics import result_dict
 from ..driving.roads import ROAD_BLOCKS
@@ -127,32 +127,36 @@ def record_share(
     """One share of the record: every row of :data:`ROWS` (the paper's, DAgger's and the
     controls) for training ``seeds``, each seed driving ``miles_per_seed`` on its own run of the
     block (:func:`seed_run`; the sealed block of test roads, or open roads in the quick profile's
-    smoke run). Each learned row trains the share's seeds; the rows of ``single`` (PilotNet and
-    L2: no step of the paper is theirs) drive seed 0's network on each seed's run, as the expert
-    and the oracle do. Returns the share, its digest written."""
+    smoke run), storing its networks and drives in the profile's outputs folder. Each learned row
+    trains the share's seeds; the rows of ``single`` (PilotNet and L2: no step of the paper is
+    theirs) drive seed 0's network on each seed's run, as the expert and the oracle do. Returns
+    the share, its digest written."""
     seeds = sorted(int(k) for k in seeds)
     if not seeds or seeds[0] < 0 or len(set(seeds)) != len(seeds):
         raise ValueError(f"record_share: seeds {seeds} must be distinct and >= 0")
     check_range("record_share", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
     commit, keys = _commit(), [d.key for d in ROWS]
-    world_cfg = WorldConfig.for_profile(profile)
-    workers, device = default_workers(), pick_device()
-    if progress:
-        work = record_work(profile, len(seeds), miles_per_seed, single)
-        print(plan_text(f"the record's seeds {seeds[0]}-{seeds[-1]}", work, workers, device.type))
-    train = load_or_collect(DataConfig.for_profile(profile, "train"), progress)
-    val = load_or_collect(DataConfig.for_profile(profile, "val"), progress)
-    learned = [k for k in keys if k not in UNTRAINED and k not in single]
-    fixed = build_drivers(profile, [k for k in keys if k not in learned], train, val, seed=0)
-    runs: dict[str, list[SeedDrive]] = {k: [] for k in keys}
-    for seed in seeds:
-        run = seed_run(profile, seed, miles_per_seed)
-        mine = {**fixed, **build_drivers(profile, learned, train, val, seed=seed)}
-        for key in keys:
-            label = f"{BY_KEY[key].label} (seed {seed})"
-            name = seeded(key, seed)
-            result = evaluate_stored(name, label, mine[key], world_cfg, run, progress=progress)
-            runs[key].append(_seed_drive(seed, run.first_track, result))
+    with profile_outputs(profile.quick):  # (also when called from Python, not the command)
+        world_cfg = WorldConfig.for_profile(profile)
+        workers, device = default_workers(), pick_device()
+        if progress:
+            work = record_work(profile, len(seeds), miles_per_seed, single)
+            print(
+                plan_text(f"the record's seeds {seeds[0]}-{seeds[-1]}", work, workers, device.type)
+            )
+        train = load_or_collect(DataConfig.for_profile(profile, "train"), progress)
+        val = load_or_collect(DataConfig.for_profile(profile, "val"), progress)
+        learned = [k for k in keys if k not in UNTRAINED and k not in single]
+        fixed = build_drivers(profile, [k for k in keys if k not in learned], train, val, seed=0)
+        runs: dict[str, list[SeedDrive]] = {k: [] for k in keys}
+        for seed in seeds:
+            run = seed_run(profile, seed, miles_per_seed)
+            mine = {**fixed, **build_drivers(profile, learned, train, val, seed=seed)}
+            for key in keys:
+                label = f"{BY_KEY[key].label} (seed {seed})"
+                name = seeded(key, seed)
+                result = evaluate_stored(name, label, mine[key], world_cfg, run, progress=progress)
+                runs[key].append(_seed_drive(seed, run.first_track, result))
     block = record_block(profile)
     template = EvalConfig(miles=miles_per_seed, n_worlds=profile.ablation_worlds, block=block)
     data_keys = (train.info["key"], val.info["key"])
