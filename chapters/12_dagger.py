@@ -149,7 +149,7 @@ drives = {
 }
 labellers = {}
 for name, policy in drives.items():
-    r = result_dict(evaluate(policy, world_cfg, check, desc=name, workers=1))
+    r = result_dict(evaluate(policy, world_cfg, check, desc=name))
     labellers[name] = r["collisions_per_100mi"]
     print(
         f"{name}: {r['collisions']} collisions in {r['miles']:.1f} mi "
