@@ -75,10 +75,11 @@ def outputs_dir(quick: bool | None = None) -> Path:
 
 @contextlib.contextmanager
 def profile_outputs(quick: bool) -> Iterator[Path]:
-    """Everything stored in the block goes to ``quick``'s profile's folder (:func:`outputs_dir`),
-    as ``E2E_LITE_QUICK`` says for the block (and for the processes it starts); given back after.
-    A command run from Python (a test, a notebook) has another script's arguments, so without it
-    a quick run would store its networks in the full profile's folder. Yields the folder."""
+    """Everything stored in the block goes to ``quick``'s profile's folder (:func:`outputs_dir`):
+    ``E2E_LITE_QUICK`` says so for the block, and is given back after (a script started with
+    ``--quick`` stays quick). A command run from Python (a test, a notebook) has another script's
+    arguments, so without it a quick run would store its networks in the full profile's folder.
+    Yields the folder."""
     before = os.environ.get(QUICK_ENV)
     os.environ[QUICK_ENV] = "1" if quick else "0"
     try:

@@ -308,9 +308,14 @@ def test_a_short_drive_keeps_ordinary_moments_at_each_cars_phase():
 
 
 class _ForkingKeeper(LaneKeeper):
-    """A lane keeper that forks (it keeps nothing between decisions)."""
+    """A lane keeper that forks (it keeps nothing between decisions) and counts its forks."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.forked: list[int] = []
 
     def fork(self, k: int) -> list[_ForkingKeeper]:
+        self.forked.append(k)
         return [_ForkingKeeper() for _ in range(k)]
 
 
@@ -321,11 +326,13 @@ def test_a_witness_drives_in_threads_and_keeps_the_same_moments_for_any_number_o
     from e2e_lite.driving import anatomy
     from e2e_lite.driving.evaluation import EvalConfig, evaluate
 
-    cfg = EvalConfig(miles=5.0, n_worlds=4, split="val")  # (long enough for processes)
+    cfg = EvalConfig(miles=5.0, n_worlds=16, split="val")  # (long enough for processes)
     stored = []
     for workers in (1, 2):
-        witness = anatomy.Witness(_ForkingKeeper(), WORLD.sim.policy_period_s, every=50)
+        keeper = _ForkingKeeper()
+        witness = anatomy.Witness(keeper, WORLD.sim.policy_period_s, every=50)
         res = evaluate(witness, WORLD, cfg, progress=False, workers=workers)
+        assert keeper.forked == ([] if workers == 1 else [2])  # (16 cars: two groups of 8)
         assert res.collisions == len(witness.collisions) > 0 and witness.ordinary
         stored.append(anatomy.witnessed_to_dict(witness))
     assert stored[0] == stored[1]

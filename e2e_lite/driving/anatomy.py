@@ -175,6 +175,7 @@ class Witness:
         self.steps = np.zeros(n_worlds, dtype=np.int64)
         unseeded = self._cars is None or len(self._cars) != n_worlds
         self.cars = np.arange(n_worlds) if unseeded else self._cars  # their indices in the drive
+        self._cars = None  # (seeded anew for each drive)
         self.phase = (self.cars * PHASE_STRIDE) % self.every
 
     def act(self, obs: Observation) -> Actuation:
