@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
+from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.simulation.geometry import Track
 from e2e_lite.simulation.vehicle import VehicleParams
 from e2e_lite.simulation.world import ParkedCars, World
@@ -41,3 +42,20 @@ def straight_world(
     return World(
         track, ParkedCars.on_track(track, np.array(car_s, dtype=float), d), VehicleParams()
     )
+
+
+class ForkingKeeper(LaneKeeper):
+    """A lane keeper that can be split into shards (as the network agents can): it counts its
+    splits over every instance (``ForkingKeeper.forks``) and keeps its own splits' sizes
+    (``forked``)."""
+
+    forks = 0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.forked: list[int] = []
+
+    def fork(self, k: int) -> list[LaneKeeper]:
+        ForkingKeeper.forks += 1
+        self.forked.append(k)
+        return [LaneKeeper() for _ in range(k)]

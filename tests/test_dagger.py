@@ -10,6 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from conftest import ForkingKeeper
 
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
@@ -307,18 +308,6 @@ def test_a_short_drive_keeps_ordinary_moments_at_each_cars_phase():
     assert len(witness.ordinary) == due > 0
 
 
-class _ForkingKeeper(LaneKeeper):
-    """A lane keeper that forks (it keeps nothing between decisions) and counts its forks."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.forked: list[int] = []
-
-    def fork(self, k: int) -> list[_ForkingKeeper]:
-        self.forked.append(k)
-        return [_ForkingKeeper() for _ in range(k)]
-
-
 def test_a_witness_drives_in_threads_and_keeps_the_same_moments_for_any_number_of_shards():
     """A witness of a driver that forks drives in threads (its forks file into its lists, never
     in worker processes, which would keep them), and 1 or 2 shards witness the same collisions
@@ -329,7 +318,7 @@ def test_a_witness_drives_in_threads_and_keeps_the_same_moments_for_any_number_o
     cfg = EvalConfig(miles=5.0, n_worlds=16, split="val")  # (long enough for processes)
     stored = []
     for workers in (1, 2):
-        keeper = _ForkingKeeper()
+        keeper = ForkingKeeper()
         witness = anatomy.Witness(keeper, WORLD.sim.policy_period_s, every=50)
         res = evaluate(witness, WORLD, cfg, progress=False, workers=workers)
         assert keeper.forked == ([] if workers == 1 else [2])  # (16 cars: two groups of 8)

@@ -9,7 +9,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from conftest import straight_world
+from conftest import ForkingKeeper, straight_world
 
 from e2e_lite.control.drivers import LaneChanger, LaneKeeper
 from e2e_lite.driving.evaluation import (
@@ -172,16 +172,6 @@ def test_same_seed_same_counts_and_different_tracks_differ():
         LaneKeeper(), WorldConfig(road=RoadConfig(length_m=3_000.0, seed=5)), cfg, progress=False
     )
     assert [e["s_m"] for e in a.events] != [e["s_m"] for e in c.events]
-
-
-class ForkingKeeper(LaneKeeper):
-    """A lane keeper that can be split into shards (as the network agents can)."""
-
-    forks = 0
-
-    def fork(self, k: int) -> list[LaneKeeper]:
-        ForkingKeeper.forks += 1
-        return [LaneKeeper() for _ in range(k)]
 
 
 def test_parallel_shards_split_whole_groups_and_a_policy_without_fork_drives_in_one():
