@@ -279,7 +279,6 @@ UNTRAINED = ("expert", "oracle")
 #: seed 000: "Our agent drives smoothly in an average speed of 48 mile per hour".
 PAPER_MPH = 48.0
 #: seed 000: the paper's closed-loop distance, "more than 480 miles".
-PAPER_MILES = 480.0
 BY_KEY = {d.key: d for d in (*DRIVERS, *BEYOND, *CONTROLS, *DIAGNOSTICS)}
 
 

@@ -33,7 +33,6 @@ def _drive(job: tuple) -> dict[str, Any]:
     import torch
 
     from e2e_lite.config import FULL, QUICK
-    from e2e_lite.driving import parallel
     from e2e_lite.driving.evaluation import evaluate
     from e2e_lite.driving.metrics import result_dict
     from e2e_lite.driving.rollout import EvalConfig
@@ -42,7 +41,6 @@ def _drive(job: tuple) -> dict[str, Any]:
     from e2e_lite.simulation.world import WorldConfig
 
     tag, model_cfg, state, split, miles, quick = job
-    parallel.EVAL_TORCH_THREADS = 1  # many drives side by side, one core each
     torch.set_num_threads(1)
     model = build_model(model_cfg)
     model.load_state_dict(state)

@@ -620,7 +620,7 @@ def test_the_seed_level_test_keeps_its_false_positive_rate_and_states_its_power(
 
 def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reaches():
     """Issue 57: the record's roads are a block of test tracks no chapter, lab script, selection,
-    benchmark or test drives: only record.record_table1 names the block, and every other drive
+    benchmark or test drives: only the record (record.run) names the block, and every other drive
     raises before it could reach it."""
     import re
     from pathlib import Path

@@ -101,18 +101,12 @@ class LaneChanger(LaneKeeper):
         super().__init__(**kwargs)
         check_range("LaneChanger", "trigger_m", trigger_m, 0.0, 500.0, lo_open=True)
         self.trigger_m = trigger_m
-        self.lane_changes = 0
-
-    def reset(self, n_worlds: int) -> None:
-        """Forget the target lanes; zero the lane-change counter."""
-        super().reset(n_worlds)
-        self.lane_changes = 0
 
     def _update_targets(self, obs: Observation) -> None:
         super()._update_targets(obs)
         for i, world in enumerate(obs.worlds):
             lane = int(self.target_lane[i])
-            front = float(obs.s[i]) + world.vehicle.length_m - world.vehicle.rear_overhang_m
+            front = float(obs.s[i]) + world.vehicle.rear_to_front_m
             if world.gap_ahead(front, lane, self.trigger_m) < self.trigger_m:
                 options = [
                     (world.gap_ahead(front, j, 2 * self.trigger_m), j)
@@ -122,4 +116,3 @@ class LaneChanger(LaneKeeper):
                 gap, best = max(options, key=lambda g: (g[0], g[1]))
                 if gap >= self.trigger_m or math.isinf(gap):
                     self.target_lane[i] = best
-                    self.lane_changes += 1

@@ -154,7 +154,7 @@ class Expert:
         self.plans: list[Plan] = []
         self.manoeuvres = {"left": 0, "right": 0, "return": 0, "follow": 0}
         self.speed_limits = SpeedLimits(self.cfg)
-        self._front = self.vehicle.length_m - self.vehicle.rear_overhang_m
+        self._front = self.vehicle.rear_to_front_m
 
     # ------------------------------------------------------------------ Policy
     def seed_cars(self, cars: np.ndarray) -> None:

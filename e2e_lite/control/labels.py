@@ -147,7 +147,7 @@ def affordances(
         lane = int(track.lane_index(di))
         centre = float(track.lane_center(lane))
         half_lane = track.lane_width / 2.0
-        front = float(s[i]) + veh.length_m - veh.rear_overhang_m
+        front = float(s[i]) + veh.rear_to_front_m
         start = front - veh.length_m  # the rear bumper: a car reaching past it is alongside
         gaps = []
         for other in (lane, lane + 1, lane - 1):

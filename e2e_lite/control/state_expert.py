@@ -143,7 +143,7 @@ class StateExpert:
         self.speed_limits = SpeedLimits(self.cfg)
         self.manoeuvres = {"left": 0, "right": 0, "return": 0, "follow": 0}
         self.decisions: list[Decision] = []
-        self._front = self.vehicle.length_m - self.vehicle.rear_overhang_m
+        self._front = self.vehicle.rear_to_front_m
         self._draws: dict[tuple, Draws] = {}
 
     # ------------------------------------------------------------------ Policy

@@ -284,7 +284,7 @@ def _animate(vis: meshcat.Visualizer, ep: Episode) -> None:
     veh = ep.vehicle
     n_modes = 0 if ep.modes is None else ep.modes.shape[1]
     anim = Animation(default_framerate=round(1.0 / ep.period_s))
-    rear_to_centre = veh.length_m / 2 - veh.rear_overhang_m  # rear axle to the body's centre [m]
+    rear_to_centre = veh.rear_to_centre_m
     for f, (x, y, h) in enumerate(ep.states[:, :3]):
         with anim.at_frame(vis, f) as frame:
             cx, cy = x + rear_to_centre * np.cos(h), y + rear_to_centre * np.sin(h)

@@ -32,9 +32,6 @@ import numpy as np
 from ..config import check_range
 from .metrics import EvalResult, result_dict
 
-#: two-decimal midranks are doubled to integers for the exact distributions
-_TWICE = 2
-
 
 def seed_counts(result: EvalResult | dict[str, Any]) -> tuple[np.ndarray, float]:
     """Each training seed's collisions over the row's common budget, and that budget [mi].

@@ -31,7 +31,6 @@ from .heads import HEADS, Mixture
 
 apply_precision(torch)  # fp32 on GPUs unless E2E_LITE_TF32=1 (config.precision)
 
-IMAGE_SHAPE = (3, 66, 200)
 TRUNK_FEATURES = 64 * 1 * 18  # seed 003's figure says 1164; the layers give 64 x 1 x 18 = 1152
 N_AFFORDANCES = 9
 #: what an affordance head may read (:attr:`ModelConfig.affordance_from`)

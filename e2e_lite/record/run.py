@@ -34,7 +34,7 @@ from ..learning.collector import DataConfig, load_or_collect
 from ..learning.models import pick_device
 from ..simulation.world import WorldConfig
 from ..stored import evaluate_stored
-from .pool import pool, record_block, seed_run
+from .pool import record_block, seed_run
 from .rows import SHARE_FORMAT, Block, Record, SeedDrive, Share, ShareRow
 from .stats import family
 
@@ -45,12 +45,12 @@ ROWS = (*DRIVERS, *BEYOND, *CONTROLS)
 def record_work(
     profile: Profile, seeds: int, miles_per_seed: float, single: Sequence[str] = SEED_ZERO_ONLY
 ) -> Work:
-    """What :func:`record_table1` does from an empty outputs folder, in the parts the benchmarks
-    measure: the data, chapter 08's weight grid (5 weights, 2 epochs, a quarter of the data),
-    every training (from scratch: the profile's epochs and a selection drive per epoch; the two
-    fine-tunes: one epoch; the rows of ``single``: seed 0 alone), DAgger's three arms (their
-    drives, fine-tunes and every iterate's validation drive), and every seed's run of every
-    row."""
+    """What a share of ``seeds`` seeds (:func:`record_share`) does from an empty outputs folder,
+    in the parts the benchmarks measure: the data, chapter 08's weight grid (5 weights, 2 epochs,
+    a quarter of the data), every training (from scratch: the profile's epochs and a selection
+    drive per epoch; the two fine-tunes: one epoch; the rows of ``single``: seed 0 alone),
+    DAgger's three arms (their drives, fine-tunes and every iterate's validation drive), and
+    every seed's run of every row."""
     from ..learning.dagger import DaggerConfig
     from ..learning.recipes import SELECT_MILES
 
@@ -184,21 +184,6 @@ def record_share(
         family=family(f"before this record ran, in the recipes of {commit}"),
         rows=rows,
     ).sealed()
-
-
-def record_table1(
-    profile: Profile,
-    seeds: int = 10,
-    miles_per_seed: float = 100.0,
-    *,
-    single: Sequence[str] = SEED_ZERO_ONLY,
-    progress: bool = True,
-) -> Record:
-    """Table 1 of record on one machine: the share of training seeds ``0 .. seeds-1``
-    (:func:`record_share`), pooled (:func:`~e2e_lite.record.pool.pool`)."""
-    check_range("record_table1", "seeds", seeds, 1, integer=True)
-    share = record_share(profile, range(seeds), miles_per_seed, single=single, progress=progress)
-    return pool([("this run", share)])
 
 
 def plan(

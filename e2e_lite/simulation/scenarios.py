@@ -125,7 +125,7 @@ def two_answers_scene(
     fleet = Fleet([world], world_cfg)
     veh = world_cfg.vehicle
     # rear axle = the car's centre - half its length - our front bumper's reach - the gap
-    rear_axle_s = TWO_ANSWERS_CAR_S_M - cars.length_m / 2 - (veh.length_m - veh.rear_overhang_m)
+    rear_axle_s = TWO_ANSWERS_CAR_S_M - cars.length_m / 2 - veh.rear_to_front_m
     fleet.place(0, rear_axle_s - gap_m, 0.0, speed_mps)
     return world, fleet
 

@@ -72,13 +72,18 @@ class VehicleParams:
         check_range(o, "max_speed_mps", self.max_speed_mps, 0.0, 100.0, lo_open=True)
 
     @property
-    def center_offset_m(self) -> float:
+    def rear_to_centre_m(self) -> float:
         """Distance from the rear axle forward to the body's centre [m]."""
         return self.length_m / 2.0 - self.rear_overhang_m
 
+    @property
+    def rear_to_front_m(self) -> float:
+        """Distance from the rear axle forward to the front bumper [m]."""
+        return self.length_m - self.rear_overhang_m
+
     def box_corners(self) -> np.ndarray:
         """The body's corners in the rear-axle frame (x forward, y left) [m], counter-clockwise; (4, 2)."""
-        r, f, w = -self.rear_overhang_m, self.length_m - self.rear_overhang_m, self.width_m / 2
+        r, f, w = -self.rear_overhang_m, self.rear_to_front_m, self.width_m / 2
         return np.array([[r, -w], [f, -w], [f, w], [r, w]])
 
 
