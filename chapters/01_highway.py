@@ -27,9 +27,10 @@ import numpy as np
 import e2e_lite
 from e2e_lite import artifacts
 from e2e_lite.control.drivers import LaneChanger, LaneKeeper
-from e2e_lite.driving.evaluation import EvalConfig, evaluate, miles_text, poisson_ci
+from e2e_lite.driving.evaluation import EvalConfig, evaluate, miles_text
 from e2e_lite.simulation.geometry import generate_track
 from e2e_lite.simulation.world import WorldConfig, make_world
+from e2e_lite.stats.rates import poisson_ci
 from e2e_lite.viz import highway_figure, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)

@@ -39,7 +39,6 @@ from e2e_lite.control.oracle import Oracle
 from e2e_lite.driving.evaluation import (
     SPEED_BINS,
     EvalConfig,
-    compare_rates,
     drive,
     evaluate,
     observe,
@@ -53,11 +52,13 @@ from e2e_lite.learning.collector import (
     describe,
     load_or_collect,
 )
+from e2e_lite.record import words
 from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.geometry import Track
 from e2e_lite.simulation.raster import draw_trajectory, save_image, tile
 from e2e_lite.simulation.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
 from e2e_lite.simulation.world import ParkedCars, World, WorldConfig, make_world
+from e2e_lite.stats.rates import compare_rates
 from e2e_lite.viz import draw_road, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -198,7 +199,7 @@ print(f"  manoeuvres: {manoeuvres}")
 oracle = Oracle()
 res_oracle = evaluate(oracle, world_cfg, ev, desc="oracle")
 print("oracle:", res_oracle.summary())
-print("oracle vs expert:", compare_rates(res_oracle, res_expert)["verdict"])
+print("oracle vs expert:", words.rates(compare_rates(res_oracle, res_expert)))
 
 # %% [markdown]
 # ## 4. Noise and clean labels

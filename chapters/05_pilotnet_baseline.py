@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from e2e_lite import artifacts
-from e2e_lite.driving.evaluation import EvalConfig, compare_rates, evaluate, results_table
+from e2e_lite.driving.evaluation import EvalConfig, evaluate, results_table
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import ActuatorAgent, SteeringAgent
 from e2e_lite.learning.collector import DataConfig, DrivingDataset, concat, load_or_collect
@@ -39,9 +39,11 @@ from e2e_lite.learning.losses import Objective
 from e2e_lite.learning.models import build_model, count_parameters, pick_device, prepare
 from e2e_lite.learning.recovery import RecoveryConfig, load_or_make_recovery
 from e2e_lite.learning.training import TrainConfig, epoch_batches, evaluate_loss, fit, model_stats
+from e2e_lite.record import words
 from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.raster import save_image, tile
 from e2e_lite.simulation.world import WorldConfig, make_world
+from e2e_lite.stats.rates import compare_rates
 
 world_cfg = WorldConfig.for_profile(profile)
 device = pick_device()
@@ -249,7 +251,7 @@ print(
 # (`compare_rates`: given the total, how the collisions split by miles; overlapping intervals
 # are no test).
 plain, aug = results["PilotNet (steering)"], results["PilotNet + recovery views"]
-verdict = "recovery views vs without: " + compare_rates(aug, plain)["verdict"]
+verdict = "recovery views vs without: " + words.rates(compare_rates(aug, plain))
 print(verdict)
 
 # %% [markdown]

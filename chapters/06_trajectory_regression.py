@@ -30,7 +30,7 @@ import torch
 from e2e_lite import artifacts
 from e2e_lite.control.expert import Expert
 from e2e_lite.control.labels import CHANGE, KEEP
-from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe, results_table
+from e2e_lite.driving.evaluation import EvalConfig, EvalResult, evaluate, observe, results_table
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.collector import DataConfig, DrivingDataset, load_or_collect
@@ -137,7 +137,11 @@ ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 res = evaluate(TrajectoryAgent(model), world_cfg, ev, desc="trajectory L2")
 print(res.summary())
 prev = artifacts.read_metrics("05_pilotnet_baseline", profile.name)
-earlier = [] if prev is None else [(f"{n} (ch. 05)", r) for n, r in prev["results"].items()]
+earlier = (
+    []
+    if prev is None
+    else [(f"{n} (ch. 05)", EvalResult.from_dict(r)) for n, r in prev["results"].items()]
+)
 table = results_table([*earlier, ("trajectory L2 + LQR", res)])
 print(table + profile.caveat)
 

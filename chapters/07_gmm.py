@@ -42,7 +42,7 @@ from e2e_lite.control.expert import Expert
 from e2e_lite.control.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
 from e2e_lite.driving.evaluation import (
     EvalConfig,
-    compare_rates,
+    EvalResult,
     evaluate,
     miles_text,
     observe,
@@ -53,6 +53,7 @@ from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.collector import DataConfig, DrivingDataset, load_or_collect, situations
 from e2e_lite.learning.heads import gmm_nll
 from e2e_lite.learning.training import DECISIVE, VAL_ROADS, evaluate_loss
+from e2e_lite.record import words
 from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.raster import draw_trajectory
 from e2e_lite.simulation.scenarios import (
@@ -63,6 +64,7 @@ from e2e_lite.simulation.scenarios import (
     two_answers_scene,
 )
 from e2e_lite.simulation.world import Fleet, WorldConfig, make_world
+from e2e_lite.stats.rates import compare_rates
 from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -278,7 +280,8 @@ for chapter, key in (("05_pilotnet_baseline", "results"), ("06_trajectory_regres
     m = artifacts.read_metrics(chapter, profile.name)
     if m is None:
         continue
-    earlier += m[key].items() if key == "results" else [("trajectory L2 + LQR", m[key])]
+    found = m[key].items() if key == "results" else [("trajectory L2 + LQR", m[key])]
+    earlier += [(name, EvalResult.from_dict(r)) for name, r in found]
 table = results_table([*earlier, ("trajectory GMM + LQR", res)])
 print(table + profile.caveat)
 chart = collision_chart(
@@ -289,7 +292,7 @@ chart_png = save_figure(chart, artifacts.artifact_path("figures", "07_collisions
 print(f"saved {chart_png}")
 l2 = dict(earlier).get("trajectory L2 + LQR")
 vs_l2 = compare_rates(res, l2) if l2 is not None else None
-verdict = "GMM vs L2: " + vs_l2["verdict"] if vs_l2 else "run chapter 06 first to compare with L2"
+verdict = "GMM vs L2: " + words.rates(vs_l2) if vs_l2 else "run chapter 06 first to compare with L2"
 print(verdict)
 
 
@@ -325,7 +328,7 @@ shows = scene_results["L2"].pass_rate < scene_results["GMM"].pass_rate
 rates = {n: f"{scene_results[n].pass_rate:.0%}" for n in ("L2", "GMM")}
 found = "the scenes show averaging" if shows else "no averaging shows (L2 fails no more)"
 print(f"L2 passed {rates['L2']}, the GMM {rates['GMM']}: {found}")
-if not shows and vs_l2 and vs_l2["different"]:
+if not shows and vs_l2 and vs_l2.different:
     print(f"so section 4's verdict ({verdict}) has a cause these scenes do not show: open")
 fig = Figure(figsize=(10, 3.4))
 axes = fig.subplots(1, 3, sharey=True)
@@ -423,7 +426,7 @@ for name, m in masks.items() if opened else ():
 res_learned = evaluate(TrajectoryAgent(learned), world_cfg, ev, desc="GMM, learned sigmas")
 free_sigma = f"GMM, learned sigmas{'' if opened else ', kept warm-up'}"
 print(results_table([("GMM, sigma held (the course's)", res), (free_sigma, res_learned)]))
-sigma_verdict = f"held vs {free_sigma[5:]}: " + compare_rates(res, res_learned)["verdict"]
+sigma_verdict = f"held vs {free_sigma[5:]}: " + words.rates(compare_rates(res, res_learned))
 print(sigma_verdict)
 
 # %% [markdown]

@@ -43,7 +43,7 @@ from e2e_lite import artifacts
 from e2e_lite.control.labels import AFFORDANCE_INDEX, CHANGE
 from e2e_lite.driving.evaluation import (
     EvalConfig,
-    compare_rates,
+    EvalResult,
     evaluate,
     miles_text,
     results_table,
@@ -60,7 +60,9 @@ from e2e_lite.learning.collector import (
 )
 from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 from e2e_lite.learning.training import evaluate_loss
+from e2e_lite.record import words
 from e2e_lite.simulation.world import WorldConfig
+from e2e_lite.stats.rates import compare_rates
 from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -297,13 +299,13 @@ for chapter, label in (
 ):
     m = artifacts.read_metrics(chapter, profile.name)
     if m is not None:
-        rows_table.append((label, m["result"]))
+        rows_table.append((label, EvalResult.from_dict(m["result"])))
 rows_table.append((f"GMM + affordance (w = {w_best:g}) + LQR", res))
 table = results_table(rows_table)
 print(table + profile.caveat)
 gmm_row = dict(rows_table).get("trajectory GMM + LQR")
 verdict = (
-    "GMM + affordance vs GMM: " + compare_rates(res, gmm_row)["verdict"]
+    "GMM + affordance vs GMM: " + words.rates(compare_rates(res, gmm_row))
     if gmm_row is not None
     else "run chapter 07 first to compare with the GMM alone"
 )

@@ -27,6 +27,8 @@ from e2e_lite.course import start_chapter
 profile = start_chapter(9)  # flags, profile, outputs folder: checked before any work
 
 
+from dataclasses import asdict
+
 import numpy as np
 import torch
 from matplotlib.figure import Figure
@@ -34,10 +36,7 @@ from matplotlib.figure import Figure
 from e2e_lite import ablation, artifacts
 from e2e_lite.driving.evaluation import (
     EvalConfig,
-    compare_rates,
-    compare_seeds,
     miles_text,
-    result_dict,
     results_table,
 )
 from e2e_lite.learning import recipes
@@ -51,8 +50,11 @@ from e2e_lite.learning.collector import (
 )
 from e2e_lite.learning.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.learning.training import evaluate_loss
+from e2e_lite.record import words
 from e2e_lite.simulation.raster import save_image
 from e2e_lite.simulation.world import WorldConfig
+from e2e_lite.stats.rates import compare_rates
+from e2e_lite.stats.seeds import compare_seeds
 from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -307,7 +309,8 @@ pairs = {  # (the fine-tune, what it is judged against)
 verdicts = {w: compare_seeds(closed[a], closed[b]) for w, (a, b) in pairs.items()}
 pooled_tests = {w: compare_rates(closed[a], closed[b]) for w, (a, b) in pairs.items()}
 for what, test in verdicts.items():
-    print(f"{what.replace('_', ' ')}: {test['verdict']}; pooled: {pooled_tests[what]['verdict']}")
+    pooled = words.rates(pooled_tests[what])
+    print(f"{what.replace('_', ' ')}: {words.seeds(test)}; pooled: {pooled}")
 
 # %% [markdown]
 # A rate per mile says nothing about how the miles were driven. Section 3 measured which
@@ -321,13 +324,13 @@ for what, test in verdicts.items():
 
 # %%
 for k in keys:
-    r = result_dict(closed[k])
-    per_seed_mph = " / ".join(f"{s['mean_speed_mph']:.1f}" for s in r.get("seeds") or [r])
-    per_seed_stalls = " / ".join(str(s["stalls"]) for s in r.get("seeds") or [r])
+    r = closed[k]
+    per_seed_mph = " / ".join(f"{s.mean_speed_mph:.1f}" for s in r.seeds or [r])
+    per_seed_stalls = " / ".join(str(s.stalls) for s in r.seeds or [r])
     print(
-        f"{names[k]:8s} {r['collisions_per_100mi']:6.1f} per 100 mi ({r['car_collisions']} car / "
-        f"{r['rail_collisions']} rail), {r['mean_speed_mph']:.1f} mph (seeds {per_seed_mph}), "
-        f"stalls {r['stalls']} (seeds {per_seed_stalls}), autonomy {r['autonomy_pct']:.1f} %"
+        f"{names[k]:8s} {r.collisions_per_100mi:6.1f} per 100 mi ({r.car_collisions} car / "
+        f"{r.rail_collisions} rail), {r.mean_speed_mph:.1f} mph (seeds {per_seed_mph}), "
+        f"stalls {r.stalls} (seeds {per_seed_stalls}), autonomy {r.autonomy_pct:.1f} %"
     )
 
 # %% [markdown]
@@ -343,11 +346,11 @@ for k in keys:
 # both with the sigmas open (lab note "CVaR with the sigmas held at 1").
 
 # %%
-res = result_dict(closed["gmm_affordance_cvar"])
+res = closed["gmm_affordance_cvar"]
 chart_png = save_figure(
     collision_chart(
         rows,
-        title=f"{miles_text(round(res['miles'], 1))} each, {profile.ablation_seeds} training seeds",
+        title=f"{miles_text(round(res.miles, 1))} each, {profile.ablation_seeds} training seeds",
     ),
     artifacts.artifact_path("figures", "09_collisions.png"),
 )
@@ -356,14 +359,14 @@ chart_png = save_figure(
 # ## Headline figures
 
 # %%
-control_res = result_dict(closed["gmm_affordance_control"])
+control_res = closed["gmm_affordance_control"]
 headline = {
-    "GMM + affordance + CVaR collisions/100mi": res["collisions_per_100mi"],
-    "control (mean fine-tune) collisions/100mi": control_res["collisions_per_100mi"],
-    "base collisions/100mi": result_dict(closed["gmm_affordance"])["collisions_per_100mi"],
-    "CVaR mph": res["mean_speed_mph"],
-    "control mph": control_res["mean_speed_mph"],
-    "CVaR stalls": res["stalls"],
+    "GMM + affordance + CVaR collisions/100mi": res.collisions_per_100mi,
+    "control (mean fine-tune) collisions/100mi": control_res.collisions_per_100mi,
+    "base collisions/100mi": closed["gmm_affordance"].collisions_per_100mi,
+    "CVaR mph": res.mean_speed_mph,
+    "control mph": control_res.mean_speed_mph,
+    "CVaR stalls": res.stalls,
     "val CVaR-90 before": float(base_curve[90]),
     "val CVaR-90 after": float(tuned_curve[90]),
     "val CVaR-90 after the control": float(control_curve[90]),
@@ -398,11 +401,11 @@ artifacts.write_metrics(
             "optimizer": "carried from the base training",
             "sigma": recipes.CVAR_SIGMA,
         },
-        **{
-            names[k]: {f: v for f, v in result_dict(closed[k]).items() if f != "events"}
-            for k in keys
+        **{names[k]: closed[k].to_dict(with_events=False) for k in keys},
+        "tests": {
+            k: {**asdict(v), "verdict": words.seeds(v), "pooled": words.rates(pooled_tests[k])}
+            for k, v in verdicts.items()
         },
-        "tests": {k: {**v, "pooled": pooled_tests[k]["verdict"]} for k, v in verdicts.items()},
         "table_md": table,
     },
     figures=(grid_png, curve_png, chart_png),

@@ -40,16 +40,17 @@ from e2e_lite.driving.evaluation import (
     COLLISION_KINDS,
     EvalConfig,
     collision_kinds,
-    compare_rates,
     miles_text,
-    result_dict,
     results_table,
 )
-from e2e_lite.driving.verdicts import compare_seeds, power, rank_test, seed_counts, sign_flip_test
 from e2e_lite.learning.collector import DataConfig, load_or_collect
-from e2e_lite.record.stats import SPREAD_GOAL, STEPS, record_dispersion, spread, verdict
+from e2e_lite.record import words
+from e2e_lite.record.stats import SPREAD_GOAL, STEPS, record_dispersion, slow, test_step
 from e2e_lite.report import load
 from e2e_lite.simulation.world import WorldConfig, make_world
+from e2e_lite.stats.power import power
+from e2e_lite.stats.rates import compare_rates
+from e2e_lite.stats.seeds import compare_seeds, rank_test, seed_counts, sign_flip_test, spread
 from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -117,15 +118,15 @@ print(table + profile.caveat)
 # %%
 aff_counts, per_seed_mi = seed_counts(results["gmm_affordance"])
 base_rate = max(0.5, float(np.median(aff_counts)) * 100.0 / per_seed_mi)
-spread_k = record_dispersion(load(), near="gmm_affordance")["dispersion"]  # its seeds' spread
+spread_k = record_dispersion(load(), near="gmm_affordance").k  # its seeds' spread
 reach = power(profile.ablation_seeds, per_seed_mi, base_rate, dispersion=spread_k)
 flat = power(profile.ablation_seeds, per_seed_mi, base_rate)
 print(
     f"{profile.ablation_seeds} seeds x {per_seed_mi:.3g} mi: smallest reachable p "
-    f"{reach['min_p']:.2g} (paired: {0.5**profile.ablation_seeds:.2g}, every seed one way); "
+    f"{reach.min_p:.2g} (paired: {0.5**profile.ablation_seeds:.2g}, every seed one way); "
     f"power to find a true 2x step at {base_rate:.1f} per 100 mi: "
-    f"{reach['power']:.0%} with the record's seed spread (dispersion {spread_k:.2f}), "
-    f"{flat['power']:.0%} if seeds did not differ (an upper bound)"
+    f"{reach.power:.0%} with the record's seed spread (dispersion {spread_k:.2f}), "
+    f"{flat.power:.0%} if seeds did not differ (an upper bound)"
 )
 
 # %% [markdown]
@@ -153,30 +154,28 @@ def flip_p(a, b):  # P(sum of the flipped differences <= observed), every patter
 
 
 gmm_counts, cvar_counts = (seed_counts(results[k])[0] for k in ("gmm", "gmm_affordance_cvar"))
-rec = {r.key: seed_counts(r.as_result())[0][:6] for r in load().rows}  # 6 of the record's seeds
+rec = {r.key: seed_counts(r).counts[:6] for r in load().rows}  # 6 of the record's seeds
 ours = (aff_counts, gmm_counts, cvar_counts)
 for a, b, c in (ours, (rec["gmm_affordance"], rec["gmm"], rec["gmm_affordance_cvar"])):
-    assert np.isclose(rank_p(a, b), rank_test(a, b)["p_fewer"])
-    assert np.isclose(flip_p(c, a), sign_flip_test(c, a)["p_fewer"])
+    assert np.isclose(rank_p(a, b), rank_test(a, b).p_fewer)
+    assert np.isclose(flip_p(c, a), sign_flip_test(c, a).p_fewer)
 by_hand = f"rank p {rank_p(a, b):.3g}, sign-flip p {flip_p(c, a):.3g}"
-print(f"by hand, the record's 6: {by_hand}, as e2e_lite.driving.verdicts gives")
+print(f"by hand, the record's 6: {by_hand}, as e2e_lite.stats.seeds gives")
 # %%
 # the paper's three steps (record.stats.STEPS, family "paper"); PilotNet and L2 have one seed:
 # chapters 05-07 compare them, the record drives them (seed 0) but tests no step on them
-steps = []
-expert_mph = result_dict(results["expert"])["mean_speed_mph"]
+steps, pooled = [], {}
+expert_mph = results["expert"].mean_speed_mph
 for st in (st for st in STEPS if st.family == "paper"):
-    seeds = compare_seeds(results[st.after], results[st.before], paired=st.paired)
-    pooled = compare_rates(results[st.after], results[st.before])["p_value"]
-    mph = result_dict(results[st.after])["mean_speed_mph"]
-    outcome = verdict(seeds, mph if mph < 0.9 * expert_mph else None)
+    after, before = results[st.after], results[st.before]
+    seeds = compare_seeds(after, before, paired=st.paired)
     paper = ablation.BY_KEY[st.after].paper_per_100mi / ablation.BY_KEY[st.before].paper_per_100mi
-    which = {"step": st.what, "before": st.before, "after": st.after, "seed_level": seeds}
-    steps.append({**which, "pooled_p_value": pooled, "paper_ratio": paper, "outcome": outcome})
-    lo, hi = seeds["ratio_ci"]
-    size = "no CI" if np.isnan(hi) else "inside the CI" if lo <= paper <= hi else "outside the CI"
-    tail = f"verdict: {outcome} (the paper's ratio {paper:.2g}: {size}); pooled p = {pooled:.2g}"
-    print(f"{st.what}: {seeds['verdict']}; {tail}")
+    tested = test_step(st, seeds, paper, slow(after.mean_speed_mph, expert_mph))
+    steps.append(tested)
+    pooled[st.what] = compare_rates(after, before).p_value
+    inside = {None: "no CI", True: "inside the CI", False: "outside the CI"}[tested.paper_inside]
+    tail = f"verdict: {words.verdict(tested)} (the paper's ratio {paper:.2g}: {inside})"
+    print(f"{st.what}: {words.seeds(seeds)}; {tail}; pooled p = {pooled[st.what]:.2g}")
 
 # %% [markdown]
 # ## 3b. Controls: which part of a step did it?
@@ -197,18 +196,18 @@ control_table = results_table(
     [(ablation.BY_KEY[k].label, r) for k, r in control_results.items()],
     extra=[
         ("per seed, per 100 mi", [ablation.per_seed(r) for r in control_results.values()]),
-        ("stalls", [f"{result_dict(r)['stalls']:,}" for r in control_results.values()]),
+        ("stalls", [f"{r.stalls:,}" for r in control_results.values()]),
     ],
 )
 print(control_table + profile.caveat)
-spreads = {k: spread(result_dict(r)) for k, r in {**results, **control_results}.items()}
+spreads = {k: spread(r) for k, r in {**results, **control_results}.items()}
 for k, ratio in spreads.items():
     if ratio is not None:
         over = "over the goal" if ratio > SPREAD_GOAL else "within the goal"
         print(f"{ablation.BY_KEY[k].label}: worst seed / median {ratio:.1f} ({over})")
 both = {**results, **control_results}
 control_tests = {  # (paired: each fine-tune and its parent share a seed)
-    what: compare_seeds(both[a], both[b], paired=True)["verdict"]
+    what: words.seeds(compare_seeds(both[a], both[b], paired=True))
     for a, b, what in (
         (
             "gmm_affordance_cvar",
@@ -233,7 +232,7 @@ print("| driver | collisions | " + " | ".join(COLLISION_KINDS) + " |")
 print("|---|---:|" + "---:|" * len(COLLISION_KINDS))
 for k, c in kinds.items():
     cells = " | ".join(str(c[kind]) for kind in COLLISION_KINDS)
-    print(f"| {ablation.BY_KEY[k].label} | {result_dict(both[k])['collisions']} | {cells} |")
+    print(f"| {ablation.BY_KEY[k].label} | {both[k].collisions} | {cells} |")
 print(profile.caveat.strip())
 
 # %% [markdown]
@@ -282,10 +281,10 @@ for key, policy in drivers.items():
         lane=1,
         seconds=profile.replay_s,
     )
-    r = result_dict(results[key])
-    r0 = (r.get("seeds") or [r])[0]  # the replay's own network: seed 0
-    caption = f"seed 0: {r0['collisions']} collisions in {r0['miles']:.0f} mi; all seeds: "
-    caption += f"{r['collisions_per_100mi']:.1f} per 100 mi over {miles_text(round(r['miles'], 1))}"
+    r = results[key]
+    r0 = (r.seeds or [r])[0]  # the replay's own network: seed 0
+    caption = f"seed 0: {r0.collisions} collisions in {r0.miles:.0f} mi; all seeds: "
+    caption += f"{r.collisions_per_100mi:.1f} per 100 mi over {miles_text(round(r.miles, 1))}"
     page = replay.export_html(ep, replay_dir / f"{key}.html", caption)
     gif = replay.export_gif(ep, replay_dir / f"{key}.gif")
     ending = f"collided with a {ep.contact}" if ep.contact else "no collision"
@@ -304,23 +303,21 @@ print(f"open {index} in a browser")
 # with its interval, each training seed's rate and a test.
 
 # %%
-res_d = {k: result_dict(r) for k, r in results.items()}
-learned = [k for k in results if k not in ("expert", "oracle")]
-best = min(learned, key=lambda k: res_d[k]["collisions_per_100mi"])
+rate = {k: r.collisions_per_100mi for k, r in results.items()}
+best = min((k for k in results if k not in ablation.UNTRAINED), key=rate.get)
 lines = [
-    f"lowest pooled rate: {ablation.BY_KEY[best].label} ({res_d[best]['collisions_per_100mi']:.1f}"
+    f"lowest pooled rate: {ablation.BY_KEY[best].label} ({rate[best]:.1f}"
     " per 100 mi; which differences the seeds show, the steps below say)",
-    f"references: expert {res_d['expert']['collisions_per_100mi']:.1f}, oracle "
-    f"{res_d['oracle']['collisions_per_100mi']:.1f} per 100 mi (intervals: the table)",
+    f"references: expert {rate['expert']:.1f}, oracle "
+    f"{rate['oracle']:.1f} per 100 mi (intervals: the table)",
     *(
-        f"{s['step']}: {s['outcome']}; ratio {s['seed_level']['ratio']:.2f} (the paper's "
-        f"{s['paper_ratio']:.2g})"
+        f"{s.step}: {words.verdict(s)}; ratio {s.ratio:.2f} (the paper's {s.paper_ratio:.2g})"
         for s in steps
     ),
     *(f"control: {what}: {text}" for what, text in control_tests.items()),
     "the affordance loss against w = 0 is the record's test (exercise 7 drives it here)",
     "mean speeds [mph]: "
-    + ", ".join(f"{k} {res_d[k]['mean_speed_mph']:.1f}" for k in results)
+    + ", ".join(f"{k} {r.mean_speed_mph:.1f}" for k, r in results.items())
     + f" (the paper: {ablation.PAPER_MPH:g})",
 ]
 print("\n".join(lines))
@@ -333,26 +330,29 @@ artifacts.write_metrics(
     "10_ablation",
     {
         "profile": profile.name,
-        "headline": {f"{k} collisions/100mi": res_d[k]["collisions_per_100mi"] for k in results},
+        "headline": {f"{k} collisions/100mi": rate[k] for k in results},
         "miles_per_driver": ev.miles,
         "reference_miles": reference_ev.miles,
         "eval": {k: getattr(ev, k) for k in ("n_worlds", "n_tracks", "first_track", "seed")},
-        "results": {k: {**res_d[k], "events": None} for k in results},
+        "results": {k: r.to_dict(with_events=False) for k, r in results.items()},
         "paper": {
             d.key: {"per_100mi": d.paper_per_100mi, "ttc_s": d.paper_ttc_s}
             for d in ablation.DRIVERS
         },
         "paper_mph": ablation.PAPER_MPH,
-        "steps": steps,
+        "steps": [
+            {**vars(s), "verdict": words.verdict(s), "pooled_p_value": pooled[s.step]}
+            for s in steps
+        ],
         "power": {
             "seeds": profile.ablation_seeds,
             "miles_per_seed": per_seed_mi,
             "rate_per_100mi": base_rate,
             "dispersion": spread_k,
-            "power_poisson": flat["power"],
-            **reach,
+            "power_poisson": flat.power,
+            **vars(reach),
         },
-        "controls": {k: {**result_dict(r), "events": None} for k, r in control_results.items()},
+        "controls": {k: r.to_dict(with_events=False) for k, r in control_results.items()},
         "collision_kinds": kinds,
         "control_tests": control_tests,
         "worst_seed_over_median": spreads,
@@ -380,7 +380,7 @@ artifacts.write_metrics(
 #
 # 1. Evaluate every driver with a second evaluation seed (`EvalConfig(seed=1)`, other start
 #    lanes): which rows move beyond their intervals? What does that say about a verdict's miles?
-# 2. With `evaluation.power`, find the seeds and miles per seed that would find a 1.5x step (not
+# 2. With `stats.power.power`, find the seeds and miles per seed that would find a 1.5x step (not
 #    2x) at the + affordance row's rate nine times in ten. What would that record cost in
 #    training time on your machine (`python -m e2e_lite.bench train`)?
 # 3. Drive the exercises' drivers (`ablation.DIAGNOSTICS`: the mixture's mean, K = 1, the

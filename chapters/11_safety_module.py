@@ -53,25 +53,18 @@ from matplotlib.lines import Line2D
 
 from e2e_lite import ablation, artifacts
 from e2e_lite.control.labels import POINT_DT_S, interpolated_path
-from e2e_lite.driving.evaluation import (
-    EvalConfig,
-    compare_rates,
-    compare_seeds,
-    disjoint_runs,
-    pool_results,
-    result_dict,
-    result_events,
-    result_info,
-    results_table,
-)
+from e2e_lite.driving.evaluation import EvalConfig, disjoint_runs, pool_results, results_table
 from e2e_lite.learning import recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.collector import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
+from e2e_lite.record import words
 from e2e_lite.safety.agent import IMPACT_CAUSES, SafeAgent, SafetyStats
 from e2e_lite.safety.rule import SafetyConfig, calibrate_gap_free, check
 from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.raster import draw_trajectory
 from e2e_lite.simulation.world import WorldConfig, make_world
+from e2e_lite.stats.rates import compare_rates
+from e2e_lite.stats.seeds import compare_seeds
 from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -347,12 +340,12 @@ for name, tag, settings, truth in variants:
         )
         res = ablation.evaluate_stored(stored_as, title, agent, world_cfg, run)
         per_seed.append(res)
-        counts.add(result_info(res))
-        examples.setdefault(name, result_info(res).get("examples", [])[:3])  # seed 0's
+        counts.add(res.info)
+        examples.setdefault(name, res.info.get("examples", [])[:3])  # seed 0's
     guarded[name], stats[name] = pool_results(per_seed), counts.to_dict()
     # seed by seed, paired (seed k's network with and without the module, on the same roads)
-    verdicts[name] = compare_seeds(guarded[name], without, paired=True)["verdict"] + (
-        f"; pooled: {compare_rates(guarded[name], without)['verdict']}"
+    verdicts[name] = words.seeds(compare_seeds(guarded[name], without, paired=True)) + (
+        f"; pooled: {words.rates(compare_rates(guarded[name], without))}"
     )
 
 # %%
@@ -381,7 +374,7 @@ rows_png = save_figure(
     collision_chart(
         rows_of,
         title=f"{label}: {ev.miles:g} mi per row, {n_seeds} training seeds pooled",
-        reference=[("without", result_dict(without)["collisions_per_100mi"])],
+        reference=[("without", without.collisions_per_100mi)],
     ),
     artifacts.artifact_path("figures", "11_rows.png"),
 )
@@ -406,13 +399,12 @@ print(
 )
 print("|---|---:|---:|---:|---:|" + "---:|" * len(IMPACT_CAUSES))
 for name, res in rows_of:
-    r = result_dict(res)
-    impact = [e["speed_mps"] for e in result_events(res)]
+    impact = [e["speed_mps"] for e in res.events]
     by_speed[name] = [sum(lo <= v < hi for v in impact) for lo, hi in speed_bins]
     who = stats.get(name.removeprefix("with the module "), {}).get("at_impact")
     causes[name] = [who.get(c, 0) for c in IMPACT_CAUSES] if who else [0, 0, 0, len(impact)]
     print(
-        f"| {name} | {len(impact)} ({r['car_collisions']} / {r['rail_collisions']}) | "
+        f"| {name} | {len(impact)} ({res.car_collisions} / {res.rail_collisions}) | "
         + " | ".join(map(str, by_speed[name] + causes[name]))
         + " |"
     )
@@ -478,7 +470,7 @@ else:
 # ## Headline figures
 
 # %%
-headline = {f"{n} collisions/100mi": result_dict(r)["collisions_per_100mi"] for n, r in rows_of}
+headline = {f"{n} collisions/100mi": r.collisions_per_100mi for n, r in rows_of}
 artifacts.write_metrics(
     "11_safety_module",
     {
@@ -491,7 +483,7 @@ artifacts.write_metrics(
         "false_alarm_reasons": {"by_check": dict(why), "ghost_car_pct_of_free_frames": ghost_pct},
         "calibration": calibration,
         "seeds": n_seeds,
-        "results": {n: {**result_dict(r), "events": None} for n, r in rows_of},
+        "results": {n: {**r.to_dict(with_events=False), "events": None} for n, r in rows_of},
         "module": stats,
         "verdicts": verdicts,
         "collisions_by_speed": by_speed,

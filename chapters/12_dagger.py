@@ -37,14 +37,16 @@ from e2e_lite.control.expert import Expert, WipedExpert
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving import anatomy
-from e2e_lite.driving.evaluation import EvalConfig, evaluate, result_dict
-from e2e_lite.driving.verdicts import compare_seeds, power, seed_counts
+from e2e_lite.driving.evaluation import EvalConfig, evaluate
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.collector import DataConfig, OnPolicy, load_or_collect
+from e2e_lite.record import words
 from e2e_lite.record.stats import record_dispersion
 from e2e_lite.report import load
 from e2e_lite.simulation.world import WorldConfig
+from e2e_lite.stats.power import power
+from e2e_lite.stats.seeds import SeedTest, compare_seeds, seed_counts
 from e2e_lite.viz import save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
@@ -149,11 +151,11 @@ drives = {
 }
 labellers = {}
 for name, policy in drives.items():
-    r = result_dict(evaluate(policy, world_cfg, check, desc=name))
-    labellers[name] = r["collisions_per_100mi"]
+    r = evaluate(policy, world_cfg, check, desc=name)
+    labellers[name] = r.collisions_per_100mi
     print(
-        f"{name}: {r['collisions']} collisions in {r['miles']:.1f} mi "
-        f"({r['collisions_per_100mi']:.1f} per 100 mi) at {r['mean_speed_mph']:.1f} mph"
+        f"{name}: {r.collisions} collisions in {r.miles:.1f} mi "
+        f"({r.collisions_per_100mi:.1f} per 100 mi) at {r.mean_speed_mph:.1f} mph"
     )
 ends = train.trajectory[:, -1] - train.arrays["state_trajectory"][:, -1]  # (the 1.5 s points)
 apart = float(np.mean(np.linalg.norm(ends, axis=-1) > 1.0))  # the share over 1 m
@@ -290,12 +292,12 @@ on_test = ablation.evaluate_drivers({keys[k]: v for k, v in chosen.items()}, wor
 test = {k: on_test[v] for k, v in keys.items()}
 counts, per_mi = seed_counts(test["start"])
 start_rate = max(0.5, float(np.median(counts)) * 100.0 / per_mi)
-spread_k = record_dispersion(load(), near="gmm_affordance_cvar")["dispersion"]
+spread_k = record_dispersion(load(), near="gmm_affordance_cvar").k
 reach = power(len(seeds), per_mi, start_rate, dispersion=spread_k, test="sign-flip")
 print(
     f"{len(seeds)} seeds x {per_mi:.3g} mi: a true 2x step at {start_rate:.1f} per 100 mi is "
-    f"found in {reach['power']:.0%} of records (paired, the record's seed spread "
-    f"{spread_k:.2f}); smallest reachable p {reach['min_p']:.2g}"
+    f"found in {reach.power:.0%} of records (paired, the record's seed spread "
+    f"{spread_k:.2f}); smallest reachable p {reach.min_p:.2g}"
 )
 pairs = {
     "the step: DAgger vs its start": ("dagger", "start"),
@@ -304,12 +306,11 @@ pairs = {
 }
 verdicts = {what: compare_seeds(test[a], test[b], paired=True) for what, (a, b) in pairs.items()}
 for what, v in verdicts.items():
-    print(f"{what}: {v['verdict']}")
-got = {k: result_dict(r) for k, r in test.items()}
-rate = {k: r["collisions_per_100mi"] for k, r in got.items()}
-mph = {k: r["mean_speed_mph"] for k, r in got.items()}
+    print(f"{what}: {words.seeds(v)}")
+rate = {k: r.collisions_per_100mi for k, r in test.items()}
+mph = {k: r.mean_speed_mph for k, r in test.items()}
 print("test roads: " + ", ".join(f"{k} {rate[k]:.1f} per 100 mi at {mph[k]:.1f} mph" for k in rate))
-off = {k: r["interventions"] - r["collisions"] for k, r in got.items()}
+off = {k: r.off_centre for k, r in test.items()}
 print(
     "off-centre episodes (over 1 m from every lane centre for 3 s): "
     + ", ".join(f"{k} {n}" for k, n in off.items())
@@ -333,11 +334,11 @@ print(
 
 
 # %%
-def said(v: dict, other: str) -> str:
+def said(v: SeedTest, other: str) -> str:
     """A paired verdict in words: what it found against ``other``, or why it could not."""
-    if v["fewer"] or v["more"]:
-        return f"collides {'less' if v['fewer'] else 'more'} than {other}"
-    if v["min_p"] >= 0.05:
+    if v.fewer or v.more:
+        return f"collides {'less' if v.fewer else 'more'} than {other}"
+    if v.min_p >= 0.05:
         return f"is undecided against {other} ({len(seeds)} seeds cannot reach p < 0.05)"
     return f"was not shown to collide less than {other}"
 
@@ -372,8 +373,7 @@ headline = {  # (the test roads first: the teaching kit reads a chapter's first 
     "oracle on the wiped labels, per 100 mi": labellers["the oracle on the wiped labels"],
 }
 tested = {
-    k: {"verdict": v["verdict"], "p": v["p_fewer"], "ratio": v["ratio"]}
-    for k, v in verdicts.items()
+    k: {"verdict": words.seeds(v), "p": v.p_fewer, "ratio": v.ratio} for k, v in verdicts.items()
 }
 fields = ("round", "samples", "aggregate", "gate", "shift")
 rounds = {
@@ -393,9 +393,9 @@ metrics = {
     "kept_iterates": kept,
     "validation_per_seed": per_seed,
     "validation_off_centre": {arm: [it.off_centre for it in per] for arm, per in iterates.items()},
-    "test": {k: {**r, "events": None} for k, r in got.items()},
+    "test": {k: {**r.to_dict(with_events=False), "events": None} for k, r in test.items()},
     "verdicts": tested,
-    "power": {**reach, "dispersion": spread_k, "rate_per_100mi": start_rate},
+    "power": {**dataclasses.asdict(reach), "dispersion": spread_k, "rate_per_100mi": start_rate},
 }
 artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 

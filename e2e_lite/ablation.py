@@ -27,13 +27,7 @@ from .control.expert import Expert
 from .control.oracle import Oracle
 from .driving import anatomy
 from .driving.evaluation import evaluate
-from .driving.metrics import (
-    EvalResult,
-    off_centre_episodes,
-    pool_results,
-    result_dict,
-    results_table,
-)
+from .driving.metrics import EvalResult, pool_results, results_table
 from .driving.rollout import EvalConfig, disjoint_runs
 from .learning import dagger, recipes
 from .learning.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
@@ -150,8 +144,8 @@ def dagger_iterates(
     for name, model in networks:
         label = f"{name} on validation roads"
         res = evaluate_stored(f"{name}_val", label, TrajectoryAgent(model), world_cfg, run, **b.kw)
-        rates.append(result_dict(res)["collisions_per_100mi"])
-        off_centre.append(off_centre_episodes(res))
+        rates.append(res.collisions_per_100mi)
+        off_centre.append(res.off_centre)
     return Iterates(networks, rates, off_centre, dagger.kept_iterate(rates))
 
 
@@ -363,15 +357,14 @@ def evaluate_drivers(
     reuse: bool = True,
     progress: bool = True,
     workers: int | None = None,
-) -> dict[str, EvalResult | dict[str, Any]]:
+) -> dict[str, EvalResult]:
     """Every driver on the same tracks with the same seeds (``cfg``), in ``workers`` shards
     (default: every core; the results do not depend on it). A driver given as a list (one policy
     per training seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed,
     seed ``k`` of every driver on the same tracks (:func:`~e2e_lite.driving.evaluation.disjoint_runs`),
-    and its result pools theirs (a dict with ``seeds``). With ``reuse``, a stored result is read
-    back as a dict (:func:`~e2e_lite.stored.evaluate_stored`); every other driver is evaluated
-    and stored."""
-    out: dict[str, EvalResult | dict[str, Any]] = {}
+    and its result pools theirs (its ``seeds``). With ``reuse``, a stored result is read back
+    (:func:`~e2e_lite.stored.evaluate_stored`); every other driver is evaluated and stored."""
+    out: dict[str, EvalResult] = {}
     for key, policy in drivers.items():
         label = BY_KEY[key].label if key in BY_KEY else key
         if isinstance(policy, (list, tuple)):
@@ -412,13 +405,12 @@ def _fmt(value: float | None, unit: str = "") -> str:
     return "-" if value is None else f"{value:g}{unit}"
 
 
-def per_seed(result: EvalResult | dict[str, Any]) -> str:
+def per_seed(result: EvalResult) -> str:
     """A pooled result's per-seed rates, ``"a / b / c"`` per 100 mi (``"-"`` for one run)."""
-    seeds = result_dict(result).get("seeds") or []
-    return " / ".join(f"{s['collisions_per_100mi']:.1f}" for s in seeds) or "-"
+    return " / ".join(f"{s.collisions_per_100mi:.1f}" for s in result.seeds) or "-"
 
 
-def ablation_table(results: dict[str, EvalResult | dict[str, Any]]) -> str:
+def ablation_table(results: dict[str, EvalResult]) -> str:
     """The markdown table: ours (miles, collisions car / rail, per 100 mi with the 95 % interval,
     mph, time to collision, autonomy, the rate of each training seed) beside the papers' figures
     for the same method."""
@@ -427,7 +419,7 @@ def ablation_table(results: dict[str, EvalResult | dict[str, Any]]) -> str:
         [(d.label, r) for d, r in zip(drivers, results.values())],
         extra=[
             ("per seed, per 100 mi", [per_seed(r) for r in results.values()]),
-            ("stalls", [f"{result_dict(r)['stalls']:,}" for r in results.values()]),
+            ("stalls", [f"{r.stalls:,}" for r in results.values()]),
             ("paper: per 100 mi (seed 000)", [_fmt(d.paper_per_100mi) for d in drivers]),
             ("paper: time to collision (seed 002)", [_fmt(d.paper_ttc_s, " s") for d in drivers]),
         ],

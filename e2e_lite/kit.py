@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
+from .record import words
 from .record.rows import Record
 from .record.stats import steps
 
@@ -132,7 +133,7 @@ def _one_run_against_the_record(record: Record) -> str:
     rows = [row for row in map(record.row, keys) if row]
     rates = ", ".join(f"{r.label} {r.pooled()[0]:.1f}" for r in rows)
     controls = "; ".join(
-        f"{st.step}: {st.verdict} (Holm p = {st.verdict_p:.2g})"
+        f"{st.step}: {words.verdict(st)} (Holm p = {st.verdict_p:.2g})"
         for st in steps(record)
         if st.credits is not None
     )
@@ -168,7 +169,7 @@ def session_findings(run: dict[str, Any] | None, record: Record) -> str:
                 figures = list(ch["headline"].items())[:4]
                 shown += [f"{k} {_figure(v)}" for k, v in figures]
         verdicts = [
-            f"{name}: {tested[name].cell}, ratio {tested[name].ratio:.2f}"
+            f"{name}: {words.cell(tested[name])}, ratio {tested[name].ratio:.2f}"
             for name in step_names
             if name in tested
         ]

@@ -24,20 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from .artifacts import atomic_write, save_figure
-from .driving.metrics import seed_rates
 from .driving.rollout import EvalConfig
 from .kit import replace_block, teaching_with
-from .record import COURSE_RUN, RECORD, ROOT
+from .record import COURSE_RUN, RECORD, ROOT, words
 from .record.rows import SLOW_SHARE, Record, Row, load_record
-from .record.stats import (
-    SPREAD_GOAL,
-    controls_line,
-    dispersion,
-    family_line,
-    power_line,
-    spread,
-    steps,
-)
+from .record.stats import SPREAD_GOAL, steps
+from .stats.power import chi_square_spread
+from .stats.seeds import seed_rates, spread
 
 RESULTS_MD = ROOT / "docs" / "results.md"
 FIGURE = ROOT / "docs" / "figures" / "table1.png"
@@ -73,7 +66,7 @@ def _roads_text(record: Record) -> str:
 def _row_cells(row: Row, expert_mph: float | None) -> list[str]:
     """One line of Table 1: the driver, its seeds' rates, their median and range, the pooled
     rate, its speed, stalls, minutes between collisions and the paper's figure."""
-    rates = seed_rates(row.as_result())
+    rates = seed_rates(row)
     rate, lo, hi = row.pooled()
     several = len(rates) > 1
     per_seed = " / ".join(f"{r:.1f}" for r in rates) if several else "-"
@@ -129,7 +122,7 @@ def _steps_table(record: Record) -> list[str]:
         p, p_holm, direction = st.p_read
         lines.append(
             f"| {st.step} | {st.family} | {st.seeds[0]} vs {st.seeds[1]} | "
-            f"{p:.2g}: {direction} ({st.test}) | {p_holm:.2g} | {ratio} | {paper} | {st.cell} |"
+            f"{p:.2g}: {direction} ({st.test}) | {p_holm:.2g} | {ratio} | {paper} | {words.cell(st)} |"
         )
     return lines
 
@@ -145,8 +138,8 @@ def _table_note(record: Record) -> str:
     return (
         f"*{record.status}, on {_roads_text(record)}. Measured on {record.machine}, {where}: "
         f"{commits}. Ties are ties: a seed's count is its collisions over the row's common budget."
-        f" A rate ratio below 1: the later row collides less.{family_line(record)}"
-        f"{power_line(record)} Slow: more than {100 * (1 - SLOW_SHARE):.0f} % slower than the"
+        f" A rate ratio below 1: the later row collides less.{words.families(record)}"
+        f"{words.power(record)} Slow: more than {100 * (1 - SLOW_SHARE):.0f} % slower than the"
         f" expert.{_off_centre_line(record)} The paper's drivers averaged {record.paper_mph:g}"
         " mph.*"
     )
@@ -178,7 +171,7 @@ def table1(record: Record) -> str:
         cells = _row_cells(row, expert_mph) + ([_off_centre(row)] if off else [])
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", *_steps_table(record)]
-    controls = controls_line(steps(record))
+    controls = words.controls(steps(record))
     if controls:
         lines += ["", controls]
     lines += ["", _table_note(record)]
@@ -187,7 +180,7 @@ def table1(record: Record) -> str:
 
 def _detail_line(row: Row) -> str:
     """One line of docs/results.md's table per row."""
-    chi = dispersion(row)
+    chi = chi_square_spread([s.collisions for s in row.seeds], [s.miles for s in row.seeds])
     chi_text = "-" if chi is None else f"{chi:.1f} ({len(row.seeds) - 1})"
     stalls = "-" if row.stalls is None else str(row.stalls)
     ratio = spread(row)
@@ -244,7 +237,7 @@ def figure(record: Record):
     fig = Figure(figsize=(8.5, 0.45 * len(rows) + 1.4), layout="constrained")
     ax = fig.subplots()
     for y, row in enumerate(rows):
-        rates = seed_rates(row.as_result())
+        rates = seed_rates(row)
         ax.scatter(rates, np.full(len(rates), y), color="0.55", s=22, zorder=2)
         ax.plot([np.median(rates)] * 2, [y - 0.3, y + 0.3], color="black", lw=2.5, zorder=3)
         if row.paper_per_100mi is not None:
@@ -252,7 +245,7 @@ def figure(record: Record):
     ax.set_yticks(range(len(rows)), [r.label for r in rows], fontsize=9)
     ax.invert_yaxis()
     ax.set_xscale("symlog", linthresh=1.0)
-    top = max(max(seed_rates(r.as_result()).max(), r.paper_per_100mi or 0.0) for r in rows)
+    top = max(max(seed_rates(r).max(), r.paper_per_100mi or 0.0) for r in rows)
     ax.set_xlim(0.0, 2.0 * top)
     ax.grid(axis="x", alpha=0.3)
     what = "collisions per 100 miles: grey, each training seed; black, their median; red, the paper"

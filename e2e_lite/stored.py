@@ -16,7 +16,7 @@ from .artifacts import artifact_path, cached, load_json, save_json, settings_key
 from .config import precision
 from .control.oracle import Oracle
 from .driving.evaluation import evaluate
-from .driving.metrics import EvalResult, result_info
+from .driving.metrics import EvalResult
 from .driving.rollout import EvalConfig
 from .learning.agents import NetworkAgent
 from .learning.checkpoints import weights_digest
@@ -62,25 +62,27 @@ def evaluate_stored(
     reuse: bool = True,
     progress: bool = True,
     workers: int | None = None,
-) -> EvalResult | dict[str, Any]:
+) -> EvalResult:
     """One driver's evaluation, stored as ``evaluations/<file>-<settings key>.json`` with what the
-    policy reported (``result.info``, which must be JSON-able; read it back with
-    :func:`~e2e_lite.driving.metrics.result_info`), and read back instead of driven again while
+    policy reported (``result.info``, which must be JSON-able: :meth:`EvalResult.to_json`), and
+    read back as the same :class:`EvalResult` (less its traces) instead of driven again while
     the driver (:func:`fingerprint`), world, settings and precision are the same (see
     :func:`~e2e_lite.ablation.evaluate_drivers`)."""
+    driven = []
 
     def run() -> EvalResult:
         res = evaluate(policy, world_cfg, cfg, desc=label, progress=progress, workers=workers)
         if progress:
             print(f"{label}: {res.summary()}", flush=True)
+        driven.append(res)
         return res
 
     if not reuse:
         return run()
     path, run_key = stored_at(file, policy, world_cfg, cfg)
     result = cached(path, run_key, run, _save_result, _load_result, verbose=progress)
-    if progress and not isinstance(result, EvalResult):
-        print(f"{label}: reusing {path.name} ({result['miles']:.3g} mi)", flush=True)
+    if progress and not driven:
+        print(f"{label}: reusing {path.name} ({result.miles:.3g} mi)", flush=True)
     return result
 
 
@@ -95,11 +97,9 @@ def stored_at(
 
 
 def _save_result(path: Path, result: EvalResult, key: str) -> None:
-    info = {"info": result_info(result)} if result_info(result) else {}
-    save_json(path, {"key": key, "result": result.to_dict(), **info})
+    save_json(path, {"key": key, **result.to_json()})
 
 
-def _load_result(path: Path) -> tuple[dict[str, Any], str]:
+def _load_result(path: Path) -> tuple[EvalResult, str]:
     stored = load_json(path)
-    info = {"info": stored["info"]} if "info" in stored else {}
-    return {**stored["result"], **info}, stored["key"]
+    return EvalResult.from_json(stored), stored["key"]

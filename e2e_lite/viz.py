@@ -7,7 +7,6 @@ the library stays headless and a notebook still shows a returned figure inline.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -15,7 +14,7 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
 from .artifacts import save_figure  # noqa: F401 (re-exported: the chapters save figures through viz)
-from .driving.metrics import EvalResult, result_dict
+from .driving.metrics import EvalResult
 from .simulation.geometry import Track
 from .simulation.world import ParkedCars
 
@@ -153,7 +152,7 @@ def highway_figure(
 
 
 def collision_chart(
-    rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
+    rows: Sequence[tuple[str, EvalResult]],
     title: str = "closed loop on the test tracks",
     reference: Sequence[tuple[str, float]] = (),
     marks: Sequence[float | None] = (),
@@ -163,7 +162,7 @@ def collision_chart(
     """Collisions per 100 miles as horizontal bars with their 95 % intervals.
 
     Args:
-        rows: ``(driver, result)`` with an :class:`EvalResult` or its ``to_dict()``, drawn top to
+        rows: ``(driver, result)`` with an :class:`EvalResult`, drawn top to
             bottom.
         title: the axes title.
         reference: ``(label, collisions per 100 mi)`` drawn as dashed vertical lines (e.g. a
@@ -179,10 +178,10 @@ def collision_chart(
     if not rows:
         raise ValueError("collision_chart needs at least one row")
     names = [name for name, _ in rows]
-    results = [result_dict(r) for _, r in rows]
-    rate = np.array([r["collisions_per_100mi"] for r in results], dtype=float)
-    lo = np.array([r["ci95_per_100mi"][0] for r in results], dtype=float)
-    hi = np.array([r["ci95_per_100mi"][1] for r in results], dtype=float)
+    results = [r for _, r in rows]
+    rate = np.array([r.collisions_per_100mi for r in results], dtype=float)
+    lo = np.array([r.ci95_per_100mi[0] for r in results], dtype=float)
+    hi = np.array([r.ci95_per_100mi[1] for r in results], dtype=float)
     fig = Figure(figsize=(8.5, 0.55 * len(rows) + 1.4))
     ax = fig.subplots()
     y = np.arange(len(rows))[::-1]
@@ -190,11 +189,11 @@ def collision_chart(
     ax.errorbar(rate, y, xerr=[rate - lo, hi - rate], fmt="none", ecolor="black", capsize=4)
     seeds_shown = False
     for yi, res in zip(y, results):
-        per_seed = [result_dict(r) for r in res.get("seeds") or []]
+        per_seed = res.seeds
         for j, sr in enumerate(per_seed):
             dy = 0.25 * (j - (len(per_seed) - 1) / 2) / max(1, len(per_seed) - 1) * 2
-            sl, sh = sr["ci95_per_100mi"]
-            sv = sr["collisions_per_100mi"]
+            sl, sh = sr.ci95_per_100mi
+            sv = sr.collisions_per_100mi
             label = None if seeds_shown else "one training seed (95 % interval)"
             look = {"fmt": "o", "color": "0.35", "ms": 3.5, "elinewidth": 0.8, "capsize": 0}
             ax.errorbar([sv], [yi + dy], xerr=[[sv - sl], [sh - sv]], zorder=4, label=label, **look)

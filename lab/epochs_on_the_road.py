@@ -34,7 +34,6 @@ def _drive(job: tuple) -> dict[str, Any]:
 
     from e2e_lite.config import FULL, QUICK
     from e2e_lite.driving.evaluation import evaluate
-    from e2e_lite.driving.metrics import result_dict
     from e2e_lite.driving.rollout import EvalConfig
     from e2e_lite.learning.agents import TrajectoryAgent
     from e2e_lite.learning.models import build_model
@@ -48,16 +47,15 @@ def _drive(job: tuple) -> dict[str, Any]:
     profile = QUICK if quick else FULL
     ev = EvalConfig(miles=miles, n_worlds=64, split=split)
     res = evaluate(TrajectoryAgent(model), WorldConfig.for_profile(profile), ev, progress=False)
-    r = result_dict(res)
     return {
         **tag,
         "split": split,
-        "collisions": r["collisions"],
-        "rail": r["rail_collisions"],
-        "miles": r["miles"],
-        "per_100mi": r["collisions_per_100mi"],
-        "mph": r["mean_speed_mph"],
-        "stalls": r["stalls"],
+        "collisions": res.collisions,
+        "rail": res.rail_collisions,
+        "miles": res.miles,
+        "per_100mi": res.collisions_per_100mi,
+        "mph": res.mean_speed_mph,
+        "stalls": res.stalls,
     }
 
 

@@ -19,7 +19,7 @@ fine-tunes are not stored). ``--weight``: chapter 08's chosen affordance weight 
 its stored grid when not given). Declared before the run: one paired sign-flip test over the
 seeds, the off-centre episodes of the middle-home arm's last iterate against the own-home arm's
 (more with the middle home). Off-centre episodes: the autonomy metric's interventions that were
-not collisions (:func:`~e2e_lite.driving.metrics.off_centre_episodes`).
+not collisions (:attr:`~e2e_lite.driving.metrics.EvalResult.off_centre`).
 """
 
 from __future__ import annotations
@@ -38,8 +38,6 @@ from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving.evaluation import evaluate
-from e2e_lite.driving.metrics import drive_counts
-from e2e_lite.driving.verdicts import sign_flip_test
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.checkpoints import load_checkpoint
@@ -48,6 +46,7 @@ from e2e_lite.learning.dataset import DrivingData, DrivingDataset, relabelled
 from e2e_lite.learning.models import DrivingModel, pick_device
 from e2e_lite.learning.training import fit
 from e2e_lite.simulation.world import WorldConfig
+from e2e_lite.stats.seeds import sign_flip_test
 from e2e_lite.stored import evaluate_stored
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "home_lane.json"
@@ -74,7 +73,7 @@ def drive(name: str, model: DrivingModel, profile: Profile, seed: int, miles: fl
         WorldConfig.for_profile(profile),
         dagger.val_run(profile, seed, miles),
     )
-    return drive_counts(res)
+    return res.brief()
 
 
 def start(seed: int) -> tuple[DrivingModel, dict[str, Any]]:
@@ -135,7 +134,7 @@ def labellers(profile: Profile, miles: float) -> dict[str, dict[str, float]]:
         res = evaluate(
             Oracle(StateExpert(sim=world.sim, home=home)), world, dagger.val_roads(miles, 32)
         )
-        out[home] = drive_counts(res)
+        out[home] = res.brief()
     return out
 
 
@@ -199,8 +198,8 @@ def main() -> None:
             "weight": weight,
         },
         declared_test="paired sign-flip, last iterate's off-centre episodes: middle home vs own",
-        p_more_with_middle_home=test["p_more"],
-        min_p=test["min_p"],
+        p_more_with_middle_home=test.p_more,
+        min_p=test.min_p,
         wall_s=round(time.perf_counter() - t0, 1),
     )
     print(json.dumps(result, indent=1))

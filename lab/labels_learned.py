@@ -33,7 +33,7 @@ def run(labeller: str, outputs: Path, seeds: int, miles: float, quick: bool) -> 
     os.environ["E2E_LITE_OUTPUTS"] = str(outputs)
     from e2e_lite import ablation
     from e2e_lite.config import FULL, QUICK
-    from e2e_lite.driving.evaluation import EvalConfig, result_dict
+    from e2e_lite.driving.evaluation import EvalConfig
     from e2e_lite.learning import collector, recipes
     from e2e_lite.learning.agents import TrajectoryAgent
     from e2e_lite.simulation.world import WorldConfig
@@ -51,9 +51,14 @@ def run(labeller: str, outputs: Path, seeds: int, miles: float, quick: bool) -> 
     world_cfg = WorldConfig.for_profile(profile)
     ev = EvalConfig(miles=miles * seeds, n_worlds=profile.ablation_worlds, split="val")
     drivers = {f"labels_{labeller}_gmm": [TrajectoryAgent(m) for m in models]}
-    found = result_dict(ablation.evaluate_drivers(drivers, world_cfg, ev)[next(iter(drivers))])
+    found = ablation.evaluate_drivers(drivers, world_cfg, ev)[next(iter(drivers))]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    found = {**found, "events": None, "labeller": labeller, "commit": commit.stdout.strip()}
+    found = {
+        **found.to_dict(with_events=False),
+        "events": None,
+        "labeller": labeller,
+        "commit": commit.stdout.strip(),
+    }
     found["train_data"] = {k: v for k, v in train.info.items() if k != "key"}
     (outputs / ("quick" if quick else "") / "labels_learned.json").write_text(
         json.dumps(found, indent=1, default=str) + "\n"
@@ -64,13 +69,22 @@ def run(labeller: str, outputs: Path, seeds: int, miles: float, quick: bool) -> 
 
 
 def compare(a: Path, b: Path) -> None:
-    from e2e_lite.driving.verdicts import compare_seeds
+    from dataclasses import asdict
+
+    from e2e_lite.driving.metrics import EvalResult
+    from e2e_lite.record import words
+    from e2e_lite.stats.seeds import compare_seeds
 
     course, first = (json.loads((p / "labels_learned.json").read_text()) for p in (a, b))
-    verdict = compare_seeds(course, first)
-    out = {"course's expert": course, "first expert": first, "test": verdict}
+    test = compare_seeds(EvalResult.from_dict(course), EvalResult.from_dict(first))
+    said = words.seeds(test)
+    out = {
+        "course's expert": course,
+        "first expert": first,
+        "test": {**asdict(test), "verdict": said},
+    }
     OUT.write_text(json.dumps(out, indent=1, default=str) + "\n")
-    print(verdict["verdict"])
+    print(said)
 
 
 def main() -> None:

@@ -32,8 +32,6 @@ import numpy as np
 from e2e_lite import ablation
 from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.labels import AFFORDANCE_INDEX
-from e2e_lite.driving.metrics import drive_counts
-from e2e_lite.driving.verdicts import sign_flip_test
 from e2e_lite.learning import dagger, recipes
 from e2e_lite.learning.agents import TrajectoryAgent
 from e2e_lite.learning.checkpoints import train_or_load, training_data_key
@@ -41,6 +39,7 @@ from e2e_lite.learning.collector import DataConfig, load_or_collect
 from e2e_lite.learning.dataset import DrivingData
 from e2e_lite.learning.models import DrivingModel
 from e2e_lite.simulation.world import WorldConfig
+from e2e_lite.stats.seeds import sign_flip_test
 from e2e_lite.stored import evaluate_stored
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "off_centre_labels.json"
@@ -59,7 +58,7 @@ def drive(
         WorldConfig.for_profile(profile),
         run,
     )
-    return drive_counts(res)
+    return res.brief()
 
 
 def expert_labels(
@@ -158,8 +157,8 @@ def main() -> None:
         "off_centre_by_iterate": arms,
         "collisions_per_100mi_by_iterate": rates,
         "declared_test": "paired sign-flip, last iterate: state expert's labels vs expert's labels",
-        "p_more_with_state_labels": test["p_more"],
-        "min_p": test["min_p"],
+        "p_more_with_state_labels": test.p_more,
+        "min_p": test.min_p,
         "labels_apart_at_chapter_04_states": labels_apart(train),
     }
     print(json.dumps({k: v for k, v in result.items() if k != "config"}, indent=1))

@@ -33,7 +33,6 @@ from e2e_lite.control.labels import AFFORDANCE_INDEX, CHANGE, KEEP, STATE_NAMES
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving.evaluation import evaluate
-from e2e_lite.driving.metrics import drive_counts
 from e2e_lite.learning import dagger
 from e2e_lite.learning.collector import DataConfig, dataset_path
 from e2e_lite.learning.dataset import road_lateral
@@ -173,7 +172,7 @@ def drives(profile: Profile, miles: float) -> dict[str, dict[str, float]]:
     out = {}
     for name, labeller in (("expert", Expert), ("state expert", StateExpert)):
         res = evaluate(Oracle(labeller(sim=world.sim)), world, check, desc=name, workers=1)
-        out[f"the oracle on the {name}'s labels"] = drive_counts(res)
+        out[f"the oracle on the {name}'s labels"] = res.brief()
     return out
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import replace
+from types import SimpleNamespace
 from typing import ClassVar
 
 import numpy as np
@@ -18,21 +19,22 @@ from e2e_lite.driving.evaluation import (
     MPS_TO_MPH,
     Actuation,
     EvalConfig,
+    EvalResult,
     Observation,
     Policy,
     close_shard_workers,
-    compare_rates,
     disjoint_runs,
     drive,
     evaluate,
-    poisson_ci,
     pool_results,
     results_table,
     shard_cars,
     track_index,
 )
+from e2e_lite.record import words
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
+from e2e_lite.stats.rates import compare_rates, poisson_ci
 
 EMPTY = WorldConfig(road=RoadConfig(length_m=3_000.0), traffic=TrafficConfig(n_cars=(0, 0)))
 BUSY = WorldConfig(road=RoadConfig(length_m=3_000.0))
@@ -67,36 +69,44 @@ def test_poisson_interval():
         poisson_ci(1, 0.0)
 
 
-def _result(k: int, miles: float) -> dict:
-    return {
-        "miles": miles,
-        "collisions": k,
-        "car_collisions": k,
-        "rail_collisions": 0,
-        "collisions_per_100mi": 100.0 * k / miles,
-        "ci95_per_100mi": [100.0 * x for x in poisson_ci(k, miles)],
-        "mean_speed_mph": 55.0,
-        "time_to_collision_s": None,
-        "autonomy_pct": 100.0,
-    }
+def _result(k: int, miles: float) -> EvalResult:
+    return EvalResult(
+        miles=miles,
+        collisions=k,
+        car_collisions=k,
+        rail_collisions=0,
+        collisions_per_100mi=100.0 * k / miles,
+        ci95_per_100mi=tuple(100.0 * x for x in poisson_ci(k, miles)),
+        mean_speed_mph=55.0,
+        time_to_collision_s=None,
+        episodes_censored=0,
+        miles_per_collision=None,
+        autonomy_pct=100.0,
+        interventions=k,
+        stalls=0,
+        sim_time_s=miles * 65.0,
+        wall_time_s=1.0,
+        sim_miles_per_wall_s=miles,
+        tracks_driven=1,
+    )
 
 
 def test_compare_rates_uses_the_exact_conditional_test():
     # 30 vs 10 in equal miles: binomial(40, 1/2) two-sided p = 0.0022
     res = compare_rates(_result(30, 100.0), _result(10, 100.0))
-    assert res["p_value"] == pytest.approx(0.00222, abs=1e-4) and res["different"]
-    assert "more collisions" in res["verdict"] and res["ratio"] == pytest.approx(3.0)
+    assert res.p_value == pytest.approx(0.00222, abs=1e-4) and res.different
+    assert "more collisions" in words.rates(res) and res.ratio == pytest.approx(3.0)
     same = compare_rates(_result(12, 100.0), _result(10, 100.0))
-    assert not same["different"] and "a difference not shown" in same["verdict"]
+    assert not same.different and "a difference not shown" in words.rates(same)
     # unequal miles enter as the binomial's p: 10 in 200 mi vs 5 in 100 mi is the same rate
-    assert compare_rates(_result(10, 200.0), _result(5, 100.0))["p_value"] == pytest.approx(1.0)
-    assert compare_rates(_result(0, 100.0), _result(0, 100.0))["ratio"] is None
+    assert compare_rates(_result(10, 200.0), _result(5, 100.0)).p_value == pytest.approx(1.0)
+    assert compare_rates(_result(0, 100.0), _result(0, 100.0)).ratio is None
     # two drives of one budget end metres apart: the p must not jump when the share crosses 1/2
     # (scipy's default two-sided binomial p gave 0.077 here against 0.118 at equal miles)
-    equal = compare_rates(_result(4, 300.0), _result(11, 300.0))["p_value"]
+    equal = compare_rates(_result(4, 300.0), _result(11, 300.0)).p_value
     for metres in (-10.0, 10.0):
         nudged = compare_rates(_result(4, 300.0 + metres / 1609.344), _result(11, 300.0))
-        assert nudged["p_value"] == pytest.approx(equal, rel=1e-3)
+        assert nudged.p_value == pytest.approx(equal, rel=1e-3)
 
 
 def test_results_table_has_a_row_per_driver():
@@ -416,27 +426,31 @@ def test_pooled_results_are_one_drive_of_the_summed_counts():
         LaneKeeper(), BUSY, EvalConfig(miles=2.0, n_worlds=2, n_tracks=2, seed=3), progress=False
     )
     pooled = pool_results([a, b])
-    assert pooled["miles"] == pytest.approx(a.miles + b.miles)
-    assert pooled["collisions"] == a.collisions + b.collisions > 0
-    assert pooled["collisions_per_100mi"] == pytest.approx(
+    assert pooled.miles == pytest.approx(a.miles + b.miles)
+    assert pooled.collisions == a.collisions + b.collisions > 0
+    assert pooled.collisions_per_100mi == pytest.approx(
         100 * (a.collisions + b.collisions) / (a.miles + b.miles)
     )
-    assert pooled["ci95_per_100mi"] == poisson_ci(pooled["collisions"], pooled["miles"] / 100)
+    assert pooled.ci95_per_100mi == poisson_ci(pooled.collisions, pooled.miles / 100)
     ttc_sum = a.time_to_collision_s * a.collisions + b.time_to_collision_s * b.collisions
-    assert pooled["time_to_collision_s"] == pytest.approx(ttc_sum / pooled["collisions"])
-    assert pooled["mean_speed_mph"] == pytest.approx(
+    assert pooled.time_to_collision_s == pytest.approx(ttc_sum / pooled.collisions)
+    assert pooled.mean_speed_mph == pytest.approx(
         (a.miles + b.miles) * M_PER_MILE / (a.sim_time_s + b.sim_time_s) * MPS_TO_MPH
     )
-    assert [s["collisions"] for s in pooled["seeds"]] == [a.collisions, b.collisions]
-    # a result read back from storage (with what its policy reported) pools to the same
-    stored = [{**x.to_dict(), "info": {"interventions": 3}} for x in (a, b)]
+    assert [s.collisions for s in pooled.seeds] == [a.collisions, b.collisions]
+    # a result read back from storage (with what its policy reported) is the same type, and pools
+    # to the same
+    stored = [EvalResult.from_json({"result": x.to_dict(), "info": {"n": 3}}) for x in (a, b)]
+    assert stored[0].info == {"n": 3} and stored[0].to_dict() == a.to_dict()
     assert pool_results(stored) == pooled
-    assert sum(pooled["speed_hist"]) == sum(a.speed_hist) + sum(b.speed_hist)
-    assert pooled["events"] == a.events + b.events  # (classified by collision_kinds)
+    assert pooled.to_dict()["seeds"] == [x.to_dict(with_events=False) for x in (a, b)]
+    assert EvalResult.from_dict(pooled.to_dict()) == pooled
+    assert sum(pooled.speed_hist) == sum(a.speed_hist) + sum(b.speed_hist)
+    assert pooled.events == a.events + b.events  # (classified by collision_kinds)
     # one result pools to itself
     alone = pool_results([a])
     for key in ("collisions_per_100mi", "mean_speed_mph", "autonomy_pct", "time_to_collision_s"):
-        assert alone[key] == pytest.approx(getattr(a, key)), key
+        assert getattr(alone, key) == pytest.approx(getattr(a, key)), key
     with pytest.raises(ValueError, match="at least one"):
         pool_results([])
 
@@ -549,29 +563,31 @@ def test_no_closed_loop_number_drives_a_road_that_a_choice_was_made_on():
 
 
 def _row(counts, miles=100.0):
+    """A row of training seeds as the statistics read one: each seed's collisions and miles."""
     seeds = [
-        {"collisions": c, "miles": m} for c, m in zip(counts, np.broadcast_to(miles, len(counts)))
+        SimpleNamespace(collisions=c, miles=m)
+        for c, m in zip(counts, np.broadcast_to(miles, len(counts)))
     ]
-    return {"seeds": seeds, "collisions": sum(counts), "miles": float(np.sum(miles))}
+    return SimpleNamespace(seeds=seeds, collisions=sum(counts), miles=float(np.sum(miles)))
 
 
 def test_compare_seeds_is_an_exact_seed_level_test_that_treats_ties_as_ties():
     """Issues 50 and 57: the training seed is the unit. Hand-made counts with known p."""
-    from e2e_lite.driving.evaluation import compare_seeds, seed_counts, seed_rates
+    from e2e_lite.stats.seeds import compare_seeds, seed_counts, seed_rates
 
     low, high = _row([1, 2, 3, 4, 5]), _row([10, 11, 12, 13, 14])
     test = compare_seeds(low, high)
-    assert test["p_fewer"] == pytest.approx(1 / 252) and test["p_more"] == 1.0
-    assert test["min_p"] == pytest.approx(1 / 252) and test["test"] == "rank"
-    assert "fewer collisions, seed by seed" in test["verdict"]
+    assert test.p_fewer == pytest.approx(1 / 252) and test.p_more == 1.0
+    assert test.min_p == pytest.approx(1 / 252) and test.test == "rank"
+    assert "fewer collisions, seed by seed" in words.seeds(test)
     # three against three cannot go below 1 / 20, and the verdict says so
     three = compare_seeds(_row([1, 2, 3]), _row([10, 11, 12]))
-    assert three["p_fewer"] == pytest.approx(0.05) and "not shown" in three["verdict"]
-    assert "cannot reach" in three["verdict"]
+    assert three.p_fewer == pytest.approx(0.05) and "not shown" in words.seeds(three)
+    assert "cannot reach" in words.seeds(three)
     # one catastrophic seed: pooled it is far worse, seed by seed it is not shown either way
     cat = _row([1, 2, 1, 2, 300])
-    assert compare_rates(cat, high)["verdict"].split(":")[1].strip().startswith("more")
-    assert "not shown" in compare_seeds(cat, high)["verdict"]
+    assert words.rates(compare_rates(cat, high)).split(":")[1].strip().startswith("more")
+    assert "not shown" in words.seeds(compare_seeds(cat, high))
     np.testing.assert_allclose(seed_rates(_row([3], 50.0)), [6.0])
     # the record's GMM -> + affordance: four tied seeds, broken in + affordance's favour by where
     # a drive ended (a few metres); as rates p = 0.028, with ties as ties p = 0.087 (issue 57)
@@ -579,43 +595,44 @@ def test_compare_seeds_is_an_exact_seed_level_test_that_treats_ties_as_ties():
     aff = _row([6, 5, 3, 2, 3], [100.006, 99.999, 100.003, 100.005, 100.004])
     assert seed_counts(aff)[0].tolist() == [6, 5, 3, 2, 3]
     step = compare_seeds(aff, gmm)
-    assert abs(step["p_fewer"] - 0.087) < 0.005 and not step["fewer"]
-    assert step["ratio"] == pytest.approx(19 / 35) and step["ratio_ci"][0] < 19 / 35 < 1.0
+    assert abs(step.p_fewer - 0.087) < 0.005 and not step.fewer
+    assert step.ratio == pytest.approx(19 / 35) and step.ratio_ci[0] < 19 / 35 < 1.0
     # paired (seed k of both rows on the same roads): the sign-flip test over the 2^5 patterns;
     # the tie (6 - 6) counts for neither row
     paired = compare_seeds(aff, gmm, paired=True)
-    assert paired["test"] == "paired sign-flip" and paired["p_fewer"] == pytest.approx(2 / 32)
-    assert paired["p_unpaired"] == pytest.approx(step["p_fewer"])
+    assert paired.test == "paired sign-flip" and paired.p_fewer == pytest.approx(2 / 32)
+    assert paired.p_unpaired == pytest.approx(step.p_fewer)
     # four seeds, every one worse: the bootstrap interval excludes 1 where the exact test cannot
     # reach 0.05 (chapter 11's run printed 1.55 [1.20, 1.80] beside "not shown"): the verdict says
     # which to read
     narrow = compare_seeds(_row([4, 5, 4, 4]), _row([3, 3, 2, 3]), paired=True)
-    assert narrow["ratio_ci"][0] > 1.0 and "not shown" in narrow["verdict"]
-    assert "too narrow to read" in narrow["verdict"]
+    assert narrow.ratio_ci[0] > 1.0 and "not shown" in words.seeds(narrow)
+    assert "too narrow to read" in words.seeds(narrow)
     alike = compare_seeds(_row([3, 4, 5, 4]), _row([4, 3, 5, 4]), paired=True)
-    assert alike["ratio_ci"][0] <= 1.0 <= alike["ratio_ci"][1]
-    assert "too narrow" not in alike["verdict"]
+    assert alike.ratio_ci[0] <= 1.0 <= alike.ratio_ci[1]
+    assert "too narrow" not in words.seeds(alike)
 
 
 def test_the_seed_level_test_keeps_its_false_positive_rate_and_states_its_power():
     """Issue 57: on simulated rows of equal rates the test says "fewer" at most 5 % of the time
     (ties make it conservative), and the power function agrees with a direct simulation."""
-    from e2e_lite.driving.verdicts import power, rank_test, sign_flip_test
+    from e2e_lite.stats.power import power
+    from e2e_lite.stats.seeds import rank_test, sign_flip_test
 
     rng = np.random.default_rng(1)
     for seeds, lam in ((5, 3.0), (5, 0.8), (4, 6.0), (10, 3.0)):
         a, b = rng.poisson(lam, (400, seeds)), rng.poisson(lam, (400, seeds))
-        false = np.mean([rank_test(x, y)["p_fewer"] < 0.05 for x, y in zip(a, b)])
+        false = np.mean([rank_test(x, y).p_fewer < 0.05 for x, y in zip(a, b)])
         assert false <= 0.05, (seeds, lam, false)
-        flips = np.mean([sign_flip_test(x, y)["p_fewer"] < 0.05 for x, y in zip(a, b)])
+        flips = np.mean([sign_flip_test(x, y).p_fewer < 0.05 for x, y in zip(a, b)])
         assert flips <= 0.05, (seeds, lam, flips)
     # 3 seeds against 3 can never decide; 5 x 100 mi finds a 2x step (3 vs 6 per 100 mi) about
     # 60 % of the time, 10 x 100 mi about 90 % (the issue's simulation: 61-64 % and 89-91 %)
-    assert power(3, 167.0, 3.0)["power"] == 0.0 and power(3, 167.0, 3.0)["min_p"] == 0.05
-    five = power(5, 100.0, 3.0, n_sim=1_000)["power"]
-    ten = power(10, 100.0, 3.0, n_sim=1_000)["power"]
+    assert power(3, 167.0, 3.0).power == 0.0 and power(3, 167.0, 3.0).min_p == 0.05
+    five = power(5, 100.0, 3.0, n_sim=1_000).power
+    ten = power(10, 100.0, 3.0, n_sim=1_000).power
     assert 0.5 < five < 0.7 and 0.85 < ten < 0.95
-    assert power(4, 100.0, 3.0)["min_p"] == pytest.approx(1 / 70)
+    assert power(4, 100.0, 3.0).min_p == pytest.approx(1 / 70)
 
 
 def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reaches():
@@ -671,7 +688,7 @@ def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p
     1/128, not 1/1024); the float rank test used by power() equals the exact one."""
     import itertools
 
-    from e2e_lite.driving.verdicts import rank_test, sign_flip_test
+    from e2e_lite.stats.seeds import rank_test, sign_flip_test
 
     rng = np.random.default_rng(3)
     for _ in range(150):
@@ -680,22 +697,22 @@ def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p
         d = a - b
         sums = np.array([np.dot(s, np.abs(d)) for s in itertools.product((-1, 1), repeat=n)])
         got = sign_flip_test(a, b)
-        assert got["p_fewer"] == pytest.approx(np.mean(sums <= d.sum()), abs=1e-12)
-        assert got["p_more"] == pytest.approx(np.mean(sums >= d.sum()), abs=1e-12)
-        assert rank_test(a, b, exact=False)["p_fewer"] == pytest.approx(
-            rank_test(a, b)["p_fewer"], abs=1e-12
+        assert got.p_fewer == pytest.approx(np.mean(sums <= d.sum()), abs=1e-12)
+        assert got.p_more == pytest.approx(np.mean(sums >= d.sum()), abs=1e-12)
+        assert rank_test(a, b, exact=False).p_fewer == pytest.approx(
+            rank_test(a, b).p_fewer, abs=1e-12
         )
     zeros = sign_flip_test([0, 0, 0, 1, 1, 1, 1, 1, 1, 1], [0, 0, 0, 2, 2, 2, 2, 2, 2, 2])
-    assert zeros["min_p"] == pytest.approx(1 / 128) and zeros["p_fewer"] == pytest.approx(1 / 128)
+    assert zeros.min_p == pytest.approx(1 / 128) and zeros.p_fewer == pytest.approx(1 / 128)
     # fractional differences are listed, and a zero among them is still a zero
-    assert sign_flip_test([0.5, 1.0, 2.0], [0.5, 2.0, 3.0])["min_p"] == pytest.approx(1 / 4)
+    assert sign_flip_test([0.5, 1.0, 2.0], [0.5, 2.0, 3.0]).min_p == pytest.approx(1 / 4)
     thirty = sign_flip_test(np.zeros(30), np.ones(30))
-    assert thirty["p_fewer"] == pytest.approx(0.5**30) and thirty["p_more"] == 1.0
+    assert thirty.p_fewer == pytest.approx(0.5**30) and thirty.p_more == 1.0
     # tied values: 3 seeds against 3 of one count cannot give anything but p = 1
-    assert rank_test([2, 2, 2], [2, 2, 2])["min_p"] == 1.0
+    assert rank_test([2, 2, 2], [2, 2, 2]).min_p == 1.0
     # a bootstrap resample whose control never collided has an infinite ratio: the interval
     # says inf, not NaN (percentiles interpolated between infinities)
-    from e2e_lite.driving.verdicts import ratio_interval
+    from e2e_lite.stats.seeds import ratio_interval
 
     ratio, low, high = ratio_interval([2, 3, 4, 5], [0, 1, 0, 0], paired=True)
     assert ratio == 14.0 and np.isfinite(low) and high == np.inf
@@ -718,21 +735,21 @@ def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():
     about 0; simulated seeds of dispersion 0.4 fit an interval that holds 0.4), and a record
     whose seeds spread so finds a 2x step far less often than Poisson seeds would (the issue's
     simulation: 10 x 100 mi at 3 per 100 mi, 0.90 without spread, about 0.57 at 0.32)."""
-    from e2e_lite.driving.verdicts import fit_dispersion, holm, power
+    from e2e_lite.stats.power import fit_dispersion, holm, power
 
     rng = np.random.default_rng(5)
     poisson = [rng.poisson(mu, 10) for mu in (2.0, 5.0, 9.0, 30.0) * 5]
-    assert fit_dispersion(poisson)["dispersion"] < 0.05
+    assert fit_dispersion(poisson).k < 0.05
     spread = [rng.poisson(mu * rng.gamma(2.5, 0.4, 10)) for mu in (2.0, 5.0, 9.0, 30.0) * 5]
     fitted = fit_dispersion(spread)
-    assert fitted["low"] < 0.4 < fitted["high"] and fitted["seeds"] == 200
+    assert fitted.low < 0.4 < fitted.high and fitted.seeds == 200
     with pytest.raises(ValueError, match="two seeds"):
         fit_dispersion([[3]])
-    flat = power(10, 100.0, 3.0, n_sim=1_000)["power"]
-    spread_power = power(10, 100.0, 3.0, n_sim=1_000, dispersion=0.32)["power"]
+    flat = power(10, 100.0, 3.0, n_sim=1_000).power
+    spread_power = power(10, 100.0, 3.0, n_sim=1_000, dispersion=0.32).power
     paired = power(10, 100.0, 3.0, n_sim=1_000, dispersion=0.32, test="sign-flip")
-    assert 0.85 < flat < 0.95 and 0.5 < spread_power < 0.65 and 0.45 < paired["power"] < 0.65
-    assert paired["min_p"] == pytest.approx(0.5**10)
+    assert 0.85 < flat < 0.95 and 0.5 < spread_power < 0.65 and 0.45 < paired.power < 0.65
+    assert paired.min_p == pytest.approx(0.5**10)
     with pytest.raises(ValueError, match="dispersion"):
         power(10, 100.0, 3.0, dispersion=-0.1)
     # Holm: 0.01, 0.04, 0.03 in a family of three -> 0.03, 0.06, 0.06

@@ -6,12 +6,15 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+from types import SimpleNamespace
 
 import pytest
 
 from e2e_lite import kit, report
+from e2e_lite.record import words
 from e2e_lite.record.rows import Record, Row, SeedRun
-from e2e_lite.record.stats import STEPS, controls_line, record_power, spread, steps
+from e2e_lite.record.stats import STEPS, record_power, steps
+from e2e_lite.stats.seeds import spread
 
 ROOT = report.ROOT
 
@@ -86,17 +89,17 @@ def test_each_step_gives_its_p_ratio_interval_and_paired_test_and_the_record_its
     tested = by_step(record)
     aff = tested["GMM -> + affordance"]
     assert abs(aff.p_fewer - 0.087) < 0.005 and aff.test == "rank"
-    assert aff.verdict == "not shown at the seed level"
+    assert words.verdict(aff) == "not shown at the seed level"
     assert aff.ratio == pytest.approx(19 / 35) and aff.ratio_ci[0] < aff.ratio
     cvar = tested["+ affordance -> + CVaR"]
     assert cvar.test == "paired sign-flip" and cvar.p_paired == cvar.p_fewer
     table = report.table1(record)
     assert "0.54 [" in table and "Power: 5 seeds x 100 mi" in table
     found = record_power(record)
-    assert found["rate_per_100mi"] == 3.0 and 0.5 < found["power"] < 0.7
+    assert found.rate_per_100mi == 3.0 and 0.5 < found.power < 0.7
     # three seeds against three: the verdict says it cannot decide
     few = with_rows(record, row("gmm", [20, 21, 22]), row("gmm_affordance", [1, 2, 3]))
-    assert steps(few)[0].verdict == "cannot be decided with these seeds"
+    assert words.verdict(steps(few)[0]) == "cannot be decided with these seeds"
 
 
 def test_a_row_with_one_catastrophic_seed_is_not_called_reproduced() -> None:
@@ -104,11 +107,11 @@ def test_a_row_with_one_catastrophic_seed_is_not_called_reproduced() -> None:
     # four seeds far better than the GMM, one catastrophic: the pooled rate is worse
     bad = row("gmm_affordance", [1, 2, 1, 2, 200])
     step = by_step(with_rows(report.load(), expert, gmm, bad))["GMM -> + affordance"]
-    assert step.p_fewer > 0.05 and not step.verdict.startswith("reproduces")
+    assert step.p_fewer > 0.05 and not words.verdict(step).startswith("reproduces")
     # five clean seeds below the GMM's five are
     good = row("gmm_affordance", [1, 2, 1, 2, 3])
     step = by_step(with_rows(report.load(), expert, gmm, good))["GMM -> + affordance"]
-    assert step.verdict == "reproduces" and step.p_fewer == pytest.approx(1 / 252)
+    assert words.verdict(step) == "reproduces" and step.p_fewer == pytest.approx(1 / 252)
 
 
 def test_a_slow_row_is_marked_and_its_verdict_names_its_speed() -> None:
@@ -118,7 +121,7 @@ def test_a_slow_row_is_marked_and_its_verdict_names_its_speed() -> None:
         row("gmm", [20, 21, 22, 19, 23]),
         row("gmm_affordance", [1, 2, 1, 2, 3], mph=40.0),
     )
-    assert by_step(record)["GMM -> + affordance"].verdict == "reproduces, at 40.0 mph"
+    assert words.verdict(by_step(record)["GMM -> + affordance"]) == "reproduces, at 40.0 mph"
     assert "40.0 (slow)" in report.table1(record)
 
 
@@ -152,14 +155,15 @@ def test_the_committed_record_and_shares_load_and_write_back_byte_for_byte() -> 
 
 
 def test_the_spread_is_the_worst_seed_over_the_median_and_a_paper_row_over_the_goal_is_marked():
-    result = {"seeds": [{"collisions": c, "miles": 100.0} for c in (10, 12, 60)]}
-    assert spread(result) == pytest.approx(5.0)
-    assert spread({"seeds": [{"collisions": 3, "miles": 100.0}]}) is None
-    zero = {"seeds": [{"collisions": c, "miles": 100.0} for c in (0, 0, 2)]}
-    assert spread(zero) == float("inf")
+    def row(counts):
+        return SimpleNamespace(seeds=[SimpleNamespace(collisions=c, miles=100.0) for c in counts])
+
+    assert spread(row((10, 12, 60))) == pytest.approx(5.0)
+    assert spread(row((3,))) is None
+    assert spread(row((0, 0, 2))) == float("inf")
     record = report.load()
     paper = next(r for r in record.rows if r.paper_per_100mi is not None)
-    seeds = tuple(SeedRun(k, c, 100.0, 50.0, 0) for k, c in enumerate((10, 12, 60)))
+    seeds = tuple(SeedRun(k, c, 100.0, mph=50.0, stalls=0) for k, c in enumerate((10, 12, 60)))
     changed = dataclasses.replace(paper, seeds=seeds, car=82, rail=0)
     assert spread(changed) == pytest.approx(5.0)
     rows = tuple(changed if r is paper else r for r in record.rows)
@@ -229,9 +233,9 @@ def test_the_committed_record_drives_a_sealed_block_and_states_its_power() -> No
     assert block.name != "open" and block.range == list(ROAD_BLOCKS[block.name])
     assert re.fullmatch(r"[0-9a-f]{7,40}", block.recipes_commit) and block.sealed
     found = record_power(record)
-    assert found is not None and found["seeds"] >= 10
+    assert found is not None and found.seeds >= 10
     results = (ROOT / "docs" / "results.md").read_text()
-    assert f"Power: {found['seeds']} seeds x {found['miles_per_seed']:.0f} mi" in results
+    assert f"Power: {found.seeds} seeds x {found.miles_per_seed:.0f} mi" in results
 
 
 def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_papers_ratio() -> None:
@@ -252,25 +256,25 @@ def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_pape
     # raw p = 7/252 (0.028); in the paper's family of two (beside the Baseline step's 1/252)
     # Holm leaves it at max(2/252, 7/252): still "reproduces"
     assert aff.p_fewer == pytest.approx(7 / 252) and aff.p_holm_fewer == pytest.approx(7 / 252)
-    assert aff.verdict == "reproduces"
+    assert words.verdict(aff) == "reproduces"
     assert tested["Baseline E2E -> trajectory GMM"].paper_ratio == pytest.approx(12.7 / 183.3)
     assert aff.paper_ratio is None  # the hand-made row has no paper figure
     # a method that beats its control says so in its family's words, and is credited
     beaten = with_rows(committed, *rows[:3], row("gmm_affordance_w0", [30, 35, 28, 40, 33]))
     control = by_step(beaten)["affordance loss against its control (w = 0)"]
-    assert control.verdict == "beats its control"
-    assert "so 'GMM -> + affordance' is credited to its method" in controls_line(steps(beaten))
+    assert words.verdict(control) == "beats its control"
+    assert "so 'GMM -> + affordance' is credited to its method" in words.controls(steps(beaten))
     # a control that collides less reads "the opposite", and the table, the controls line and
     # the teacher's line show the p for more collisions that verdict reads, not the p = 1 for fewer
     worse = with_rows(committed, *rows[:3], row("gmm_affordance_w0", [0, 1, 0, 1, 0]))
     opposite = next(s for s in steps(worse) if s.step.startswith("affordance loss"))
-    assert opposite.verdict == "the opposite" and opposite.p_fewer == pytest.approx(1.0)
+    assert words.verdict(opposite) == "the opposite" and opposite.p_fewer == pytest.approx(1.0)
     assert opposite.verdict_p == opposite.p_holm_more < 0.05
-    assert opposite.cell == "the opposite: more collisions"
+    assert words.cell(opposite) == "the opposite: more collisions"
     cells = f"{opposite.p_more:.2g}: more (rank) | {opposite.p_holm_more:.2g} |"
     assert cells in report.table1(worse)  # the p the verdict reads, not the p = 1 for fewer
     assert f"the control collides less (Holm p = {opposite.p_holm_more:.2g}" in (
-        controls_line(steps(worse))
+        words.controls(steps(worse))
     )
     # a family that holds every test in one: Holm over three (the control's p is about 0.5)
     # takes it to 2 x 7/252 = 0.056, and the same seeds no longer read "reproduces"
@@ -278,7 +282,7 @@ def test_a_family_of_tests_is_read_at_holm_adjusted_p_with_controls_and_the_pape
     one_family = dataclasses.replace(record.family, tests=tests)
     one = by_step(dataclasses.replace(record, family=one_family))["GMM -> + affordance"]
     assert one.p_holm_fewer == pytest.approx(14 / 252) and one.p_fewer == aff.p_fewer
-    assert one.verdict == "not shown at the seed level"
+    assert words.verdict(one) == "not shown at the seed level"
     table = report.table1(committed)
     assert "| Holm p |" in table and "the paper's ratio" in table
     assert "**What the controls found.**" in table and "not credited to its method" in table
@@ -289,17 +293,15 @@ def test_the_committed_record_states_its_power_under_its_seeds_spread() -> None:
     """Power is simulated under the dispersion fitted to the record's own rows (about 0.3 across
     the first record's), with the Poisson figure beside as an upper bound."""
     found = record_power(spread_record())
-    k = found["dispersion"]
-    assert 0.15 < k["dispersion"] < 0.6 and k["low"] < k["dispersion"] < k["high"]
-    assert (
-        found["power"] < found["power_poisson"] and found["power_paired"] < found["power_poisson"]
-    )
+    k = found.dispersion
+    assert 0.15 < k.k < 0.6 and k.low < k.k < k.high
+    assert found.power < found.power_poisson and found.power_paired < found.power_poisson
     found = record_power(report.load())  # the committed record's, as rendered
-    k = found["dispersion"]
-    assert 0.0 <= k["low"] <= k["dispersion"] <= k["high"]
+    k = found.dispersion
+    assert 0.0 <= k.low <= k.k <= k.high
     results = (ROOT / "docs" / "results.md").read_text()
-    assert f"in {100 * found['power']:.0f} % of records under the seeds' spread" in results
-    assert f"{100 * found['power_poisson']:.0f} % if seeds did not differ" in results
+    assert f"in {100 * found.power:.0f} % of records under the seeds' spread" in results
+    assert f"{100 * found.power_poisson:.0f} % if seeds did not differ" in results
 
 
 def test_the_record_plan_reaches_its_power_at_the_least_time_and_the_class_can_run_it() -> None:
@@ -366,11 +368,15 @@ def test_a_verdict_says_whether_the_papers_size_lies_in_its_interval() -> None:
     gmm = dataclasses.replace(row("gmm", [6, 7, 8, 6, 7]), paper_per_100mi=10.0)
     same = dataclasses.replace(row("gmm_affordance", [6, 7, 8, 6, 7]), paper_per_100mi=0.5)
     tested = by_step(with_rows(committed, big, gmm, same))
-    assert tested["Baseline E2E -> trajectory GMM"].cell == "reproduces: the paper's size too"
-    assert tested["GMM -> + affordance"].cell.endswith("a step of the paper's size is excluded")
+    assert (
+        words.cell(tested["Baseline E2E -> trajectory GMM"]) == "reproduces: the paper's size too"
+    )
+    assert words.cell(tested["GMM -> + affordance"]).endswith(
+        "a step of the paper's size is excluded"
+    )
     small = dataclasses.replace(gmm, paper_per_100mi=0.5)  # the paper's ratio 0.005
     tested = by_step(with_rows(committed, big, small))
-    assert tested["Baseline E2E -> trajectory GMM"].cell == (
+    assert words.cell(tested["Baseline E2E -> trajectory GMM"]) == (
         "reproduces: the direction only, not the paper's size"
     )
 

@@ -8,9 +8,10 @@
   roads each car drives (:class:`EvalConfig`, :func:`drive_shard`);
 * :mod:`e2e_lite.driving.parallel`: shards of the cars in threads or kept worker processes;
 * :mod:`e2e_lite.driving.metrics`: what was measured (:class:`EvalResult`: collisions per 100 miles with
-  exact Poisson intervals, time to collision, autonomy, stalls) and how to compare and pool it.
+  exact Poisson intervals, time to collision, autonomy, stalls) and how to pool it.
 
-Their public names are re-exported here, so a chapter imports the evaluation from one module.
+Their public names are re-exported here, so a chapter imports the evaluation from one module; the
+tests that compare results are :mod:`e2e_lite.stats`'.
 """
 
 from __future__ import annotations
@@ -37,16 +38,10 @@ from .metrics import (  # noqa: F401 (re-exported: the chapters read the evaluat
     SPEED_BINS,
     EvalResult,
     collision_kinds,
-    compare_rates,
     merge_shards,
     miles_text,
-    poisson_ci,
     pool_results,
-    result_dict,
-    result_events,
-    result_info,
     results_table,
-    seed_rates,
     speed_histogram,
 )
 from .parallel import (  # noqa: F401 (close_shard_workers re-exported, as above)
@@ -69,7 +64,6 @@ from .rollout import (  # noqa: F401 (re-exported, as above)
     start_state,
     track_index,
 )
-from .verdicts import compare_seeds, power, seed_counts  # noqa: F401 (re-exported, as above)
 
 #: the least road that ``parallel="auto"`` starts worker processes for [mi]: the workers' start
 #: (an interpreter and torch each, in parallel) costs about as much as driving 3-5 mi on one core,

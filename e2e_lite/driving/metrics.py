@@ -14,9 +14,9 @@ sums it is merged from (:class:`ShardResult`, :func:`merge_shards`, :func:`add_i
 * a *stall* (speed under 0.5 m/s for 20 s) is re-spawned and reported, so a policy that stops cannot
   hang the evaluation.
 
-Beside them: pooling runs (training seeds) into one result (:func:`pool_results`), the exact
-test of two Poisson rates (:func:`compare_rates`), collisions sorted by kind
-(:func:`collision_kinds`) and the Markdown table the chapters print (:func:`results_table`).
+Beside them: pooling runs (training seeds) into one result (:func:`pool_results`), collisions
+sorted by kind (:func:`collision_kinds`) and the Markdown table the chapters print
+(:func:`results_table`). The statistics that read a result live in :mod:`e2e_lite.stats`.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import check_range
 from ..simulation.world import World, WorldConfig, make_world
+from ..stats.rates import poisson_ci
 
 M_PER_MILE = 1609.344
 
@@ -51,7 +51,9 @@ class EvalResult:
     ``speed_hist[k]`` counts the decisions taken at a speed in ``[k, k + 1)`` m/s (the last bin
     holds everything faster): the states the driver visited (chapter 04 compares them with the
     data's). ``info`` adds up what the policy reported with its actuations (``Actuation.info``,
-    e.g. the safety module's counts; not stored with the result).
+    e.g. the safety module's counts; stored beside the result, :meth:`to_json`). ``seeds``: a
+    pooled result's drives, one per training seed (:func:`pool_results`; empty for one drive),
+    each without its events.
     """
 
     miles: float
@@ -76,15 +78,51 @@ class EvalResult:
     traces: dict[str, list[list[float]]] = field(default_factory=dict)
     speed_hist: list[int] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict, repr=False)
+    seeds: tuple[EvalResult, ...] = ()
 
     def to_dict(self, with_events: bool = True) -> dict[str, Any]:
-        """JSON-ready dict (traces and info left out; events optional)."""
-        out = asdict(dataclasses.replace(self, info={}, traces={}))
-        out.pop("traces")
-        out.pop("info")
+        """JSON-ready dict (traces and info left out; events optional; a pooled result's
+        ``seeds`` last, each without events)."""
+        out = asdict(dataclasses.replace(self, info={}, traces={}, seeds=()))
+        for name in ("traces", "info", "seeds"):
+            out.pop(name)
         if not with_events:
             out.pop("events")
+        if self.seeds:
+            out["seeds"] = [s.to_dict(with_events=False) for s in self.seeds]
         return out
+
+    def to_json(self) -> dict[str, Any]:
+        """What a stored drive holds: :meth:`to_dict` and, when the policy reported any, its
+        ``info`` (which must be JSON-able)."""
+        return {"result": self.to_dict(), **({"info": self.info} if self.info else {})}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], info: dict[str, Any] | None = None) -> EvalResult:
+        """The result a :meth:`to_dict` wrote (and the ``info`` stored beside it)."""
+        names = {f.name for f in dataclasses.fields(cls)} - {"seeds", "info", "ci95_per_100mi"}
+        return cls(
+            **{k: v for k, v in d.items() if k in names},
+            ci95_per_100mi=tuple(d["ci95_per_100mi"]),
+            seeds=tuple(cls.from_dict(s) for s in d.get("seeds") or ()),
+            info=dict(info or {}),
+        )
+
+    @classmethod
+    def from_json(cls, stored: dict[str, Any]) -> EvalResult:
+        """The result a :meth:`to_json` wrote."""
+        return cls.from_dict(stored["result"], stored.get("info"))
+
+    @property
+    def off_centre(self) -> int:
+        """Off-centre episodes: the interventions that were not collisions (the car more than
+        ``EvalConfig.offcentre_m`` from every lane centre for longer than its grace)."""
+        return int(self.interventions - self.collisions)
+
+    def brief(self) -> dict[str, float]:
+        """The drive's off-centre episodes and collisions (counts) and its miles [mi]: what the
+        lab scripts keep of each drive."""
+        return {"off_centre": self.off_centre, "collisions": self.collisions, "miles": self.miles}
 
     def summary(self) -> str:
         """One readable line."""
@@ -103,63 +141,11 @@ def miles_text(miles: float) -> str:
     return f"{miles:g} {'mile' if miles == 1 else 'miles'}"
 
 
-def poisson_ci(count: int, exposure: float, level: float = 0.95) -> tuple[float, float]:
-    """Exact (Garwood) confidence interval of a Poisson rate: ``count`` events over ``exposure``.
-
-    lower = chi2.ppf(a/2, 2k) / 2 / exposure,  upper = chi2.ppf(1 - a/2, 2k + 2) / 2 / exposure,
-    with a = 1 - level. For k = 0 the lower bound is 0 and the upper is -ln(a/2) / exposure
-    (3.69 per 100 miles over 100 miles at 95 %).
-    """
-    check_range("poisson_ci", "count", count, 0, integer=True)
-    check_range("poisson_ci", "exposure", exposure, 0.0, lo_open=True)
-    check_range("poisson_ci", "level", level, 0.0, 1.0, lo_open=True, hi_open=True)
-    from scipy.stats import chi2  # (here: scipy.stats costs evaluation workers 0.4 s to import)
-
-    a = 1.0 - level
-    lo = 0.0 if count == 0 else chi2.ppf(a / 2, 2 * count) / 2.0
-    hi = chi2.ppf(1 - a / 2, 2 * count + 2) / 2.0
-    return float(lo / exposure), float(hi / exposure)
-
-
-def result_dict(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
-    """An ``EvalResult`` as its ``to_dict()`` (without events); a dict as it is."""
-    return r.to_dict(with_events=False) if isinstance(r, EvalResult) else r
-
-
-def result_events(r: EvalResult | dict[str, Any]) -> list[dict[str, Any]]:
-    """A result's collision events (an ``EvalResult``'s, or a stored or pooled dict's)."""
-    return r.events if isinstance(r, EvalResult) else r.get("events", [])
-
-
-def off_centre_episodes(r: EvalResult | dict[str, Any]) -> int:
-    """A result's off-centre episodes: its interventions that were not collisions (the car more
-    than ``EvalConfig.offcentre_m`` from every lane centre for longer than its grace)."""
-    got = result_dict(r)
-    return int(got["interventions"] - got["collisions"])
-
-
-def drive_counts(r: EvalResult | dict[str, Any]) -> dict[str, float]:
-    """A drive's off-centre episodes (:func:`off_centre_episodes`) and collisions (counts) and its
-    miles [mi]: what the lab scripts keep of each drive."""
-    got = result_dict(r)
-    return {
-        "off_centre": off_centre_episodes(r),
-        "collisions": got["collisions"],
-        "miles": got["miles"],
-    }
-
-
-def result_info(r: EvalResult | dict[str, Any]) -> dict[str, Any]:
-    """What the policy reported with its decisions, added up (``EvalResult.info``, or the
-    ``"info"`` a stored result kept; ``{}`` when none)."""
-    return r.info if isinstance(r, EvalResult) else r.get("info", {})
-
-
 def results_table(
-    rows: Sequence[tuple[str, EvalResult | dict[str, Any]]],
+    rows: Sequence[tuple[str, EvalResult]],
     extra: Sequence[tuple[str, Sequence[str]]] = (),
 ) -> str:
-    """A markdown table of closed-loop results (``EvalResult`` or its ``to_dict()``), one row per
+    """A markdown table of closed-loop results, one row per
     ``(driver, result)``: miles, collisions (car / rail), per 100 mi with the 95 % interval, mph,
     time to collision, autonomy; then ``extra`` columns, each ``(header, one cell per row)``."""
     for header, cells in extra:
@@ -170,14 +156,13 @@ def results_table(
         "| autonomy |" + "".join(f" {h} |" for h, _ in extra),
         "|---|---:|---:|---|---:|---:|---:|" + "---:|" * len(extra),
     ]
-    for k, (name, result) in enumerate(rows):
-        r = result_dict(result)
-        lo, hi = r["ci95_per_100mi"]
-        ttc = "-" if r["time_to_collision_s"] is None else f"{r['time_to_collision_s']:.1f} s"
+    for k, (name, r) in enumerate(rows):
+        lo, hi = r.ci95_per_100mi
+        ttc = "-" if r.time_to_collision_s is None else f"{r.time_to_collision_s:.1f} s"
         lines.append(
-            f"| {name} | {r['miles']:.3g} | {r['collisions']} ({r['car_collisions']} / "
-            f"{r['rail_collisions']}) | {r['collisions_per_100mi']:.1f} [{lo:.1f}-{hi:.1f}] | "
-            f"{r['mean_speed_mph']:.1f} | {ttc} | {r['autonomy_pct']:.1f}% |"
+            f"| {name} | {r.miles:.3g} | {r.collisions} ({r.car_collisions} / "
+            f"{r.rail_collisions}) | {r.collisions_per_100mi:.1f} [{lo:.1f}-{hi:.1f}] | "
+            f"{r.mean_speed_mph:.1f} | {ttc} | {r.autonomy_pct:.1f}% |"
             + "".join(f" {cells[k]} |" for _, cells in extra)
         )
     return "\n".join(lines)
@@ -187,7 +172,7 @@ def results_table(
 COLLISION_KINDS = ("rail", "parked car in its lane, car centred", "parked car, off centre")
 
 
-def collision_kinds(result: EvalResult | dict[str, Any], world_cfg: WorldConfig) -> dict[str, int]:
+def collision_kinds(result: EvalResult, world_cfg: WorldConfig) -> dict[str, int]:
     """Count a result's collisions by kind (:data:`COLLISION_KINDS`).
 
     A car collision is *in its lane, car centred* when the parked car's centre is within a third
@@ -198,7 +183,7 @@ def collision_kinds(result: EvalResult | dict[str, Any], world_cfg: WorldConfig)
     """
     counts = dict.fromkeys(COLLISION_KINDS, 0)
     worlds: dict[tuple[str, int], World] = {}
-    for e in result_events(result):
+    for e in result.events:
         if e["kind"] == "rail":
             counts["rail"] += 1
             continue
@@ -214,23 +199,19 @@ def collision_kinds(result: EvalResult | dict[str, Any], world_cfg: WorldConfig)
     return counts
 
 
-def pool_results(
-    results: Sequence[EvalResult | dict[str, Any]], intervention_cost_s: float = 6.0
-) -> dict[str, Any]:
+def pool_results(results: Sequence[EvalResult], intervention_cost_s: float = 6.0) -> EvalResult:
     """One result from several evaluations of the same kind of driver (e.g. one per training
     seed), as if they were one drive: counts, miles and times summed, rates, the interval, mean
     speed, autonomy (``intervention_cost_s`` per intervention, as :class:`EvalConfig`) and the
     time to collision recomputed from the sums; ``events``: every input's, in input order (a
-    car's ``world`` number is its index in its own evaluation); ``seeds`` keeps each input (as
-    :func:`result_dict`, without events or info)."""
-    events = [e for r in results for e in result_events(r)]
-    # (without events, and without what a policy reported: a stored result read back carries it
-    # and a fresh one's to_dict does not, so a pool is the same either way)
-    rs = [{k: v for k, v in result_dict(r).items() if k not in ("events", "info")} for r in results]
-    if not rs:
+    car's ``world`` number is its index in its own evaluation); ``seeds`` keeps each input
+    without its events, traces or what its policy reported."""
+    if not results:
         raise ValueError("pool_results needs at least one result")
+    rs = [dataclasses.replace(r, events=[], traces={}, info={}, seeds=()) for r in results]
+    events = [e for r in results for e in r.events]
     total = {
-        k: sum(r[k] for r in rs)
+        k: sum(getattr(r, k) for r in rs)
         for k in (
             "miles",
             "collisions",
@@ -246,69 +227,22 @@ def pool_results(
     }
     n, miles, sim_s = total["collisions"], total["miles"], total["sim_time_s"]
     # the mean episode length: each seed's mean weighted by its count of ended episodes
-    ttc = [(r["time_to_collision_s"], r["collisions"]) for r in rs if r["collisions"]]
-    hist = [r.get("speed_hist") or [] for r in rs]
-    return {
+    ttc = [(r.time_to_collision_s, r.collisions) for r in rs if r.collisions]
+    hist = [r.speed_hist for r in rs]
+    return EvalResult(
         **total,
-        "collisions_per_100mi": 100.0 * n / miles,
-        "ci95_per_100mi": poisson_ci(n, miles / 100.0),
-        "mean_speed_mph": sum(r["mean_speed_mph"] * r["sim_time_s"] for r in rs) / sim_s,
-        "time_to_collision_s": sum(t * k for t, k in ttc) / n if n else None,
-        "miles_per_collision": miles / n if n else None,
-        "autonomy_pct": max(0.0, 1.0 - total["interventions"] * intervention_cost_s / sim_s) * 100,
-        "sim_miles_per_wall_s": miles / max(total["wall_time_s"], 1e-9),
-        "timing_s": {
-            k: sum(r.get("timing_s", {}).get(k, 0.0) for r in rs) for k in rs[0].get("timing_s", {})
-        },
-        "speed_hist": [int(sum(c)) for c in zip(*hist)] if all(hist) else [],
-        "events": events,
-        "seeds": rs,
-    }
-
-
-def compare_rates(
-    a: EvalResult | dict[str, Any], b: EvalResult | dict[str, Any], level: float = 0.95
-) -> dict[str, Any]:
-    """Is driver a's collision rate different from b's beyond chance?
-
-    The exact conditional test of two Poisson rates: given ``n = k_a + k_b`` collisions in
-    ``m_a`` and ``m_b`` miles, ``k_a ~ Binomial(n, m_a / (m_a + m_b))`` when the rates are equal;
-    the two-sided p-value of that binomial test: twice the smaller tail, at most 1 (the central
-    definition: scipy's default, which sums the outcomes no likelier than the one observed, jumps
-    when the miles differ by a metre and the share crosses 1/2, as two drives of one budget do).
-
-    Returns:
-        ``{"ratio": rate_a / rate_b (None when b has none), "p_value", "different": p < 1 - level,
-        "verdict": one readable line}``.
-    """
-    ra, rb = result_dict(a), result_dict(b)
-    ka, kb, ma, mb = ra["collisions"], rb["collisions"], ra["miles"], rb["miles"]
-    n = ka + kb
-    from scipy.stats import binom  # (here: see poisson_ci)
-
-    share = ma / (ma + mb)
-    tails = (binom.cdf(ka, n, share), binom.sf(ka - 1, n, share))
-    p = 1.0 if n == 0 else float(min(1.0, 2.0 * min(tails)))
-    rate_a, rate_b = 100.0 * ka / ma, 100.0 * kb / mb
-    different = p < 1.0 - level
-    if not different:
-        verdict = f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: a difference not shown (p = {p:.2f})"
-    else:
-        word = "fewer" if rate_a < rate_b else "more"
-        verdict = f"{rate_a:.1f} vs {rate_b:.1f} per 100 mi: {word} collisions beyond chance (p = {p:.2g})"
-    return {
-        "ratio": None if kb == 0 else rate_a / rate_b,
-        "p_value": p,
-        "different": different,
-        "verdict": verdict,
-    }
-
-
-def seed_rates(result: EvalResult | dict[str, Any]) -> np.ndarray:
-    """Each training seed's collisions per 100 miles of a pooled result (:func:`pool_results`);
-    a single run's rate alone."""
-    r = result_dict(result)
-    return np.array([100.0 * s["collisions"] / s["miles"] for s in (r.get("seeds") or [r])])
+        collisions_per_100mi=100.0 * n / miles,
+        ci95_per_100mi=poisson_ci(n, miles / 100.0),
+        mean_speed_mph=sum(r.mean_speed_mph * r.sim_time_s for r in rs) / sim_s,
+        time_to_collision_s=sum(t * k for t, k in ttc) / n if n else None,
+        miles_per_collision=miles / n if n else None,
+        autonomy_pct=max(0.0, 1.0 - total["interventions"] * intervention_cost_s / sim_s) * 100,
+        sim_miles_per_wall_s=miles / max(total["wall_time_s"], 1e-9),
+        timing_s={k: sum(r.timing_s.get(k, 0.0) for r in rs) for k in rs[0].timing_s},
+        speed_hist=[int(sum(c)) for c in zip(*hist)] if all(hist) else [],
+        events=events,
+        seeds=tuple(rs),
+    )
 
 
 SPEED_BINS = 41  # 1 m/s bins of EvalResult.speed_hist: 0-1, ..., 39-40, >= 40 m/s

@@ -105,10 +105,22 @@ def pool_row(parts: list[tuple[ShareRow, int]], single: bool, commit: str) -> Ro
     kept = [r.interventions for r, _ in runs]
     interventions = None if None in kept else sum(kept)  # (every share must have kept them)
     if single:
-        seeds = (SeedRun(0, car + rail, round(miles, 3), mph, stalls, interventions=interventions),)
+        seeds = (
+            SeedRun(
+                0, car + rail, round(miles, 3), mph=mph, stalls=stalls, interventions=interventions
+            ),
+        )
     else:
         seeds = tuple(
-            SeedRun(r.seed, r.collisions, r.miles, r.mph, r.stalls, m, r.interventions)
+            SeedRun(
+                r.seed,
+                r.collisions,
+                r.miles,
+                mph=r.mph,
+                stalls=r.stalls,
+                machine=m,
+                interventions=r.interventions,
+            )
             for r, m in runs
         )
     row = parts[0][0]

@@ -1,6 +1,6 @@
 """The record's data, typed: what a share of the record holds (:class:`Share`: per row, each
-training seed's drive of the sealed block, :class:`SeedDrive`) and what the pooled record holds
-(:class:`Record`: per row, each seed's collisions and miles, :class:`SeedRun`). Every class reads
+training seed's drive of the sealed block) and what the pooled record holds (:class:`Record`:
+per row, each seed's collisions and miles), each seed's drive one :class:`SeedRun`. Every class reads
 its JSON (``from_json``) and writes it back unchanged (``to_json``: the same keys in the same
 order), so the committed files load and re-render byte for byte.
 
@@ -17,7 +17,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, ClassVar
 
-from ..driving.metrics import poisson_ci
+from ..driving.metrics import EvalResult
+from ..stats.rates import poisson_ci
 
 #: a row slower than this share of the expert's speed is marked, and its verdicts name its speed
 SLOW_SHARE = 0.9
@@ -61,28 +62,69 @@ class _Json:
 
 @dataclass(frozen=True)
 class SeedRun(_Json):
-    """One training seed's drive of one row, as the pooled record holds it.
+    """One training seed's drive of one row: in a share, from which track of the block it drove
+    (``first_track``) and its car and rail collisions; in the pooled record, on which machine
+    (``machine``). A field that a file does not hold is None and left out of its JSON.
 
     Attributes:
         seed: the training seed (0 for a row driven by one network or none).
+        first_track: the first track of its run of the block (a share's).
         collisions: car and rail collisions.
+        car, rail: collisions into parked cars and into the rails (a share's).
         miles: miles driven [mi].
         mph: mean speed [mph] (None: not recorded).
         stalls: re-placements after standing still (None: not recorded).
         machine: index into :attr:`Record.machines` (None: a row without training seeds).
         interventions: the autonomy metric's interventions, collisions and off-centre episodes
-            (:mod:`~e2e_lite.driving.metrics`; None: not recorded, as in shares before 2026-11-29).
+            (:attr:`~e2e_lite.driving.metrics.EvalResult.off_centre`; None: not recorded, as in
+            shares before 2026-11-29).
     """
 
     seed: int
     collisions: int
     miles: float
+    first_track: int | None = None
+    car: int | None = None
+    rail: int | None = None
     mph: float | None = None
     stalls: int | None = None
     machine: int | None = None
     interventions: int | None = None
 
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("mph", "stalls", "machine", "interventions")
+    OPTIONAL: ClassVar[tuple[str, ...]] = (
+        "first_track",
+        "car",
+        "rail",
+        "mph",
+        "stalls",
+        "machine",
+        "interventions",
+    )
+    #: the order a share's JSON holds them in (the pooled record's: the fields' order)
+    SHARE_ORDER: ClassVar[tuple[str, ...]] = tuple(
+        "seed first_track collisions car rail miles mph stalls interventions".split()
+    )
+
+    @classmethod
+    def of(cls, result: EvalResult, seed: int, first_track: int) -> SeedRun:
+        """One seed's drive of one row in a share, from its evaluation's result."""
+        return cls(
+            seed=seed,
+            first_track=first_track,
+            collisions=result.collisions,
+            car=result.car_collisions,
+            rail=result.rail_collisions,
+            miles=round(result.miles, 3),
+            mph=round(result.mean_speed_mph, 2),
+            stalls=result.stalls,
+            interventions=result.interventions,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        out = super().to_json()
+        if self.first_track is None:
+            return out
+        return {k: out[k] for k in self.SHARE_ORDER if k in out}
 
 
 @dataclass(frozen=True)
@@ -124,7 +166,7 @@ class Row(_Json):
     @property
     def off_centre(self) -> int | None:
         """Off-centre episodes over every seed: the interventions that were not collisions (the
-        count :func:`~e2e_lite.driving.metrics.off_centre_episodes` takes of one drive; None: not
+        count :attr:`~e2e_lite.driving.metrics.EvalResult.off_centre` takes of one drive; None: not
         recorded for every seed)."""
         kept = self.interventions
         return None if kept is None else kept - self.collisions
@@ -153,11 +195,6 @@ class Row(_Json):
     def slow_beside(self, expert_mph: float | None) -> bool:
         """Whether the row drove more than ``1 - SLOW_SHARE`` slower than the expert."""
         return bool(expert_mph) and self.mph < SLOW_SHARE * expert_mph
-
-    def as_result(self) -> dict[str, Any]:
-        """The row as the seed-level tests of :mod:`~e2e_lite.driving.verdicts` read a pooled
-        result: ``{"seeds": [{"collisions", "miles"}, ...]}``."""
-        return {"seeds": [{"collisions": s.collisions, "miles": s.miles} for s in self.seeds]}
 
 
 @dataclass(frozen=True)
@@ -245,26 +282,6 @@ SHARE_FORMAT = "e2e-lite record share"
 
 
 @dataclass(frozen=True)
-class SeedDrive(_Json):
-    """One training seed's drive of one row in a share: from which track of the block it drove,
-    its collisions (car and rail), miles [mi], mean speed [mph], stalls and the autonomy metric's
-    interventions (collisions and off-centre episodes; None in shares written before they were
-    kept: chapter 12's DAgger iterates drove off-centre far more often than their start)."""
-
-    seed: int
-    first_track: int
-    collisions: int
-    car: int
-    rail: int
-    miles: float
-    mph: float
-    stalls: int
-    interventions: int | None = None
-
-    OPTIONAL: ClassVar[tuple[str, ...]] = ("interventions",)
-
-
-@dataclass(frozen=True)
 class ShareRow(_Json):
     """One driver in a share: each of the share's seeds' drives."""
 
@@ -272,9 +289,9 @@ class ShareRow(_Json):
     label: str
     paper_per_100mi: float | None
     control: bool
-    runs: tuple[SeedDrive, ...]
+    runs: tuple[SeedRun, ...]
 
-    NESTED: ClassVar[dict[str, type[_Json]]] = {"runs": SeedDrive}
+    NESTED: ClassVar[dict[str, type[_Json]]] = {"runs": SeedRun}
 
 
 @dataclass(frozen=True)

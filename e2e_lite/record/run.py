@@ -26,7 +26,6 @@ from ..ablation import (
 )
 from ..artifacts import profile_outputs, seeded, settings_key
 from ..config import FULL, Profile, check_range, default_workers, precision
-from ..driving.metrics import result_dict
 from ..driving.roads import ROAD_BLOCKS
 from ..driving.rollout import EvalConfig
 from ..estimate import Work, cpu_name, plan_text
@@ -35,7 +34,7 @@ from ..learning.models import pick_device
 from ..simulation.world import WorldConfig
 from ..stored import evaluate_stored
 from .pool import record_block, seed_run
-from .rows import SHARE_FORMAT, Block, Record, SeedDrive, Share, ShareRow
+from .rows import SHARE_FORMAT, Block, Record, SeedRun, Share, ShareRow
 from .stats import family
 
 #: every row of the record: the paper's, DAgger's (chapter 12) and the controls
@@ -100,22 +99,6 @@ def _commit() -> str:
         return os.environ.get("E2E_LITE_COMMIT", "unknown")
 
 
-def _seed_drive(seed: int, first_track: int, result: Any) -> SeedDrive:
-    """One seed's drive of one row, from its evaluation's result."""
-    r = result_dict(result)
-    return SeedDrive(
-        seed=seed,
-        first_track=first_track,
-        collisions=r["collisions"],
-        car=r["car_collisions"],
-        rail=r["rail_collisions"],
-        miles=round(r["miles"], 3),
-        mph=round(r["mean_speed_mph"], 2),
-        stalls=r["stalls"],
-        interventions=r["interventions"],
-    )
-
-
 def record_share(
     profile: Profile,
     seeds: Sequence[int],
@@ -148,7 +131,7 @@ def record_share(
         val = load_or_collect(DataConfig.for_profile(profile, "val"), progress)
         learned = [k for k in keys if k not in UNTRAINED and k not in single]
         fixed = build_drivers(profile, [k for k in keys if k not in learned], train, val, seed=0)
-        runs: dict[str, list[SeedDrive]] = {k: [] for k in keys}
+        runs: dict[str, list[SeedRun]] = {k: [] for k in keys}
         for seed in seeds:
             run = seed_run(profile, seed, miles_per_seed)
             mine = {**fixed, **build_drivers(profile, learned, train, val, seed=seed)}
@@ -156,7 +139,7 @@ def record_share(
                 label = f"{BY_KEY[key].label} (seed {seed})"
                 name = seeded(key, seed)
                 result = evaluate_stored(name, label, mine[key], world_cfg, run, progress=progress)
-                runs[key].append(_seed_drive(seed, run.first_track, result))
+                runs[key].append(SeedRun.of(result, seed, run.first_track))
     block = record_block(profile)
     template = EvalConfig(miles=miles_per_seed, n_worlds=profile.ablation_worlds, block=block)
     data_keys = (train.info["key"], val.info["key"])
@@ -199,21 +182,21 @@ def plan(
     (:func:`~e2e_lite.record.stats.record_power`), and what each plan costs on 2 cores and on a
     16-core machine with a GPU (:func:`record_work`); the chosen plan is the cheapest on 2 cores
     that reaches ``target`` (else the most powerful at ``most`` seeds)."""
-    from ..driving.verdicts import seeds_for_power
     from ..estimate import estimate_s
+    from ..stats.power import seeds_for_power
     from .stats import record_power
 
     found = record_power(record)
-    k, rate = found["dispersion"]["dispersion"], found["rate_per_100mi"]
+    k, rate = found.dispersion.k, found.rate_per_100mi
     options = []
     for miles in miles_options:
         need = seeds_for_power(miles, rate, target, most=most, least=10, n_sim=n_sim, dispersion=k)
-        work = record_work(FULL, need["seeds"], miles)
+        work = record_work(FULL, need.seeds, miles)
         hours = {
             "hours_2_cores": estimate_s(work, 2) / 3600.0,
             "hours_16_cores_gpu": estimate_s(work, 16, "cuda") / 3600.0,
         }
-        options.append({**need, "miles_per_seed": miles, **hours})
+        options.append({"seeds": need.seeds, "power": need.power, "miles_per_seed": miles, **hours})
     reaching = [o for o in options if o["power"] >= target]
     chosen = (
         min(reaching, key=lambda o: o["hours_2_cores"])
