@@ -275,13 +275,10 @@ print(f"saved {fig3_png}")
 ev = EvalConfig(miles=profile.eval_miles, n_worlds=profile.n_worlds)
 res = evaluate(agent, world_cfg, ev, desc="trajectory GMM")
 print(res.summary())
-earlier = []
-for chapter, key in (("05_pilotnet_baseline", "results"), ("06_trajectory_regression", "result")):
-    m = artifacts.read_metrics(chapter, profile.name)
-    if m is None:
-        continue
-    found = m[key].items() if key == "results" else [("trajectory L2 + LQR", m[key])]
-    earlier += [(name, EvalResult.from_dict(r)) for name, r in found]
+ch05 = artifacts.read_metrics("05_pilotnet_baseline", profile.name) or {"results": {}}
+ch06 = artifacts.read_metrics("06_trajectory_regression", profile.name)
+stored = {**ch05["results"], **({"trajectory L2 + LQR": ch06["result"]} if ch06 else {})}
+earlier = [(name, EvalResult.from_dict(r)) for name, r in stored.items()]
 table = results_table([*earlier, ("trajectory GMM + LQR", res)])
 print(table + profile.caveat)
 chart = collision_chart(

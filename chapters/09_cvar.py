@@ -27,8 +27,6 @@ from e2e_lite.course import start_chapter
 profile = start_chapter(9)  # flags, profile, outputs folder: checked before any work
 
 
-from dataclasses import asdict
-
 import numpy as np
 import torch
 from matplotlib.figure import Figure
@@ -307,10 +305,9 @@ pairs = {  # (the fine-tune, what it is judged against)
 }
 # the verdict: seed by seed (the training seed is the unit); the pooled Poisson test, secondary
 verdicts = {w: compare_seeds(closed[a], closed[b]) for w, (a, b) in pairs.items()}
-pooled_tests = {w: compare_rates(closed[a], closed[b]) for w, (a, b) in pairs.items()}
+pooled = {w: words.rates(compare_rates(closed[a], closed[b])) for w, (a, b) in pairs.items()}
 for what, test in verdicts.items():
-    pooled = words.rates(pooled_tests[what])
-    print(f"{what.replace('_', ' ')}: {words.seeds(test)}; pooled: {pooled}")
+    print(f"{what.replace('_', ' ')}: {words.seeds(test)}; pooled: {pooled[what]}")
 
 # %% [markdown]
 # A rate per mile says nothing about how the miles were driven. Section 3 measured which
@@ -403,7 +400,7 @@ artifacts.write_metrics(
         },
         **{names[k]: closed[k].to_dict(with_events=False) for k in keys},
         "tests": {
-            k: {**asdict(v), "verdict": words.seeds(v), "pooled": words.rates(pooled_tests[k])}
+            k: {**vars(v), "verdict": words.seeds(v), "pooled": pooled[k]}
             for k, v in verdicts.items()
         },
         "table_md": table,

@@ -59,3 +59,21 @@ class ForkingKeeper(LaneKeeper):
         ForkingKeeper.forks += 1
         self.forked.append(k)
         return [LaneKeeper() for _ in range(k)]
+
+
+@pytest.fixture
+def drives(monkeypatch) -> list:
+    """The drives :func:`e2e_lite.stored.evaluate_stored` actually drives (each call of
+    ``evaluate`` appends its policy), so a test can tell a read-back result from a driven one:
+    both are an ``EvalResult``."""
+    import e2e_lite.stored
+
+    driven: list = []
+    real = e2e_lite.stored.evaluate
+
+    def counted(policy, *args, **kwargs):
+        driven.append(policy)
+        return real(policy, *args, **kwargs)
+
+    monkeypatch.setattr(e2e_lite.stored, "evaluate", counted)
+    return driven

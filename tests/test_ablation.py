@@ -39,22 +39,24 @@ def _drivers() -> dict:
     }
 
 
-def test_same_seeds_give_the_same_table_and_a_stored_result_is_reused():
+def test_same_seeds_give_the_same_table_and_a_stored_result_is_reused(drives):
     first = ablation.evaluate_drivers(_drivers(), WORLD, CFG, reuse=True, progress=False)
     assert all(isinstance(r, EvalResult) for r in first.values())
     again = ablation.evaluate_drivers(_drivers(), WORLD, CFG, reuse=False, progress=False)
     table = ablation.ablation_table(first)
     assert table == ablation.ablation_table(again)
+    driven = len(drives)
     reused = ablation.evaluate_drivers(_drivers(), WORLD, CFG, reuse=True, progress=False)
-    assert all(isinstance(r, dict) for r in reused.values())  # read back, not driven
+    assert len(drives) == driven  # read back, not driven
+    assert all(isinstance(r, EvalResult) for r in reused.values())  # as the type it was saved
     assert ablation.ablation_table(reused) == table
     # other weights are another driver: evaluated again
     other = {"gmm": TrajectoryAgent(_tiny("gmm", seed=1))}
     fresh = ablation.evaluate_drivers(other, WORLD, CFG, progress=False)
-    assert isinstance(fresh["gmm"], EvalResult)
+    assert len(drives) == driven + 1 and isinstance(fresh["gmm"], EvalResult)
 
 
-def test_evaluations_with_other_settings_are_kept_side_by_side():
+def test_evaluations_with_other_settings_are_kept_side_by_side(drives):
     """Chapter 11 drives chapter 10's network over other miles: neither replaces the other."""
     keeper = {"side_by_side": LaneKeeper()}
     short = replace(CFG, miles=CFG.miles / 2)
@@ -62,8 +64,8 @@ def test_evaluations_with_other_settings_are_kept_side_by_side():
     assert isinstance(ablation.evaluate_drivers(keeper, WORLD, short)["side_by_side"], EvalResult)
     long_again = ablation.evaluate_drivers(keeper, WORLD, CFG, progress=False)["side_by_side"]
     short_again = ablation.evaluate_drivers(keeper, WORLD, short, progress=False)["side_by_side"]
-    assert isinstance(long_again, dict) and isinstance(short_again, dict)  # both read back
-    assert long_again["miles"] > short_again["miles"]
+    assert len(drives) == 2  # both read back
+    assert long_again.miles > short_again.miles
 
 
 def test_table_has_every_driver_with_the_papers_figures():
@@ -101,15 +103,15 @@ def test_a_row_of_seeds_shares_the_miles_and_pools_the_counts():
     seeds = [TrajectoryAgent(_tiny("gmm", seed=k)) for k in range(2)]
     out = ablation.evaluate_drivers({"gmm": seeds}, WORLD, CFG, progress=False)
     pooled = out["gmm"]
-    assert len(pooled["seeds"]) == 2
-    assert pooled["miles"] == pytest.approx(CFG.miles, rel=0.05)
-    assert all(s["miles"] == pytest.approx(CFG.miles / 2, rel=0.1) for s in pooled["seeds"])
-    assert pooled["collisions"] == sum(s["collisions"] for s in pooled["seeds"])
-    rates = " / ".join(f"{s['collisions_per_100mi']:.1f}" for s in pooled["seeds"])
+    assert len(pooled.seeds) == 2
+    assert pooled.miles == pytest.approx(CFG.miles, rel=0.05)
+    assert all(s.miles == pytest.approx(CFG.miles / 2, rel=0.1) for s in pooled.seeds)
+    assert pooled.collisions == sum(s.collisions for s in pooled.seeds)
+    rates = " / ".join(f"{s.collisions_per_100mi:.1f}" for s in pooled.seeds)
     assert f"| {rates} |" in ablation.ablation_table(out)
     # each seed is stored on its own and read back
     again = ablation.evaluate_drivers({"gmm": seeds}, WORLD, CFG, progress=False)
-    assert again["gmm"]["collisions_per_100mi"] == pooled["collisions_per_100mi"]
+    assert again["gmm"].collisions_per_100mi == pooled.collisions_per_100mi
 
 
 def test_seeded_names_keep_the_chapters_checkpoint_for_seed_zero():

@@ -473,9 +473,9 @@ def test_collision_kinds_sort_hand_made_events():
         event("car", lane_d + track.lane_width / 2),  # half-way into the next lane
         event("rail", track.half_width + 1.0, None),
     ]
-    counts = collision_kinds({"events": events}, BUSY)
+    counts = collision_kinds(SimpleNamespace(events=events), BUSY)
     assert counts == dict(zip(COLLISION_KINDS, (1, 2, 1)))
-    assert collision_kinds({"events": []}, BUSY) == dict.fromkeys(COLLISION_KINDS, 0)
+    assert collision_kinds(SimpleNamespace(events=[]), BUSY) == dict.fromkeys(COLLISION_KINDS, 0)
 
 
 def test_the_evaluator_pins_the_networks_threads_whatever_the_caller_set():
@@ -759,7 +759,6 @@ def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():
 def test_a_drives_counts_are_its_off_centre_episodes_collisions_and_miles():
     """Off-centre episodes are the interventions that were not collisions; the lab scripts keep
     them with the collisions and miles."""
-    from e2e_lite.driving.metrics import drive_counts
-
-    got = drive_counts({"interventions": 7, "collisions": 2, "miles": 25.1})
-    assert got == {"off_centre": 5, "collisions": 2, "miles": 25.1}
+    got = replace(_result(2, 25.1), interventions=7)
+    assert got.off_centre == 5
+    assert got.brief() == {"off_centre": 5, "collisions": 2, "miles": 25.1}

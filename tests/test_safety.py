@@ -365,8 +365,9 @@ def test_the_rollout_tells_the_policy_of_each_collision_with_its_next_decision()
     assert res.collisions >= 3 and Counting.told == res.collisions
 
 
-def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(tmp_path, monkeypatch):
-    from e2e_lite.driving.metrics import result_info
+def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(
+    tmp_path, monkeypatch, drives
+):
     from e2e_lite.stored import evaluate_stored, fingerprint
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
@@ -375,10 +376,10 @@ def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(tmp_path, 
     guarded = SafeAgent(StraightOn(), ground_truth=True)
     first = evaluate_stored("guarded", "guarded", guarded, world, cfg, progress=False, workers=1)
     again = evaluate_stored("guarded", "guarded", guarded, world, cfg, progress=False, workers=1)
-    assert not isinstance(again, type(first)) and again["collisions"] == first.collisions
-    stored = SafetyStats.from_info(result_info(again)).to_dict()
+    assert len(drives) == 1 and again.collisions == first.collisions  # read back, typed
+    stored = SafetyStats.from_info(again.info).to_dict()
     assert stored == SafetyStats.from_info(first.info).to_dict() and stored["interventions"] > 0
-    assert result_info(again)["examples"] == first.info["examples"]
+    assert again.info["examples"] == first.info["examples"]
     # the module's settings and audits are part of the driver's identity
     other = SafeAgent(StraightOn(), SafetyConfig(fallback="keep-lane"), ground_truth=True)
     assert fingerprint(other) != fingerprint(guarded)

@@ -1,14 +1,21 @@
 """Figures: they draw what they are given and refuse nothing to draw."""
 
+from types import SimpleNamespace
+
 import pytest
 
 from e2e_lite.viz import collision_chart, save_figure
 
 
+def _result(rate: float, ci: tuple[float, float]) -> SimpleNamespace:
+    """What the chart reads of a result: its rate, its interval and its seeds (none)."""
+    return SimpleNamespace(collisions_per_100mi=rate, ci95_per_100mi=ci, seeds=())
+
+
 def test_collision_chart_draws_each_driver_with_its_interval(tmp_path):
     rows = [
-        ("a", {"collisions_per_100mi": 10.0, "ci95_per_100mi": [5.0, 18.0]}),
-        ("b", {"collisions_per_100mi": 0.0, "ci95_per_100mi": [0.0, 3.7]}),
+        ("a", _result(10.0, (5.0, 18.0))),
+        ("b", _result(0.0, (0.0, 3.7))),
     ]
     fig = collision_chart(rows, reference=[("paper", 12.7)])
     ax = fig.axes[0]
@@ -23,8 +30,8 @@ def test_collision_chart_draws_each_driver_with_its_interval(tmp_path):
 
 def test_collision_chart_marks_each_row_and_can_use_a_log_axis():
     rows = [
-        ("a", {"collisions_per_100mi": 800.0, "ci95_per_100mi": [780.0, 820.0]}),
-        ("b", {"collisions_per_100mi": 0.5, "ci95_per_100mi": [0.1, 2.0]}),
+        ("a", _result(800.0, (780.0, 820.0))),
+        ("b", _result(0.5, (0.1, 2.0))),
     ]
     fig = collision_chart(rows, marks=[183.3, None], marks_label="paper", log=True)
     ax = fig.axes[0]
