@@ -16,7 +16,7 @@
 # Run it with `python chapters/01_highway.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(1)  # flags, profile, outputs folder: checked before any work
 
@@ -28,10 +28,10 @@ import e2e_lite
 from e2e_lite import artifacts
 from e2e_lite.control.drivers import LaneChanger, LaneKeeper
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, miles_text
+from e2e_lite.driving.figures import highway_figure, save_figure
 from e2e_lite.simulation.geometry import generate_track
 from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.stats.rates import poisson_ci
-from e2e_lite.viz import highway_figure, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 print(

@@ -15,7 +15,7 @@
 # Run it with `python chapters/02_camera.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(2)  # flags, profile, outputs folder: checked before any work
 
@@ -26,12 +26,12 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
+from e2e_lite.driving.figures import save_figure
 from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.geometry import generate_track
 from e2e_lite.simulation.raster import clip_near, draw_trajectory, save_image
 from e2e_lite.simulation.topdown import render_topdown
 from e2e_lite.simulation.world import ParkedCars, WorldConfig, make_world
-from e2e_lite.viz import save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 cam = Camera()  # the network's camera: 66 x 200
@@ -222,7 +222,7 @@ print(f"figure: {sizes_png}")
 #
 # The evaluator asks for a frame for each of its B cars at every decision, so the camera renders
 # a whole batch at once: the geometry of all frames is a handful of array operations and only
-# the polygon fills run per frame. `python -m e2e_lite.bench camera` measures busy curved scenes;
+# the polygon fills run per frame. `python -m e2e_lite.course.bench camera` measures busy curved scenes;
 # here a shorter measurement on the gallery's scenes.
 
 # %%

@@ -16,7 +16,7 @@
 # Run it with `python chapters/03_lqr_tracking.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(3)  # flags, profile, outputs folder: checked before any work
 
@@ -28,7 +28,6 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.control.labels import POINT_DT_S
 from e2e_lite.control.tracker import (
     LaneChangePath,
     LQRTracker,
@@ -40,10 +39,11 @@ from e2e_lite.control.tracker import (
     trajectory_reference,
 )
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
+from e2e_lite.driving.figures import save_figure
+from e2e_lite.learning.labels import POINT_DT_S
 from e2e_lite.simulation.geometry import Track
 from e2e_lite.simulation.vehicle import VehicleParams, bicycle_step, make_state
 from e2e_lite.simulation.world import SimConfig, TrafficConfig, WorldConfig
-from e2e_lite.viz import save_figure
 
 veh = VehicleParams()
 SIM = SimConfig()  # physics every SIM.dt_s, a decision every SIM.steps_per_policy physics steps

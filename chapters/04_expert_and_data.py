@@ -22,7 +22,7 @@
 # Run it with `python chapters/04_expert_and_data.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(4)  # flags, profile, outputs folder: checked before any work
 
@@ -34,7 +34,6 @@ from matplotlib.figure import Figure
 from e2e_lite import artifacts
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.control.expert import Expert
-from e2e_lite.control.labels import CHANGE, KEEP, STATE_NAMES
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.driving.evaluation import (
     SPEED_BINS,
@@ -44,7 +43,8 @@ from e2e_lite.driving.evaluation import (
     observe,
     speed_histogram,
 )
-from e2e_lite.learning.collector import (
+from e2e_lite.driving.figures import draw_road, save_figure
+from e2e_lite.imitation.collector import (
     AFFORDANCE_NAMES,
     SLOW_MPS,
     DataConfig,
@@ -52,6 +52,7 @@ from e2e_lite.learning.collector import (
     describe,
     load_or_collect,
 )
+from e2e_lite.learning.labels import CHANGE, KEEP, STATE_NAMES
 from e2e_lite.record import words
 from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.geometry import Track
@@ -59,7 +60,6 @@ from e2e_lite.simulation.raster import draw_trajectory, save_image, tile
 from e2e_lite.simulation.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
 from e2e_lite.simulation.world import ParkedCars, World, WorldConfig, make_world
 from e2e_lite.stats.rates import compare_rates
-from e2e_lite.viz import draw_road, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())

@@ -23,7 +23,7 @@
 # Run it with `python chapters/05_pilotnet_baseline.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(5)  # flags, profile, outputs folder: checked before any work
 
@@ -32,12 +32,12 @@ import torch
 
 from e2e_lite import artifacts
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, results_table
-from e2e_lite.learning import recipes
-from e2e_lite.learning.agents import ActuatorAgent, SteeringAgent
-from e2e_lite.learning.collector import DataConfig, DrivingDataset, concat, load_or_collect
+from e2e_lite.imitation import recipes
+from e2e_lite.imitation.agents import ActuatorAgent, SteeringAgent
+from e2e_lite.imitation.collector import DataConfig, DrivingDataset, concat, load_or_collect
+from e2e_lite.imitation.recovery import RecoveryConfig, load_or_make_recovery
 from e2e_lite.learning.losses import Objective
 from e2e_lite.learning.models import build_model, count_parameters, pick_device, prepare
-from e2e_lite.learning.recovery import RecoveryConfig, load_or_make_recovery
 from e2e_lite.learning.training import TrainConfig, epoch_batches, evaluate_loss, fit, model_stats
 from e2e_lite.record import words
 from e2e_lite.simulation.camera import Camera, CameraConfig
@@ -337,6 +337,6 @@ artifacts.write_metrics(
 #    loss go up or down? And the collisions? Explain the difference.
 # 2. Replace the cruise control of `SteeringAgent` by a constant 25 m/s. Which collisions appear?
 # 3. Seed 002 predicted throttle and brake instead of acceleration. Use
-#    `e2e_lite.learning.collector.throttle_brake` to make those targets and train a 3-output head. What changes?
+#    `e2e_lite.imitation.collector.throttle_brake` to make those targets and train a 3-output head. What changes?
 # 4. Look at `outputs/figures/train_05_actuators.png`. Is the kept epoch the last? What would more
 #    epochs buy, and what would they cost on this CPU?

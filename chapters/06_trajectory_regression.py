@@ -20,7 +20,7 @@
 # Run it with `python chapters/06_trajectory_regression.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(6)  # flags, profile, outputs folder: checked before any work
 
@@ -29,11 +29,11 @@ import torch
 
 from e2e_lite import artifacts
 from e2e_lite.control.expert import Expert
-from e2e_lite.control.labels import CHANGE, KEEP
 from e2e_lite.driving.evaluation import EvalConfig, EvalResult, evaluate, observe, results_table
-from e2e_lite.learning import recipes
-from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.collector import DataConfig, DrivingDataset, load_or_collect
+from e2e_lite.imitation import recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, DrivingDataset, load_or_collect
+from e2e_lite.learning.labels import CHANGE, KEEP
 from e2e_lite.learning.training import evaluate_loss
 from e2e_lite.simulation.camera import Camera, CameraConfig
 from e2e_lite.simulation.raster import draw_trajectory, save_image

@@ -26,7 +26,7 @@
 
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(7)  # flags, profile, outputs folder: checked before any work
 
@@ -39,7 +39,6 @@ from matplotlib.patches import Rectangle
 
 from e2e_lite import artifacts
 from e2e_lite.control.expert import Expert
-from e2e_lite.control.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
 from e2e_lite.driving.evaluation import (
     EvalConfig,
     EvalResult,
@@ -48,10 +47,12 @@ from e2e_lite.driving.evaluation import (
     observe,
     results_table,
 )
-from e2e_lite.learning import recipes
-from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.collector import DataConfig, DrivingDataset, load_or_collect, situations
+from e2e_lite.driving.figures import collision_chart, save_figure
+from e2e_lite.imitation import recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, DrivingDataset, load_or_collect, situations
 from e2e_lite.learning.heads import gmm_nll
+from e2e_lite.learning.labels import AFFORDANCE_INDEX, GAP_CAP_M, KEEP
 from e2e_lite.learning.training import DECISIVE, VAL_ROADS, evaluate_loss
 from e2e_lite.record import words
 from e2e_lite.simulation.camera import Camera, CameraConfig
@@ -65,7 +66,6 @@ from e2e_lite.simulation.scenarios import (
 )
 from e2e_lite.simulation.world import Fleet, WorldConfig, make_world
 from e2e_lite.stats.rates import compare_rates
-from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 human = Camera(CameraConfig.human())

@@ -31,7 +31,7 @@
 # Run it with `python chapters/08_affordance.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(8)  # flags, profile, outputs folder: checked before any work
 
@@ -40,17 +40,11 @@ import torch
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.control.labels import AFFORDANCE_INDEX, CHANGE
-from e2e_lite.driving.evaluation import (
-    EvalConfig,
-    EvalResult,
-    evaluate,
-    miles_text,
-    results_table,
-)
-from e2e_lite.learning import recipes
-from e2e_lite.learning.agents import Recorder, TrajectoryAgent
-from e2e_lite.learning.collector import (
+from e2e_lite.driving.evaluation import EvalConfig, EvalResult, evaluate, miles_text, results_table
+from e2e_lite.driving.figures import collision_chart, save_figure
+from e2e_lite.imitation import recipes
+from e2e_lite.imitation.agents import Recorder, TrajectoryAgent
+from e2e_lite.imitation.collector import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,
@@ -59,11 +53,11 @@ from e2e_lite.learning.collector import (
     load_or_collect,
 )
 from e2e_lite.learning.heldout import affordance_errors, goal_ratios
+from e2e_lite.learning.labels import AFFORDANCE_INDEX, CHANGE
 from e2e_lite.learning.training import evaluate_loss
 from e2e_lite.record import words
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.stats.rates import compare_rates
-from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 GAP, OFFSET = AFFORDANCE_INDEX["gap_ego_m"], AFFORDANCE_INDEX["center_offset_m"]

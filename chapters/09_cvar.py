@@ -22,7 +22,7 @@
 # Run it with `python chapters/09_cvar.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(9)  # flags, profile, outputs folder: checked before any work
 
@@ -31,14 +31,11 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from e2e_lite import ablation, artifacts
-from e2e_lite.driving.evaluation import (
-    EvalConfig,
-    miles_text,
-    results_table,
-)
-from e2e_lite.learning import recipes
-from e2e_lite.learning.collector import (
+from e2e_lite import artifacts
+from e2e_lite.driving.evaluation import EvalConfig, miles_text, results_table
+from e2e_lite.driving.figures import collision_chart, save_figure
+from e2e_lite.imitation import recipes
+from e2e_lite.imitation.collector import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,
@@ -48,12 +45,11 @@ from e2e_lite.learning.collector import (
 )
 from e2e_lite.learning.cvar import cvar, cvar_curve, cvar_loss, cvar_ru
 from e2e_lite.learning.training import evaluate_loss
-from e2e_lite.record import words
+from e2e_lite.record import ablation, words
 from e2e_lite.simulation.raster import save_image
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.stats.rates import compare_rates
 from e2e_lite.stats.seeds import compare_seeds
-from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 

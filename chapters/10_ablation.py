@@ -28,13 +28,13 @@
 # roads; each result is stored under a key of the weights and settings, and reused.
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(10)  # flags, profile, outputs folder: checked before any work
 
 import numpy as np
 
-from e2e_lite import ablation, artifacts
+from e2e_lite import artifacts
 from e2e_lite.driving import replay
 from e2e_lite.driving.evaluation import (
     COLLISION_KINDS,
@@ -43,15 +43,15 @@ from e2e_lite.driving.evaluation import (
     miles_text,
     results_table,
 )
-from e2e_lite.learning.collector import DataConfig, load_or_collect
-from e2e_lite.record import words
+from e2e_lite.driving.figures import collision_chart, save_figure
+from e2e_lite.imitation.collector import DataConfig, load_or_collect
+from e2e_lite.record import ablation, words
+from e2e_lite.record.report import load
 from e2e_lite.record.stats import SPREAD_GOAL, STEPS, record_dispersion, slow, test_step
-from e2e_lite.report import load
 from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.stats.power import power
 from e2e_lite.stats.rates import compare_rates
 from e2e_lite.stats.seeds import compare_seeds, rank_test, seed_counts, sign_flip_test, spread
-from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 print(
@@ -382,7 +382,7 @@ artifacts.write_metrics(
 #    lanes): which rows move beyond their intervals? What does that say about a verdict's miles?
 # 2. With `stats.power.power`, find the seeds and miles per seed that would find a 1.5x step (not
 #    2x) at the + affordance row's rate nine times in ten. What would that record cost in
-#    training time on your machine (`python -m e2e_lite.bench train`)?
+#    training time on your machine (`python -m e2e_lite.course.bench train`)?
 # 3. Drive the exercises' drivers (`ablation.DIAGNOSTICS`: the mixture's mean, K = 1, the
 #    paper's learned sigmas, the head on the fused features) beside the GMM rows, seed by seed.
 #    Which of them changes the GMM row's spread (lab note "Every epoch on the road")?

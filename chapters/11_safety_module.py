@@ -38,7 +38,7 @@
 # Run it with `python chapters/11_safety_module.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(11)  # flags, profile, outputs folder: checked before any work
 
@@ -51,13 +51,14 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from e2e_lite import ablation, artifacts
-from e2e_lite.control.labels import POINT_DT_S, interpolated_path
+from e2e_lite import artifacts
 from e2e_lite.driving.evaluation import EvalConfig, disjoint_runs, pool_results, results_table
-from e2e_lite.learning import recipes
-from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.collector import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
-from e2e_lite.record import words
+from e2e_lite.driving.figures import collision_chart, save_figure
+from e2e_lite.imitation import recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import AFFORDANCE_NAMES, GAP_CAP_M, DataConfig, load_or_collect
+from e2e_lite.learning.labels import POINT_DT_S, interpolated_path
+from e2e_lite.record import ablation, words
 from e2e_lite.safety.agent import IMPACT_CAUSES, SafeAgent, SafetyStats
 from e2e_lite.safety.rule import SafetyConfig, calibrate_gap_free, check
 from e2e_lite.simulation.camera import Camera, CameraConfig
@@ -65,7 +66,6 @@ from e2e_lite.simulation.raster import draw_trajectory
 from e2e_lite.simulation.world import WorldConfig, make_world
 from e2e_lite.stats.rates import compare_rates
 from e2e_lite.stats.seeds import compare_seeds
-from e2e_lite.viz import collision_chart, save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 cfg = SafetyConfig()

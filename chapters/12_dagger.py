@@ -23,7 +23,7 @@
 # Run it with `python chapters/12_dagger.py` (add `--quick` for a run of seconds).
 
 # %%
-from e2e_lite.course import start_chapter
+from e2e_lite.course.run import start_chapter
 
 profile = start_chapter(12)  # flags, profile, outputs folder: checked before any work
 
@@ -32,22 +32,22 @@ import dataclasses
 import numpy as np
 from matplotlib.figure import Figure
 
-from e2e_lite import ablation, artifacts
+from e2e_lite import artifacts
 from e2e_lite.control.expert import Expert, WipedExpert
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving import anatomy
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
-from e2e_lite.learning import dagger, recipes
-from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.collector import DataConfig, OnPolicy, load_or_collect
-from e2e_lite.record import words
+from e2e_lite.driving.figures import save_figure
+from e2e_lite.imitation import dagger, recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, OnPolicy, load_or_collect
+from e2e_lite.record import ablation, words
+from e2e_lite.record.report import load
 from e2e_lite.record.stats import record_dispersion
-from e2e_lite.report import load
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.stats.power import power
 from e2e_lite.stats.seeds import SeedTest, compare_seeds, seed_counts
-from e2e_lite.viz import save_figure
 
 world_cfg = WorldConfig.for_profile(profile)
 seeds = list(range(profile.ablation_seeds))  # chapter 10's training seeds

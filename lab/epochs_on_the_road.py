@@ -35,7 +35,7 @@ def _drive(job: tuple) -> dict[str, Any]:
     from e2e_lite.config import FULL, QUICK
     from e2e_lite.driving.evaluation import evaluate
     from e2e_lite.driving.rollout import EvalConfig
-    from e2e_lite.learning.agents import TrajectoryAgent
+    from e2e_lite.imitation.agents import TrajectoryAgent
     from e2e_lite.learning.models import build_model
     from e2e_lite.simulation.world import WorldConfig
 
@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         os.environ["E2E_LITE_QUICK"] = "1"
 
     from e2e_lite.config import FULL, QUICK
-    from e2e_lite.learning import recipes
-    from e2e_lite.learning.collector import DataConfig, load_or_collect
+    from e2e_lite.imitation import recipes
+    from e2e_lite.imitation.collector import DataConfig, load_or_collect
 
     profile = QUICK if args.quick else FULL
     t0 = time.perf_counter()

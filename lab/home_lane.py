@@ -38,16 +38,16 @@ from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving.evaluation import evaluate
-from e2e_lite.learning import dagger, recipes
-from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.imitation import dagger, recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, collect, load_or_collect
 from e2e_lite.learning.checkpoints import load_checkpoint
-from e2e_lite.learning.collector import DataConfig, collect, load_or_collect
 from e2e_lite.learning.dataset import DrivingData, DrivingDataset, relabelled
 from e2e_lite.learning.models import DrivingModel, pick_device
 from e2e_lite.learning.training import fit
+from e2e_lite.record.stored import evaluate_stored
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.stats.seeds import sign_flip_test
-from e2e_lite.stored import evaluate_stored
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "home_lane.json"
 HOMES = StateExpert.HOMES  # ("middle", "own"): the course's first
@@ -94,7 +94,7 @@ def arm(
 ) -> list[dict]:
     """The arm with no new data on chapter 04's data ``old`` and ``val`` relabelled by the state
     expert of ``home``: each round fine-tunes the last
-    iterate on rows drawn from chapter 04's relabelled data as :func:`~e2e_lite.learning.dagger.
+    iterate on rows drawn from chapter 04's relabelled data as :func:`~e2e_lite.imitation.dagger.
     run` does (one epoch, its Adam state carried on), then drives; the drives of iterates 1 ..
     ``rounds``. Trained as :func:`~e2e_lite.learning.checkpoints.train_or_load` trains a
     fine-tune, keeping the start network's normalisation, but neither stored nor checked against

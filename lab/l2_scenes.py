@@ -19,13 +19,13 @@ import numpy as np
 from e2e_lite import artifacts
 from e2e_lite.config import FULL, QUICK
 from e2e_lite.control.expert import Expert
-from e2e_lite.control.labels import AFFORDANCE_INDEX, GAP_CAP_M
-from e2e_lite.learning import recipes
-from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.collector import DataConfig, load_or_collect
+from e2e_lite.driving.figures import save_figure
+from e2e_lite.imitation import recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, load_or_collect
+from e2e_lite.learning.labels import AFFORDANCE_INDEX, GAP_CAP_M
 from e2e_lite.simulation.scenarios import START_S_M, ScenarioConfig, overtake_scenes, run_scenarios
 from e2e_lite.simulation.world import WorldConfig
-from e2e_lite.viz import save_figure
 
 DISTANCES_M = (90.0, 70.0, 55.0, 45.0, 35.0, 25.0)  # rear axle to the parked car's centre [m]
 SIDE_M = 1.0  # an end point more than this left (right) of the lane centre goes left (right) [m]

@@ -31,11 +31,11 @@ OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "labels
 
 def run(labeller: str, outputs: Path, seeds: int, miles: float, quick: bool) -> None:
     os.environ["E2E_LITE_OUTPUTS"] = str(outputs)
-    from e2e_lite import ablation
     from e2e_lite.config import FULL, QUICK
     from e2e_lite.driving.evaluation import EvalConfig
-    from e2e_lite.learning import collector, recipes
-    from e2e_lite.learning.agents import TrajectoryAgent
+    from e2e_lite.imitation import collector, recipes
+    from e2e_lite.imitation.agents import TrajectoryAgent
+    from e2e_lite.record import ablation
     from e2e_lite.simulation.world import WorldConfig
 
     profile = QUICK if quick else FULL

@@ -20,9 +20,9 @@ import numpy as np
 from labellers import Lateral, drive
 
 from e2e_lite.config import FULL
-from e2e_lite.control.labels import STATE_NAMES as NAMES
 from e2e_lite.control.state_expert import StateExpert as Expert
 from e2e_lite.driving.evaluation import EvalConfig
+from e2e_lite.learning.labels import STATE_NAMES as NAMES
 from e2e_lite.simulation.world import WorldConfig
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "lateral_outliers.json"

@@ -29,18 +29,18 @@ from typing import Any
 
 import numpy as np
 
-from e2e_lite import ablation
 from e2e_lite.config import FULL, QUICK, Profile
-from e2e_lite.control.labels import AFFORDANCE_INDEX
-from e2e_lite.learning import dagger, recipes
-from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.imitation import dagger, recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, load_or_collect
 from e2e_lite.learning.checkpoints import train_or_load, training_data_key
-from e2e_lite.learning.collector import DataConfig, load_or_collect
 from e2e_lite.learning.dataset import DrivingData
+from e2e_lite.learning.labels import AFFORDANCE_INDEX
 from e2e_lite.learning.models import DrivingModel
+from e2e_lite.record import ablation
+from e2e_lite.record.stored import evaluate_stored
 from e2e_lite.simulation.world import WorldConfig
 from e2e_lite.stats.seeds import sign_flip_test
-from e2e_lite.stored import evaluate_stored
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "off_centre_labels.json"
 
@@ -70,7 +70,7 @@ def expert_labels(
     cfg: dagger.DaggerConfig,
 ) -> list[dict[str, float]]:
     """The arm with no new data, its labels the course's expert's: each round fine-tunes on rows
-    drawn from chapter 04's data as :func:`~e2e_lite.learning.dagger.run` does, then drives."""
+    drawn from chapter 04's data as :func:`~e2e_lite.imitation.dagger.run` does, then drives."""
     recipes.gmm_affordance_cvar(profile, train, val, weight, seed)  # the start, stored first
     objective, tcfg = recipes.finetune_settings(profile, weight, seed, "mean")
     parent = recipes.seeded_name("09_gmm_affordance_cvar", seed)

@@ -2,7 +2,7 @@
 when loky is installed (``pip install loky``), on chapter 10's drive: the first call (workers
 started), a second call (workers kept), and Ctrl-C in a child driving 1,000 mi (seconds to exit,
 lines on stderr, processes left behind). Its figures and the choice they led to are in
-docs/benchmarks.md and the pool's module docstring. (Was ``python -m e2e_lite.bench pool`` until
+docs/benchmarks.md and the pool's module docstring. (Was ``python -m e2e_lite.course.bench pool`` until
 the choice was made; a one-off experiment, so it lives in lab/.)
 
     python lab/pool_vs_loky.py [--quick]
@@ -83,7 +83,7 @@ def _ctrl_c(pool: str, after_s: float = 3.0) -> dict[str, float]:
     with tempfile.TemporaryFile("w+") as err:  # (a file: workers left behind may hold a pipe)
         child = subprocess.Popen(
             [sys.executable, "-c", f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-             "from e2e_lite.bench import learned_driver; from pool_vs_loky import _pool_child; "
+             "from e2e_lite.course.bench import learned_driver; from pool_vs_loky import _pool_child; "
              f"_pool_child({pool!r}, learned_driver)"],
             stdout=subprocess.PIPE, stderr=err, text=True,
             env={**os.environ, "E2E_POOL_TRIAL": token},
@@ -141,7 +141,7 @@ def bench_pool(quick: bool, driver: Callable) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    from e2e_lite.bench import learned_driver
+    from e2e_lite.course.bench import learned_driver
 
     for key, value in bench_pool("--quick" in sys.argv, learned_driver).items():
         print(f"  {key:36s} {value:,.2f}")

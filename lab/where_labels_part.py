@@ -29,13 +29,13 @@ import numpy as np
 from e2e_lite.artifacts import artifact_path
 from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.expert import Expert
-from e2e_lite.control.labels import AFFORDANCE_INDEX, CHANGE, KEEP, STATE_NAMES
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving.evaluation import evaluate
-from e2e_lite.learning import dagger
-from e2e_lite.learning.collector import DataConfig, dataset_path
+from e2e_lite.imitation import dagger
+from e2e_lite.imitation.collector import DataConfig, dataset_path
 from e2e_lite.learning.dataset import road_lateral
+from e2e_lite.learning.labels import AFFORDANCE_INDEX, CHANGE, KEEP, STATE_NAMES
 from e2e_lite.simulation.world import WorldConfig
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "results" / "lab" / "where_labels_part.json"

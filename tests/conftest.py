@@ -63,17 +63,17 @@ class ForkingKeeper(LaneKeeper):
 
 @pytest.fixture
 def drives(monkeypatch) -> list:
-    """The drives :func:`e2e_lite.stored.evaluate_stored` actually drives (each call of
+    """The drives :func:`e2e_lite.record.stored.evaluate_stored` actually drives (each call of
     ``evaluate`` appends its policy), so a test can tell a read-back result from a driven one:
     both are an ``EvalResult``."""
-    import e2e_lite.stored
+    import e2e_lite.record.stored
 
     driven: list = []
-    real = e2e_lite.stored.evaluate
+    real = e2e_lite.record.stored.evaluate
 
     def counted(policy, *args, **kwargs):
         driven.append(policy)
         return real(policy, *args, **kwargs)
 
-    monkeypatch.setattr(e2e_lite.stored, "evaluate", counted)
+    monkeypatch.setattr(e2e_lite.record.stored, "evaluate", counted)
     return driven

@@ -7,17 +7,17 @@ from dataclasses import replace
 import pytest
 import torch
 
-from e2e_lite import ablation
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.control.expert import Expert
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.driving.evaluation import EvalConfig, EvalResult
-from e2e_lite.learning.agents import SteeringAgent, TrajectoryAgent
+from e2e_lite.imitation.agents import SteeringAgent, TrajectoryAgent
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
+from e2e_lite.record import ablation
+from e2e_lite.record.stored import fingerprint
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
-from e2e_lite.stored import fingerprint
 
 WORLD = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_cars=(8, 8)))
 CFG = EvalConfig(miles=0.2, n_worlds=4, n_tracks=2)
@@ -115,7 +115,7 @@ def test_a_row_of_seeds_shares_the_miles_and_pools_the_counts():
 
 
 def test_seeded_names_keep_the_chapters_checkpoint_for_seed_zero():
-    from e2e_lite.learning.recipes import seeded_name
+    from e2e_lite.imitation.recipes import seeded_name
 
     assert seeded_name("07_gmm", 0) == "07_gmm"
     assert seeded_name("07_gmm", 2) == "10_gmm_seed2"

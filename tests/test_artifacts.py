@@ -19,16 +19,16 @@ from e2e_lite import artifacts
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.driving.evaluation import EvalConfig
+from e2e_lite.imitation.collector import DataConfig, load_or_collect
 from e2e_lite.learning.checkpoints import refit_or_load, train_or_load
-from e2e_lite.learning.collector import DataConfig, load_or_collect
 from e2e_lite.learning.dataset import synthetic_data
 from e2e_lite.learning.losses import GMMObjective, Objective
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.learning.probes import HeadRefit
 from e2e_lite.learning.training import TrainConfig, model_stats
+from e2e_lite.record.stored import evaluate_stored
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
-from e2e_lite.stored import evaluate_stored
 
 
 def flip_a_bit(path: Path, at: float = 0.6) -> None:

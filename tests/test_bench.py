@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from e2e_lite import bench
+from e2e_lite.course import bench
 
 
 @pytest.mark.parametrize(
@@ -65,7 +65,7 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
     """Issue 56: a long run says first how many workers and which device it will use, and how
     long it should take from the benchmarks' per-part rates."""
     from e2e_lite.config import FULL
-    from e2e_lite.estimate import (
+    from e2e_lite.course.estimate import (
         RATES,
         Work,
         chapter_work,
@@ -73,7 +73,7 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
         estimate_s,
         plan_text,
     )
-    from e2e_lite.learning import recipes
+    from e2e_lite.imitation import recipes
     from e2e_lite.record.run import record_work
 
     drive = Work(collect_samples=0.0, train_samples=0.0, drive_miles=1_000.0)

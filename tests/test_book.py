@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from e2e_lite import book, transcript
+from e2e_lite.course import book, transcript
 
 CHAPTER = """# %% [markdown]
 # # 99 · A test chapter
@@ -84,7 +84,7 @@ def test_the_index_says_which_chapters_ran_at_which_commit_and_times_read_as_tim
 def test_the_index_lists_a_chapter_not_yet_run_and_carries_a_note(tmp_path):
     """A run cut before its last chapter makes a book of the chapters it ran; the index lists
     the others as not in the run, and a note says what the run's files cannot."""
-    from e2e_lite.course import CHAPTERS
+    from e2e_lite.course.run import CHAPTERS
 
     out = tmp_path / "out"
     (out / "transcripts").mkdir(parents=True)

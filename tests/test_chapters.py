@@ -14,8 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from e2e_lite.ablation import DRIVERS, SEED_ZERO_ONLY, UNTRAINED
-from e2e_lite.course import (
+from e2e_lite.course.run import (
     TIMES_FILE,
     ChapterClock,
     course_total,
@@ -24,6 +23,7 @@ from e2e_lite.course import (
     select,
     summary_table,
 )
+from e2e_lite.record.ablation import DRIVERS, SEED_ZERO_ONLY, UNTRAINED
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAPTERS = find_chapters(ROOT / "chapters")
@@ -309,7 +309,7 @@ def test_a_chapter_cut_short_keeps_its_time_and_its_next_run_adds_to_it(tmp_path
             "-c",
             "import os, sys, time\n"
             "from pathlib import Path\n"
-            "from e2e_lite.course import ChapterClock\n"
+            "from e2e_lite.course.run import ChapterClock\n"
             "with ChapterClock(Path(sys.argv[1]), '02_b', heartbeat_s=0.05):\n"
             "    time.sleep(0.6)\n"
             "    os._exit(9)\n",
@@ -357,8 +357,9 @@ def test_the_record_command_drives_every_row_per_seed_on_test_roads_in_the_quick
     """``python -m e2e_lite.record run --quick``: each learned row with its seeds, each seed's
     counts, miles, speed and stalls, the machine, and the render of it (the quick record goes to
     the outputs folder, never to docs/)."""
-    from e2e_lite import ablation, artifacts, report
+    from e2e_lite import artifacts
     from e2e_lite.driving.roads import ROAD_BLOCKS
+    from e2e_lite.record import ablation, report
     from e2e_lite.record.__main__ import main
     from e2e_lite.record.rows import load_record
 

@@ -200,8 +200,8 @@ def test_the_kit_says_what_a_machine_needs_as_measured_and_the_book_has_every_ch
     (download, venv, outputs after the full and the quick course, peak memory, the system the
     tests ran on); the book holds a page per chapter naming the commit it shows, is linked from
     the README and the kit, and its images stay within the budget."""
-    from e2e_lite import book
-    from e2e_lite.course import CHAPTERS
+    from e2e_lite.course import book
+    from e2e_lite.course.run import CHAPTERS
 
     teaching = (ROOT / "docs" / "teaching.md").read_text()
     needs = teaching.split("<!-- machine needs", 1)[1].split("<!-- /machine needs", 1)[0]

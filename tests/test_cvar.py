@@ -131,7 +131,7 @@ def test_affordance_weight_zero_is_the_plain_gmm_loss():
 
 def test_training_loop_reduces_with_the_objectives_reduce():
     """fit() minimises objective.reduce(per-sample losses): CVaR changes what is trained on."""
-    from e2e_lite.learning.collector import DrivingDataset, synthetic_data
+    from e2e_lite.imitation.collector import DrivingDataset, synthetic_data
     from e2e_lite.learning.losses import Objective
 
     calls = []
@@ -160,7 +160,7 @@ def test_training_loop_reduces_with_the_objectives_reduce():
 
 def test_the_control_fine_tune_differs_from_cvar_only_in_the_reduction():
     from e2e_lite.config import FULL
-    from e2e_lite.learning.recipes import finetune_settings
+    from e2e_lite.imitation.recipes import finetune_settings
 
     cvar_obj, cvar_cfg = finetune_settings(FULL, 3.0, seed=1, reduction="cvar")
     mean_obj, mean_cfg = finetune_settings(FULL, 3.0, seed=1, reduction="mean")
@@ -181,7 +181,7 @@ def test_the_fine_tunes_hold_sigma_at_1_or_train_it_both_alike(sigma):
     scored so after training); "open": the sigmas train. CVaR and its control agree on it either
     way."""
     from e2e_lite.config import FULL
-    from e2e_lite.learning.recipes import CVAR_SIGMA, finetune_settings
+    from e2e_lite.imitation.recipes import CVAR_SIGMA, finetune_settings
 
     assert CVAR_SIGMA == "held"  # the course's choice (chapter 09, section 6)
     cvar_obj, cvar_cfg = finetune_settings(FULL, 1.0, reduction="cvar", sigma=sigma)
@@ -202,7 +202,7 @@ def test_the_open_sigma_fine_tunes_are_stored_apart(monkeypatch):
     """gmm_affordance_cvar(sigma="open") trains 09_..._open checkpoints from the same parent, so
     the course's held fine-tunes and chapter 09's open controls never overwrite each other."""
     from e2e_lite.config import FULL
-    from e2e_lite.learning import recipes
+    from e2e_lite.imitation import recipes
 
     calls = []
     monkeypatch.setattr(recipes, "gmm_affordance", lambda *a, **k: None)
@@ -258,7 +258,7 @@ def test_a_tail_ranked_by_the_followed_error_trains_on_the_worst_driven_samples(
 
 
 def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset():
-    from e2e_lite.learning.collector import AFFORDANCE_NAMES, GAP_CAP_M
+    from e2e_lite.imitation.collector import AFFORDANCE_NAMES, GAP_CAP_M
     from e2e_lite.learning.heldout import affordance_errors
 
     true = np.zeros((4, 9))
@@ -284,7 +284,7 @@ def test_affordance_errors_against_the_mean_predictor_and_the_car_ahead_subset()
 
 
 def test_goal_ratios_are_each_goals_error_over_the_mean_predictors():
-    from e2e_lite.learning.collector import AFFORDANCE_NAMES, GAP_CAP_M
+    from e2e_lite.imitation.collector import AFFORDANCE_NAMES, GAP_CAP_M
     from e2e_lite.learning.heldout import affordance_errors, goal_ratios
 
     true = np.zeros((4, 9))

@@ -15,9 +15,9 @@ from conftest import ForkingKeeper
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.control.state_expert import StateExpert
-from e2e_lite.learning import dagger, recipes
-from e2e_lite.learning.agents import TrajectoryAgent
-from e2e_lite.learning.collector import DataConfig, NoiseConfig, OnPolicy, collect, dataset_path
+from e2e_lite.imitation import dagger, recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, NoiseConfig, OnPolicy, collect, dataset_path
 from e2e_lite.learning.dataset import synthetic_data
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig
@@ -261,9 +261,9 @@ def test_a_witnessed_drive_is_stored_and_read_back_to_the_same_collisions_and_fi
     call drives nothing), every collision and ordinary moment holds the same state, segment,
     command and track, a network's plans come back as they were, and dissecting a collision read
     back finds what dissecting the driven one finds."""
-    from e2e_lite import ablation
     from e2e_lite.driving import anatomy
     from e2e_lite.driving.evaluation import EvalConfig, evaluate
+    from e2e_lite.record import ablation
 
     cfg = EvalConfig(miles=2.0, n_worlds=4, split="val")
     witness = anatomy.Witness(LaneKeeper(), WORLD.sim.policy_period_s)
@@ -332,7 +332,7 @@ def test_a_witness_drives_in_threads_and_keeps_the_same_moments_for_any_number_o
 def test_an_arms_iterates_are_the_rounds_it_is_given_each_driven_on_validation_roads(monkeypatch):
     """Given the rounds of its seed (chapter 12 has them), ``dagger_iterates`` drives those
     networks, the start first, on the seed's validation roads, and runs no round again."""
-    from e2e_lite import ablation
+    from e2e_lite.record import ablation
 
     torch.manual_seed(0)
     nets = [

@@ -9,9 +9,8 @@ import pytest
 from conftest import straight_world
 
 from e2e_lite.config import QUICK
-from e2e_lite.control.labels import CHANGE
 from e2e_lite.driving.evaluation import EvalConfig
-from e2e_lite.learning.collector import (
+from e2e_lite.imitation.collector import (
     AFFORDANCE_NAMES,
     GAP_CAP_M,
     DataConfig,
@@ -26,6 +25,7 @@ from e2e_lite.learning.collector import (
     situations,
     throttle_brake,
 )
+from e2e_lite.learning.labels import CHANGE
 from e2e_lite.simulation.geometry import generate_track
 from e2e_lite.simulation.vehicle import VehicleParams
 
@@ -293,7 +293,7 @@ def test_every_sample_also_holds_the_state_experts_label_and_relabelled_trains_o
     the state expert, the two are one label. ``relabelled`` trains on the state expert's labels
     under the data's own normalisation and another key; an on-policy collection needs it."""
     from e2e_lite.control.drivers import LaneKeeper
-    from e2e_lite.learning.collector import OnPolicy
+    from e2e_lite.imitation.collector import OnPolicy
     from e2e_lite.learning.dataset import relabelled
 
     cfg = small_cfg(n_samples=400, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)

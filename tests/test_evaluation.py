@@ -212,7 +212,7 @@ def test_the_same_events_for_one_two_and_three_workers():
     (untrained) makes every car's drive depend on many decisions."""
     import torch
 
-    from e2e_lite.learning.agents import SteeringAgent, TrajectoryAgent
+    from e2e_lite.imitation.agents import SteeringAgent, TrajectoryAgent
     from e2e_lite.learning.models import ModelConfig, build_model, prepare
 
     torch.manual_seed(0)
@@ -485,7 +485,7 @@ def test_the_evaluator_pins_the_networks_threads_whatever_the_caller_set():
     import torch
 
     from e2e_lite.driving.parallel import SHARD_TORCH_THREADS
-    from e2e_lite.learning.agents import TrajectoryAgent
+    from e2e_lite.imitation.agents import TrajectoryAgent
     from e2e_lite.learning.models import ModelConfig, build_model, prepare
 
     class Counting(TrajectoryAgent):
@@ -529,7 +529,7 @@ def test_no_closed_loop_number_drives_a_road_that_a_choice_was_made_on():
     from pathlib import Path
 
     from e2e_lite.config import FULL, QUICK
-    from e2e_lite.learning.collector import DataConfig
+    from e2e_lite.imitation.collector import DataConfig
     from e2e_lite.simulation.geometry import RoadConfig, generate_track
 
     assert EvalConfig().split == "test"

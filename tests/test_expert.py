@@ -9,11 +9,11 @@ from conftest import straight_world
 
 from e2e_lite.control import rules
 from e2e_lite.control.expert import Expert, WipedExpert
-from e2e_lite.control.labels import CHANGE, KEEP, PASS
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear, speed_profile
 from e2e_lite.control.state_expert import StateExpert, expert_labels
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe
+from e2e_lite.learning.labels import CHANGE, KEEP, PASS
 from e2e_lite.simulation.geometry import RoadConfig, Track
 from e2e_lite.simulation.world import Fleet, TrafficConfig, World, WorldConfig, make_world
 

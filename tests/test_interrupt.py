@@ -24,7 +24,7 @@ import sys
 import time
 import torch
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
-from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.imitation.agents import TrajectoryAgent
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.world import WorldConfig
 

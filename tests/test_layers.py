@@ -11,12 +11,12 @@ import pytest
 import torch
 
 import e2e_lite
-import e2e_lite.learning.collector
+import e2e_lite.imitation.collector
 import e2e_lite.learning.dataset
 from e2e_lite.control.expert import Expert
 from e2e_lite.control.tracker import default_tracker
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
-from e2e_lite.learning.agents import CruiseControl, SteeringAgent, TrajectoryAgent
+from e2e_lite.imitation.agents import CruiseControl, SteeringAgent, TrajectoryAgent
 from e2e_lite.learning.dataset import FIELDS, SCHEMA, allocate, synthetic_data
 from e2e_lite.learning.models import ModelConfig, build_model
 from e2e_lite.simulation.world import SimConfig, WorldConfig
@@ -25,20 +25,33 @@ SIMULATOR = ("pymunk", "cv2", "e2e_lite.control.tracker")
 
 
 def test_the_learning_modules_import_without_the_simulator() -> None:
-    learning = ("dataset", "models", "losses", "training", "recipes", "cvar", "heldout")
-    learning += ("checkpoints", "probes")
+    """Issue 87: every module of learning/ loads without the simulator, and none imports
+    anything of simulation/, control/, driving/ or above, at its top or in a function."""
+    from pathlib import Path
+
+    folder = Path(e2e_lite.__file__).parent / "learning"
+    learning = sorted(p.stem for p in folder.glob("*.py") if p.stem != "__init__")
+    assert {"labels", "dataset", "models", "losses", "training", "checkpoints"} <= set(learning)
     code = (
         "import sys\n"
-        "import e2e_lite.control.labels\n"
         + "".join(f"import e2e_lite.learning.{m}\n" for m in learning)
         + f"print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
     # and the check itself can fail: the collector does pull the simulator in
-    code = f"import sys, e2e_lite.learning.collector; print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))"
+    code = (
+        "import sys, e2e_lite.imitation.collector\n"
+        f"print(sorted(m for m in {SIMULATOR!r} if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == str(sorted(SIMULATOR))
+    # what each learning module imports of the library, wherever in the file: base, stats, learning
+    allowed = ("e2e_lite.learning", "e2e_lite.stats", "e2e_lite.config", "e2e_lite.artifacts")
+    for name, targets in _library_imports().items():
+        if name.startswith("e2e_lite.learning"):
+            above = sorted(t for t in targets if not t.startswith(allowed) and t != "e2e_lite")
+            assert not above, (name, above)
 
 
 def test_an_evaluation_worker_imports_neither_scipy_stats_nor_python_control() -> None:
@@ -49,7 +62,7 @@ def test_an_evaluation_worker_imports_neither_scipy_stats_nor_python_control() -
     code = (
         "import sys\n"
         "import e2e_lite.driving.shard_worker, e2e_lite.driving.parallel\n"
-        "import e2e_lite.learning.agents, e2e_lite.safety.agent\n"
+        "import e2e_lite.imitation.agents, e2e_lite.safety.agent\n"
         f"print(sorted(m for m in {heavy!r} if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -80,7 +93,7 @@ def test_the_schema_makes_the_field_list_the_arrays_the_synthetic_data_and_the_d
         )
     assert syn.images.shape == (8, 66, 200, 3)
     # the collector's module re-exports the dataset's names (the chapters read them there)
-    assert e2e_lite.learning.collector.DrivingData is e2e_lite.learning.dataset.DrivingData
+    assert e2e_lite.imitation.collector.DrivingData is e2e_lite.learning.dataset.DrivingData
 
 
 def _gains(tracker) -> np.ndarray:
@@ -121,7 +134,7 @@ def test_models_still_run_on_synthetic_batches_after_the_move() -> None:
 
 
 def test_recovery_views_re_express_the_labels_in_the_shifted_cars_frame() -> None:
-    from e2e_lite.learning.recovery import to_car_frame
+    from e2e_lite.imitation.recovery import to_car_frame
 
     pts = np.array([[[7.5, 0.0], [15.0, 0.5]]])
     pose = np.array([[10.0, 2.0, 0.3]])
@@ -137,22 +150,24 @@ def test_recovery_views_re_express_the_labels_in_the_shifted_cars_frame() -> Non
 
 
 # The layers, bottom to top: a module may import from its own folder and the folders below it.
-LAYERS = ("stats", "simulation", "control", "driving", "learning", "safety")
+# The layers, bottom to top: a module may import from its own folder and the folders below it.
+# stats: counts in, results out; simulation: the world; learning: what learns, no simulator;
+# control: the expert and the tracker (the expert writes learning's label format); driving: the
+# closed loop and what it measures; imitation: what drives the simulator to learn; safety: the
+# guarded driver; course: the course's tools (running, timing, the book, benchmarks); record:
+# the numbers of record, chapter 10's drivers and what renders them (it reads the course's times)
+LAYERS = (
+    "stats",
+    "simulation",
+    "learning",
+    "control",
+    "driving",
+    "imitation",
+    "safety",
+    "course",
+    "record",
+)
 BASE = ("config", "artifacts")  # used by every layer
-#: beside the layers, free to import any of them, and what each owns
-TOP = {
-    "ablation": "chapter 10's drivers, how each is built and the table beside the paper's",
-    "stored": "drives stored and read back under a key of the driver, world and settings",
-    "record": "the numbers of record: typed rows and shares, their tests, pooling and running",
-    "report": "rendering the committed record and the course's tables, and nothing else",
-    "kit": "the teacher's kit's rendered blocks: the course run, a machine's needs, the sessions",
-    "viz": "figures the chapters share",
-    "course": "running the chapters in order",
-    "estimate": "how long a run should take here",
-    "bench": "the benchmarks",
-    "transcript": "a chapter run cell by cell, what each cell printed and saved kept",
-    "book": "the course as a book, rendered from one full run's transcripts",
-}
 
 
 def _library_imports() -> dict[str, set[str]]:
@@ -187,8 +202,6 @@ def _rank(module: str) -> int:
     parts = module.split(".")
     if len(parts) == 1 or parts[1] in BASE:
         return 0
-    if parts[1] in TOP:
-        return len(LAYERS) + 1
     assert parts[1] in LAYERS, f"{module} is in no layer: add its folder to LAYERS"
     return 1 + LAYERS.index(parts[1])
 

@@ -11,13 +11,14 @@ import torch
 from e2e_lite.artifacts import artifact_path, seal, settings_key
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
 from e2e_lite.driving.parallel import processes_ok
-from e2e_lite.learning.agents import (
+from e2e_lite.imitation.agents import (
     SPEED_SOURCES,
     ActuatorAgent,
     CruiseControl,
     SteeringAgent,
     TrajectoryAgent,
 )
+from e2e_lite.imitation.collector import DrivingDataset, synthetic_data
 from e2e_lite.learning.checkpoints import (
     CheckpointMismatch,
     load_checkpoint,
@@ -25,7 +26,6 @@ from e2e_lite.learning.checkpoints import (
     save_checkpoint,
     train_or_load,
 )
-from e2e_lite.learning.collector import DrivingDataset, synthetic_data
 from e2e_lite.learning.losses import GMMObjective, Objective, target
 from e2e_lite.learning.models import (
     TRUNK_FEATURES,
@@ -390,7 +390,7 @@ def test_trajectory_agent_keeps_every_mode():
     np.testing.assert_allclose(mean_agent.last["modes"], last["modes"])
     with pytest.raises(ValueError, match="decode"):
         TrajectoryAgent(model, decode="median")
-    from e2e_lite.stored import fingerprint
+    from e2e_lite.record.stored import fingerprint
 
     assert fingerprint(mean_agent) != fingerprint(agent)
     with_aff = prepare(
@@ -441,7 +441,7 @@ def test_trajectory_agent_speed_sources():
 
 def test_recorder_keeps_one_row_per_decision_and_passes_the_camera():
     from e2e_lite.control.drivers import LaneKeeper
-    from e2e_lite.learning.agents import Recorder
+    from e2e_lite.imitation.agents import Recorder
 
     rec = Recorder(LaneKeeper(), lambda obs, agent: obs.time_s)
     assert rec.camera is None
@@ -778,7 +778,7 @@ def test_the_road_scorer_drives_each_epoch_on_validation_roads_alike():
     roads and start lanes for every epoch, so the same weights score the same; the caller's own
     hook still runs."""
     from e2e_lite.config import QUICK
-    from e2e_lite.learning import selection
+    from e2e_lite.imitation import selection
     from e2e_lite.learning.training import VAL_ROADS
 
     torch.manual_seed(0)

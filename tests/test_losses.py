@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import multivariate_normal
 
-from e2e_lite.learning.collector import DrivingDataset, synthetic_data
+from e2e_lite.imitation.collector import DrivingDataset, synthetic_data
 from e2e_lite.learning.heads import Mixture, gmm_nll, log_sigma, split_gmm
 from e2e_lite.learning.heldout import mode_split, side_shares
 from e2e_lite.learning.losses import GMMObjective, Objective
@@ -210,7 +210,7 @@ def test_axis_scale_and_a_floor_in_metres():
     respects it."""
     data = synthetic_data(32)
     data.arrays["trajectory"][:, :, 1] *= np.arange(1, 6) / 5.0  # lateral spread grows with time
-    from e2e_lite.learning.collector import dataset_stats
+    from e2e_lite.imitation.collector import dataset_stats
 
     data.stats.update(dataset_stats(data.arrays))
     obj = GMMObjective(target_scale="axis")

@@ -1,6 +1,6 @@
 """The course's recipes: the settings rules that chapters share."""
 
-from e2e_lite.learning.recipes import choose_affordance_weight, sigma_warmup
+from e2e_lite.imitation.recipes import choose_affordance_weight, sigma_warmup
 
 
 def test_sigma_warmup_is_a_third_of_the_schedule():
@@ -26,9 +26,9 @@ def test_a_gmm_recipe_with_one_mode_and_a_mismatch_refused():
     import pytest
 
     from e2e_lite.config import QUICK
+    from e2e_lite.imitation.recipes import gmm, gmm_config, gmm_objective
     from e2e_lite.learning.dataset import DrivingDataset, synthetic_data
     from e2e_lite.learning.models import build_model
-    from e2e_lite.learning.recipes import gmm, gmm_config, gmm_objective
     from e2e_lite.learning.training import model_stats
 
     with pytest.raises(ValueError, match="modes"):
@@ -57,9 +57,9 @@ def test_the_course_holds_every_sigma_at_one_and_the_paper_s_sigmas_open_after_t
     import torch
 
     from e2e_lite.config import FULL
+    from e2e_lite.imitation.recipes import GMM_SIGMA, gmm, gmm_objective
     from e2e_lite.learning.heads import LOG_2PI
     from e2e_lite.learning.losses import GMMObjective
-    from e2e_lite.learning.recipes import GMM_SIGMA, gmm, gmm_objective
 
     assert GMM_SIGMA == "held"  # the course's choice (lab note "Every epoch on the road")
     fixed = gmm_objective(FULL)
@@ -99,7 +99,7 @@ def test_the_affordance_weight_is_scored_once_per_data_and_grid(tmp_path, monkey
 
     from e2e_lite import artifacts
     from e2e_lite.config import QUICK
-    from e2e_lite.learning import recipes
+    from e2e_lite.imitation import recipes
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
     monkeypatch.setattr(recipes, "_CHOSEN_WEIGHTS", {})

@@ -104,9 +104,9 @@ def _measure() -> dict[str, Any]:
     from e2e_lite.control.drivers import LaneKeeper
     from e2e_lite.control.expert import Expert
     from e2e_lite.driving.evaluation import EvalConfig, evaluate
-    from e2e_lite.learning import recipes
-    from e2e_lite.learning.agents import TrajectoryAgent
-    from e2e_lite.learning.collector import DataConfig, collect
+    from e2e_lite.imitation import recipes
+    from e2e_lite.imitation.agents import TrajectoryAgent
+    from e2e_lite.imitation.collector import DataConfig, collect
     from e2e_lite.simulation.world import WorldConfig
 
     profile = active_profile([], {"E2E_LITE_QUICK": "1"})

@@ -18,7 +18,7 @@ from PIL import Image
 from e2e_lite.control.drivers import LaneKeeper
 from e2e_lite.driving import replay
 from e2e_lite.driving.evaluation import close_shard_workers
-from e2e_lite.learning.agents import TrajectoryAgent
+from e2e_lite.imitation.agents import TrajectoryAgent
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig, make_world

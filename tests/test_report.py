@@ -10,8 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from e2e_lite import kit, report
-from e2e_lite.record import words
+from e2e_lite.record import kit, report, words
 from e2e_lite.record.rows import Record, Row, SeedRun
 from e2e_lite.record.stats import STEPS, record_power, steps
 from e2e_lite.stats.seeds import spread
@@ -52,7 +51,7 @@ def spread_record() -> Record:
 
 
 def test_the_readme_and_results_page_are_the_render_of_the_committed_record() -> None:
-    assert report.main(["--check"]) == 0, "run python -m e2e_lite.report"
+    assert report.main(["--check"]) == 0, "run python -m e2e_lite.record.report"
     readme = (ROOT / "README.md").read_text()
     assert report.table1(report.load()) in readme
     assert report.chapters_table() in readme

@@ -11,11 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from e2e_lite.control.labels import GAP_NAMES
 from e2e_lite.control.tracker import LQRTracker, trajectory_reference
 from e2e_lite.driving.evaluation import Actuation, EvalConfig, Observation, evaluate
 from e2e_lite.driving.metrics import add_info
-from e2e_lite.learning.collector import AFFORDANCE_NAMES, affordances
+from e2e_lite.imitation.collector import AFFORDANCE_NAMES, affordances
+from e2e_lite.learning.labels import GAP_NAMES
 from e2e_lite.safety.agent import IMPACT_CAUSES, SafeAgent, SafetyStats, impact_cause
 from e2e_lite.safety.rule import (
     SafetyConfig,
@@ -368,7 +368,7 @@ def test_the_rollout_tells_the_policy_of_each_collision_with_its_next_decision()
 def test_a_guarded_evaluation_is_stored_with_what_the_module_reported(
     tmp_path, monkeypatch, drives
 ):
-    from e2e_lite.stored import evaluate_stored, fingerprint
+    from e2e_lite.record.stored import evaluate_stored, fingerprint
 
     monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
     world = WorldConfig(road=RoadConfig(length_m=2_500.0), traffic=TrafficConfig(n_cars=(12, 12)))

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from e2e_lite.control.labels import POINT_DT_S
 from e2e_lite.control.tracker import (
     LaneChangePath,
     LQRTracker,
@@ -16,6 +15,7 @@ from e2e_lite.control.tracker import (
     lateral_model,
     trajectory_reference,
 )
+from e2e_lite.learning.labels import POINT_DT_S
 from e2e_lite.simulation.geometry import Track
 from e2e_lite.simulation.vehicle import VehicleParams, bicycle_step, make_state
 

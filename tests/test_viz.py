@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from e2e_lite.viz import collision_chart, save_figure
+from e2e_lite.driving.figures import collision_chart, save_figure
 
 
 def _result(rate: float, ci: tuple[float, float]) -> SimpleNamespace:

@@ -48,18 +48,13 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..learning.labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S, Decision
 from ..simulation.geometry import wrap_angle
 from ..simulation.policy import Actuation, Observation, seeded_cars
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
-from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S, Decision
 from .rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear
-from .tracker import (
-    LaneChangePath,
-    LQRTracker,
-    default_tracker,
-    lane_reference,
-)
+from .tracker import LaneChangePath, LQRTracker, default_tracker, lane_reference
 
 QUINTIC_PEAK = 10.0 / math.sqrt(3.0)  # max |b''| of the quintic blend: 5.77
 
@@ -105,7 +100,7 @@ class Plan:
 
     @property
     def decision(self) -> Decision:
-        """The plan as a :class:`~e2e_lite.control.labels.Decision` (what the data records): its
+        """The plan as a :class:`~e2e_lite.learning.labels.Decision` (what the data records): its
         ``side`` is the side the current lane change moves to, a return's too (``Plan.side``
         keeps the overtake's)."""
         moving = self.state == CHANGE and self.path is not None

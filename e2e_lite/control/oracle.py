@@ -13,10 +13,7 @@ import numpy as np
 
 from ..simulation.policy import Actuation, Observation, car_rng, seeded_cars
 from .expert import Expert
-from .tracker import (
-    check_reading,
-    follow_trajectory,
-)
+from .tracker import check_reading, follow_trajectory
 
 
 class Oracle:

@@ -54,11 +54,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..learning.labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S, Decision
 from ..simulation.geometry import Track, wrap_angle
 from ..simulation.policy import Actuation, Observation
 from ..simulation.vehicle import H, V, VehicleParams, bicycle_step
 from ..simulation.world import SimConfig, World, lane_frame
-from .labels import CHANGE, FOLLOW, KEEP, N_POINTS, PASS, POINT_DT_S, Decision
 from .rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear
 from .tracker import LaneChangePath, LQRTracker, default_tracker
 

@@ -35,9 +35,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..config import check_range
+from ..learning.labels import N_POINTS, POINT_DT_S
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import SimConfig
-from .labels import N_POINTS, POINT_DT_S
 
 if TYPE_CHECKING:
     import control

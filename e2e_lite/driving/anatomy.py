@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from ..artifacts import load_json, save_json
-from ..control.labels import CHANGE, FOLLOW, interpolated_path
 from ..control.state_expert import StateExpert
+from ..learning.labels import CHANGE, FOLLOW, interpolated_path
 from ..simulation.policy import Actuation, Observation, Policy, observe
 from ..simulation.world import Fleet, World, WorldConfig, make_world
 

@@ -23,13 +23,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..config import check_range, default_workers, tqdm
-from ..simulation.policy import (  # noqa: F401 (re-exported)
-    FORWARD_GROUP,
-    Actuation,
-    Observation,
-    Policy,
-    observe,
-)
+from ..simulation.policy import FORWARD_GROUP, Actuation, Observation, Policy, observe  # noqa: F401 (re-exported)
 from ..simulation.world import WorldConfig
 from .metrics import (  # noqa: F401 (re-exported: the chapters read the evaluation's names here)
     COLLISION_KINDS,

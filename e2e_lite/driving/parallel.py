@@ -10,7 +10,7 @@ the workers must be fresh interpreters (a fork of a process whose torch threads 
 and one that started CUDA must not fork), must be kept between the evaluations of a chapter (an
 interpreter and torch's import cost about 1 s each time), must stream progress while a shard
 drives, and must leave their thread count to the evaluator (the results depend on it). loky's
-reusable executor brings the first two. ``python -m e2e_lite.bench pool`` drives chapter 10's
+reusable executor brings the first two. ``python -m e2e_lite.course.bench pool`` drives chapter 10's
 64 cars in two processes with both (docs/benchmarks.md has the figures): the same events, the
 same speed within the runs' noise, first call and kept workers alike. What decides it: loky
 streams no progress (a shard is heard of when it ends, so the bar would jump), and on Ctrl-C
@@ -88,10 +88,10 @@ def processes_ok(policy: Policy) -> bool:
     class is not defined in a script run as ``__main__``. A network on a GPU goes too: each
     worker is a fresh interpreter (never a fork of one that started CUDA) and loads the network
     onto the device itself, which drove faster than threads sharing it in this process on a lent
-    H200 (docs/benchmarks.md; ``python -m e2e_lite.bench scaling`` measures both on a GPU). What a policy's shards count
-    comes home in their results (``Actuation.info``), so a policy never needs to know where it
-    runs. A policy whose forks keep their states in this process says so (``threads_only``,
-    e.g. the anatomy's witness) and is driven in threads."""
+    H200 (docs/benchmarks.md; ``python -m e2e_lite.course.bench scaling`` measures both on a
+    GPU). What a policy's shards count comes home in their results (``Actuation.info``), so a
+    policy never needs to know where it runs. A policy whose forks keep their states in this
+    process says so (``threads_only``, e.g. the anatomy's witness) and is driven in threads."""
     return type(policy).__module__ != "__main__" and not getattr(policy, "threads_only", False)
 
 

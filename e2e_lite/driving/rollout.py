@@ -26,12 +26,7 @@ from ..simulation.geometry import SPLITS
 from ..simulation.policy import Actuation, Observation, Policy, car_rng, observe
 from ..simulation.vehicle import H, V
 from ..simulation.world import Fleet, World, WorldConfig
-from .metrics import (
-    M_PER_MILE,
-    ShardResult,
-    add_info,
-    speed_histogram,
-)
+from .metrics import M_PER_MILE, ShardResult, add_info, speed_histogram
 from .roads import ROAD_BLOCKS, WorldPool
 
 

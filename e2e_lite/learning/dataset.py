@@ -1,7 +1,7 @@
 """The dataset: its schema, its container, its situations and its ``torch`` view.
 
 No simulator here: the training side (models, losses, training) imports this module, not the
-collector (:mod:`e2e_lite.learning.collector`, chapter 04), so it loads without pymunk, OpenCV or
+collector (:mod:`e2e_lite.imitation.collector`, chapter 04), so it loads without pymunk, OpenCV or
 python-control. One sample per policy step (10 Hz); the schema (:data:`SCHEMA`) is the one
 place that says what a sample holds, and the table below, the field list (:data:`FIELDS`), the
 collector's arrays (:func:`allocate`) and :func:`synthetic_data` are all made from it.
@@ -11,7 +11,7 @@ the noise is added, and the trajectory is what the expert would drive from that 
 noise (:meth:`~e2e_lite.control.expert.Expert.trajectory_label`), not the noisy future; beside
 it, ``state_trajectory`` is what the expert that reads its plan off the state labels there
 (DAgger's labeller, :func:`relabelled`). Throttle and brake (seed 002's outputs) are recoverable
-from the acceleration label (:func:`~e2e_lite.control.labels.throttle_brake`).
+from the acceleration label (:func:`~e2e_lite.learning.labels.throttle_brake`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from ..artifacts import settings_key, to_json
-from ..control.labels import AFFORDANCE_NAMES, CHANGE, FOLLOW, N_POINTS, PASS, POINT_DIMS
+from .labels import AFFORDANCE_NAMES, CHANGE, FOLLOW, N_POINTS, PASS, POINT_DIMS
 
 #: The camera frame's size (height, width) [px] (:class:`~e2e_lite.simulation.camera.CameraConfig`'s default).
 IMAGE_HW = (66, 200)

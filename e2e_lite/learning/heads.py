@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..control.labels import N_POINTS, POINT_DIMS, TRAJECTORY_DIMS
+from .labels import N_POINTS, POINT_DIMS, TRAJECTORY_DIMS
 
 if TYPE_CHECKING:  # (only for annotations: the heads import nothing of the dataset)
     from .dataset import DrivingData

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ..control.labels import AFFORDANCE_NAMES, GAP_CAP_M
+from .labels import AFFORDANCE_NAMES, GAP_CAP_M
 
 
 def mode_split(modes_m: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,7 +82,7 @@ def affordance_errors(
     Returns:
         ``{name: {"model": {"mae", "rmse"}, "mean_predictor": {"mae", "rmse"}, "frames": n}}``
         for each affordance, plus ``"gap_ego_m_car_ahead"``: the gap on the frames with a parked
-        car ahead in the own lane (true gap below :data:`~e2e_lite.control.labels.GAP_CAP_M`), where
+        car ahead in the own lane (true gap below :data:`~e2e_lite.learning.labels.GAP_CAP_M`), where
         knowing the gap matters (elsewhere the answer is the cap).
     """
     pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)

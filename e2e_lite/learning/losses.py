@@ -28,8 +28,8 @@ from __future__ import annotations
 import torch
 
 from ..config import check_range
-from ..control.labels import AFFORDANCE_NAMES, N_POINTS, POINT_DIMS
 from .heads import HEADS, POINT_HEADS, Batch, head_of
+from .labels import AFFORDANCE_NAMES, N_POINTS, POINT_DIMS
 from .models import DrivingModel
 
 #: How trajectory targets are scaled before the loss (:func:`~e2e_lite.learning.training.model_stats`):

@@ -94,7 +94,7 @@ def probe_affordances(
 
     Returns:
         (N_val, 9) predicted affordances, in the units of
-        :data:`~e2e_lite.learning.collector.AFFORDANCE_NAMES`.
+        :data:`~e2e_lite.imitation.collector.AFFORDANCE_NAMES`.
     """
     x_train = layer_features(model, train, layer)
     x_val = layer_features(model, val, layer)

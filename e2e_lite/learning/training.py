@@ -31,7 +31,7 @@ from .models import DrivingModel, ModelConfig
 SELECT_BY = ("val_loss", "decisive_ade", "val_roads")
 DECISIVE = "decisive ADE [m]"
 #: What a driving scorer (``fit``'s ``on_epoch``) returns for ``select_by="val_roads"``: the
-#: epoch's collisions per 100 mi on validation roads (:mod:`e2e_lite.learning.selection`).
+#: epoch's collisions per 100 mi on validation roads (:mod:`e2e_lite.imitation.selection`).
 VAL_ROADS = "val roads collisions /100 mi"
 
 
@@ -61,7 +61,7 @@ class TrainConfig:
         select_by: which epoch's weights are kept: ``"val_loss"`` (the lowest validation loss) or
             ``"decisive_ade"`` (the lowest error of the followed trajectory on the situations that
             decide collisions: the mean over overtake starts, slow frames and curves of each
-            one's held-out ADE, see :func:`~e2e_lite.learning.collector.situations`; trajectory heads only).
+            one's held-out ADE, see :func:`~e2e_lite.imitation.collector.situations`; trajectory heads only).
             A GMM's NLL keeps falling as its sigmas sharpen while its driving gets worse.
             ``"val_roads"``: the fewest collisions per 100 mi when the epoch drives
             ``select_miles`` on validation roads (``fit``'s ``on_epoch`` drives it and returns
@@ -391,7 +391,7 @@ def selection_score(record: dict[str, Any], cfg: TrainConfig) -> tuple[float, ..
     if VAL_ROADS not in record:
         raise ValueError(
             "TrainConfig.select_by='val_roads' needs fit's on_epoch to drive each epoch and "
-            f"return {VAL_ROADS!r} (e2e_lite.learning.selection.road_scorer)"
+            f"return {VAL_ROADS!r} (e2e_lite.imitation.selection.road_scorer)"
         )
     collisions = round(record[VAL_ROADS] * float(cfg.select_miles or 0.0) / 100.0)
     return (collisions, record.get(DECISIVE, record["val_loss"]))

@@ -15,7 +15,7 @@ The record is a **pool of shares**, one command per job (``python -m e2e_lite.re
   (``docs/results/course_run.json``, rendered into ``docs/teaching.md``).
 
 :mod:`.rows` types the data, :mod:`.stats` holds the tests declared before a record runs,
-:mod:`.pool` pools, :mod:`.run` runs. :mod:`e2e_lite.report` renders, and does nothing else.
+:mod:`.pool` pools, :mod:`.run` runs. :mod:`e2e_lite.record.report` renders, and does nothing else.
 """
 
 from pathlib import Path

@@ -1,5 +1,5 @@
 """``python -m e2e_lite.record``: run a share of the record, pool shares, plan the record, or
-record a course run (see :mod:`e2e_lite.record`). Rendering is ``python -m e2e_lite.report``'s."""
+record a course run (see :mod:`e2e_lite.record`). Rendering is ``python -m e2e_lite.record.report``'s."""
 
 from __future__ import annotations
 
@@ -72,7 +72,7 @@ def _parser() -> argparse.ArgumentParser:
 def _write_record(record: Record, quick: bool) -> int:
     """Write a pooled record: the record of record (rendered), or a quick smoke test's (printed,
     never written to docs/)."""
-    from .. import report
+    from . import report
 
     path = outputs_dir(quick=True) / "table1.json" if quick else RECORD
     with atomic_write(path, "w") as f:
@@ -131,7 +131,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with atomic_write(COURSE_RUN, "w") as f:
         needs = {k: getattr(args, k) for k in ("time_log", "quick_outputs", "venv", "downloads")}
         json.dump(course_run_record(args.outputs, **needs), f, indent=1)
-    print(f"wrote {COURSE_RUN.relative_to(ROOT)}: render it with python -m e2e_lite.report")
+    print(f"wrote {COURSE_RUN.relative_to(ROOT)}: render it with python -m e2e_lite.record.report")
     return 0
 
 

@@ -75,8 +75,8 @@ def course_run_record(outputs: Path, **needs: Path | None) -> dict[str, Any]:
     chapter whose metrics are another profile's is refused."""
     import torch
 
-    from ..course import TIMES_FILE
-    from ..estimate import cpu_name
+    from ..course.estimate import cpu_name
+    from ..course.run import TIMES_FILE
 
     times = json.loads((outputs / TIMES_FILE).read_text())
     chapters = {}

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ..ablation import BY_KEY, PAPER_MPH, UNTRAINED
 from ..config import FULL, QUICK, Profile
 from ..driving.roads import SEALED_BLOCK
 from ..driving.rollout import EvalConfig, disjoint_runs
 from ..simulation.world import WorldConfig
+from .ablation import BY_KEY, PAPER_MPH, UNTRAINED
 from .rows import SHARE_FORMAT, Block, Record, Row, SeedRun, Share, ShareRef, ShareRow
 
 #: the fields every share of one record must have alike
@@ -162,7 +162,7 @@ def status(shares: Sequence[tuple[str, Share]], machines: list[str]) -> str:
 def pool(shares: Sequence[tuple[str, Share]]) -> Record:
     """The record from ``shares`` (``[(file name, share), ...]``, checked by
     :func:`check_shares`): each row's runs of every seed (rows without training seeds,
-    :data:`~e2e_lite.ablation.UNTRAINED`, and the single-seed rows as one pooled run), each
+    :data:`~e2e_lite.record.ablation.UNTRAINED`, and the single-seed rows as one pooled run), each
     seed's machine, and how many machines and kinds the record holds."""
     if not shares:
         raise ValueError("pool: no share to pool")

@@ -132,7 +132,7 @@ class Row(_Json):
     """One driver of the record: its seeds' runs and their sums.
 
     Attributes:
-        key, label: the driver's key (:data:`~e2e_lite.ablation.BY_KEY`) and its table name.
+        key, label: the driver's key (:data:`~e2e_lite.record.ablation.BY_KEY`) and its table name.
         paper_per_100mi: the paper's Table 1 figure, if it has one [collisions / 100 mi].
         seeds: each training seed's run.
         car, rail: collisions into parked cars and into the rails, over every seed.

@@ -2,7 +2,7 @@
 which family each is Holm-adjusted (:data:`FAMILIES`), the outcome each gets on the seeds' counts
 (:func:`steps`, one :class:`StepResult` each), and the record's power under its seeds' fitted
 spread (:func:`record_power`). :mod:`e2e_lite.record.run` writes the families into the shares it
-runs; :mod:`e2e_lite.record.words` says each outcome in words and :mod:`e2e_lite.report` renders
+runs; :mod:`e2e_lite.record.words` says each outcome in words and :mod:`e2e_lite.record.report` renders
 them.
 """
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..config import check_range
-from ..control.labels import affordances
+from ..control.affordances import affordances
 from ..control.rules import ExpertConfig, SpeedLimits
 from ..control.state_expert import expert_labels
 from ..simulation.policy import Actuation, Observation
@@ -124,7 +124,7 @@ class SafeAgent:
     braked at ``cfg.emergency_brake_mps2`` when that is set.
 
     Args:
-        agent: a :class:`~e2e_lite.learning.agents.TrajectoryAgent` (or any policy with its
+        agent: a :class:`~e2e_lite.imitation.agents.TrajectoryAgent` (or any policy with its
             ``trajectories(obs)``, ``last``, ``follow(points, obs)``, ``camera`` and ``fork``).
         cfg: the check's settings.
         ground_truth: check with the world's true affordances instead of the network's
@@ -136,7 +136,7 @@ class SafeAgent:
         keep_examples: interventions kept per shard for figures (JSON-able, see above).
     """
 
-    #: in every stored guarded evaluation's key (:func:`e2e_lite.stored.fingerprint`)
+    #: in every stored guarded evaluation's key (:func:`e2e_lite.record.stored.fingerprint`)
     RESULTS_VERSION = RESULTS_VERSION
 
     def __init__(

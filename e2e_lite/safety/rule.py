@@ -7,7 +7,7 @@ responsibility-sensitive safety (RSS), for a road of parked cars:
 
 Inputs (what the driver perceives): the 5 proposed points ``(x_i, y_i)`` in the car frame at
 ``t_i = 0.3 i`` s, the car's speed ``v``, the road's curvature ``kappa`` here (from the map, as
-the cruise control knows it), and the 9 affordances (``e2e_lite.learning.collector.AFFORDANCE_NAMES``): the
+the cruise control knows it), and the 9 affordances (``e2e_lite.imitation.collector.AFFORDANCE_NAMES``): the
 heading to the road ``h``, the offset from the lane centre, the distances to the markings and the
 road edges, and the free gap ahead of the front bumper in the ego, left and right lanes (capped at
 60 m: "nothing seen"). The network's own affordance head provides them; the *ground-truth variant*
@@ -51,7 +51,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..config import check_range
-from ..control.labels import (
+from ..learning.labels import (
     AFFORDANCE_INDEX,
     GAP_CAP_M,
     GAP_NAMES,
@@ -68,7 +68,7 @@ _A = AFFORDANCE_INDEX
 #: What the module may fall back to (:attr:`SafetyConfig.fallback`).
 FALLBACKS = ("lanes", "path", "keep-lane")
 #: The version of what the module computes: part of every stored guarded evaluation's key
-#: (:func:`e2e_lite.stored.fingerprint`). Bump it when a change to the rule, its fallback or
+#: (:func:`e2e_lite.record.stored.fingerprint`). Bump it when a change to the rule, its fallback or
 #: the driver's reports changes what a stored result would hold.
 RESULTS_VERSION = 3  # 3: a collision's cause splits the network's (a hand-back, or silent)
 
@@ -176,7 +176,7 @@ def check(
 
     Args:
         points: ``(5, 2)`` proposed rear-axle positions, car frame [m], 0.3 s apart.
-        aff: the 9 affordances, in :data:`~e2e_lite.learning.collector.AFFORDANCE_NAMES` order (perceived or
+        aff: the 9 affordances, in :data:`~e2e_lite.imitation.collector.AFFORDANCE_NAMES` order (perceived or
             true).
         speed_mps: the car's speed now [m/s].
         curvature: the road's curvature here [1/m] (left positive).
@@ -398,7 +398,7 @@ def calibrate_gap_free(
     """``cfg`` with the "nothing seen" thresholds set for a perception whose gaps are noisy at
     the cap: ``gap_free_m`` for the ego lane, ``gap_free_side_m`` for the left and right lanes.
 
-    A free lane's true gap is exactly :data:`~e2e_lite.control.labels.GAP_CAP_M`; a learned head
+    A free lane's true gap is exactly :data:`~e2e_lite.learning.labels.GAP_CAP_M`; a learned head
     answers around it, so a threshold just under the cap sees a parked car on the free frames
     whose answer falls under it, and "cannot stop" brakes for it. Each calibrated threshold is
     the ``ghost_share`` quantile of the predicted gaps on frames whose true gap is at the cap

@@ -5,14 +5,14 @@ The drivers, in the order of the table (:data:`DRIVERS`): the expert (the ceilin
 (the LQR tracker following the expert's own trajectories: the ceiling of any trajectory network),
 PilotNet steering only, the all-actuators baseline (the paper's Baseline E2E), trajectory L2,
 trajectory GMM, GMM + affordance, GMM + affordance + CVaR. The trained ones come from
-:mod:`e2e_lite.learning.recipes`, so they are the chapters' checkpoints when those are valid and are
+:mod:`e2e_lite.imitation.recipes`, so they are the chapters' checkpoints when those are valid and are
 trained (seeded) when not.
 
 Each learned row is trained with several seeds (:func:`build_seeded_drivers`; seed 0 is the
 chapters' own checkpoint, seeds 1, 2, ... are ``10_<name>_seed<k>``); the row's miles are shared
 among the seeds and their counts pooled (:func:`~e2e_lite.driving.evaluation.pool_results`), each seed's
 result kept under ``seeds``. A drive is stored under a key of the driver's weights and settings and
-the evaluation's, and read back while nothing changed (:func:`~e2e_lite.stored.evaluate_stored`).
+the evaluation's, and read back while nothing changed (:func:`~e2e_lite.record.stored.evaluate_stored`).
 """
 
 from __future__ import annotations
@@ -21,19 +21,19 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .artifacts import cached, seeded, versioned
-from .config import Profile
-from .control.expert import Expert
-from .control.oracle import Oracle
-from .driving import anatomy
-from .driving.evaluation import evaluate
-from .driving.metrics import EvalResult, pool_results, results_table
-from .driving.rollout import EvalConfig, disjoint_runs
-from .learning import dagger, recipes
-from .learning.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
-from .learning.collector import DataConfig, DrivingData, load_or_collect
-from .simulation.policy import Policy
-from .simulation.world import WorldConfig
+from ..artifacts import cached, seeded, versioned
+from ..config import Profile
+from ..control.expert import Expert
+from ..control.oracle import Oracle
+from ..driving import anatomy
+from ..driving.evaluation import evaluate
+from ..driving.metrics import EvalResult, pool_results, results_table
+from ..driving.rollout import EvalConfig, disjoint_runs
+from ..imitation import dagger, recipes
+from ..imitation.agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
+from ..imitation.collector import DataConfig, DrivingData, load_or_collect
+from ..simulation.policy import Policy
+from ..simulation.world import WorldConfig
 from .stored import evaluate_stored, stored_at
 
 
@@ -68,7 +68,7 @@ class Build:
         return {"seed": self.seed, **self.kw}
 
     def name(self, chapter_name: str) -> str:
-        """The checkpoint name of this seed (:func:`~e2e_lite.learning.recipes.seeded_name`)."""
+        """The checkpoint name of this seed (:func:`~e2e_lite.imitation.recipes.seeded_name`)."""
         return recipes.seeded_name(chapter_name, self.seed)
 
     def weight(self) -> float:
@@ -94,7 +94,7 @@ def _affordance(b: Build, **recipe: Any) -> Policy:
 
 def _finetune(b: Build, reduction: str, sigma: str = recipes.CVAR_SIGMA) -> Policy:
     """Chapter 09's fine-tune of this seed's affordance network, reduced by ``reduction``, its
-    sigmas ``sigma`` (:func:`~e2e_lite.learning.recipes.finetune_settings`)."""
+    sigmas ``sigma`` (:func:`~e2e_lite.imitation.recipes.finetune_settings`)."""
     model = recipes.gmm_affordance_cvar(
         *b.data, b.weight(), reduction=reduction, sigma=sigma, **b.seeded
     )[0]
@@ -116,7 +116,7 @@ class Iterates:
         rates: each one's collisions per 100 mi on the validation roads.
         off_centre: each one's off-centre episodes there (the autonomy metric's interventions
             that were not collisions).
-        kept: the index of the one kept (:func:`~e2e_lite.learning.dagger.kept_iterate`).
+        kept: the index of the one kept (:func:`~e2e_lite.imitation.dagger.kept_iterate`).
     """
 
     networks: list[tuple[str, Any]]
@@ -130,7 +130,7 @@ def dagger_iterates(
 ) -> Iterates:
     """``arm``'s iterates for this seed, each driven on the seed's own validation roads (each
     drive stored), and the one kept: the one that collided least. The rounds are
-    :func:`~e2e_lite.learning.dagger.run`'s: ``ran``, what it returned for this seed and ``cfg``
+    :func:`~e2e_lite.imitation.dagger.run`'s: ``ran``, what it returned for this seed and ``cfg``
     (chapter 12 has them; not read again from their files), or run (or read) here."""
     cfg = cfg or dagger.DaggerConfig.for_profile(b.profile)
     if ran is None:
@@ -158,7 +158,7 @@ def _w0(b: Build) -> Policy:
 @dataclass(frozen=True)
 class Driver:
     """One row of the ablation. Adding a driver is one row: its recipe lives in
-    :mod:`e2e_lite.learning.recipes`, and ``build`` turns it into a policy.
+    :mod:`e2e_lite.imitation.recipes`, and ``build`` turns it into a policy.
 
     Attributes:
         key: short name (file names, JSON keys).
@@ -243,7 +243,7 @@ BEYOND = (
 )
 #: Drivers of the exercises and the lab notes, which the course does not drive: the affordance
 #: head on the fused features (Fig. 1); the GMM by its mean, with one mode, with learned sigmas;
-#: CVaR and its control with sigmas open (:data:`~e2e_lite.learning.recipes.CVAR_SIGMA`: 1).
+#: CVaR and its control with sigmas open (:data:`~e2e_lite.imitation.recipes.CVAR_SIGMA`: 1).
 DIAGNOSTICS = (
     Driver(
         "gmm_affordance_fused",
@@ -363,7 +363,7 @@ def evaluate_drivers(
     per training seed, :func:`build_seeded_drivers`) drives ``cfg.miles / len(list)`` per seed,
     seed ``k`` of every driver on the same tracks (:func:`~e2e_lite.driving.evaluation.disjoint_runs`),
     and its result pools theirs (its ``seeds``). With ``reuse``, a stored result is read back
-    (:func:`~e2e_lite.stored.evaluate_stored`); every other driver is evaluated and stored."""
+    (:func:`~e2e_lite.record.stored.evaluate_stored`); every other driver is evaluated and stored."""
     out: dict[str, EvalResult] = {}
     for key, policy in drivers.items():
         label = BY_KEY[key].label if key in BY_KEY else key
@@ -387,7 +387,7 @@ def witnessed(
 ) -> tuple[list[anatomy.Collision], list[anatomy.Moment]]:
     """``driver``'s collisions and ordinary moments on ``cfg``'s roads, witnessed
     (:class:`~e2e_lite.driving.anatomy.Witness`), stored and read back as
-    :func:`~e2e_lite.stored.evaluate_stored` stores a result (each moment back in a fresh copy of its world)."""
+    :func:`~e2e_lite.record.stored.evaluate_stored` stores a result (each moment back in a fresh copy of its world)."""
 
     witness = anatomy.Witness(driver, world_cfg.sim.policy_period_s)
 

@@ -12,7 +12,7 @@ The roads are the validation split's (:class:`~e2e_lite.driving.rollout.EvalConf
 training drives the same roads with the same start lanes, so the epochs are compared on equal
 terms. :func:`road_scorer` builds the ``on_epoch`` hook that
 :func:`~e2e_lite.learning.training.fit` calls for ``TrainConfig(select_by="val_roads")``; the
-recipes (:mod:`e2e_lite.learning.recipes`) pass it. This module drives the simulator, so the
+recipes (:mod:`e2e_lite.imitation.recipes`) pass it. This module drives the simulator, so the
 learning modules that must load without it import it where they use it.
 """
 
@@ -24,11 +24,11 @@ from dataclasses import dataclass
 
 from ..driving.evaluation import evaluate
 from ..driving.rollout import EvalConfig
+from ..learning.models import DrivingModel
+from ..learning.training import VAL_ROADS
 from ..simulation.policy import Policy
 from ..simulation.world import WorldConfig
 from .agents import ActuatorAgent, SteeringAgent, TrajectoryAgent
-from .models import DrivingModel
-from .training import VAL_ROADS
 
 #: Cars driven in lockstep by a selection drive (the ablation's batch: the network runs near its
 #: per-frame floor). Part of the checkpoint's settings through its version (``"checkpoint"``).

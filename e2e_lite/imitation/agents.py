@@ -25,7 +25,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..control.labels import N_POINTS, POINT_DIMS
 from ..control.rules import ExpertConfig, SpeedLimits
 from ..control.tracker import (
     SPEED_READINGS,
@@ -34,12 +33,13 @@ from ..control.tracker import (
     default_tracker,
     follow_trajectory,
 )
+from ..learning.heads import GMM, HEADS, Trajectory
+from ..learning.labels import N_POINTS, POINT_DIMS
+from ..learning.models import DrivingModel, images_to_tensor
 from ..simulation.camera import CameraConfig
 from ..simulation.policy import FORWARD_GROUP, Actuation, Observation
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import SimConfig
-from .heads import GMM, HEADS, Trajectory
-from .models import DrivingModel, images_to_tensor
 
 
 def _frames(obs: Observation) -> np.ndarray:

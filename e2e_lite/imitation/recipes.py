@@ -8,7 +8,7 @@ Each recipe fixes the settings of one model, trains it with :func:`~e2e_lite.lea
 * every model: Adam 1e-3, batch 64, ``profile.train_epochs`` epochs, validation on up to 4,000
   held-out samples; every network trained from scratch keeps the epoch that collides least when
   it drives :data:`SELECT_MILES` on validation roads (``select_by="val_roads"``,
-  :mod:`~e2e_lite.learning.selection`; ties: the lower decisive ADE of the followed trajectory,
+  :mod:`~e2e_lite.imitation.selection`; ties: the lower decisive ADE of the followed trajectory,
   or validation loss); with one epoch (quick) nothing is driven;
 * GMM models (K = 2): gradient clipping at 10, every sigma held at 1 (:data:`GMM_SIGMA`; the
   paper's learned sigmas open after a warm-up of a third of the epochs), targets scaled per axis
@@ -33,14 +33,14 @@ import numpy as np
 
 from ..artifacts import artifact_path, seeded
 from ..config import Profile
-from ..control.labels import AFFORDANCE_NAMES
-from .checkpoints import refit_or_load, train_or_load
-from .cvar import CVaRObjective
-from .dataset import DrivingData, DrivingDataset
-from .losses import GMM_SIGMAS, GMMObjective, Objective, WithAffordance
-from .models import DrivingModel, ModelConfig
-from .probes import HeadRefit
-from .training import History, TrainConfig, evaluate_loss
+from ..learning.checkpoints import refit_or_load, train_or_load
+from ..learning.cvar import CVaRObjective
+from ..learning.dataset import DrivingData, DrivingDataset
+from ..learning.labels import AFFORDANCE_NAMES
+from ..learning.losses import GMM_SIGMAS, GMMObjective, Objective, WithAffordance
+from ..learning.models import DrivingModel, ModelConfig
+from ..learning.probes import HeadRefit
+from ..learning.training import History, TrainConfig, evaluate_loss
 
 Trained = tuple[DrivingModel, Objective, History]
 
@@ -58,7 +58,7 @@ GMM_SIGMA_FLOOR_M = 0.1
 GMM_SIGMA = "held"
 #: How a network trained from scratch keeps an epoch: the one that drives best on validation roads,
 #: ``SELECT_MILES`` each (:class:`~e2e_lite.learning.training.TrainConfig`'s ``select_by="val_roads"``,
-#: :mod:`~e2e_lite.learning.selection`). Chosen on the first Table 1 of record, whose GMM seeds 1 and 4 kept
+#: :mod:`~e2e_lite.imitation.selection`). Chosen on the first Table 1 of record, whose GMM seeds 1 and 4 kept
 #: by their decisive ADE an epoch that drove 2-4 times worse than the next (lab note "The GMM's
 #: worst seeds of record, epoch by epoch"). With one epoch (the quick profile) there is nothing to
 #: choose: the single epoch is kept without a drive.

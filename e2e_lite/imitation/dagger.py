@@ -40,12 +40,14 @@ import numpy as np
 
 from ..artifacts import artifact_path, cached, seeded, settings_key
 from ..config import Profile, check_range
-from ..control.labels import AFFORDANCE_INDEX
 from ..control.state_expert import check_home
 from ..driving.rollout import EvalConfig
+from ..learning.checkpoints import train_or_load, training_data_key
+from ..learning.dataset import DrivingData, allocate, relabelled
+from ..learning.labels import AFFORDANCE_INDEX
+from ..learning.models import DrivingModel
 from . import recipes
 from .agents import TrajectoryAgent
-from .checkpoints import train_or_load, training_data_key
 from .collector import (
     DataConfig,
     NoiseConfig,
@@ -55,8 +57,6 @@ from .collector import (
     load_or_collect,
     save_dataset,
 )
-from .dataset import DrivingData, allocate, relabelled
-from .models import DrivingModel
 
 #: the three arms: the network drives; the expert drives with DART's noise; no new data
 ARMS = ("dagger", "control", "no_new_data")

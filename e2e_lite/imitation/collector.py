@@ -9,7 +9,7 @@ expert is shown getting back to speed from where a learned driver restarts (chap
 learner it collects DAgger's rounds (chapter 12). One sample per policy step (10 Hz).
 
 What one sample holds is :mod:`e2e_lite.learning.dataset`'s schema, re-exported here with the
-labels of :mod:`e2e_lite.control.labels`; seed 003's recovery views are :mod:`e2e_lite.learning.recovery`.
+labels of :mod:`e2e_lite.learning.labels`; seed 003's recovery views are :mod:`e2e_lite.imitation.recovery`.
 """
 
 from __future__ import annotations
@@ -26,25 +26,15 @@ import numpy as np
 
 from ..artifacts import artifact_path, cached, settings_key, versioned
 from ..config import Profile, check_range, default_workers, tqdm
+from ..control.affordances import affordances
 from ..control.expert import Expert
-from ..control.labels import (  # noqa: F401 (re-exported, as above)
-    AFFORDANCE_NAMES,
-    CHANGE,
-    GAP_CAP_M,
-    N_POINTS,
-    affordances,
-    throttle_brake,
-)
 from ..control.rules import ExpertConfig
 from ..control.state_expert import StateExpert, check_home
 from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
 from ..driving.rollout import EvalConfig, drive_shard
-from ..simulation.camera import CameraConfig
-from ..simulation.policy import Actuation, Observation, car_rng
-from ..simulation.world import WorldConfig
-from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's names here)
+from ..learning.dataset import (  # noqa: F401 (re-exported: the chapters read the data's names here)
     CHANGE_START_M,
     FIELDS,
     SCHEMA,
@@ -61,6 +51,10 @@ from .dataset import (  # noqa: F401 (re-exported: the chapters read the data's 
     situations,
     synthetic_data,
 )
+from ..learning.labels import AFFORDANCE_NAMES, CHANGE, GAP_CAP_M, N_POINTS, throttle_brake  # noqa: F401 (re-exported, as above)
+from ..simulation.camera import CameraConfig
+from ..simulation.policy import Actuation, Observation, car_rng
+from ..simulation.world import WorldConfig
 from .noise import Bursts, NoiseConfig
 
 
@@ -175,7 +169,7 @@ class OnPolicy:
 
     def key(self, cfg: DataConfig) -> str:
         """Its samples' key: the settings, the learner's weights (or class) and beta."""
-        from .checkpoints import weights_digest
+        from ..learning.checkpoints import weights_digest
 
         net = getattr(self.learner, "model", self.learner)
         who = weights_digest(net) if hasattr(net, "state_dict") else type(net).__name__
@@ -189,7 +183,7 @@ class _Recorder:
     With ``on_policy`` its learner drives instead (:class:`OnPolicy`)."""
 
     #: uniforms each car draws per decision (a fixed count, so one draw never shifts another):
-    #: restart, then :data:`~e2e_lite.learning.noise.Bursts.DRAWS` for the bursts
+    #: restart, then :data:`~e2e_lite.imitation.noise.Bursts.DRAWS` for the bursts
     DRAWS = 9
 
     def __init__(

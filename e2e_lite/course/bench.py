@@ -1,6 +1,6 @@
 """Benchmarks: one command for every speed figure in the README.
 
-    python -m e2e_lite.bench NAME [--json] [--quick]
+    python -m e2e_lite.course.bench NAME [--json] [--quick]
 
 Readable lines by default; with ``--json`` the last line is one JSON object of the figures.
 Benchmarks measure; they assert nothing (the tests do that).
@@ -38,24 +38,24 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .artifacts import artifact_path
-from .config import active_profile
-from .control.drivers import LaneChanger, LaneKeeper
-from .control.expert import Expert
-from .control.oracle import Oracle
-from .driving.evaluation import FORWARD_GROUP, evaluate
-from .driving.parallel import SHARD_TORCH_THREADS
-from .driving.rollout import EvalConfig
-from .learning import recipes
-from .learning.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
-from .learning.checkpoints import load_checkpoint
-from .learning.collector import DataConfig, DrivingDataset, collect, synthetic_data
-from .learning.losses import Objective
-from .learning.models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
-from .learning.training import TrainConfig, fit
-from .simulation.camera import Camera, CameraConfig
-from .simulation.geometry import RoadConfig
-from .simulation.world import Fleet, TrafficConfig, WorldConfig, make_world
+from ..artifacts import artifact_path
+from ..config import active_profile
+from ..control.drivers import LaneChanger, LaneKeeper
+from ..control.expert import Expert
+from ..control.oracle import Oracle
+from ..driving.evaluation import FORWARD_GROUP, evaluate
+from ..driving.parallel import SHARD_TORCH_THREADS
+from ..driving.rollout import EvalConfig
+from ..imitation import recipes
+from ..imitation.agents import ActuatorAgent, NetworkAgent, SteeringAgent, TrajectoryAgent
+from ..imitation.collector import DataConfig, DrivingDataset, collect, synthetic_data
+from ..learning.checkpoints import load_checkpoint
+from ..learning.losses import Objective
+from ..learning.models import ModelConfig, build_model, images_to_tensor, pick_device, prepare
+from ..learning.training import TrainConfig, fit
+from ..simulation.camera import Camera, CameraConfig
+from ..simulation.geometry import RoadConfig
+from ..simulation.world import Fleet, TrafficConfig, WorldConfig, make_world
 
 
 def _machine() -> dict[str, object]:
@@ -397,8 +397,8 @@ def bench_scaling(quick: bool, agent: str = "gmm") -> dict[str, float]:
     worker's; with a GPU, the network there in this process and in every worker. Collecting
     (16,000 samples, quick 400; 16 cars, or one per core) with one process and with all: samples
     per second (the workers' start included), and whether the arrays are the same bytes."""
-    from .config import available_cores
-    from .driving.evaluation import close_shard_workers
+    from ..config import available_cores
+    from ..driving.evaluation import close_shard_workers
 
     cores = available_cores()
     policy, source = learned_driver(agent, torch.device("cpu"))
@@ -455,7 +455,7 @@ BENCHMARKS: dict[str, Callable[..., dict[str, float]]] = {
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     parser = argparse.ArgumentParser(
-        prog="python -m e2e_lite.bench", description="e2e-lite benchmarks"
+        prog="python -m e2e_lite.course.bench", description="e2e-lite benchmarks"
     )
     parser.add_argument("name", choices=sorted(BENCHMARKS))
     parser.add_argument("--json", action="store_true", help="end with one JSON line of the figures")

@@ -39,7 +39,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, NamedTuple, NoReturn
 
-from .artifacts import (
+from ..artifacts import (
     check_outputs_writable,
     load_json,
     outputs_dir,
@@ -47,9 +47,9 @@ from .artifacts import (
     remove_stale_temporaries,
     save_json,
 )
-from .config import QUICK_ENV, Profile, active_profile, in_notebook, quick_requested
+from ..config import QUICK_ENV, Profile, active_profile, in_notebook, quick_requested
 
-_REPO_ROOT = Path(__file__).resolve().parents[1]
+_REPO_ROOT = Path(__file__).resolve().parents[2]
 _CHAPTER_RE = re.compile(r"^(\d{2})_[a-z0-9_]+\.py$")
 
 
@@ -360,9 +360,9 @@ def main(argv: list[str] | None = None) -> int:
     profile = "quick" if quick else "full"
     print(f"e2e-lite course: {len(chapters)} chapters, {profile} profile", flush=True)
     if not quick:
-        from .config import FULL, default_workers
+        from ..config import FULL, default_workers
+        from ..learning.models import pick_device
         from .estimate import course_work, plan_text
-        from .learning.models import pick_device
 
         reference_s = 60.0 * sum(CHAPTERS[n].full_min for n, _ in chapters)
         work = course_work(FULL, [n for n, _ in chapters])
@@ -406,8 +406,8 @@ def _run(
             if in_process:
                 code = run_in_process(path, flags, env)
             else:
-                # cell by cell, its transcript kept for the book (e2e_lite.transcript)
-                run = [sys.executable, "-m", "e2e_lite.transcript", str(path), *flags]
+                # cell by cell, its transcript kept for the book (e2e_lite.course.transcript)
+                run = [sys.executable, "-m", "e2e_lite.course.transcript", str(path), *flags]
                 code = subprocess.run(run, env=env, cwd=path.parent.parent).returncode
             if code != 0:
                 clock.failed()

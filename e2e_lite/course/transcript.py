@@ -1,7 +1,7 @@
 """A chapter run cell by cell, with a transcript: each cell's source, what it printed and the
 figures it saved, written to ``<outputs>/transcripts/<chapter>.json`` (the book, ``python -m
-e2e_lite.book``, renders them). The course's full profile runs every chapter this way
-(``python -m e2e_lite.transcript chapters/NN_name.py``); the cells share one namespace, as the
+e2e_lite.course.book``, renders them). The course's full profile runs every chapter this way
+(``python -m e2e_lite.course.transcript chapters/NN_name.py``); the cells share one namespace, as the
 script's top-level code does, so a chapter runs the same as with plain ``python``.
 """
 
@@ -80,7 +80,7 @@ def run(path: Path, flags: list[str]) -> int:
     and kept in the transcript)."""
     import traceback
 
-    from .artifacts import atomic_write, outputs_dir
+    from ..artifacts import atomic_write, outputs_dir
 
     source = path.read_text()
     sys.argv = [str(path), *flags]
@@ -134,5 +134,5 @@ def run(path: Path, flags: list[str]) -> int:
 
 if __name__ == "__main__":
     if len(sys.argv) < 2:
-        sys.exit("usage: python -m e2e_lite.transcript chapters/NN_name.py [--quick]")
+        sys.exit("usage: python -m e2e_lite.course.transcript chapters/NN_name.py [--quick]")
     sys.exit(run(Path(sys.argv[1]), sys.argv[2:]))

@@ -13,10 +13,10 @@ from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.figure import Figure
 
-from .artifacts import save_figure  # noqa: F401 (re-exported: the chapters save figures through viz)
-from .driving.metrics import EvalResult
-from .simulation.geometry import Track
-from .simulation.world import ParkedCars
+from ..artifacts import save_figure  # noqa: F401 (re-exported: the chapters save figures through viz)
+from ..simulation.geometry import Track
+from ..simulation.world import ParkedCars
+from .metrics import EvalResult
 
 ROAD_GREY = "#5a5a5a"
 GRASS = "#cfe3c3"

@@ -15,10 +15,10 @@ import numpy as np
 from ..artifacts import artifact_path, cached, settings_key, versioned
 from ..config import check_pair, check_range, tqdm
 from ..control.tracker import LQRTracker, follow_trajectory
+from ..learning.dataset import FIELDS, DrivingData, load_dataset, save_dataset
 from ..simulation.camera import Camera
 from ..simulation.world import World, make_world
 from .collector import DataConfig, affordances
-from .dataset import FIELDS, DrivingData, load_dataset, save_dataset
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The course's numbers, rendered: Table 1 in the README and ``docs/results.md`` from the
 committed record (``docs/results/table1.json``), the README's chapter table from
-:data:`e2e_lite.course.CHAPTERS`, and ``docs/teaching.md``'s table of a full-profile course run
-(``docs/results/course_run.json``). ``python -m e2e_lite.report`` writes them; ``--check`` exits 1
+:data:`e2e_lite.course.run.CHAPTERS`, and ``docs/teaching.md``'s table of a full-profile course run
+(``docs/results/course_run.json``). ``python -m e2e_lite.record.report`` writes them; ``--check`` exits 1
 when a file differs from its render (a test runs it). It renders and does nothing else: running,
 pooling and planning the record are ``python -m e2e_lite.record``'s.
 
@@ -23,22 +23,22 @@ from pathlib import Path
 
 import numpy as np
 
-from .artifacts import atomic_write, save_figure
-from .driving.rollout import EvalConfig
+from ..artifacts import atomic_write, save_figure
+from ..driving.rollout import EvalConfig
+from ..stats.power import chi_square_spread
+from ..stats.seeds import seed_rates, spread
+from . import COURSE_RUN, RECORD, ROOT, words
 from .kit import replace_block, teaching_with
-from .record import COURSE_RUN, RECORD, ROOT, words
-from .record.rows import SLOW_SHARE, Record, Row, load_record
-from .record.stats import SPREAD_GOAL, steps
-from .stats.power import chi_square_spread
-from .stats.seeds import seed_rates, spread
+from .rows import SLOW_SHARE, Record, Row, load_record
+from .stats import SPREAD_GOAL, steps
 
 RESULTS_MD = ROOT / "docs" / "results.md"
 FIGURE = ROOT / "docs" / "figures" / "table1.png"
 README = ROOT / "README.md"
 TEACHING = ROOT / "docs" / "teaching.md"
 #: the rendered blocks lie between these pairs of lines
-BEGIN, END = "<!-- table1: rendered by python -m e2e_lite.report -->", "<!-- /table1 -->"
-CHAPTERS_BEGIN = "<!-- chapters: rendered by python -m e2e_lite.report -->"
+BEGIN, END = "<!-- table1: rendered by python -m e2e_lite.record.report -->", "<!-- /table1 -->"
+CHAPTERS_BEGIN = "<!-- chapters: rendered by python -m e2e_lite.record.report -->"
 CHAPTERS_END = "<!-- /chapters -->"
 
 
@@ -199,7 +199,7 @@ def results_md(record: Record, table: str | None = None) -> str:
     head = [
         "# Results",
         "",
-        "Rendered by `python -m e2e_lite.report` from `docs/results/table1.json`; do not edit by"
+        "Rendered by `python -m e2e_lite.record.report` from `docs/results/table1.json`; do not edit by"
         " hand. Every chapter prints its own numbers when it runs; the findings of the"
         " investigations behind the course's recipes are in [lab-notes.md](lab-notes.md).",
         "",
@@ -255,9 +255,9 @@ def figure(record: Record):
 
 
 def chapters_table() -> str:
-    """The README's chapter list, one line each, from :data:`e2e_lite.course.CHAPTERS` (the same
+    """The README's chapter list, one line each, from :data:`e2e_lite.course.run.CHAPTERS` (the same
     times ``--help`` prints)."""
-    from .course import CHAPTERS, QUICK_COURSE_S, find_chapters
+    from ..course.run import CHAPTERS, QUICK_COURSE_S, find_chapters
 
     paths = dict(find_chapters(ROOT / "chapters"))
     lines = [
@@ -303,7 +303,9 @@ def render(record: Record | None = None, check: bool = False) -> list[Path]:
     stale = [p for p, text in wanted.items() if not p.exists() or p.read_text() != text]
     if check:
         for p in stale:
-            print(f"{p.relative_to(ROOT)} differs from the render: run python -m e2e_lite.report")
+            print(
+                f"{p.relative_to(ROOT)} differs from the render: run python -m e2e_lite.record.report"
+            )
         return stale
     for p in stale:
         with atomic_write(p, "w") as f:
@@ -316,7 +318,7 @@ def render(record: Record | None = None, check: bool = False) -> list[Path]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Render the committed record (``--check``: only compare)."""
-    parser = argparse.ArgumentParser(prog="python -m e2e_lite.report", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m e2e_lite.record.report", description=__doc__)
     parser.add_argument("--check", action="store_true", help="exit 1 if a file differs")
     args = parser.parse_args(argv)
     stale = render(check=args.check)

@@ -1,9 +1,9 @@
 """The course as a book a class can read before it runs (``docs/book/``): one page per chapter
 with its prose, its code, what each cell printed and the figures it saved, from the transcripts
-of one full-profile run (:mod:`e2e_lite.transcript`), and an index with the chapter table, the
+of one full-profile run (:mod:`e2e_lite.course.transcript`), and an index with the chapter table, the
 machine, the commit and the date of the run.
 
-    python -m e2e_lite.book OUTPUTS      # OUTPUTS: the full run's outputs folder
+    python -m e2e_lite.course.book OUTPUTS      # OUTPUTS: the full run's outputs folder
 
 Pages are Markdown a repository host shows as it is; figures are copied as PNGs scaled to at most
 :data:`WIDTH_PX` wide, the whole kept under :data:`BUDGET_BYTES`. A page whose chapter source
@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BOOK = ROOT / "docs" / "book"
 #: the widest a figure is shown [px], and the most the book's images may weigh [bytes]
 WIDTH_PX, BUDGET_BYTES = 900, 15_000_000
@@ -94,8 +94,8 @@ def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
     index (``note``: a line under the run's, for what the run's files cannot say). A chapter of
     the course with no transcript yet is listed as not in the run. Returns what it wrote: the
     chapters, the commit(s) and the images' bytes."""
-    from .course import CHAPTERS, TIMES_FILE, find_chapters
     from .estimate import cpu_name
+    from .run import CHAPTERS, TIMES_FILE, find_chapters
 
     transcripts = sorted((outputs / "transcripts").glob("*.json"))
     if not transcripts:
@@ -142,7 +142,7 @@ def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
         "Every chapter's prose, code, printed output and figures from **one full-profile run**, so"
         " a class can read the course before (or instead of) running it, and a teaching assistant"
         " can check a student's run against it (another CPU trains other networks: compare the"
-        " verdicts and their power, not the last digit). Rendered by `python -m e2e_lite.book`"
+        " verdicts and their power, not the last digit). Rendered by `python -m e2e_lite.course.book`"
         " from the run's transcripts; do not edit by hand.",
         "",
         f"*The run: {date}, on {cpu_name()}, at {at_commits(commits)}; each chapter's time as"
@@ -193,7 +193,7 @@ def _ranges(numbers: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m e2e_lite.book", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m e2e_lite.course.book", description=__doc__)
     parser.add_argument("outputs", type=Path, help="the full-profile run's outputs folder")
     parser.add_argument("--note", default="", help="a line for the index, under the run's")
     args = parser.parse_args(argv)

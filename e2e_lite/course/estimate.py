@@ -10,11 +10,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
-from .config import Profile
+from ..config import Profile
 
 
 class Work(NamedTuple):
-    """What a run does, in the parts ``python -m e2e_lite.bench`` measures (for estimates).
+    """What a run does, in the parts ``python -m e2e_lite.course.bench`` measures (for estimates).
 
     Attributes:
         collect_samples: expert samples collected (chapter 04's data).
@@ -76,7 +76,7 @@ def plan_text(
 ) -> str:
     """The line a long run prints first: the workers and device it will use, and its estimate
     (from :data:`RATES`, or scaled from ``reference_s`` measured on the reference machine)."""
-    from .config import WORKERS_ENV, available_cores, precision
+    from ..config import WORKERS_ENV, available_cores, precision
 
     seconds = (
         estimate_s(work, workers, device)
@@ -101,8 +101,8 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
     three arms (collections, fine-tunes, every iterate on validation roads); every evaluation and
     selection drive.
     Chapters 01-03, the figures and the replays are ``other_s`` (about 300 s in all)."""
-    from .learning.dagger import DaggerConfig
-    from .learning.recipes import SELECT_MILES
+    from ..imitation.dagger import DaggerConfig
+    from ..imitation.recipes import SELECT_MILES
 
     s, n, epochs = profile.ablation_seeds, profile.n_train_samples, profile.train_epochs
     select = epochs * SELECT_MILES if epochs > 1 else 0.0  # the selection drives of a training

@@ -1,4 +1,5 @@
-"""The labels: what the networks learn from a frame, in one place (no simulator imports).
+"""The labels: what the networks learn from a frame, in one place (numpy only: no simulator,
+no driver).
 
 * The trajectory format (the paper's): :data:`N_POINTS` points :data:`POINT_DT_S` apart, in the
   car frame at the rear axle [m], its path interpolated between them (:func:`interpolated_path`),
@@ -8,22 +9,18 @@
 * The 9 affordances (:data:`AFFORDANCE_NAMES`, after DeepDriving) and the cap of their gaps.
 * Seed 002's throttle and brake, recovered from the acceleration label (:func:`throttle_brake`).
 
-The affordances of cars in their worlds are measured here (:func:`affordances`, for the
-collector, :mod:`e2e_lite.learning.collector`, and the safety module's audits); the dataset
-(:mod:`e2e_lite.learning.dataset`), the losses and the safety module read them from here.
+The expert writes its labels in this format (:mod:`e2e_lite.control.expert`), the affordances of
+cars in their worlds are measured in it (:func:`e2e_lite.control.affordances.affordances`), and
+the dataset (:mod:`e2e_lite.learning.dataset`), the losses and the safety module read it from
+here.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
-
-from ..simulation.vehicle import VehicleParams
-
-if TYPE_CHECKING:  # (annotations only: the labels load without the simulator)
-    from ..simulation.world import World
 
 #: The paper's trajectory: 5 points, 0.3 s apart, 1.5 s ahead.
 N_POINTS = 5
@@ -85,7 +82,16 @@ GAP_NAMES = ("gap_ego_m", "gap_left_m", "gap_right_m")
 AFFORDANCE_INDEX = {name: i for i, name in enumerate(AFFORDANCE_NAMES)}
 
 
-def throttle_brake(accel_mps2: np.ndarray, vehicle: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
+class Limits(Protocol):
+    """What :func:`throttle_brake` reads of a car (a
+    :class:`~e2e_lite.simulation.vehicle.VehicleParams`): its largest acceleration and braking
+    [m/s^2]."""
+
+    max_accel_mps2: float
+    max_brake_mps2: float
+
+
+def throttle_brake(accel_mps2: np.ndarray, vehicle: Limits) -> tuple[np.ndarray, np.ndarray]:
     """Seed 002's throttle and brake in [0, 1] from accelerations [m/s^2]."""
     a = np.asarray(accel_mps2)
     return np.maximum(a, 0.0) / vehicle.max_accel_mps2, np.maximum(-a, 0.0) / vehicle.max_brake_mps2
@@ -127,42 +133,3 @@ def along_path(points: np.ndarray, progress: Callable[[np.ndarray], np.ndarray])
     end = (x >= a[:, -1:])[..., None]  # on a vertex or at the end: that point (as np.interp)
     out[moved] = np.where((x == lo)[..., None] | end, np.where(end, p[:, -1:], p_lo), at)
     return out.reshape(pts.shape)
-
-
-def affordances(
-    worlds: list[World], s: np.ndarray, d: np.ndarray, heading_error: np.ndarray
-) -> np.ndarray:
-    """The affordances of B cars, ``(B, 9)`` float64 (see :data:`AFFORDANCE_NAMES` for units).
-
-    Args:
-        worlds: car i's world.
-        s, d: lane-frame position of each rear axle [m].
-        heading_error: heading minus the road's [rad].
-    """
-    n = len(worlds)
-    out = np.empty((n, len(AFFORDANCE_NAMES)))
-    for i, world in enumerate(worlds):
-        track, veh = world.track, world.vehicle
-        di = float(d[i])
-        lane = int(track.lane_index(di))
-        centre = float(track.lane_center(lane))
-        half_lane = track.lane_width / 2.0
-        front = float(s[i]) + veh.rear_to_front_m
-        start = front - veh.length_m  # the rear bumper: a car reaching past it is alongside
-        gaps = []
-        for other in (lane, lane + 1, lane - 1):
-            if not 0 <= other < track.n_lanes:
-                gaps.append(0.0)
-                continue
-            hit = world.gap_ahead(start, other, GAP_CAP_M + front - start)
-            gaps.append(min(GAP_CAP_M, max(0.0, start + hit - front)))
-        out[i] = (
-            float(heading_error[i]),
-            di - centre,
-            centre + half_lane - di,
-            di - (centre - half_lane),
-            track.half_width - di,
-            di + track.half_width,
-            *gaps,
-        )
-    return out

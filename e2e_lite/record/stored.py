@@ -12,16 +12,16 @@ from typing import Any
 
 import torch
 
-from .artifacts import artifact_path, cached, load_json, save_json, settings_key, versioned
-from .config import precision
-from .control.oracle import Oracle
-from .driving.evaluation import evaluate
-from .driving.metrics import EvalResult
-from .driving.rollout import EvalConfig
-from .learning.agents import NetworkAgent
-from .learning.checkpoints import weights_digest
-from .simulation.policy import Policy
-from .simulation.world import WorldConfig
+from ..artifacts import artifact_path, cached, load_json, save_json, settings_key, versioned
+from ..config import precision
+from ..control.oracle import Oracle
+from ..driving.evaluation import evaluate
+from ..driving.metrics import EvalResult
+from ..driving.rollout import EvalConfig
+from ..imitation.agents import NetworkAgent
+from ..learning.checkpoints import weights_digest
+from ..simulation.policy import Policy
+from ..simulation.world import WorldConfig
 
 
 def fingerprint(policy: Policy) -> str:
@@ -67,7 +67,7 @@ def evaluate_stored(
     policy reported (``result.info``, which must be JSON-able: :meth:`EvalResult.to_json`), and
     read back as the same :class:`EvalResult` (less its traces) instead of driven again while
     the driver (:func:`fingerprint`), world, settings and precision are the same (see
-    :func:`~e2e_lite.ablation.evaluate_drivers`)."""
+    :func:`~e2e_lite.record.ablation.evaluate_drivers`)."""
     driven = []
 
     def run() -> EvalResult:

@@ -1,7 +1,7 @@
 """The teacher's kit's rendered blocks (``docs/teaching.md``): what each chapter printed in the
 recorded full-profile course run (``docs/results/course_run.json``) and the minutes it took, what
 a machine needs, and each session's findings: its chapters' headline figures beside the record's
-verdicts on the steps it teaches. :mod:`e2e_lite.report` writes them with the README's tables.
+verdicts on the steps it teaches. :mod:`e2e_lite.record.report` writes them with the README's tables.
 """
 
 from __future__ import annotations
@@ -9,15 +9,15 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from .record import words
-from .record.rows import Record
-from .record.stats import steps
+from . import words
+from .rows import Record
+from .stats import steps
 
-RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.report -->"
+RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.record.report -->"
 RUN_END = "<!-- /course run -->"
-FINDINGS_BEGIN = "<!-- sessions' findings: rendered by python -m e2e_lite.report -->"
+FINDINGS_BEGIN = "<!-- sessions' findings: rendered by python -m e2e_lite.record.report -->"
 FINDINGS_END = "<!-- /sessions' findings -->"
-NEEDS_BEGIN = "<!-- machine needs: rendered by python -m e2e_lite.report -->"
+NEEDS_BEGIN = "<!-- machine needs: rendered by python -m e2e_lite.record.report -->"
 NEEDS_END = "<!-- /machine needs -->"
 #: each session's chapters and the record's steps it teaches (teaching.md's sessions)
 SESSIONS = {
@@ -57,13 +57,13 @@ def _figure(value: Any) -> str:
 def course_run_table(run: dict[str, Any] | None, record: Record | None = None) -> str:
     """docs/teaching.md's table of what each chapter printed in a full-profile run, and (with
     ``record``) what the record of many seeds says of the same rows."""
-    from .course import CHAPTERS
+    from ..course.run import CHAPTERS
 
     if run is None:
         return (
             "*No full-profile run is recorded yet: run `python -m e2e_lite.course`, then "
             "`python -m e2e_lite.record course-run outputs` to record it and "
-            "`python -m e2e_lite.report` to render it.*"
+            "`python -m e2e_lite.record.report` to render it.*"
         )
     lines = ["| chapter | minutes | what it printed (its headline figures) |", "|---|---:|---|"]
     for stem, ch in run["chapters"].items():
