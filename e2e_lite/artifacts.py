@@ -305,7 +305,7 @@ def show_in_notebook(png: Path | str) -> None:
     made, and saves them to ``outputs/figures`` either way.
     """
     if in_notebook():
-        from IPython.display import Image, display
+        from IPython.display import Image, display  # (here: IPython is there in a notebook)
 
         display(Image(filename=str(png)))
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from tqdm.std import tqdm as text_tqdm
 
 QUICK_ENV = "E2E_LITE_QUICK"
 QUICK_FLAG = "--quick"
@@ -190,7 +191,7 @@ def in_notebook() -> bool:
     if "ipykernel" not in sys.modules:
         return False
     try:
-        from IPython import get_ipython
+        from IPython import get_ipython  # (here: the notebook extra's, maybe not installed)
     except ImportError:
         return False
     shell = get_ipython()
@@ -271,13 +272,12 @@ def _progress_bar() -> type:
     a notebook: ``tqdm.auto`` would warn "IProgress not found" there and still fall back)."""
     if in_notebook():
         try:
-            import ipywidgets  # noqa: F401
-            from tqdm.notebook import tqdm as notebook_tqdm
+            import ipywidgets  # noqa: F401 (here: the notebook bar needs it; maybe not installed)
+            from tqdm.notebook import tqdm as notebook_tqdm  # (here: imports ipywidgets' parts)
 
             return notebook_tqdm
         except ImportError:
             pass
-    from tqdm.std import tqdm as text_tqdm
 
     return text_tqdm
 

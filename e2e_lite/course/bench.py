@@ -39,11 +39,11 @@ import numpy as np
 import torch
 
 from ..artifacts import artifact_path
-from ..config import active_profile
+from ..config import active_profile, available_cores
 from ..control.drivers import LaneChanger, LaneKeeper
 from ..control.expert import Expert
 from ..control.oracle import Oracle
-from ..driving.evaluation import FORWARD_GROUP, evaluate
+from ..driving.evaluation import FORWARD_GROUP, close_shard_workers, evaluate
 from ..driving.parallel import SHARD_TORCH_THREADS
 from ..driving.rollout import EvalConfig
 from ..imitation import recipes
@@ -397,8 +397,6 @@ def bench_scaling(quick: bool, agent: str = "gmm") -> dict[str, float]:
     worker's; with a GPU, the network there in this process and in every worker. Collecting
     (16,000 samples, quick 400; 16 cars, or one per core) with one process and with all: samples
     per second (the workers' start included), and whether the arrays are the same bytes."""
-    from ..config import available_cores
-    from ..driving.evaluation import close_shard_workers
 
     cores = available_cores()
     policy, source = learned_driver(agent, torch.device("cpu"))

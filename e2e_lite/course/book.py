@@ -20,6 +20,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from PIL import Image
+
+from .estimate import cpu_name
+from .run import CHAPTERS, TIMES_FILE, find_chapters
+
 ROOT = Path(__file__).resolve().parents[2]
 BOOK = ROOT / "docs" / "book"
 #: the widest a figure is shown [px], and the most the book's images may weigh [bytes]
@@ -40,7 +45,6 @@ def cut(output: str) -> str:
 def shrink(png: Path, width_px: int = WIDTH_PX) -> bytes:
     """A figure as PNG bytes at most ``width_px`` wide, its colours quantised (the course's
     figures are line art: 256 colours lose nothing a reader sees)."""
-    from PIL import Image
 
     img = Image.open(png).convert("RGB")
     if img.width > width_px:
@@ -94,8 +98,6 @@ def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
     index (``note``: a line under the run's, for what the run's files cannot say). A chapter of
     the course with no transcript yet is listed as not in the run. Returns what it wrote: the
     chapters, the commit(s) and the images' bytes."""
-    from .estimate import cpu_name
-    from .run import CHAPTERS, TIMES_FILE, find_chapters
 
     transcripts = sorted((outputs / "transcripts").glob("*.json"))
     if not transcripts:

@@ -6,11 +6,14 @@ run prints first (:func:`plan_text`: the workers, the device, the precision and 
 
 from __future__ import annotations
 
+import platform
 from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
-from ..config import Profile
+from ..config import WORKERS_ENV, Profile, available_cores, precision
+from ..imitation.dagger import DaggerConfig
+from ..imitation.recipes import SELECT_MILES
 
 
 class Work(NamedTuple):
@@ -76,7 +79,6 @@ def plan_text(
 ) -> str:
     """The line a long run prints first: the workers and device it will use, and its estimate
     (from :data:`RATES`, or scaled from ``reference_s`` measured on the reference machine)."""
-    from ..config import WORKERS_ENV, available_cores, precision
 
     seconds = (
         estimate_s(work, workers, device)
@@ -101,8 +103,6 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
     three arms (collections, fine-tunes, every iterate on validation roads); every evaluation and
     selection drive.
     Chapters 01-03, the figures and the replays are ``other_s`` (about 300 s in all)."""
-    from ..imitation.dagger import DaggerConfig
-    from ..imitation.recipes import SELECT_MILES
 
     s, n, epochs = profile.ablation_seeds, profile.n_train_samples, profile.train_epochs
     select = epochs * SELECT_MILES if epochs > 1 else 0.0  # the selection drives of a training
@@ -150,7 +150,6 @@ def course_work(profile: Profile, chapters: Sequence[int] | None = None) -> Work
 
 def cpu_name() -> str:
     """The CPU's model name (``/proc/cpuinfo``; else what ``platform`` says), for records."""
-    import platform
 
     try:
         lines = Path("/proc/cpuinfo").read_text().splitlines()

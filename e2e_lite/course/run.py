@@ -47,7 +47,15 @@ from ..artifacts import (
     remove_stale_temporaries,
     save_json,
 )
-from ..config import QUICK_ENV, Profile, active_profile, in_notebook, quick_requested
+from ..config import (
+    FULL,
+    QUICK_ENV,
+    Profile,
+    active_profile,
+    default_workers,
+    in_notebook,
+    quick_requested,
+)
 
 _REPO_ROOT = Path(__file__).resolve().parents[2]
 _CHAPTER_RE = re.compile(r"^(\d{2})_[a-z0-9_]+\.py$")
@@ -360,9 +368,8 @@ def main(argv: list[str] | None = None) -> int:
     profile = "quick" if quick else "full"
     print(f"e2e-lite course: {len(chapters)} chapters, {profile} profile", flush=True)
     if not quick:
-        from ..config import FULL, default_workers
-        from ..learning.models import pick_device
-        from .estimate import course_work, plan_text
+        from ..learning.models import pick_device  # (here: a chapter imports this module first,
+        from .estimate import course_work, plan_text  # (to check its flags before torch loads)
 
         reference_s = 60.0 * sum(CHAPTERS[n].full_min for n, _ in chapters)
         work = course_work(FULL, [n for n, _ in chapters])

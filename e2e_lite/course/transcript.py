@@ -15,8 +15,11 @@ import re
 import subprocess
 import sys
 import time
+import traceback
 from pathlib import Path
 from typing import Any
+
+from ..artifacts import atomic_write, outputs_dir
 
 #: a cell's first line: ``# %%`` (code) or ``# %% [markdown]`` (prose)
 CELL = re.compile(r"^# %%( \[markdown\])?\s*$", re.M)
@@ -78,9 +81,6 @@ def run(path: Path, flags: list[str]) -> int:
     """Run chapter ``path`` cell by cell as ``__main__`` with ``flags`` as its arguments, and
     write its transcript; returns the exit code (1 after an error, whose traceback is printed
     and kept in the transcript)."""
-    import traceback
-
-    from ..artifacts import atomic_write, outputs_dir
 
     source = path.read_text()
     sys.argv = [str(path), *flags]

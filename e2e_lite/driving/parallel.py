@@ -168,7 +168,7 @@ def _serve(inbox: Any, outbox: Any) -> None:
         try:
             torch_threads, job = _receive(inbox)
             if torch_threads > 0:  # the parent ran torch (0: it had not imported it)
-                import torch
+                import torch  # (here: a worker loads torch only when its parent ran it)
 
                 torch.set_num_threads(torch_threads)
             _send(outbox, ("ready", None))

@@ -23,7 +23,7 @@ def main() -> None:
     outbox = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # C-level and Python prints of the driven code now go to stderr
     sys.stdout = sys.stderr
-    from .parallel import shard_worker
+    from .parallel import shard_worker  # (here: what its import prints goes to stderr)
 
     shard_worker(sys.stdin.buffer, outbox)
     with contextlib.suppress(OSError):  # (the parent may be gone)

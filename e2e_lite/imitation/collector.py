@@ -34,6 +34,7 @@ from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
 from ..driving.rollout import EvalConfig, drive_shard
+from ..learning.checkpoints import weights_digest
 from ..learning.dataset import (  # noqa: F401 (re-exported: the chapters read the data's names here)
     CHANGE_START_M,
     FIELDS,
@@ -169,7 +170,6 @@ class OnPolicy:
 
     def key(self, cfg: DataConfig) -> str:
         """Its samples' key: the settings, the learner's weights (or class) and beta."""
-        from ..learning.checkpoints import weights_digest
 
         net = getattr(self.learner, "model", self.learner)
         who = weights_digest(net) if hasattr(net, "state_dict") else type(net).__name__

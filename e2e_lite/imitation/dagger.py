@@ -41,11 +41,12 @@ import numpy as np
 from ..artifacts import artifact_path, cached, seeded, settings_key
 from ..config import Profile, check_range
 from ..control.state_expert import check_home
-from ..driving.rollout import EvalConfig
+from ..driving.rollout import EvalConfig, disjoint_runs
 from ..learning.checkpoints import train_or_load, training_data_key
 from ..learning.dataset import DrivingData, allocate, relabelled
 from ..learning.labels import AFFORDANCE_INDEX
 from ..learning.models import DrivingModel
+from ..simulation.world import WorldConfig
 from . import recipes
 from .agents import TrajectoryAgent
 from .collector import (
@@ -142,8 +143,6 @@ def val_roads(miles: float, n_worlds: int) -> EvalConfig:
 def val_run(profile: Profile, seed: int, miles: float) -> EvalConfig:
     """Training ``seed``'s own validation roads, ``miles`` of them: every iterate of that seed
     drives them, so its iterates are compared on equal terms, and no other seed drives them."""
-    from ..driving.rollout import disjoint_runs
-    from ..simulation.world import WorldConfig
 
     ev = val_roads(miles * (seed + 1), profile.ablation_worlds)
     return disjoint_runs(ev, WorldConfig.for_profile(profile), seed + 1)[seed]

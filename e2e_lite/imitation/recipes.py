@@ -41,6 +41,8 @@ from ..learning.losses import GMM_SIGMAS, GMMObjective, Objective, WithAffordanc
 from ..learning.models import DrivingModel, ModelConfig
 from ..learning.probes import HeadRefit
 from ..learning.training import History, TrainConfig, evaluate_loss
+from ..simulation.world import WorldConfig
+from .selection import road_scorer
 
 Trained = tuple[DrivingModel, Objective, History]
 
@@ -83,8 +85,6 @@ def _selecting(
     cfg = _train_cfg(profile, **changes)
     if cfg.epochs < 2:  # one epoch: nothing to choose, nothing to drive
         return cfg, kw
-    from ..simulation.world import WorldConfig  # (the drive needs the simulator: loaded here)
-    from .selection import road_scorer
 
     scorer = road_scorer(WorldConfig.for_profile(profile), SELECT_MILES, kw.get("on_epoch"))
     cfg = replace(cfg, select_by="val_roads", select_miles=SELECT_MILES)

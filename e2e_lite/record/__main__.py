@@ -9,15 +9,18 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import e2e_lite.record
+
 from ..artifacts import atomic_write, outputs_dir
 from ..config import FULL, QUICK
-from . import COURSE_RUN, RECORD, ROOT
-from .rows import Record, Share, dump
+from . import COURSE_RUN, RECORD, ROOT, report
+from .course_run import course_run_record
+from .pool import ShareRefused, pool
+from .rows import Record, Share, dump, load_record
+from .run import parse_seeds, plan, plan_lines, record_share
 
 
 def _parser() -> argparse.ArgumentParser:
-    import e2e_lite.record
-
     parser = argparse.ArgumentParser(
         prog="python -m e2e_lite.record",
         description=e2e_lite.record.__doc__.split("\n\n")[1],
@@ -72,7 +75,6 @@ def _parser() -> argparse.ArgumentParser:
 def _write_record(record: Record, quick: bool) -> int:
     """Write a pooled record: the record of record (rendered), or a quick smoke test's (printed,
     never written to docs/)."""
-    from . import report
 
     path = outputs_dir(quick=True) / "table1.json" if quick else RECORD
     with atomic_write(path, "w") as f:
@@ -86,9 +88,6 @@ def _write_record(record: Record, quick: bool) -> int:
 
 
 def _run(seeds_text: str, miles: float, quick: bool) -> int:
-    from .pool import pool
-    from .run import parse_seeds, record_share
-
     profile = QUICK if quick else FULL
     seeds = parse_seeds(seeds_text)
     share = record_share(profile, seeds, miles)
@@ -103,8 +102,6 @@ def _run(seeds_text: str, miles: float, quick: bool) -> int:
 
 
 def _pool(files: Sequence[Path]) -> int:
-    from .pool import ShareRefused, pool
-
     shares = [(p.name, Share.from_json(json.loads(p.read_text()))) for p in files]
     try:
         record = pool(shares)
@@ -121,12 +118,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.job == "pool":
         return _pool(args.shares)
     if args.job == "plan":
-        from .rows import load_record
-        from .run import plan, plan_lines
-
         print("\n".join(plan_lines(plan(load_record(RECORD)))))
         return 0
-    from .course_run import course_run_record
 
     with atomic_write(COURSE_RUN, "w") as f:
         needs = {k: getattr(args, k) for k in ("time_log", "quick_outputs", "venv", "downloads")}

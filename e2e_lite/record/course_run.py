@@ -11,6 +11,11 @@ import re
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from ..course.estimate import cpu_name
+from ..course.run import TIMES_FILE
+
 
 def folder_bytes(path: Path) -> int:
     """The size of every file under ``path`` [bytes] (hard links counted once)."""
@@ -73,10 +78,6 @@ def course_run_record(outputs: Path, **needs: Path | None) -> dict[str, Any]:
     (``course_times.json``) and the headline figures it wrote (``metrics/<chapter>.json``), with
     the machine, torch and what it needed (:func:`machine_needs`, given ``needs``' sources). A
     chapter whose metrics are another profile's is refused."""
-    import torch
-
-    from ..course.estimate import cpu_name
-    from ..course.run import TIMES_FILE
 
     times = json.loads((outputs / TIMES_FILE).read_text())
     chapters = {}

@@ -9,6 +9,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
+from ..course.run import CHAPTERS
 from . import words
 from .rows import Record
 from .stats import steps
@@ -57,7 +58,6 @@ def _figure(value: Any) -> str:
 def course_run_table(run: dict[str, Any] | None, record: Record | None = None) -> str:
     """docs/teaching.md's table of what each chapter printed in a full-profile run, and (with
     ``record``) what the record of many seeds says of the same rows."""
-    from ..course.run import CHAPTERS
 
     if run is None:
         return (

@@ -22,8 +22,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from ..artifacts import atomic_write, save_figure
+from ..course.run import CHAPTERS, QUICK_COURSE_S, find_chapters
 from ..driving.rollout import EvalConfig
 from ..stats.power import chi_square_spread
 from ..stats.seeds import seed_rates, spread
@@ -231,7 +233,6 @@ def results_md(record: Record, table: str | None = None) -> str:
 def figure(record: Record):
     """Table 1 as a picture: each training seed's rate (grey dots), their median (a black bar)
     and the paper's figure (a red diamond), on a symmetric-log axis (the rates span decades)."""
-    from matplotlib.figure import Figure
 
     rows = record.rows
     fig = Figure(figsize=(8.5, 0.45 * len(rows) + 1.4), layout="constrained")
@@ -257,7 +258,6 @@ def figure(record: Record):
 def chapters_table() -> str:
     """The README's chapter list, one line each, from :data:`e2e_lite.course.run.CHAPTERS` (the same
     times ``--help`` prints)."""
-    from ..course.run import CHAPTERS, QUICK_COURSE_S, find_chapters
 
     paths = dict(find_chapters(ROOT / "chapters"))
     lines = [

@@ -17,16 +17,19 @@ import torch
 
 from ..artifacts import profile_outputs, seeded, settings_key
 from ..config import FULL, Profile, check_range, default_workers, precision
-from ..course.estimate import Work, cpu_name, plan_text
+from ..course.estimate import Work, cpu_name, estimate_s, plan_text
 from ..driving.roads import ROAD_BLOCKS
 from ..driving.rollout import EvalConfig
 from ..imitation.collector import DataConfig, load_or_collect
+from ..imitation.dagger import DaggerConfig
+from ..imitation.recipes import SELECT_MILES
 from ..learning.models import pick_device
 from ..simulation.world import WorldConfig
+from ..stats.power import seeds_for_power
 from .ablation import BEYOND, BY_KEY, CONTROLS, DRIVERS, SEED_ZERO_ONLY, UNTRAINED, build_drivers
 from .pool import record_block, seed_run
 from .rows import SHARE_FORMAT, Block, Record, SeedRun, Share, ShareRow
-from .stats import family
+from .stats import family, record_power
 from .stored import evaluate_stored
 
 #: every row of the record: the paper's, DAgger's (chapter 12) and the controls
@@ -42,8 +45,6 @@ def record_work(
     drive per epoch; the two fine-tunes: one epoch; the rows of ``single``: seed 0 alone),
     DAgger's three arms (their drives, fine-tunes and every iterate's validation drive), and
     every seed's run of every row."""
-    from ..imitation.dagger import DaggerConfig
-    from ..imitation.recipes import SELECT_MILES
 
     learned = [d.key for d in (*DRIVERS, *CONTROLS) if d.key not in UNTRAINED]
     tuned = sum(k in ("gmm_affordance_cvar", "gmm_affordance_control") for k in learned)
@@ -174,9 +175,6 @@ def plan(
     (:func:`~e2e_lite.record.stats.record_power`), and what each plan costs on 2 cores and on a
     16-core machine with a GPU (:func:`record_work`); the chosen plan is the cheapest on 2 cores
     that reaches ``target`` (else the most powerful at ``most`` seeds)."""
-    from ..course.estimate import estimate_s
-    from ..stats.power import seeds_for_power
-    from .stats import record_power
 
     found = record_power(record)
     k, rate = found.dispersion.k, found.rate_per_100mi

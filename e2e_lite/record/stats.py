@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from scipy.stats import spearmanr
 
 from ..stats.power import Dispersion, fit_dispersion, holm, power
 from ..stats.seeds import SeedTest, compare_seeds, seed_counts
@@ -287,7 +288,6 @@ def shared_spread(record: Record) -> float:
     a, b = record.row(POWER_ROW), record.row(POWER_PAIR)
     if a is None or b is None or len(a.seeds) != len(b.seeds) or len(a.seeds) < 3:
         return 0.0
-    from scipy.stats import spearmanr
 
     rho = spearmanr(seed_counts(a).counts, seed_counts(b).counts).statistic
     return float(np.clip(np.nan_to_num(rho), 0.0, 0.95))
