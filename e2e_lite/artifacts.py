@@ -124,15 +124,30 @@ def seeded(name: str, seed: int, *, plain_zero: bool = False) -> str:
     return name if plain_zero and seed == 0 else f"{name}_seed{seed}"
 
 
+def added_later(**settings: tuple[Any, Any]) -> list[Any]:
+    """The one rule that keeps old keys: settings a key gained after artifacts were stored under
+    it, each given as ``name=(value, default)``; the values, in order, of those not at their
+    default, so every key stored before a setting existed stays while it is at its default. A
+    dataclass names such fields in ``KEY_DEFAULTS_OMITTED`` (:func:`key_fields` reads them by
+    this rule); a driver's identity and a round's key call it directly."""
+    return [value for value, default in settings.values() if value != default]
+
+
+def key_fields(obj: Any, **overrides: Any) -> dict[str, Any]:
+    """A dataclass's fields as its key holds them (those in ``KEY_DEFAULTS_OMITTED`` by
+    :func:`added_later`'s rule), with ``overrides``: a plain dict, keyed as the dict it is."""
+    return {**_plain(obj, True), **overrides}
+
+
 def _plain(obj: Any, for_key: bool) -> Any:
     """``dataclasses.asdict``'s plain values, except that for a key, at every level, the fields a
-    dataclass names in ``KEY_DEFAULTS_OMITTED`` are left out while at their default."""
+    dataclass names in ``KEY_DEFAULTS_OMITTED`` are left out by :func:`added_later`'s rule."""
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         omitted = getattr(type(obj), "KEY_DEFAULTS_OMITTED", ()) if for_key else ()
         return {
             f.name: _plain(getattr(obj, f.name), for_key)
             for f in dataclasses.fields(obj)
-            if not (f.name in omitted and getattr(obj, f.name) == f.default)
+            if f.name not in omitted or added_later(**{f.name: (getattr(obj, f.name), f.default)})
         }
     if isinstance(obj, (list, tuple)):
         return type(obj)(_plain(v, for_key) for v in obj)

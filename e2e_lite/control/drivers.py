@@ -58,6 +58,18 @@ class LaneKeeper:
         self.wheelbase = wheelbase_m
         self.target_lane = np.zeros(0, dtype=np.int64)
 
+    def identity(self) -> list[float]:
+        """What decides its behaviour (:func:`~e2e_lite.simulation.policy.fingerprint`): its
+        settings."""
+        return [
+            self.target_speed_mps,
+            self.wn,
+            self.zeta,
+            self.speed_gain,
+            self.max_lat_accel,
+            self.wheelbase,
+        ]
+
     def reset(self, n_worlds: int) -> None:
         """Forget the target lanes of ``n_worlds`` cars."""
         self.target_lane = np.zeros(n_worlds, dtype=np.int64)
@@ -101,6 +113,10 @@ class LaneChanger(LaneKeeper):
         super().__init__(**kwargs)
         check_range("LaneChanger", "trigger_m", trigger_m, 0.0, 500.0, lo_open=True)
         self.trigger_m = trigger_m
+
+    def identity(self) -> list[float]:
+        """The lane keeper's settings and the gap that triggers a lane change."""
+        return [*super().identity(), self.trigger_m]
 
     def _update_targets(self, obs: Observation) -> None:
         super()._update_targets(obs)

@@ -161,6 +161,11 @@ class Expert:
         """``k`` experts for an evaluation's parallel shards (no state is shared)."""
         return [copy.deepcopy(self) for _ in range(k)]
 
+    def identity(self) -> list[str]:
+        """What decides its behaviour (:func:`~e2e_lite.simulation.policy.fingerprint`): its
+        settings."""
+        return [repr(self.cfg)]
+
     def reset(self, n_worlds: int) -> None:
         """New plans for ``n_worlds`` cars; counters zeroed."""
         self.plans = []

@@ -8,9 +8,11 @@ predicts trajectories (chapter 07 adds the network's point noise to it to choose
 from __future__ import annotations
 
 import copy
+from typing import Any
 
 import numpy as np
 
+from ..artifacts import added_later
 from ..simulation.policy import Actuation, Observation, car_rng, seeded_cars
 from .expert import Expert
 from .tracker import check_reading, follow_trajectory
@@ -63,6 +65,14 @@ class Oracle:
     def fork(self, k: int) -> list[Oracle]:
         """``k`` oracles for an evaluation's parallel shards (no state is shared)."""
         return [copy.deepcopy(self) for _ in range(k)]
+
+    def identity(self) -> list[Any]:
+        """What decides its behaviour (:func:`~e2e_lite.simulation.policy.fingerprint`): how it
+        reads the labels, its expert's identity, its noise's seed, and its expert's class when
+        that is not the :class:`~e2e_lite.control.expert.Expert`."""
+        kind = added_later(expert=(type(self.expert).__name__, "Expert"))
+        preview = [repr(self.preview_s), repr(self.speed), repr(self.point_noise_m)]
+        return [*preview, *self.expert.identity(), self.seed, *kind]
 
     def reset(self, n_worlds: int) -> None:
         """Reset the expert's plans and each car's noise."""

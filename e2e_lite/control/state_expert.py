@@ -156,6 +156,11 @@ class StateExpert:
         """``k`` experts for an evaluation's parallel shards (no state is shared)."""
         return [copy.deepcopy(self) for _ in range(k)]
 
+    def identity(self) -> list[str]:
+        """What decides its behaviour (:func:`~e2e_lite.simulation.policy.fingerprint`): its
+        settings and its home lane."""
+        return [repr(self.cfg), self.home]
+
     def reset(self, n_worlds: int) -> None:
         """Forget the last decisions of ``n_worlds`` cars; counters zeroed."""
         self.decisions = [_NOTHING] * n_worlds

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..artifacts import added_later
 from ..control.rules import ExpertConfig, SpeedLimits
 from ..control.tracker import (
     SPEED_READINGS,
@@ -35,9 +36,9 @@ from ..control.tracker import (
 )
 from ..learning.heads import GMM, HEADS, Trajectory
 from ..learning.labels import N_POINTS, POINT_DIMS
-from ..learning.models import DrivingModel, images_to_tensor
+from ..learning.models import DrivingModel, images_to_tensor, weights_digest
 from ..simulation.camera import CameraConfig
-from ..simulation.policy import FORWARD_GROUP, Actuation, Observation
+from ..simulation.policy import FORWARD_GROUP, Actuation, Observation, fingerprint
 from ..simulation.vehicle import VehicleParams
 from ..simulation.world import SimConfig
 
@@ -71,6 +72,18 @@ class NetworkAgent:
         self.vehicle = vehicle or VehicleParams()
         self.sim = sim or SimConfig()
         self.device = next(model.parameters()).device
+
+    def identity(self) -> list[Any]:
+        """What decides its behaviour (:func:`~e2e_lite.simulation.policy.fingerprint`): a digest
+        of the network's weights and buffers, its settings, how the agent reads its output
+        (:meth:`reading`), its camera and its device."""
+        model = [weights_digest(self.model), repr(self.model.cfg)]
+        return [*model, *self.reading(), repr(self.camera), str(self.device)]
+
+    def reading(self) -> list[Any]:
+        """How the agent reads the network's output, as its identity holds it: the speed and the
+        preview (a steering or actuators agent reads neither: None, 0.0)."""
+        return [None, 0.0]
 
     def reset(self, n_worlds: int) -> None:
         """Networks are stateless between decisions."""
@@ -219,6 +232,11 @@ class TrajectoryAgent(NetworkAgent):
         self.cruise = CruiseControl(tracker=self.tracker) if speed == "cruise" else None
         self.last: dict[str, np.ndarray] = {}
 
+    def reading(self) -> list[Any]:
+        """How it reads the network's output: its speed and preview, and how it decodes a GMM
+        (kept out of the key at its default, :func:`~e2e_lite.artifacts.added_later`)."""
+        return [self.speed, self.preview_s, *added_later(decode=(self.decode, "top"))]
+
     def trajectories(self, obs: Observation) -> np.ndarray:
         """The trajectories to follow (B, 5, 2) [m]; fills :attr:`last`."""
         return self.trajectories_from(_frames(obs), obs.speed)
@@ -274,6 +292,10 @@ class Recorder:
     def __init__(self, agent: Any, record: Callable[[Observation, Any], Any]) -> None:
         self.agent, self.record, self.rows = agent, record, []
         self.camera = getattr(agent, "camera", None)
+
+    def identity(self) -> list[str]:
+        """It drives as its agent does (:func:`~e2e_lite.simulation.policy.fingerprint`)."""
+        return [fingerprint(self.agent)]
 
     def reset(self, n_worlds: int) -> None:
         self.agent.reset(n_worlds)

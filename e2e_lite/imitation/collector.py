@@ -34,7 +34,6 @@ from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
 from ..driving.rollout import EvalConfig, drive_shard
-from ..learning.checkpoints import weights_digest
 from ..learning.dataset import (  # noqa: F401 (re-exported: the chapters read the data's names here)
     CHANGE_START_M,
     FIELDS,
@@ -53,6 +52,7 @@ from ..learning.dataset import (  # noqa: F401 (re-exported: the chapters read t
     synthetic_data,
 )
 from ..learning.labels import AFFORDANCE_NAMES, CHANGE, GAP_CAP_M, N_POINTS, throttle_brake  # noqa: F401 (re-exported, as above)
+from ..learning.models import weights_digest
 from ..simulation.camera import CameraConfig
 from ..simulation.policy import Actuation, Observation, car_rng
 from ..simulation.world import WorldConfig

@@ -38,7 +38,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..artifacts import artifact_path, cached, seeded, settings_key
+from ..artifacts import added_later, artifact_path, cached, seeded, settings_key
 from ..config import Profile, check_range
 from ..control.state_expert import check_home
 from ..driving.rollout import EvalConfig, disjoint_runs
@@ -214,9 +214,8 @@ class RoundSpec:
         the gate (anything else drives anew, and the fine-tunes on it retrain). The control's
         noise is DART's fit to these weights (:meth:`dart`), so they key it too."""
         gate = (self.cfg.samples, self.cfg.gate_m, OnPolicy.BEFORE_COLLISION_S)
-        dart = ("dart", DART_PILOT) if self.arm == "control" else ()
-        if self.arm == "control" and self.cfg.dart_scale != 1.0:  # (the course's keys stay)
-            dart += (self.cfg.dart_scale,)
+        scale = added_later(dart_scale=(self.cfg.dart_scale, 1.0))
+        dart = ("dart", DART_PILOT, *scale) if self.arm == "control" else ()
         return settings_key(self.on_policy(learner).key(self.data()), "gate", *gate, *dart)
 
     def dart(self, learner: DrivingModel, progress: bool = True) -> NoiseConfig:

@@ -24,13 +24,14 @@ from ..artifacts import (
     artifact_path,
     atomic_write,
     check_seal,
+    key_fields,
     settings_key,
     versioned,
 )
 from ..config import precision
 from .dataset import DrivingData, DrivingDataset
 from .losses import Objective
-from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare
+from .models import DrivingModel, ModelConfig, build_model, pick_device, prepare, weights_digest
 from .probes import HeadRefit, refit_affordance_head
 from .training import History, TrainConfig, fit, kept_epoch, model_stats
 
@@ -40,28 +41,15 @@ class CheckpointMismatch(ValueError):
 
 
 # ------------------------------------------------------------------ checkpoints
-def weights_digest(model: torch.nn.Module) -> str:
-    """A SHA-256 hex digest of a model's weights and buffers (names and bytes, in order): what
-    identifies a trained network's behaviour, whatever file it came from."""
-    digest = hashlib.sha256()
-    for name, tensor in model.state_dict().items():
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()
-
-
 def checkpoint_key(
     model_cfg: ModelConfig, train_cfg: TrainConfig, objective: Objective, data_key: str
 ) -> str:
     """The settings key of a training run (the device is left out: CPU and GPU runs share it;
     the precision, :func:`~e2e_lite.config.precision`, is in)."""
-    train = {**asdict(train_cfg), "device": None}
-    if train["select_miles"] is None:  # (added later: left out when unused, so keys stay)
-        del train["select_miles"]
     return settings_key(
         versioned("checkpoint"),
         model_cfg,
-        train,
+        key_fields(train_cfg, device=None),
         objective.name,
         data_key,
         precision(),

@@ -19,6 +19,7 @@ of the speed input) as buffers, so a checkpoint holds its own normalisation and
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import asdict, dataclass
 from typing import ClassVar
 
@@ -309,3 +310,13 @@ def images_to_tensor(images: np.ndarray | torch.Tensor, device: torch.device) ->
     if t.shape[-1] == 3:
         t = t.permute(0, 3, 1, 2)
     return t.to(device, non_blocking=True)
+
+
+def weights_digest(model: torch.nn.Module) -> str:
+    """A SHA-256 hex digest of a model's weights and buffers (names and bytes, in order): what
+    identifies a trained network's behaviour, whatever file it came from."""
+    digest = hashlib.sha256()
+    for name, tensor in model.state_dict().items():
+        digest.update(name.encode())
+        digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()

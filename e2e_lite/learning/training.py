@@ -15,7 +15,7 @@ import copy
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -86,6 +86,9 @@ class TrainConfig:
     select_miles: float | None = None
     seed: int = 0
     device: str = "auto"
+
+    #: added after the course's networks were keyed: at its default (None) those keys stay
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("select_miles",)
 
     def __post_init__(self) -> None:
         o = "TrainConfig"

@@ -1,8 +1,9 @@
 """Drives stored and read back: a closed-loop evaluation is saved as
 ``evaluations/<file>-<key>.json`` under a key of everything that decides what it drives (the
-driver's :func:`fingerprint`, the world, the evaluation's settings, the precision and torch), and
-read back instead of driven again while none of them changed. Chapter 10's ablation, chapter 11's
-guarded drives, chapter 12's iterates and the record all drive through :func:`evaluate_stored`.
+driver's :func:`~e2e_lite.simulation.policy.fingerprint`, of what its ``identity()`` declares;
+the world, the evaluation's settings, the precision and torch), and read back instead of driven
+again while none of them changed. Chapter 10's ablation, chapter 11's guarded drives, chapter
+12's iterates and the record all drive through :func:`evaluate_stored`.
 """
 
 from __future__ import annotations
@@ -14,42 +15,11 @@ import torch
 
 from ..artifacts import artifact_path, cached, load_json, save_json, settings_key, versioned
 from ..config import precision
-from ..control.oracle import Oracle
 from ..driving.evaluation import evaluate
 from ..driving.metrics import EvalResult
 from ..driving.rollout import EvalConfig
-from ..imitation.agents import NetworkAgent
-from ..learning.checkpoints import weights_digest
-from ..simulation.policy import Policy
+from ..simulation.policy import Policy, fingerprint
 from ..simulation.world import WorldConfig
-
-
-def fingerprint(policy: Policy) -> str:
-    """What identifies a driver's behaviour: its class, its settings and, for a network, a digest
-    of its weights and normalisation buffers."""
-    parts: list[Any] = [type(policy).__name__]
-    if isinstance(policy, NetworkAgent):
-        parts += [
-            weights_digest(policy.model),
-            repr(policy.model.cfg),
-            getattr(policy, "speed", None),
-        ]
-        parts += [getattr(policy, "preview_s", 0.0)]
-        if getattr(policy, "decode", "top") != "top":  # (so the stored keys of "top" stay)
-            parts.append(policy.decode)
-        parts += [repr(policy.camera), str(policy.device)]
-    for attr in ("cfg", "preview_s", "speed", "point_noise_m"):
-        if hasattr(policy, attr) and not isinstance(policy, NetworkAgent):
-            parts.append(repr(getattr(policy, attr)))
-    if isinstance(policy, Oracle):  # its noise draws depend on its seed
-        parts += [repr(policy.expert.cfg), policy.seed]
-    inner = getattr(policy, "agent", None)  # a wrapper (the safety module) around a driver
-    if inner is not None:
-        parts += [fingerprint(inner), getattr(policy, "ground_truth", None)]
-        # what the safety module reports (its audits and examples) is stored with the result
-        parts += [getattr(policy, a, None) for a in ("audit", "audit_every", "keep_examples")]
-        parts.append(("results version", getattr(policy, "RESULTS_VERSION", None)))
-    return settings_key(*parts)
 
 
 def evaluate_stored(

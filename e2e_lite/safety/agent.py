@@ -21,7 +21,7 @@ from ..config import check_range
 from ..control.affordances import affordances
 from ..control.rules import ExpertConfig, SpeedLimits
 from ..control.state_expert import expert_labels
-from ..simulation.policy import Actuation, Observation
+from ..simulation.policy import Actuation, Observation, fingerprint
 from ..simulation.world import SimConfig
 from .rule import RESULTS_VERSION, SafetyConfig, check, choose
 
@@ -168,6 +168,14 @@ class SafeAgent:
         self._limits = SpeedLimits(ExpertConfig())  # the audits' speed limits, once per track
         self.camera = agent.camera
         self.last: dict[str, Any] = {}
+
+    def identity(self) -> list[Any]:
+        """What decides its behaviour and what it reports
+        (:func:`~e2e_lite.simulation.policy.fingerprint`): its settings, its network's identity,
+        what it perceives with, its audits and examples, and the version of what it reports."""
+        audits = [self.audit, self.audit_every, self.keep_examples]
+        inner = [fingerprint(self.agent), self.ground_truth]
+        return [repr(self.cfg), *inner, *audits, ("results version", self.RESULTS_VERSION)]
 
     def reset(self, n_worlds: int) -> None:
         """Reset the network agent, the count of reported examples and the audits' limits."""

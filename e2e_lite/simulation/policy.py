@@ -11,6 +11,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from ..artifacts import settings_key
 from .geometry import wrap_angle
 from .vehicle import H, V
 from .world import Fleet, World
@@ -109,6 +110,10 @@ class Policy(Protocol):
     decision into ``obs.images`` (B, H, W, 3) RGB uint8. That buffer is reused: copy a frame to
     keep it past the next decision. A policy without the attribute (or with ``None``) gets no
     images and costs no rendering.
+
+    A driver declares what decides its behaviour with a method ``identity()``: a list of
+    JSON-able parts (its settings; for a network, a digest of its weights), read by
+    :func:`fingerprint` to key its stored drives. A driver without settings needs none.
     """
 
     def reset(self, n_worlds: int) -> None:
@@ -116,6 +121,13 @@ class Policy(Protocol):
 
     def act(self, obs: Observation) -> Actuation:
         """Commands for every car in the batch."""
+
+
+def fingerprint(policy: object) -> str:
+    """What identifies a driver's behaviour, for the drives stored under it
+    (:mod:`e2e_lite.record.stored`): a key of its class and what its ``identity()`` declares."""
+    declared = getattr(policy, "identity", None)
+    return settings_key(type(policy).__name__, *(declared() if declared is not None else []))
 
 
 def observe(
