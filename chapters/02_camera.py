@@ -266,8 +266,9 @@ print(f"| camera | frames/s |\n|---|---:|\n| 66 x 200, batches of {len(poses)} |
 #   extrinsics from the car's pose, the mount height and the pitch. Pitching down crops the sky.
 # * The rasteriser fills polygons far to near; anything reaching behind the lens is clipped at a
 #   near plane first, so nothing is projected through infinity.
-# * At 50° a parked car 60 m ahead is about twice as wide in the image as at 90° (section 2
-#   prints both): the driver can see what it must avoid. A trajectory in the car frame projects onto the same image.
+# * At 50° a parked car 60 m ahead is about twice as wide in the image as at 90° (section 1
+#   prints both): the driver can see what it must avoid. A trajectory in the car frame projects
+#   onto the same image.
 # * Images are RGB uint8 everywhere; convert to BGR only when OpenCV writes a file.
 #
 # ## Exercises

@@ -32,7 +32,7 @@ from e2e_lite.control.expert import Expert
 from e2e_lite.driving.evaluation import EvalConfig, EvalResult, evaluate, observe, results_table
 from e2e_lite.imitation import recipes
 from e2e_lite.imitation.agents import TrajectoryAgent
-from e2e_lite.imitation.collector import DataConfig, DrivingDataset, load_or_collect
+from e2e_lite.imitation.collector import DataConfig, DrivingDataset, load_or_collect, situations
 from e2e_lite.learning.labels import CHANGE, KEEP
 from e2e_lite.learning.training import evaluate_loss
 from e2e_lite.simulation.camera import Camera, CameraConfig
@@ -175,16 +175,16 @@ draw_trajectory(img, pred, human, colour=(255, 40, 40), label="L2")
 scene_png = save_image(artifacts.artifact_path("figures", "06_l2_averages.png"), img)
 mean_y, lane_w = float(np.mean(expert_y)), world_cfg.road.lane_width_m
 between = abs(pred[-1, 1]) < lane_w / 2 and min(expert_y) < pred[-1, 1] < max(expert_y)
-averages = "between the answers, in the parked car's lane: by this test, it averages"
+off_mean = f"{abs(pred[-1, 1] - mean_y):.2f} m from their mean"
+averages = f"between the answers, in the parked car's lane ({off_mean}): no side taken"
 commits = "not in the parked car's lane: by this test, it commits to a side here"
 ends = f"expert end points y5: {np.round(expert_y, 2).tolist()} m (mean {mean_y:+.2f})"
 print(f"{ends}; L2 prediction y5 {pred[-1, 1]:+.2f} m: {averages if between else commits}")
 print(f"saved {scene_png}")
 
 # %%
-starts = np.flatnonzero(
-    (val.expert_state == CHANGE) & val.overtaking & (val.lane == 1) & (np.abs(val.d) < 0.5)
-)
+# (an overtake's first metres, as chapter 07's situations: its end, back in a lane, is left out)
+starts = np.flatnonzero(situations(val.arrays)["overtake_start"] & (val.lane == 1))
 left, right = starts[val.change_side[starts] > 0], starts[val.change_side[starts] < 0]
 split = {}
 for name, rows in (("left", left), ("right", right)):

@@ -471,9 +471,9 @@ artifacts.write_metrics(
 # * The epoch kept collides least on a few validation-road miles (ties: the decisive frames'
 #   error), not the lowest NLL (why: lab note "The GMM's first failures were the course's").
 # * Where the expert's behaviour splits (overtake left or right), the modes take both sides and
-#   the followed mode one (Fig. 3; on a straight the weights put nearly all on one). Whether L2
-#   averages instead is measured by section 4b's scenes, not assumed: a trained L2 broke the tie
-#   from the car's small start offset (lab note "Why L2 passes the overtake scenes").
+#   the followed mode one (Fig. 3; section 3 prints each frame's weights). Whether L2 averages
+#   instead is measured by section 4b's scenes, not assumed; in the lab note "Why L2 passes the
+#   overtake scenes" (923dd0a, another network) L2 broke the tie from the car's start offset.
 # * Whether the mixture lowers collisions is measured against L2 on the same roads, with an exact
 #   test. Where section 4b's scenes show no averaging, what separates the two is *open*, as is
 #   whether the mixture adds a failure of its own (the wrong mode followed with confidence).
@@ -491,7 +491,7 @@ artifacts.write_metrics(
 #    sigma="learned")`). Does its first epoch differ? Do the modes still split on section 3's frame?
 # 2. Use K = 3 modes. What does the third mode learn on the overtake frame, and on a curve?
 # 3. Follow the mixture's mean (`TrajectoryAgent(model, decode="mean")`): draw it on section 3's
-#    parked-car frame beside the two modes, and drive it. Which failure of chapter 06 comes back?
+#    parked-car frame beside the two modes, and drive it: does it head into the parked car?
 # 4. Train the learned-sigma GMM with `seed=1` and `seed=2` (each its own `name`) and drive each
 #    beside section 4's GMM. Do the three agree? Compare with lab note "Every epoch on the road".
 # 5. Scale the targets per coordinate (`gmm_objective(profile, target_scale="coordinate")`,

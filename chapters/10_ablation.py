@@ -173,8 +173,7 @@ for st in (st for st in STEPS if st.family == "paper"):
     tested = test_step(st, seeds, paper, slow(after.mean_speed_mph, expert_mph))
     steps.append(tested)
     pooled[st.what] = compare_rates(after, before).p_value
-    inside = {None: "no CI", True: "inside the CI", False: "outside the CI"}[tested.paper_inside]
-    tail = f"verdict: {words.verdict(tested)} (the paper's ratio {paper:.2g}: {inside})"
+    tail = f"verdict: {words.verdict(tested)} ({words.paper_ratio(tested, seeds)})"
     print(f"{st.what}: {words.seeds(seeds)}; {tail}; pooled p = {pooled[st.what]:.2g}")
 
 # %% [markdown]

@@ -329,7 +329,7 @@ variants = (  # (name, stored as, settings per seed, checked on the truth)
     ("on perception", "calibrated_path", path, False),
     ("on perception + emergency brake", "calibrated_path_emergency", brake, False),
 )
-guarded, stats, examples, verdicts = {}, {}, {}, {}
+guarded, stats, examples, verdicts, tests = {}, {}, {}, {}, {}
 for name, tag, settings, truth in variants:
     per_seed, counts = [], SafetyStats()
     for k, (perceiver, run, how) in enumerate(zip(perceivers, runs, settings)):
@@ -344,9 +344,11 @@ for name, tag, settings, truth in variants:
         examples.setdefault(name, res.info.get("examples", [])[:3])  # seed 0's
     guarded[name], stats[name] = pool_results(per_seed), counts.to_dict()
     # seed by seed, paired (seed k's network with and without the module, on the same roads)
-    verdicts[name] = words.seeds(compare_seeds(guarded[name], without, paired=True)) + (
-        f"; pooled: {words.rates(compare_rates(guarded[name], without))}"
+    tests[name] = (
+        compare_seeds(guarded[name], without, paired=True),
+        compare_rates(guarded[name], without),
     )
+    verdicts[name] = f"{words.seeds(tests[name][0])}; pooled: {words.rates(tests[name][1])}"
 
 # %%
 label = ablation.BY_KEY[key].label
@@ -368,6 +370,23 @@ for name, s in stats.items():
     )
 for name, v in verdicts.items():
     print(f"with the module {name} vs without: {v}")
+
+
+def in_words(name: str) -> str:
+    """What this run shows of a row against the driver alone, from its tests' fields."""
+    by_seed, pooled = tests[name]
+    a, b = np.array(by_seed.counts_a), np.array(by_seed.counts_b)
+    more = "more" if a.sum() > b.sum() else "fewer" if a.sum() < b.sum() else "as many"
+    than = "as many collisions as" if more == "as many" else f"{more} collisions than"
+    shown = "shown" if by_seed.fewer or by_seed.more else "not shown"
+    return (
+        f"with the module {name}: {than} the driver alone, more on "
+        f"{int((a > b).sum())} of {len(a)} seeds and fewer on {int((a < b).sum())}; seed by seed "
+        f"{shown}, pooled {'beyond chance' if pooled.different else 'not beyond chance'}"
+    )
+
+
+print("\n".join(in_words(name) for name in tests))
 
 # %%
 rows_png = save_figure(
@@ -511,9 +530,8 @@ artifacts.write_metrics(
 # * A safety layer is only as good as its perception and its fallbacks: even on the truth its
 #   own manoeuvres (the other mode, the fallback) can drive into a rail or a car, and on
 #   perceived affordances the network drives on after each hand-back; the causes table counts
-#   each, and the verdict lines say whether a row differs from the driver alone. In an earlier
-#   run on perception it collided more, pooled though not seed by seed (lab note "The safety
-#   module on the course's own driver").
+#   each, and the lines under the verdicts say in words, seed by seed and pooled, how each row
+#   of this run compares with the driver alone.
 # * A fallback is only as good as what it reads: braking to a lane centre needs the perceived
 #   lane geometry, braking along the network's own path does not for a parked car (road-edge
 #   rejections still brake to a lane; measured on an older module: lab notes "Which perceived

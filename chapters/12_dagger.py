@@ -1,7 +1,7 @@
 # %% [markdown]
 # # 12 · Beyond the paper: where the last collisions come from, and a DAgger aimed there
 #
-# The course's best learned driver (**GMM + affordance + CVaR**, chapter 09) still collides more
+# The paper's whole recipe (**GMM + affordance + CVaR**, chapter 09) still collides more
 # often than the **oracle**, the same LQR tracker following the expert's own 5-point plans on
 # the same roads (chapter 10 and the record print both). This chapter asks why, and measures the
 # answer before choosing a fix: for each of its collisions on validation roads, could an expert

@@ -115,9 +115,10 @@ class EvalResult:
 
     @property
     def off_centre(self) -> int:
-        """Off-centre episodes: the interventions that were not collisions (the car more than
-        ``EvalConfig.offcentre_m`` from every lane centre for longer than its grace)."""
-        return int(self.interventions - self.collisions)
+        """Off-centre episodes: the interventions that were neither collisions nor stalls (the
+        car more than ``EvalConfig.offcentre_m`` from every lane centre for longer than its
+        grace; the autonomy metric counts all three)."""
+        return int(self.interventions - self.collisions - self.stalls)
 
     def brief(self) -> dict[str, float]:
         """The drive's off-centre episodes and collisions (counts) and its miles [mi]: what the

@@ -90,8 +90,8 @@ def _row_cells(row: Row, expert_mph: float | None) -> list[str]:
 
 
 def _off_centre(row: Row) -> str:
-    """Off-centre episodes per 100 miles: the autonomy metric's interventions that were not
-    collisions (the car farther from every lane centre than ``EvalConfig.offcentre_m`` for longer
+    """Off-centre episodes per 100 miles: the autonomy metric's interventions that were neither
+    collisions nor stalls (the car farther from every lane centre than ``EvalConfig.offcentre_m`` for longer
     than ``EvalConfig.offcentre_grace_s``, as :func:`_off_centre_line` says; "-": not recorded)."""
     episodes = row.off_centre
     return "-" if episodes is None else f"{100.0 * episodes / row.miles:.1f}"
@@ -153,8 +153,8 @@ def _off_centre_line(record: Record) -> str:
         return ""
     cfg = EvalConfig()
     return (
-        f" Off-centre: the autonomy metric's interventions that were not collisions, the car more"
-        f" than {cfg.offcentre_m:g} m from every lane centre for more than"
+        f" Off-centre: the autonomy metric's interventions that were neither collisions nor stalls,"
+        f" the car more than {cfg.offcentre_m:g} m from every lane centre for more than"
         f" {cfg.offcentre_grace_s:g} s."
     )
 

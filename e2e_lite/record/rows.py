@@ -165,11 +165,11 @@ class Row(_Json):
 
     @property
     def off_centre(self) -> int | None:
-        """Off-centre episodes over every seed: the interventions that were not collisions (the
-        count :attr:`~e2e_lite.driving.metrics.EvalResult.off_centre` takes of one drive; None: not
-        recorded for every seed)."""
+        """Off-centre episodes over every seed: the interventions that were neither collisions
+        nor stalls (the count :attr:`~e2e_lite.driving.metrics.EvalResult.off_centre` takes of
+        one drive; None: not recorded for every seed)."""
         kept = self.interventions
-        return None if kept is None else kept - self.collisions
+        return None if kept is None else kept - self.collisions - (self.stalls or 0)
 
     @property
     def miles(self) -> float:

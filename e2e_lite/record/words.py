@@ -66,7 +66,7 @@ def seeds(test: SeedTest) -> str:
     p = min(test.p_fewer, test.p_more)
     reach = "" if test.reachable else f"; these seeds cannot reach p < {1 - test.level:.2g}"
     text = f"{med}: not shown at the seed level ({test.test} p = {p:.2g}{reach})"
-    if hi < 1.0 or lo > 1.0:  # a percentile bootstrap over a few seeds is too narrow
+    if test.narrow:
         text += (
             f"; the interval, bootstrapped over {len(test.counts_a)} seeds, is too narrow to read"
         )
@@ -85,6 +85,18 @@ def verdict(st: StepResult) -> str:
     else:
         text = "not shown at the seed level"
     return text + (f", at {st.slow_mph:.1f} mph" if st.slow_mph is not None else "")
+
+
+def paper_ratio(st: StepResult, test: SeedTest) -> str:
+    """The paper's ratio and where it lies against a step's interval: inside, outside, no
+    interval, or one too narrow to read (:attr:`~e2e_lite.stats.seeds.SeedTest.narrow`)."""
+    where = {None: "no CI", True: "inside the CI", False: "outside the CI"}[st.paper_inside]
+    where = "an interval too narrow to read" if test.narrow else where
+    return (
+        "the paper: no ratio"
+        if st.paper_ratio is None
+        else f"the paper's ratio {st.paper_ratio:.2g}: {where}"
+    )
 
 
 def cell(st: StepResult) -> str:

@@ -282,6 +282,13 @@ class SeedTest:
         """Whether these seeds could have reached a p-value below the cut at all."""
         return self.min_p < self.cut
 
+    @property
+    def narrow(self) -> bool:
+        """Not shown at the seed level while the bootstrap interval excludes 1: a percentile
+        bootstrap over a few seeds is too narrow to read."""
+        lo, hi = self.ratio_ci
+        return not (self.fewer or self.more) and (hi < 1.0 or lo > 1.0)
+
     def median_rates(self) -> tuple[float, float]:
         """Each row's median seed rate [per 100 mi], both at row a's budget."""
         scale = 100.0 / self.budget if self.budget > 0 else 0.0
