@@ -23,7 +23,7 @@ from typing import Any
 from PIL import Image
 
 from .estimate import cpu_name
-from .run import CHAPTERS, TIMES_FILE, find_chapters
+from .run import CHAPTERS, TIMES_FILE, duration, find_chapters
 
 ROOT = Path(__file__).resolve().parents[2]
 BOOK = ROOT / "docs" / "book"
@@ -159,16 +159,6 @@ def render(outputs: Path, book: Path = BOOK, note: str = "") -> dict[str, Any]:
     ]
     (book / "README.md").write_text("\n".join(index))
     return {"chapters": len(transcripts), "commits": sorted(commits), "image_bytes": image_bytes}
-
-
-def duration(seconds: float) -> str:
-    """``"3 s"`` under a minute, ``"16.8 min"`` under an hour, else ``"2 h 05 min"``."""
-    if seconds < 60.0:
-        return f"{seconds:.0f} s"
-    if seconds < 3600.0:
-        return f"{seconds / 60.0:.1f} min"
-    hours, minutes = divmod(round(seconds / 60.0), 60)
-    return f"{hours} h {minutes:02d} min"
 
 
 def at_commits(chapters: dict[str, list[str]]) -> str:

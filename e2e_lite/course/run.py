@@ -71,35 +71,45 @@ class ChapterInfo(NamedTuple):
         quick_s: the quick profile, the chapter in its own process (imports included) after the
             chapters before it, from an empty outputs folder (``course --quick --processes each``)
             [s].
-        full_min: the full profile, building everything it needs that earlier chapters did not
-            [min].
+        full_s: the full profile, building everything it needs that earlier chapters did not
+            [s] (the book's run: docs/book/README.md gives the same times).
     """
 
     purpose: str
     paper: str
     quick_s: int
-    full_min: int
+    full_s: float
 
 
 #: ``python -m e2e_lite.course --quick``, every chapter in one interpreter from an empty outputs
 #: folder, on 2 cores with nothing else running [s] (``docs/benchmarks.md``)
 QUICK_COURSE_S = 61
 CHAPTERS: dict[int, ChapterInfo] = {
-    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 2, 1),
-    2: ChapterInfo("the rasterised front camera the networks see", "4.1", 1, 1),
+    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 2, 6.7),
+    2: ChapterInfo("the rasterised front camera the networks see", "4.1", 1, 1.3),
     3: ChapterInfo(
-        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 3, 1
+        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 3, 3.6
     ),
-    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 8, 3),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 9, 12),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 6, 4),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 8, 8),
-    8: ChapterInfo("the affordance auxiliary loss", "3.5", 9, 7),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 10, 23),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 12, 23),
-    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 7, 9),
-    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 25, 46),
+    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 8, 172.1),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 9, 735.6),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 6, 235.1),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 8, 482.1),
+    8: ChapterInfo("the affordance auxiliary loss", "3.5", 9, 434.9),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 10, 1395.5),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 12, 1402.5),
+    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 7, 517.1),
+    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 25, 2787.6),
 }
+
+
+def duration(seconds: float) -> str:
+    """``"3 s"`` under a minute, ``"16.8 min"`` under an hour, else ``"2 h 05 min"``."""
+    if seconds < 60.0:
+        return f"{seconds:.0f} s"
+    if seconds < 3600.0:
+        return f"{seconds / 60.0:.1f} min"
+    hours, minutes = divmod(round(seconds / 60.0), 60)
+    return f"{hours} h {minutes:02d} min"
 
 
 class _ChapterParser(argparse.ArgumentParser):
@@ -128,7 +138,7 @@ def start_chapter(number: int, argv: Sequence[str] | None = None) -> Profile:
             description=f"Chapter {number:02d}: {info.purpose}.",
             epilog=(
                 f"Measured on 2 CPU cores: about {info.quick_s} s with --quick, about "
-                f"{info.full_min} min in the full profile (earlier chapters' artifacts reused)."
+                f"{duration(info.full_s)} in the full profile (earlier chapters' artifacts reused)."
             ),
             allow_abbrev=False,
         )
@@ -371,7 +381,7 @@ def main(argv: list[str] | None = None) -> int:
         from ..learning.models import pick_device  # (here: a chapter imports this module first,
         from .estimate import course_work, plan_text  # (to check its flags before torch loads)
 
-        reference_s = 60.0 * sum(CHAPTERS[n].full_min for n, _ in chapters)
+        reference_s = sum(CHAPTERS[n].full_s for n, _ in chapters)
         work = course_work(FULL, [n for n, _ in chapters])
         line = plan_text("the course", work, default_workers(), pick_device().type, reference_s)
         print(line, flush=True)

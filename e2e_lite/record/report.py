@@ -25,7 +25,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..artifacts import atomic_write, save_figure
-from ..course.run import CHAPTERS, QUICK_COURSE_S, find_chapters
+from ..course.run import CHAPTERS, QUICK_COURSE_S, duration, find_chapters
 from ..driving.rollout import EvalConfig
 from ..stats.power import chi_square_spread
 from ..stats.seeds import seed_rates, spread
@@ -268,10 +268,10 @@ def chapters_table() -> str:
         path = paths[n].relative_to(ROOT)
         name = path.stem[3:].replace("_", " ")
         paper = f"§{info.paper}" if info.paper[:1].isdigit() else info.paper or "-"
-        times = f"{info.quick_s} s | {info.full_min} min"
+        times = f"{info.quick_s} s | {duration(info.full_s)}"
         lines.append(f"| {n:02d} | [{name}]({path}) | {info.purpose} | {paper} | {times} |")
-    total = sum(i.full_min for i in CHAPTERS.values())
-    lines.append(f"| | **the course**, in order | | | {QUICK_COURSE_S} s | {total} min |")
+    total = duration(sum(i.full_s for i in CHAPTERS.values()))
+    lines.append(f"| | **the course**, in order | | | {QUICK_COURSE_S} s | {total} |")
     return "\n".join(lines)
 
 
