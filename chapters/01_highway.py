@@ -221,6 +221,10 @@ for name, res in results.items():
 #   keeper drives into the parked cars in its lane, the lane changer, with a 70 m look-ahead,
 #   few or none.
 #   A collision rate is a property of driver *and* world, and it comes with an interval.
+# * Nothing moves in this world but the driven car: a car that drives beside its lane, or
+#   straddles two, costs no collision here, where on a road with traffic it would. So the
+#   course counts each driver's off-centre episodes beside its collisions (chapter 05's
+#   autonomy; Table 1's last column).
 #
 # ## Exercises
 #

@@ -216,3 +216,28 @@ def test_the_kit_says_what_a_machine_needs_as_measured_and_the_book_has_every_ch
     assert 0 < images <= book.BUDGET_BYTES
     for doc in ("README.md", "docs/teaching.md"):
         assert "book/README.md" in (ROOT / doc).read_text(), doc
+
+
+#: a number quoted from the book: `book NN: what page NN printed` (one line, verbatim)
+BOOK_QUOTE = re.compile(r"`book (\d\d): ([^`\n]+)`")
+
+
+def missing_book_quotes(text: str, book: Path) -> list[str]:
+    """The quotes of ``text`` (:data:`BOOK_QUOTE`) that their book page does not print."""
+    pages = {p.name[:2]: p.read_text() for p in book.glob("[0-9][0-9]_*.md")}
+    return [f"book {n}: {q}" for n, q in BOOK_QUOTE.findall(text) if q not in pages.get(n, "")]
+
+
+def test_what_the_solutions_and_lab_notes_quote_from_the_book_is_on_its_pages() -> None:
+    """Issue 89: a number quoted from the book's run is quoted as `book NN: printed text`, and
+    that text is on page NN; a changed digit is caught."""
+    book = ROOT / "docs" / "book"
+    quoted = 0
+    for page in ("solutions.md", "lab-notes.md"):
+        text = (ROOT / "docs" / page).read_text()
+        quoted += len(BOOK_QUOTE.findall(text))
+        assert not missing_book_quotes(text, book), (page, missing_book_quotes(text, book))
+    assert quoted >= 3
+    number, quote = BOOK_QUOTE.findall((ROOT / "docs" / "solutions.md").read_text())[0]
+    changed = re.sub(r"\d", lambda m: str((int(m.group()) + 1) % 10), quote, count=1)
+    assert missing_book_quotes(f"`book {number}: {changed}`", book)

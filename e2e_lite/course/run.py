@@ -63,7 +63,8 @@ _CHAPTER_RE = re.compile(r"^(\d{2})_[a-z0-9_]+\.py$")
 
 class ChapterInfo(NamedTuple):
     """What ``--help`` and the README say about a chapter: its idea, where the paper has it, and
-    its time on 2 CPU cores (``docs/benchmarks.md`` says how each was measured).
+    its time on 2 CPU cores (``docs/benchmarks.md`` says how each was measured: the quick times
+    on a 2-core AMD EPYC at cece423, the full ones the book's run on a 2-core Intel Xeon).
 
     Attributes:
         purpose: one line.
@@ -83,22 +84,22 @@ class ChapterInfo(NamedTuple):
 
 #: ``python -m e2e_lite.course --quick``, every chapter in one interpreter from an empty outputs
 #: folder, on 2 cores with nothing else running [s] (``docs/benchmarks.md``)
-QUICK_COURSE_S = 61
+QUICK_COURSE_S = 43
 CHAPTERS: dict[int, ChapterInfo] = {
-    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 2, 6.7),
+    1: ChapterInfo("the highway world, its lane frame and two scripted drivers", "4.1", 1, 6.7),
     2: ChapterInfo("the rasterised front camera the networks see", "4.1", 1, 1.3),
     3: ChapterInfo(
-        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 3, 3.6
+        "LQR tracking: following a trajectory with steering and acceleration", "3.1", 2, 3.6
     ),
-    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 8, 172.1),
-    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 9, 735.6),
-    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 6, 235.1),
-    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 8, 482.1),
-    8: ChapterInfo("the affordance auxiliary loss", "3.5", 9, 434.9),
-    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 10, 1395.5),
-    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 12, 1402.5),
-    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 7, 517.1),
-    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 25, 2787.6),
+    4: ChapterInfo("the rule-based expert and the driving dataset", "4.1", 6, 172.1),
+    5: ChapterInfo("the PilotNet baselines: camera to actuators", "seeds 002, 003", 7, 735.6),
+    6: ChapterInfo("trajectory regression with an L2 loss and LQR", "3.2", 5, 235.1),
+    7: ChapterInfo("the Gaussian-mixture trajectory loss and what it changes", "3.3", 7, 482.1),
+    8: ChapterInfo("the affordance auxiliary loss", "3.5", 8, 434.9),
+    9: ChapterInfo("CVaR fine-tuning on the loss tail", "3.4", 8, 1395.5),
+    10: ChapterInfo("the ablation: the paper's Table 1 in closed loop", "4.2", 9, 1402.5),
+    11: ChapterInfo("a safety module that checks the proposed trajectory", "3.1, Fig. 1", 6, 517.1),
+    12: ChapterInfo("where the last collisions come from, and DAgger aimed there", "", 18, 2787.6),
 }
 
 
