@@ -241,3 +241,28 @@ def test_what_the_solutions_and_lab_notes_quote_from_the_book_is_on_its_pages() 
     number, quote = BOOK_QUOTE.findall((ROOT / "docs" / "solutions.md").read_text())[0]
     changed = re.sub(r"\d", lambda m: str((int(m.group()) + 1) % 10), quote, count=1)
     assert missing_book_quotes(f"`book {number}: {changed}`", book)
+
+
+def test_the_kit_plans_a_term_of_twelve_sessions_with_every_core_exercise_and_its_points() -> None:
+    """Issue 89: beside the six sessions, twelve (chapters 10 and 12 over two each), every core
+    exercise of the core/stretch table handed in once, points that add up to 100, a hand-in
+    format, a rubric for pen-and-paper and code, and the memory a machine needs, measured."""
+    teaching = (ROOT / "docs" / "teaching.md").read_text()
+    term = re.search(r"\| session \| chapters \| in class .*?\n((?:\|.*\n)+)", teaching).group(1)
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in term.splitlines()[1:]]
+    assert [int(r[0]) for r in rows] == list(range(1, 13))
+    assert sum(int(r[4]) for r in rows) == 100
+    assert (
+        sum(r[1].startswith("10") for r in rows) == 2
+        and sum(r[1].startswith("12") for r in rows) == 2
+    )
+    handed = sorted(re.findall(r"\b(\d\d\.\d)\b", " ".join(r[3] for r in rows)))
+    core = re.search(r"\| chapter \| core: .*?\n((?:\|.*\n)+)", teaching).group(1)
+    wanted = sorted(
+        f"{line.strip('|').split('|')[0].strip()}.{n}"
+        for line in core.splitlines()[1:]
+        for n in re.findall(r"(\d+) \(", line.strip("|").split("|")[1])
+    )
+    assert handed == wanted
+    for words in ("**Hand-in**", "**Rubric, pen and paper**", "**Rubric, code**", "GiB", "4 GiB"):
+        assert words in teaching, words

@@ -155,7 +155,8 @@ def test_recovery_views_re_express_the_labels_in_the_shifted_cars_frame() -> Non
 # control: the expert and the tracker (the expert writes learning's label format); driving: the
 # closed loop and what it measures; imitation: what drives the simulator to learn; safety: the
 # guarded driver; course: the course's tools (running, timing, the book, benchmarks); record:
-# the numbers of record, chapter 10's drivers and what renders them (it reads the course's times)
+# the numbers of record, chapter 10's drivers and what renders them (it reads the course's times);
+# exercises: the checks of the exercises (they may read the record)
 LAYERS = (
     "stats",
     "simulation",
@@ -166,6 +167,7 @@ LAYERS = (
     "safety",
     "course",
     "record",
+    "exercises",
 )
 BASE = ("config", "artifacts")  # used by every layer
 
