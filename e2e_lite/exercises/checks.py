@@ -23,7 +23,9 @@ import numpy as np
 from ..control.tracker import LQRTracker
 from ..record.report import load
 from ..record.stats import POWER_ROW, record_dispersion, record_power
+from ..simulation.camera import Camera, CameraConfig
 from ..simulation.vehicle import VehicleParams
+from ..simulation.world import TrafficConfig
 from ..stats.power import power
 from ..stats.rates import poisson_ci
 
@@ -70,6 +72,14 @@ def _miles_without_collision(answer: float) -> str:
         )
     hint = "Hint: solve poisson_ci(0, miles / 100)[1] = 1 for miles."
     return _relative(answer, expected, 0.01, "miles", hint)
+
+
+def _car_width_px(answer: float) -> str:
+    """02.1: how many pixels a parked car 60 m ahead covers across a 90° camera's 200 px."""
+    fx = Camera(CameraConfig(hfov_deg=90.0)).fx  # (W / 2) / tan(hfov / 2) [px]
+    expected = fx * TrafficConfig().car_width_m / 60.0
+    hint = "Hint: a width w at distance z covers f w / z pixels, f = (W / 2) / tan(hfov / 2)."
+    return _relative(answer, expected, 0.05, "width [px]", hint)
 
 
 def _steady_error(answer: float) -> str:
@@ -131,6 +141,7 @@ EXERCISES = {
     e.number: e
     for e in (
         Exercise("01.4", "ex_01_4.py", "miles", _miles_without_collision),
+        Exercise("02.1", "ex_02_1.py", "car_width_px", _car_width_px),
         Exercise("03.2", "ex_03_2.py", "steady_error_m", _steady_error),
         Exercise("07.3", "ex_07_3.py", "mixture_mean", _mixture_mean, takes_function=True),
         Exercise("10.2", "ex_10_2.py", "record_size", _record_size),
