@@ -12,7 +12,7 @@ import pytest
 
 from e2e_lite.record import kit, report, words
 from e2e_lite.record.rows import Record, Row, SeedRun
-from e2e_lite.record.stats import STEPS, record_power, steps
+from e2e_lite.record.stats import OFF_CENTRE_READING, STEPS, off_centre_steps, record_power, steps
 from e2e_lite.stats.seeds import spread
 
 ROOT = report.ROOT
@@ -434,3 +434,38 @@ def test_the_status_says_seed_zero_rows_were_trained_on_each_machine_when_there_
     assert "seed 0 alone, 600 mi" in one and "2 shares on 1 machine of 1 kind" in one
     assert "seed 0 alone, trained on each machine, 600 mi" in two
     assert "on 2 machines of 2 kinds" in two
+
+
+def test_every_step_reads_both_outcomes_and_a_better_driver_needs_both() -> None:
+    """Issue 88: each step is tested on its off-centre episodes too (interventions that were
+    neither collisions nor stalls), seed by seed; a step with fewer collisions and more off-centre
+    episodes is said to be that, and not a better driver; a reading after the record ran can
+    refute a better driver but not make one."""
+
+    def kept(key: str, collisions: list[int], off: list[int], stalls: int = 1) -> Row:
+        base = row(key, collisions)
+        seeds = tuple(
+            dataclasses.replace(s, interventions=c + o + stalls, stalls=stalls)
+            for s, c, o in zip(base.seeds, collisions, off)
+        )
+        return dataclasses.replace(base, seeds=seeds, stalls=stalls * len(seeds))
+
+    start = kept("gmm_affordance_cvar", [4, 5, 6, 5, 4, 6], [1, 0, 1, 2, 1, 0])
+    drifted = kept("dagger", [1, 2, 1, 2, 1, 2], [30, 40, 35, 50, 45, 38])
+    record = with_rows(report.load(), row("expert", [0]), start, drifted)
+    (off,) = off_centre_steps(record)
+    assert off.step == "+ CVaR -> + DAgger" and off.family == OFF_CENTRE_READING
+    assert words.off_centre(off) == "more off-centre episodes"  # every seed, paired: p 1/64
+    assert start.seeds[0].off_centre == 1  # (its stall is no off-centre episode)
+    (collisions,) = steps(record)
+    said = words.better_driver(collisions, off)
+    assert said == "fewer collisions, more off-centre episodes: not a better driver"
+    table = report.table1(record)
+    assert "| a better driver? |" in table and said in table
+    assert "were not declared" in table
+    # both outcomes better: a reading cannot make it a better driver, a declared test can
+    kept_lane = kept("dagger", [1, 2, 1, 2, 1, 2], [0, 0, 0, 0, 0, 0])
+    (off,) = off_centre_steps(with_rows(record, start, kept_lane))
+    assert words.better_driver(collisions, off).startswith("not shown")
+    declared = dataclasses.replace(off, family="beyond")
+    assert words.better_driver(collisions, declared) == "a better driver"

@@ -120,6 +120,14 @@ class SeedRun(_Json):
             interventions=result.interventions,
         )
 
+    @property
+    def off_centre(self) -> int | None:
+        """Off-centre episodes: the interventions that were neither collisions nor stalls (None:
+        not recorded)."""
+        if self.interventions is None:
+            return None
+        return self.interventions - self.collisions - (self.stalls or 0)
+
     def to_json(self) -> dict[str, Any]:
         out = super().to_json()
         if self.first_track is None:

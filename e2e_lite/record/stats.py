@@ -256,6 +256,47 @@ def steps(record: Record) -> list[StepResult]:
     return sorted(out, key=lambda r: order.index(r.step))
 
 
+#: the family of the off-centre tests of a record whose families did not declare them: read
+#: after it ran, Holm-adjusted together
+OFF_CENTRE_READING = "off-centre, read after the record"
+
+
+def off_centre_steps(record: Record) -> list[StepResult]:
+    """Each of :data:`STEPS` tested on the seeds' off-centre episodes (the interventions that
+    were neither collisions nor stalls), where both rows recorded them: the second outcome of
+    every step. A record that did not declare these tests reads them after it ran, all in one
+    family (:data:`OFF_CENTRE_READING`), Holm-adjusted together; [] where none was recorded."""
+    kept = [
+        st
+        for st in STEPS
+        if all(
+            r is not None and r.interventions is not None
+            for r in (record.row(st.after), record.row(st.before))
+        )
+    ]
+    tested = [
+        test_step(
+            st,
+            compare_seeds(
+                record.row(st.after), record.row(st.before), paired=st.paired, outcome="off_centre"
+            ),
+        )
+        for st in kept
+    ]
+    fewer = holm([r.p_fewer for r in tested])
+    more = holm([r.p_more for r in tested])
+    return [
+        dataclasses.replace(
+            r,
+            family=OFF_CENTRE_READING,
+            p_holm_fewer=p_f,
+            p_holm_more=p_m,
+            outcome=outcome(p_f, p_m, r.min_p),
+        )
+        for r, p_f, p_m in zip(tested, fewer, more)
+    ]
+
+
 def record_dispersion(record: Record, near: str | None = None) -> Dispersion | None:
     """The negative-binomial dispersion of the record's seeds
     (:func:`~e2e_lite.stats.power.fit_dispersion` over its rows of two or more seeds, each

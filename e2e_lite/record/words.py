@@ -18,6 +18,7 @@ from .rows import Record
 from .stats import (
     FEWER,
     MORE,
+    OFF_CENTRE_READING,
     POWER_RATES_WITHIN,
     POWER_STEP,
     UNDECIDABLE,
@@ -97,6 +98,33 @@ def paper_ratio(st: StepResult, test: SeedTest) -> str:
         if st.paper_ratio is None
         else f"the paper's ratio {st.paper_ratio:.2g}: {where}"
     )
+
+
+def off_centre(st: StepResult) -> str:
+    """A step's second outcome, its off-centre episodes (:func:`~.stats.off_centre_steps`)."""
+    return {
+        FEWER: "fewer off-centre episodes",
+        MORE: "more off-centre episodes",
+        UNDECIDABLE: "cannot be decided with these seeds",
+    }.get(st.outcome, "not shown at the seed level")
+
+
+def better_driver(collisions: StepResult, off: StepResult | None) -> str:
+    """Whether a step makes a better driver: fewer collisions and not more off-centre episodes,
+    each at the seed level. Where it wins one and loses the other, it says so in those words;
+    an off-centre test read after the record ran can refute the claim but not make it."""
+    if off is None:
+        return "off-centre episodes not recorded"
+    declared = off.family != OFF_CENTRE_READING
+    if collisions.outcome == FEWER and off.outcome == MORE:
+        return "fewer collisions, more off-centre episodes: not a better driver"
+    if collisions.outcome == MORE and off.outcome == FEWER:
+        return "more collisions, fewer off-centre episodes: not a better driver"
+    if collisions.outcome == MORE or off.outcome == MORE:
+        return "a worse driver"
+    if collisions.outcome == FEWER:
+        return "a better driver" if declared else "not shown: its off-centre test was not declared"
+    return "not shown"
 
 
 def cell(st: StepResult) -> str:

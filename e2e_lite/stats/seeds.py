@@ -64,8 +64,9 @@ class Tails:
     min_p: float
 
 
-def seed_counts(row: Seeded) -> SeedCounts:
-    """Each training seed's collisions over the row's common budget, and that budget [mi].
+def seed_counts(row: Seeded, outcome: str = "collisions") -> SeedCounts:
+    """Each training seed's collisions (or another count its seeds hold, ``outcome``: e.g.
+    ``"off_centre"``) over the row's common budget, and that budget [mi].
 
     The budget is the median of the seeds' miles; a seed's count is its rate at that budget,
     rounded to a whole collision (a seed that drove 100.004 mi and collided 6 times counts 6, as
@@ -73,7 +74,7 @@ def seed_counts(row: Seeded) -> SeedCounts:
     seeds = row.seeds or [row]
     miles = np.array([s.miles for s in seeds], dtype=float)
     budget = float(np.median(miles))
-    counts = np.array([s.collisions for s in seeds], dtype=float)
+    counts = np.array([getattr(s, outcome) for s in seeds], dtype=float)
     return SeedCounts(np.rint(counts * budget / np.maximum(miles, 1e-9)), budget)
 
 
@@ -295,7 +296,9 @@ class SeedTest:
         return float(np.median(self.counts_a)) * scale, float(np.median(self.counts_b)) * scale
 
 
-def compare_seeds(a: Seeded, b: Seeded, level: float = 0.95, paired: bool = False) -> SeedTest:
+def compare_seeds(
+    a: Seeded, b: Seeded, level: float = 0.95, paired: bool = False, outcome: str = "collisions"
+) -> SeedTest:
     """Does row ``a`` collide less than ``b``, or more, with the training seed as the unit?
 
     The primary test is :func:`rank_test` on the seeds' counts (:func:`seed_counts`), or with
@@ -304,9 +307,9 @@ def compare_seeds(a: Seeded, b: Seeded, level: float = 0.95, paired: bool = Fals
     (:func:`~e2e_lite.stats.rates.compare_rates`) treats a row's miles as one draw and is
     secondary. ``fewer`` (``more``) when its p-value is below ``1 - level``; ``min_p`` is the
     smallest p-value these seeds could give, so a verdict that could not have been reached can
-    say so."""
-    ca, budget_a = seed_counts(a)
-    cb, _ = seed_counts(b)
+    say so. ``outcome``: the count compared (:func:`seed_counts`)."""
+    ca, budget_a = seed_counts(a, outcome)
+    cb, _ = seed_counts(b, outcome)
     paired = paired and len(ca) == len(cb)
     unpaired = rank_test(ca, cb)
     flip = sign_flip_test(ca, cb) if len(ca) == len(cb) else None
