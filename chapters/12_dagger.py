@@ -218,11 +218,10 @@ print(
 # the data fall outside it too, by chance, so the control's (the state expert's own states with
 # DART's noise, gated alike) is the baseline DAgger's is read by; the line after the medians says
 # it in words. Why the states moved as they did, this run does not show. Each iterate then drives
-# `val_miles` of validation roads, so one collision is a large step of rate and ties are common;
-# among ties the latest iterate is kept (`dagger.kept_iterate`), and a kept iterate 0 is the start.
-# Each line also counts every iterate's off-centre episodes on those roads, the episodes PilotNet's
-# autonomy metric charges (README, "How a drive is judged"; chapter 01 prints it): the car over a
-# metre from every lane centre for longer than a lane change takes.
+# `val_miles` of validation roads. The kept iterate reads both outcomes (`dagger.kept_iterate`):
+# among the iterates whose off-centre episodes (the car over a metre from every lane centre for
+# longer than a lane change takes) are no more than the start's could be by chance, the one with
+# the fewest collisions; among ties the latest. A kept iterate 0 is the start.
 
 # %%
 iterates = {
@@ -244,26 +243,26 @@ for arm, per in iterates.items():
 kept = {arm: [it.kept for it in per] for arm, per in iterates.items()}
 
 # %%
-fig = Figure(figsize=(8, 3.6), layout="constrained")
-ax = fig.subplots()
-x = np.arange(cfg.rounds + 1)
-for arm, color, dx in (
-    ("dagger", "C0", -0.15),
-    ("control", "C1", 0.0),
-    ("no_new_data", "C2", 0.15),
-):
-    rates = np.array([per_seed["start"], *(per_seed[f"{arm} {j + 1}"] for j in range(cfg.rounds))])
-    for k, col in enumerate(rates.T):  # each seed a little apart, so equal rates do not hide
-        xs = x + dx + 0.03 * (k - (len(rates.T) - 1) / 2)
-        ax.scatter(xs, col, color=color, s=12, alpha=0.6)
-        ax.scatter(xs[kept[arm][k]], col[kept[arm][k]], s=60, facecolors="none", edgecolors=color)
-    ax.plot(x + dx, np.median(rates, axis=1), color=color, lw=2, label=f"{arm}: median of seeds")
-ax.scatter([], [], s=60, facecolors="none", edgecolors="0.3", label="a seed's kept iterate")
+fig = Figure(figsize=(11, 3.8), layout="constrained")
+axes, x = fig.subplots(1, 2), np.arange(cfg.rounds + 1)
+for arm, color, dx in zip(dagger.ARMS, ("C0", "C1", "C2"), (-0.15, 0.0, 0.15)):
+    rates = [per_seed["start"], *(per_seed[f"{arm} {j + 1}"] for j in range(cfg.rounds))]
+    off = np.array([it.off_centre for it in iterates[arm]]).T  # (iterates, seeds)
+    for ax, values in zip(axes, (np.array(rates), off)):
+        for k, col in enumerate(values.T):  # each seed a little apart, so equal values show
+            xs, mine = x + dx + 0.03 * (k - (len(values.T) - 1) / 2), kept[arm][k]
+            ax.scatter(xs, col, color=color, s=12, alpha=0.6)
+            ax.scatter(xs[mine], col[mine], s=60, facecolors="none", edgecolors=color)
+        ax.plot(x + dx, np.median(values, axis=1), color=color, lw=2, label=f"{arm}: median")
+axes[0].scatter([], [], s=60, facecolors="none", edgecolors="0.3", label="a seed's kept iterate")
 oracle = labellers["the oracle on the expert's labels"]
-ax.axhline(oracle, color="0.5", ls="--", label="oracle on the expert's labels (section 2's roads)")
-ax.set(xticks=x, xlabel="iterate (0: the start)")
-ax.set(ylabel=f"per 100 mi on validation ({cfg.val_miles:g} mi a seed)")
-ax.legend(fontsize=8)
+axes[0].axhline(oracle, color="0.5", ls="--", label="oracle on the expert's labels")
+axes[0].set(ylabel=f"collisions per 100 mi ({cfg.val_miles:g} mi of validation a seed)")
+axes[1].set(ylabel="off-centre episodes (the same roads)")
+for ax in axes:
+    ax.set(xticks=x, xlabel="iterate (0: the start)")
+    ax.set_ylim(bottom=0.0)
+axes[0].legend(fontsize=8)
 png_rounds = save_figure(fig, artifacts.artifact_path("figures", "12_dagger.png"))
 print(f"saved {png_rounds}")
 

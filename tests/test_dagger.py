@@ -194,9 +194,19 @@ def test_the_gate_keeps_the_seconds_before_a_collision_then_the_widest_disagreem
 
 
 def test_the_kept_iterate_collides_least_on_validation_roads_and_ties_keep_the_latest():
-    assert dagger.kept_iterate([3.0, 1.0, 2.0]) == 1
-    assert dagger.kept_iterate([1.0, 1.0, 2.0, 1.0]) == 3
-    assert dagger.kept_iterate([0.0]) == 0
+    assert dagger.kept_iterate([3, 1, 2], [0, 0, 0]) == 1
+    assert dagger.kept_iterate([1, 1, 2, 1], [2, 2, 2, 2]) == 3
+    assert dagger.kept_iterate([0], [5]) == 0
+
+
+def test_the_kept_iterate_reads_both_outcomes():
+    """Issue 88: an iterate that leaves the lane centre more often than its start could by chance
+    (above the exact 95 % upper end of the start's count) is not kept, however few its
+    collisions; one within it is."""
+    # the start's 2 off-centre episodes: upper end 7.22; 30 is out, 7 is in
+    assert dagger.kept_iterate([4, 0, 1], [2, 30, 7]) == 2
+    assert dagger.kept_iterate([4, 0, 1], [2, 30, 40]) == 0  # only the start qualifies
+    assert dagger.kept_iterate([4, 0, 0], [0, 3, 4]) == 1  # at 0 the upper end is 3.69
     run = dagger.val_run(QUICK, 2, 0.5)
     assert run.split == "val" and run.block == "open"
     assert run.first_track != dagger.val_run(QUICK, 1, 0.5).first_track  # each seed's own
@@ -355,4 +365,5 @@ def test_an_arms_iterates_are_the_rounds_it_is_given_each_driven_on_validation_r
     names = [recipes.seeded_name("09_gmm_affordance_cvar", 1) + "_val", "12_control_round1_val"]
     assert [(n, m) for n, m, _ in drove] == list(zip(names, nets))
     assert all(r == dagger.val_run(QUICK, 1, cfg.val_miles) for *_, r in drove)
-    assert len(found.rates) == 2 and found.kept == dagger.kept_iterate(found.rates)
+    assert len(found.rates) == 2
+    assert found.kept == dagger.kept_iterate(found.collisions, found.off_centre)

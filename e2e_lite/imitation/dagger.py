@@ -17,8 +17,8 @@ them by ``eps T`` (their Theorem 3.1). Four things make the course's rounds the 
 * **the whole aggregate**: each round fine-tunes on rows drawn from everything gathered so far,
   chapter 04's data included (:func:`aggregate_draw`), as CS285 and the ``imitation`` library do;
 * **the iterate chosen**: no-regret guarantees that *some* iterate is good (Cheng & Boots 2018),
-  so every iterate drives validation roads and the one that collides least is kept
-  (:func:`kept_iterate`), as the kept epoch is.
+  so every iterate drives validation roads and the one that collides least, among those that
+  leave the lane centre no more often than the start, is kept (:func:`kept_iterate`).
 
 Three arms (:data:`ARMS`) differ in one thing each. ``dagger``: the network drives.
 ``control``: the state expert drives, with white noise on its commands fitted to the network's
@@ -47,6 +47,7 @@ from ..learning.dataset import DrivingData, allocate, relabelled
 from ..learning.labels import AFFORDANCE_INDEX
 from ..learning.models import DrivingModel
 from ..simulation.world import WorldConfig
+from ..stats.rates import poisson_ci
 from . import recipes
 from .agents import TrajectoryAgent
 from .collector import (
@@ -334,11 +335,16 @@ def covariate_shift(visited: DrivingData, trained_on: list[DrivingData]) -> dict
     return out
 
 
-def kept_iterate(collisions: list[float]) -> int:
-    """The iterate to keep from each iterate's collisions on validation roads (the start first):
-    the one that collided least; among ties, the latest (it learned from the most data)."""
-    least = min(collisions)
-    return max(i for i, c in enumerate(collisions) if c == least)
+def kept_iterate(collisions: list[int], off_centre: list[int]) -> int:
+    """The iterate to keep, declared with both outcomes, from each iterate's collisions and
+    off-centre episodes on the same validation roads (counts, the start first): among the
+    iterates whose off-centre episodes are no more than the start's could be by chance (at most
+    the upper end of the exact 95 % interval of the start's count), the one that collided least;
+    among ties, the latest (it learned from the most data). The start always qualifies."""
+    bound = poisson_ci(int(off_centre[0]), 1.0)[1]  # (the count's own interval: exposure 1)
+    allowed = [i for i, o in enumerate(off_centre) if o <= bound]
+    least = min(collisions[i] for i in allowed)
+    return max(i for i in allowed if collisions[i] == least)
 
 
 @dataclass

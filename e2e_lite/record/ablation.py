@@ -115,13 +115,15 @@ class Iterates:
         networks: ``[(name, network), ...]``, the CVaR network the rounds started from first.
         rates: each one's collisions per 100 mi on the validation roads.
         off_centre: each one's off-centre episodes there (the autonomy metric's interventions
-            that were not collisions).
+            that were neither collisions nor stalls).
+        collisions: each one's collisions there (the count the kept iterate reads).
         kept: the index of the one kept (:func:`~e2e_lite.imitation.dagger.kept_iterate`).
     """
 
     networks: list[tuple[str, Any]]
     rates: list[float]
     off_centre: list[int]
+    collisions: list[int]
     kept: int
 
 
@@ -129,7 +131,8 @@ def dagger_iterates(
     b: Build, arm: str, cfg: dagger.DaggerConfig | None = None, ran: dagger.Run | None = None
 ) -> Iterates:
     """``arm``'s iterates for this seed, each driven on the seed's own validation roads (each
-    drive stored), and the one kept: the one that collided least. The rounds are
+    drive stored), and the one kept (:func:`~e2e_lite.imitation.dagger.kept_iterate`: both
+    outcomes). The rounds are
     :func:`~e2e_lite.imitation.dagger.run`'s: ``ran``, what it returned for this seed and ``cfg``
     (chapter 12 has them; not read again from their files), or run (or read) here."""
     cfg = cfg or dagger.DaggerConfig.for_profile(b.profile)
@@ -140,13 +143,21 @@ def dagger_iterates(
     networks = [(start_name, start), *((r.name, r.model) for r in arms[arm])]
     run = dagger.val_run(b.profile, b.seed, cfg.val_miles)
     world_cfg = WorldConfig.for_profile(b.profile)
-    rates, off_centre = [], []
-    for name, model in networks:
-        label = f"{name} on validation roads"
-        res = evaluate_stored(f"{name}_val", label, TrajectoryAgent(model), world_cfg, run, **b.kw)
-        rates.append(res.collisions_per_100mi)
-        off_centre.append(res.off_centre)
-    return Iterates(networks, rates, off_centre, dagger.kept_iterate(rates))
+    drives = [
+        evaluate_stored(
+            f"{name}_val",
+            f"{name} on validation roads",
+            TrajectoryAgent(model),
+            world_cfg,
+            run,
+            **b.kw,
+        )
+        for name, model in networks
+    ]
+    rates = [res.collisions_per_100mi for res in drives]
+    off_centre, collisions = [res.off_centre for res in drives], [res.collisions for res in drives]
+    kept = dagger.kept_iterate(collisions, off_centre)
+    return Iterates(networks, rates, off_centre, collisions, kept)
 
 
 def _w0(b: Build) -> Policy:
