@@ -19,8 +19,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
-from ..control.tracker import LQRTracker
+from ..control.tracker import LQRTracker, TrackerConfig, lateral_model
+from ..learning.heads import Mixture
 from ..record.report import load
 from ..record.stats import POWER_ROW, record_dispersion, record_power
 from ..simulation.camera import Camera, CameraConfig
@@ -82,6 +84,21 @@ def _car_width_px(answer: float) -> str:
     return _relative(answer, expected, 0.05, "width [px]", hint)
 
 
+def _pole_radius(answer: float) -> str:
+    """03.1: the closed-loop poles' modulus at 20 m/s with ``steer_max_rad`` doubled."""
+    import control  # (here: python-control loads matplotlib's parts; only this check needs it)
+
+    cfg = TrackerConfig(steer_max_rad=2 * TrackerConfig().steer_max_rad)
+    sysd = lateral_model(20.0, VehicleParams().wheelbase_m, cfg.period_s)
+    q = np.diag([1.0 / cfg.lateral_max_m**2, 1.0 / cfg.heading_max_rad**2])
+    _, _, poles = control.dlqr(sysd.A, sysd.B, q, np.array([[1.0 / cfg.steer_max_rad**2]]))
+    hint = (
+        "Hint: design the gain as chapter 03 does (lateral_model, control.dlqr) with the doubled "
+        "steer_max_rad, and take |eig(A - B K)|; smaller is faster (nearer the origin)."
+    )
+    return _relative(answer, float(np.abs(poles).max()), 0.01, "pole modulus", hint)
+
+
 def _steady_error(answer: float) -> str:
     """03.2: the lateral error the tracker keeps on the 300 m curve at 20 m/s without its
     feed-forward."""
@@ -97,10 +114,6 @@ def _steady_error(answer: float) -> str:
 
 def _mixture_mean(answer: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> str:
     """07.3: the mixture's mean, each mode weighted by its mixing weight."""
-    import torch
-
-    from ..learning.heads import Mixture
-
     rng = np.random.default_rng(7)
     logits, modes = rng.normal(size=(4, 3)), rng.normal(size=(4, 3, 10))
     weights = np.exp(logits) / np.exp(logits).sum(axis=1, keepdims=True)
@@ -142,6 +155,7 @@ EXERCISES = {
     for e in (
         Exercise("01.4", "ex_01_4.py", "miles", _miles_without_collision),
         Exercise("02.1", "ex_02_1.py", "car_width_px", _car_width_px),
+        Exercise("03.1", "ex_03_1.py", "pole_radius", _pole_radius),
         Exercise("03.2", "ex_03_2.py", "steady_error_m", _steady_error),
         Exercise("07.3", "ex_07_3.py", "mixture_mean", _mixture_mean, takes_function=True),
         Exercise("10.2", "ex_10_2.py", "record_size", _record_size),
