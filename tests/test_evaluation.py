@@ -645,7 +645,7 @@ def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reache
     from e2e_lite.driving.roads import ROAD_BLOCKS, SEALED_BLOCK
 
     first = ROAD_BLOCKS[SEALED_BLOCK][0]
-    assert ROAD_BLOCKS["open"][1] <= first
+    assert ROAD_BLOCKS["open"][1] <= ROAD_BLOCKS["record"][0] < ROAD_BLOCKS["record"][1] <= first
     sealed = EvalConfig(block=SEALED_BLOCK)
     assert track_index(sealed, 0, 0) == first and track_index(EvalConfig(), 0, 0) == 0
     with pytest.raises(ValueError, match="past the 'open' block"):
@@ -664,9 +664,17 @@ def test_the_record_drives_a_sealed_block_of_test_roads_that_nothing_else_reache
         make_world(cfg, "test", first + 123)
     with pytest.raises(ValueError, match="sealed block"):
         WorldPool(cfg, "test").get(0, first)
-    assert make_world(cfg, "test", first - 1).track is not None  # the open block's last road
+    last_open = ROAD_BLOCKS["open"][1] - 1
+    assert make_world(cfg, "test", last_open).track is not None  # the open block's last road
     assert make_world(cfg, "train", first + 123).track is not None  # only test tracks are sealed
     assert WorldPool(cfg, "test", SEALED_BLOCK).get(0, first).track is not None
+    # issue 88: the block two records drove is spent: no drive makes its roads, sealed or not
+    spent = ROAD_BLOCKS["record"][0]
+    with pytest.raises(ValueError, match="spent"):
+        make_world(cfg, "test", spent + 5, sealed=True)
+    with pytest.raises(ValueError, match="spent"):
+        WorldPool(cfg, "test", "record")
+    assert make_world(cfg, "val", spent + 5).track is not None  # only its test tracks
     # the only code that names the block: the record (and its definition, and this test); the
     # quick record of tests/test_chapters.py drives open roads (it checks so)
     root = Path(__file__).resolve().parents[1]

@@ -469,3 +469,13 @@ def test_every_step_reads_both_outcomes_and_a_better_driver_needs_both() -> None
     assert words.better_driver(collisions, off).startswith("not shown")
     declared = dataclasses.replace(off, family="beyond")
     assert words.better_driver(collisions, declared) == "a better driver"
+
+
+def test_a_new_record_takes_fresh_seeds() -> None:
+    """Issue 88: seeds that trained the course's networks or an earlier record are refused for a
+    record of the fresh block, before any work starts (the quick smoke run takes any)."""
+    from e2e_lite.config import FULL
+    from e2e_lite.record.run import FRESH_SEEDS_FROM, record_share
+
+    with pytest.raises(ValueError, match="fresh block takes seeds 38"):
+        record_share(FULL, [FRESH_SEEDS_FROM - 1, FRESH_SEEDS_FROM])

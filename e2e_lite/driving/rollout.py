@@ -54,8 +54,9 @@ class EvalConfig:
         stall_speed_mps, stall_time_s: below this speed for this long is a stall [m/s, s].
         seed: seeds the start lanes (each car's own: :func:`start_lane`).
         block: which block of test tracks (:data:`ROAD_BLOCKS`): ``"open"`` (the default; every
-            drive of the course) or ``"record"`` (sealed: the numbers of record alone). Track
-            indices count from the block's first track; a drive never leaves its block.
+            drive of the course) or ``"record-2"`` (sealed: the numbers of record alone; the
+            spent ``"record"`` is named only to read the records that drove it). Track indices
+            count from the block's first track; a drive never leaves its block.
 
     Where cars (re)start is one rule, :func:`start_state` and :func:`restart_state`, shared with
     the data collector. A restart is at ``start_speed_mps`` (20 m/s), below the roads' 25 m/s

@@ -25,15 +25,18 @@ def record_block(profile: Profile) -> str:
     return "open" if profile.quick else SEALED_BLOCK
 
 
-def seed_run(profile: Profile, seed: int, miles_per_seed: float) -> EvalConfig:
-    """Training seed ``seed``'s own run of the record's block: ``miles_per_seed`` on tracks no
-    other seed drives, the same whatever share (and whatever count of seeds) holds it (the run
-    ``seed`` of :func:`~e2e_lite.driving.rollout.disjoint_runs`, whose runs do not depend on how
-    many there are)."""
+def seed_run(
+    profile: Profile, seed: int, miles_per_seed: float, block: str | None = None
+) -> EvalConfig:
+    """Training seed ``seed``'s own run of the record's block (``block``: another record's, as a
+    pool checks it): ``miles_per_seed`` on tracks no other seed drives, the same whatever share
+    (and whatever count of seeds) holds it (the run ``seed`` of
+    :func:`~e2e_lite.driving.rollout.disjoint_runs`, whose runs do not depend on how many there
+    are)."""
     ev = EvalConfig(
         miles=miles_per_seed * (seed + 1),
         n_worlds=profile.ablation_worlds,
-        block=record_block(profile),
+        block=block or record_block(profile),
     )
     return disjoint_runs(ev, WorldConfig.for_profile(profile), seed + 1)[seed]
 
@@ -74,7 +77,7 @@ def check_shares(shares: Sequence[tuple[str, Share]]) -> list[str]:
             if seed in seen:
                 raise _refuse(name, f"training seed {seed} is in {seen[seed]} too")
             seen[seed] = name
-            expected = seed_run(profile, seed, share.miles_per_seed).first_track
+            expected = seed_run(profile, seed, share.miles_per_seed, share.block.name).first_track
             drove = {r.first_track for row in share.rows for r in row.runs if r.seed == seed}
             if drove != {expected}:
                 why = (
@@ -189,7 +192,7 @@ def pool(shares: Sequence[tuple[str, Share]]) -> Record:
         torch=", ".join(sorted({s.torch for _, s in shares})),
         precision=first.precision,
         roads="test",
-        block=Block(block.name, block.range, first.recipes_commit, block.name == SEALED_BLOCK),
+        block=Block(block.name, block.range, first.recipes_commit, block.name != "open"),
         commits={first.recipes_commit: "every row"},
         miles_note="each seed drove its miles on test roads of its own (record.seed_run)",
         single_seed_rows=first.single_seed_rows,

@@ -26,6 +26,7 @@ from matplotlib.figure import Figure
 
 from ..artifacts import atomic_write, save_figure
 from ..course.run import CHAPTERS, QUICK_COURSE_S, duration, find_chapters
+from ..driving.roads import SPENT_BLOCKS
 from ..driving.rollout import EvalConfig
 from ..stats.power import chi_square_spread
 from ..stats.seeds import seed_rates, spread
@@ -55,9 +56,15 @@ def _roads_text(record: Record) -> str:
         return f"the open block of test roads (a smoke run, recipes at {block.recipes_commit})"
     if block:
         lo, hi = block.range
+        driven = (
+            "spent since: driven by the records of 321f6a9 and 28eba5c, with a redesign between"
+            " them; the next record drives a fresh one"
+            if block.name in SPENT_BLOCKS
+            else "driven by nothing else"
+        )
         return (
-            f"the sealed block '{block.name}' of test roads (tracks {lo:,}-{hi - 1:,}, driven by"
-            f" nothing else; recipes frozen at {block.recipes_commit})"
+            f"the sealed block '{block.name}' of test roads (tracks {lo:,}-{hi - 1:,}, {driven};"
+            f" recipes frozen at {block.recipes_commit})"
         )
     return (
         "open test roads, not sealed: some recipe choices were made while looking at them; the"

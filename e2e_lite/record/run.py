@@ -34,6 +34,9 @@ from .stored import evaluate_stored
 
 #: every row of the record: the paper's, DAgger's (chapter 12) and the controls
 ROWS = (*DRIVERS, *BEYOND, *CONTROLS)
+#: the first training seed no choice and no earlier record saw (0-3: the course's own networks;
+#: 10-23 and 24-37: the records of 321f6a9 and 28eba5c)
+FRESH_SEEDS_FROM = 38
 
 
 def record_work(
@@ -110,6 +113,11 @@ def record_share(
     seeds = sorted(int(k) for k in seeds)
     if not seeds or seeds[0] < 0 or len(set(seeds)) != len(seeds):
         raise ValueError(f"record_share: seeds {seeds} must be distinct and >= 0")
+    if not profile.quick and seeds[0] < FRESH_SEEDS_FROM:
+        raise ValueError(
+            f"record_share: seeds {seeds[0]}-{FRESH_SEEDS_FROM - 1} trained the course's networks "
+            f"or an earlier record: a record of the fresh block takes seeds {FRESH_SEEDS_FROM} and up"
+        )
     check_range("record_share", "miles_per_seed", miles_per_seed, 0.0, lo_open=True)
     commit, keys = _commit(), [d.key for d in ROWS]
     with profile_outputs(profile.quick):  # (also when called from Python, not the command)

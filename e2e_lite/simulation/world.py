@@ -355,9 +355,12 @@ class World:
         raise RuntimeError("no free lane found within 1 km after the obstacle")
 
 
-#: test tracks sealed for the numbers of record (the block "record" of
+#: test tracks sealed for the numbers of record (the block "record-2" of
 #: :data:`e2e_lite.driving.roads.ROAD_BLOCKS`): only a drive of that block may make their worlds
-SEALED_TEST_TRACKS = range(1_000_000, 2_000_000)
+SEALED_TEST_TRACKS = range(2_000_000, 3_000_000)
+#: test tracks spent: the block "record", which the records of 321f6a9 and 28eba5c drove while the
+#: recipes changed between them; no drive makes their worlds again
+SPENT_TEST_TRACKS = range(1_000_000, 2_000_000)
 
 
 def make_world(cfg: WorldConfig, split: str, index: int, *, sealed: bool = False) -> World:
@@ -365,7 +368,14 @@ def make_world(cfg: WorldConfig, split: str, index: int, *, sealed: bool = False
 
     A test track of :data:`SEALED_TEST_TRACKS` is made only with ``sealed=True``, which the
     record's drive of its sealed block alone passes (:class:`~e2e_lite.driving.roads.WorldPool`):
-    any other code that reaches for one raises ``ValueError`` before a road exists."""
+    any other code that reaches for one raises ``ValueError`` before a road exists. A test track
+    of :data:`SPENT_TEST_TRACKS` is made by nobody."""
+    if split == "test" and index in SPENT_TEST_TRACKS:
+        raise ValueError(
+            f"make_world: test track {index} lies in the spent block of test roads "
+            f"[{SPENT_TEST_TRACKS.start}, {SPENT_TEST_TRACKS.stop}): two records drove it while "
+            "the recipes changed, so no drive makes its roads again"
+        )
     if split == "test" and index in SEALED_TEST_TRACKS and not sealed:
         raise ValueError(
             f"make_world: test track {index} lies in the sealed block of test roads "
