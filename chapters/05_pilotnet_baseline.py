@@ -183,7 +183,7 @@ assert gap < 1e-6, gap
 # lab note "The GMM's worst seeds of record, epoch by epoch"; with one epoch, as in the quick profile, there is nothing
 # to choose). A checkpoint carries the model's settings,
 # its normalisation statistics and the dataset's key; running the chapter again reuses it. The
-# settings of each trained driver live in `e2e_lite/learning/recipes.py`, so chapter 10 retrains or reuses
+# settings of each trained driver live in `e2e_lite/imitation/recipes.py`, so chapter 10 retrains or reuses
 # exactly these models.
 
 # %%

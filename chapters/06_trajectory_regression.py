@@ -67,7 +67,7 @@ print(
 # %%
 model, objective, hist = recipes.trajectory_l2(
     profile, train, val
-)  # settings: e2e_lite/learning/recipes.py
+)  # settings: e2e_lite/imitation/recipes.py
 val_losses, val_metrics = evaluate_loss(model, objective, DrivingDataset(val))
 ade, fde = float(val_metrics["ADE [m]"].mean()), float(val_metrics["FDE [m]"].mean())
 print(f"held out: ADE {ade:.3f} m, FDE {fde:.3f} m (mean distance over the 5 points / at 1.5 s)")

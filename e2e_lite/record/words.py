@@ -124,7 +124,7 @@ def better_driver(collisions: StepResult, off: StepResult | None) -> str:
         return "a worse driver"
     if collisions.outcome == FEWER:
         return "a better driver" if declared else "not shown: its off-centre test was not declared"
-    return "not shown"
+    return "not shown to be a better driver"
 
 
 def cell(st: StepResult) -> str:
