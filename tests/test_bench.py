@@ -74,6 +74,7 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
         plan_text,
     )
     from e2e_lite.imitation import recipes
+    from e2e_lite.record.ablation import SEED_ZERO_ONLY
     from e2e_lite.record.run import record_work
 
     drive = Work(collect_samples=0.0, train_samples=0.0, drive_miles=1_000.0)
@@ -83,11 +84,11 @@ def test_estimates_count_the_work_and_spread_driving_over_the_workers():
     train = Work(collect_samples=0.0, train_samples=1e6, drive_miles=0.0)
     assert estimate_s(train, 2, "cuda") < estimate_s(train, 2, "cpu") == estimate_s(train, 16)
     # the record of 10 seeds drives twice the miles of 5 and trains twice the networks
-    five, ten = record_work(FULL, 5, 100.0, single=()), record_work(FULL, 10, 100.0, single=())
+    five, ten = record_work(FULL, 5, 100.0), record_work(FULL, 10, 100.0)  # (every row per seed)
     assert ten.drive_miles == pytest.approx(2 * five.drive_miles)
     assert ten.train_samples > 1.9 * five.train_samples
     # PilotNet and L2 with seed 0 alone: 18 trainings fewer, the same miles on the record's roads
-    lean = record_work(FULL, 10, 100.0)
+    lean = record_work(FULL, 10, 100.0, single=SEED_ZERO_ONLY)
     per_training = FULL.n_train_samples * FULL.train_epochs
     assert ten.train_samples - lean.train_samples == pytest.approx(18 * per_training)
     selecting = FULL.train_epochs * recipes.SELECT_MILES

@@ -150,13 +150,14 @@ def status(shares: Sequence[tuple[str, Share]], machines: list[str]) -> str:
     alone = " and ".join(BY_KEY[k].label for k in first.single_seed_rows)
     # (each share trains its own seed 0 for these rows: one network per machine, not one in all)
     each = ", trained on each machine" if len(machines) > 1 else ""
+    single = f" ({alone}: seed 0 alone{each}, {mps * n:g} mi)" if alone else ""
 
     def counted(k: int, what: str) -> str:
         return f"{k} {what}{'s' * (k > 1)}"
 
     return (
         f"Of record: {n} training seeds per learned row (seeds {seeds[0]}-{seeds[-1]}), "
-        f"{mps:g} mi each ({alone}: seed 0 alone{each}, {mps * n:g} mi), pooled from "
+        f"{mps:g} mi each{single}, pooled from "
         f"{counted(len(shares), 'share')} on {counted(len(machines), 'machine')} of "
         f"{counted(len(kinds), 'kind')}"
     )

@@ -26,7 +26,7 @@ from ..imitation.recipes import SELECT_MILES
 from ..learning.models import pick_device
 from ..simulation.world import WorldConfig
 from ..stats.power import seeds_for_power
-from .ablation import BEYOND, BY_KEY, CONTROLS, DRIVERS, SEED_ZERO_ONLY, UNTRAINED, build_drivers
+from .ablation import BEYOND, BY_KEY, CONTROLS, DRIVERS, UNTRAINED, build_drivers
 from .pool import record_block, seed_run
 from .rows import SHARE_FORMAT, Block, Record, SeedRun, Share, ShareRow
 from .stats import family, record_power
@@ -37,10 +37,15 @@ ROWS = (*DRIVERS, *BEYOND, *CONTROLS)
 #: the first training seed no choice and no earlier record saw (0-3: the course's own networks;
 #: 10-23 and 24-37: the records of 321f6a9 and 28eba5c)
 FRESH_SEEDS_FROM = 38
+#: the rows a record drives with seed 0's network alone: none. Every learned row trains every
+#: seed of the record on one machine, so no row pools networks trained on different machines
+#: (the record of 28eba5c drove PilotNet and L2 with each machine's seed 0: ablation's
+#: SEED_ZERO_ONLY, which chapter 10 still uses for its own run)
+RECORD_SINGLE: tuple[str, ...] = ()
 
 
 def record_work(
-    profile: Profile, seeds: int, miles_per_seed: float, single: Sequence[str] = SEED_ZERO_ONLY
+    profile: Profile, seeds: int, miles_per_seed: float, single: Sequence[str] = RECORD_SINGLE
 ) -> Work:
     """What a share of ``seeds`` seeds (:func:`record_share`) does from an empty outputs folder,
     in the parts the benchmarks measure: the data, chapter 08's weight grid (5 weights, 2 epochs,
@@ -100,16 +105,16 @@ def record_share(
     seeds: Sequence[int],
     miles_per_seed: float = 100.0,
     *,
-    single: Sequence[str] = SEED_ZERO_ONLY,
+    single: Sequence[str] = RECORD_SINGLE,
     progress: bool = True,
 ) -> Share:
     """One share of the record: every row of :data:`ROWS` (the paper's, DAgger's and the
     controls) for training ``seeds``, each seed driving ``miles_per_seed`` on its own run of the
     block (:func:`seed_run`; the sealed block of test roads, or open roads in the quick profile's
     smoke run), storing its networks and drives in the profile's outputs folder. Each learned row
-    trains the share's seeds; the rows of ``single`` (PilotNet and L2: no step of the paper is
-    theirs) drive seed 0's network on each seed's run, as the expert and the oracle do. Returns
-    the share, its digest written."""
+    trains the share's seeds (:data:`RECORD_SINGLE`: every one); the rows of ``single``, if any,
+    drive seed 0's network on each seed's run, as the expert and the oracle do. Returns the share,
+    its digest written."""
     seeds = sorted(int(k) for k in seeds)
     if not seeds or seeds[0] < 0 or len(set(seeds)) != len(seeds):
         raise ValueError(f"record_share: seeds {seeds} must be distinct and >= 0")
