@@ -24,6 +24,11 @@ from ..stats.rates import poisson_ci
 SLOW_SHARE = 0.9
 
 
+def slow(mph: float, expert_mph: float | None) -> float | None:
+    """``mph`` when it is more than ``1 - SLOW_SHARE`` slower than the expert's, else None."""
+    return mph if expert_mph and mph < SLOW_SHARE * expert_mph else None
+
+
 class _Json:
     """JSON in and out for the record's dataclasses: ``to_json`` writes every field in field
     order, leaving out the :attr:`OPTIONAL` ones that are None; ``from_json`` reads the fields
@@ -176,8 +181,8 @@ class Row(_Json):
         """Off-centre episodes over every seed: the interventions that were neither collisions
         nor stalls (the count :attr:`~e2e_lite.driving.metrics.EvalResult.off_centre` takes of
         one drive; None: not recorded for every seed)."""
-        kept = self.interventions
-        return None if kept is None else kept - self.collisions - (self.stalls or 0)
+        kept = [s.off_centre for s in self.seeds]
+        return None if None in kept else sum(kept)
 
     @property
     def miles(self) -> float:
@@ -202,7 +207,7 @@ class Row(_Json):
 
     def slow_beside(self, expert_mph: float | None) -> bool:
         """Whether the row drove more than ``1 - SLOW_SHARE`` slower than the expert."""
-        return bool(expert_mph) and self.mph < SLOW_SHARE * expert_mph
+        return slow(self.mph, expert_mph) is not None
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from scipy.stats import spearmanr
 
 from ..stats.power import Dispersion, fit_dispersion, holm, power
 from ..stats.seeds import SeedTest, compare_seeds, seed_counts
-from .rows import SLOW_SHARE, Family, Record, Row
+from .rows import Family, Record, Row, slow
 
 
 class Step(NamedTuple):
@@ -222,11 +222,6 @@ def test_step(
     )
 
 
-def slow(mph: float, expert_mph: float | None) -> float | None:
-    """``mph`` when it is more than ``1 - SLOW_SHARE`` slower than the expert's, else None."""
-    return mph if expert_mph and mph < SLOW_SHARE * expert_mph else None
-
-
 def _tested(record: Record, st: Step, family_of: dict[str, str]) -> StepResult:
     """:data:`STEPS`' ``st`` tested on ``record``'s seeds (before Holm)."""
     after, before = record.row(st.after), record.row(st.before)
@@ -246,12 +241,7 @@ def steps(record: Record) -> list[StepResult]:
     tested = [_tested(record, st, family_of) for st in present]
     out = []
     for fam in {r.family for r in tested}:
-        members = [r for r in tested if r.family == fam]
-        fewer = holm([r.p_fewer for r in members])
-        more = holm([r.p_more for r in members])
-        for r, p_f, p_m in zip(members, fewer, more):
-            read = outcome(p_f, p_m, r.min_p)
-            out.append(dataclasses.replace(r, p_holm_fewer=p_f, p_holm_more=p_m, outcome=read))
+        out += _read_at_holm([r for r in tested if r.family == fam])
     order = [st.what for st in present]
     return sorted(out, key=lambda r: order.index(r.step))
 
@@ -283,17 +273,19 @@ def off_centre_steps(record: Record) -> list[StepResult]:
         )
         for st in kept
     ]
-    fewer = holm([r.p_fewer for r in tested])
-    more = holm([r.p_more for r in tested])
+    return _read_at_holm([dataclasses.replace(r, family=OFF_CENTRE_READING) for r in tested])
+
+
+def _read_at_holm(family: list[StepResult]) -> list[StepResult]:
+    """One family's steps with their p-values Holm-adjusted together and each outcome read at
+    the adjusted p."""
+    fewer = holm([r.p_fewer for r in family])
+    more = holm([r.p_more for r in family])
     return [
         dataclasses.replace(
-            r,
-            family=OFF_CENTRE_READING,
-            p_holm_fewer=p_f,
-            p_holm_more=p_m,
-            outcome=outcome(p_f, p_m, r.min_p),
+            r, p_holm_fewer=p_f, p_holm_more=p_m, outcome=outcome(p_f, p_m, r.min_p)
         )
-        for r, p_f, p_m in zip(tested, fewer, more)
+        for r, p_f, p_m in zip(family, fewer, more)
     ]
 
 
