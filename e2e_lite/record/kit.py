@@ -110,7 +110,7 @@ def machine_needs_list(run: dict[str, Any] | None) -> str:
         items.append(f"**`outputs/`** on disk: {', '.join(sizes)}.")
     if "peak_memory_kib" in needs:
         items.append(
-            f"**Memory**: the largest process in the run's `/usr/bin/time -v` reports (a "
+            f"**Memory**: the largest process in the run's GNU `time -v` reports (a "
             f"chapter or one of its workers) held {needs['peak_memory_kib'] / 2**20:.1f} GiB "
             "resident (docs/benchmarks.md says which chapters they cover)."
         )
