@@ -167,15 +167,17 @@ def test_expert_labels_with_kept_speed_limits_are_the_same_and_profile_each_trac
     assert np.abs(plain[0][:, -1, 0]).min() > 10.0  # (the cars drive: a real label)
 
 
-def test_a_label_depends_on_the_state_alone():
+@pytest.mark.parametrize("home", StateExpert.HOMES)
+def test_a_label_depends_on_the_state_alone(home):
     """The same state, reached after two different histories (the expert's own drive, and a car
     placed there by hand before a new expert's first decision), gets the same label and the same
-    decision: mid-overtake, and in the lane it overtook into."""
+    decision: mid-overtake, and in the lane it overtook into (``pass``, or ``keep`` where that
+    lane is its home), whatever its home lane."""
     world = straight_world([300.0, 600.0], [1, 1], length=1_000.0)
     cfg = WorldConfig()
     fleet = Fleet([world], cfg)
     fleet.place(0, 100.0, 0.0, 25.0)
-    expert = StateExpert(seed=3)
+    expert = StateExpert(seed=3, home=home)
     expert.reset(1)
     seen = {}
     for k in range(200):
@@ -183,14 +185,16 @@ def test_a_label_depends_on_the_state_alone():
         label = expert.trajectory_label(obs)
         act = expert.act(obs)
         state = expert.decisions[0].state
-        if state in (CHANGE, PASS) and state not in seen:
-            seen[state] = (fleet.state[0].copy(), int(fleet.seg[0]), label, expert.decisions[0])
+        kind = "change" if state == CHANGE else "after" if "change" in seen else None
+        if kind and kind not in seen:
+            seen[kind] = (fleet.state[0].copy(), int(fleet.seg[0]), label, expert.decisions[0])
         fleet.step(act.steer_rad, act.accel_mps2)
-    assert set(seen) == {CHANGE, PASS}
+    assert set(seen) == {"change", "after"}
+    assert seen["after"][3].state in (PASS, KEEP) and seen["after"][3].target != 1
     for car_state, seg, label, decision in seen.values():
         other = Fleet([world], cfg)
         other.state[0], other.seg[0] = car_state, seg
-        fresh = StateExpert(seed=3)
+        fresh = StateExpert(seed=3, home=home)
         fresh.reset(1)
         obs = observe(other, respawned=True)
         np.testing.assert_array_equal(fresh.trajectory_label(obs), label)
@@ -198,25 +202,32 @@ def test_a_label_depends_on_the_state_alone():
         assert fresh.decisions[0] == decision
 
 
-def test_the_state_experts_home_lane_is_the_middle_or_its_own():
+def test_the_state_experts_home_lane_is_the_middle_its_own_or_the_rightmost():
     """In a side lane with nothing ahead, the state expert heads home to the middle lane (a return:
-    a change, not an overtake); with ``home="own"`` it keeps the lane it is in. Both drive
-    validation roads without a collision when the tracker follows their labels."""
+    a change, not an overtake); with ``home="own"`` it keeps the lane it is in; with
+    ``home="right"`` it keeps the rightmost lane and heads there from the leftmost one lane at a
+    time. Each drives validation roads without a collision when the tracker follows its labels."""
     world = straight_world([900.0], [2], length=1_000.0)
-    fleet = Fleet([world], WorldConfig())
-    fleet.place(0, 100.0, -3.7, 25.0)  # the centre of lane 0, the rightmost
     found = {}
-    for home in StateExpert.HOMES:
-        expert = StateExpert(seed=3, home=home)
-        expert.reset(1)
-        expert.act(observe(fleet, respawned=True))
-        found[home] = expert.decisions[0]
-    assert found["middle"].state == CHANGE and found["middle"].target == 1
-    assert not found["middle"].overtaking
-    assert found["own"].state == KEEP and found["own"].target == 0
+    for lane in (0, 2):
+        fleet = Fleet([world], WorldConfig())
+        fleet.place(0, 100.0, float(world.track.lane_center(lane)), 25.0)
+        for home in StateExpert.HOMES:
+            expert = StateExpert(seed=3, home=home)
+            expert.reset(1)
+            expert.act(observe(fleet, respawned=True))
+            found[home, lane] = expert.decisions[0]
+    assert found["middle", 0].state == CHANGE and found["middle", 0].target == 1
+    assert not found["middle", 0].overtaking
+    assert found["own", 0].state == KEEP and found["own", 0].target == 0
+    assert found["own", 2].state == KEEP and found["own", 2].target == 2
+    assert found["right", 0].state == KEEP and found["right", 0].target == 0
+    assert found["right", 2].state == CHANGE and found["right", 2].target == 1
+    assert not found["right", 2].overtaking
     ev = EvalConfig(miles=4.0, n_worlds=8, split="val")
-    own = evaluate(Oracle(StateExpert(home="own")), small_world_cfg(), ev, progress=False)
-    assert own.collisions == 0
+    for home in ("own", "right"):
+        res = evaluate(Oracle(StateExpert(home=home)), small_world_cfg(), ev, progress=False)
+        assert res.collisions == 0, home
     with pytest.raises(ValueError, match="home"):
         StateExpert(home="left")
 

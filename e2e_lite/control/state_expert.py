@@ -13,7 +13,7 @@ It sees the world as it is (the true positions of the parked cars) and follows t
 state       what it does, read off the state at every decision
 ==========  =====================================================================================
 ``keep``    in the home lane (the middle one; with ``home="own"`` the lane it is in, so it never
-            passes or returns), on its centre. A parked car ahead nearer than
+            passes or returns; with ``home="right"`` the rightmost), on its centre. A parked car ahead nearer than
             ``trigger``: a free neighbour (at random when both are free) -> ``change``; none free
             or the change would be too sharp -> ``follow``.
 ``change``  heading for a neighbouring lane: a quintic path from its lane's centre, whose progress
@@ -101,12 +101,14 @@ class StateExpert:
         tracker: the LQR tracker it drives with (None: default weights at ``sim``'s policy period).
         vehicle, sim: the car and time steps of the rollouts (must match the world's).
         seed: seeds the parked cars' draws (:meth:`draws`).
-        home: the lane it returns to once past: ``"middle"`` (the course's labeller) or ``"own"``,
+        home: the lane it returns to once past: ``"middle"`` (the course's labeller), ``"own"``,
             the lane it is in (it never returns: after an overtake it keeps the new lane, in
             ``keep``, so the speed cap of ``pass`` near a parked car ahead no longer applies
-            there either; every lane change is an overtake. The course's expert keeps whichever
+            there either; every lane change is an overtake), or ``"right"``, the rightmost lane
+            (lane 0), one lane at a time once past and free, as a driver keeps right; a camera
+            shows it (the road's edge beside the car). The course's expert keeps whichever
             lane it is in and returns to the lane an overtake left, a plan this one cannot read
-            off the state). Lab notes "The two experts part over the home lane", "The drift comes
+            off the state. Lab notes "The two experts part over the home lane", "The drift comes
             mostly with the home lane".
 
     Attributes:
@@ -121,7 +123,7 @@ class StateExpert:
     COMMIT_MPS, COMMIT_M = 0.05, 0.3
     #: the least progress of a lane change's path (a change from a lane's centre has to begin)
     U_MIN = 0.1
-    HOMES = ("middle", "own")
+    HOMES = ("middle", "own", "right")
 
     def __init__(
         self,
@@ -249,7 +251,7 @@ class StateExpert:
         [m], and its lane-change path (None: it follows its target lane's centre)."""
         track = car.world.track
         here = _lane_of(track, car.d)
-        home = (track.n_lanes - 1) // 2 if self.home == "middle" else here
+        home = self._home(track, here)
         gap, j = self._gap(car, here)
         if j >= 0 and gap < self.draws(car.world, j).trigger_m:  # should overtake
             target = self._overtake_lane(car, here, home, gap, j)
@@ -273,6 +275,12 @@ class StateExpert:
             overtaking = here != home or self.home == "own"
             return Decision(CHANGE, here, toward, overtaking), gap, None
         return Decision(KEEP if here == home else PASS, here, 0, False), gap, None
+
+    def _home(self, track: Track, here: int) -> int:
+        """The home lane of a car in lane ``here`` (see ``home``)."""
+        if self.home == "middle":
+            return (track.n_lanes - 1) // 2
+        return 0 if self.home == "right" else here
 
     def draws(self, world: World, j: int) -> Draws:
         """Parked car ``j``'s draws on ``world``'s track, from a generator seeded by the expert's

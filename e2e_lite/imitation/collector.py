@@ -84,7 +84,7 @@ class DataConfig:
         first_track: index of the split's first track the cars drive (DAgger's rounds and their
             control drive fresh training roads, chapter 12).
         home_lane: the state expert's home lane (:class:`~e2e_lite.control.state_expert.
-            StateExpert`'s ``home``): ``"middle"`` or ``"own"``.
+            StateExpert`'s ``home``): ``"middle"``, ``"own"`` or ``"right"``.
     """
 
     #: added after the course's datasets were keyed: at their defaults those keys stay

@@ -95,8 +95,8 @@ class DaggerConfig:
         val_miles: validation miles every iterate of a seed drives, to be chosen on [mi].
         dart_scale: the control's DART noise over the network's measured command errors.
         home_lane: the state expert's home lane, for every label the fine-tunes learn (the
-            rounds' and chapter 04's relabelled data): ``"middle"`` (the course's) or ``"own"``
-            (lab note "The drift comes mostly with the home lane").
+            rounds' and chapter 04's relabelled data): ``"middle"`` (the course's), ``"own"`` or
+            ``"right"`` (lab note "The drift comes mostly with the home lane").
     """
 
     #: added after the course's rounds were stored: at their defaults their names stay
