@@ -75,16 +75,18 @@ human = Camera(CameraConfig.human())
 #
 # | state | does | leaves when |
 # |---|---|---|
-# | `keep` | follow the lane centre | a car ahead nearer than *trigger*: `change` if a neighbour |
+# | `keep` | follow its lane's centre | a car ahead nearer than *trigger*: `change` if a neighbour |
 # | | at the speed limit | is free (a coin picks when both are), else `follow` |
-# | `change` | follow a quintic path | at its end: `pass` (an overtake) or `keep` (a return) |
-# | `pass` | follow the new lane | *finish* metres past the car, original lane free: `change` |
+# | `change` | follow a quintic path | past the dashed line: `keep`, in the new lane |
 # | `follow` | stop 15 m behind the car | a lane becomes free (slower: a shorter lane change) |
 #
-# Per manoeuvre, each car draws from its own seeded generator: the trigger (45-75 m: at 25 m/s a
-# comfortable lane change needs ~60 m), the finish (5-40 m), the change's duration (2.5-3.5 s) and
-# the side coin. The expert **carries its plan** (state, path, draws) from decision to decision;
-# chapter 12 needs a labeller that reads it off the state instead, and says why.
+# It keeps whichever lane it is in (`ExpertConfig.home`; a rule that returns to a home lane adds
+# a `pass` state, and the lab note "One expert for the whole course" says why this one was
+# chosen). Per parked car, a generator seeded by the expert's seed, the track and the car draws
+# the trigger (45-75 m: at 25 m/s a comfortable lane change needs ~60 m), the change's duration
+# (2.5-3.5 s) and the side coin. The expert **reads its plan off the state** at every decision:
+# the same state gets the same label whatever drove there, which chapter 12 needs of its
+# labeller.
 
 # %%
 straight = Track([0.0], [0.0], [0.0], [0.0], [900.0])
@@ -211,7 +213,7 @@ print("oracle vs expert:", words.rates(compare_rates(res_oracle, res_expert)))
 # expert would do from each recorded state:
 #
 # * actuators: its command **before** the burst is added;
-# * trajectory: a rollout of copies of the car and its plan for 1.5 s without noise (no physics,
+# * trajectory: a rollout of copies of the car by the same rules for 1.5 s without noise (no physics,
 #   no rendering), recorded every 0.3 s in the car frame at the sample time.
 #
 # ## 5. The dataset
@@ -273,7 +275,7 @@ print(f"saved {samples_png}")
 
 # %% [markdown]
 # Where the labels end after 1.5 s, across the training set: most samples go straight ahead;
-# the tails left and right are the overtakes and returns, the rare events the paper cares about.
+# the tails left and right are the lane changes, the rare events the paper cares about.
 
 # %%
 fig = Figure(figsize=(10, 3.4))
@@ -404,7 +406,7 @@ print(
 #
 # 1. Set `ExpertConfig(trigger_m=(25.0, 35.0))`. Does the expert still drive without collisions?
 #    What does `_change_length` do with such short triggers, and what does the expert do instead?
-# 2. Make the side coin always pick the left (`coin=0.0` in `Plan.draw`). Which share in the
+# 2. Make the side coin always pick the left (`coin=0.0` in `Expert.draws`). Which share in the
 #    dataset statistics changes, and what would a network trained on it never learn?
 # 3. Collect a dataset with `NoiseConfig(rate_per_s=0.0)`. Compare the distribution of the
 #    `center_offset_m` affordance with and without noise. Which states are missing without it?

@@ -33,9 +33,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from e2e_lite import artifacts
-from e2e_lite.control.expert import Expert, WipedExpert
+from e2e_lite.control.expert import Expert
 from e2e_lite.control.oracle import Oracle
-from e2e_lite.control.state_expert import StateExpert
 from e2e_lite.driving import anatomy
 from e2e_lite.driving.evaluation import EvalConfig, evaluate
 from e2e_lite.driving.figures import save_figure
@@ -61,10 +60,10 @@ starts = [recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0] for k i
 #
 # Each seed's start network drives its own validation roads inside a `Witness`, which keeps every
 # car's last 6 s of states and plans and files them at each collision. The world is deterministic
-# and the state expert's decision (section 2) is a function of the state, so it can take the car
-# over from any of those states (`anatomy.savable`); the network's plans are checked for a clash
-# with a parked car or a rail as if followed exactly (`anatomy.plan_collides`), and compared with
-# the state expert's labels at the same states (`anatomy.disagreement`). The witnessed drives are
+# and the expert's decision (section 2) is a function of the state, so it can take the car over
+# from any of those states (`anatomy.savable`); the network's plans are checked for a clash with
+# a parked car or a rail as if followed exactly (`anatomy.plan_collides`), and compared with the
+# expert's labels at the same states (`anatomy.disagreement`). The witnessed drives are
 # stored and reused (`ablation.witnessed`).
 
 # %%
@@ -96,7 +95,7 @@ print(
 print("kinds: " + ", ".join(f"{kind} {n}" for kind, n in found["kinds"].items()))
 
 # %%
-expert = StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
 ordinary = [m for _, moments in witnessed for m in moments[:100]]  # (every seed alike)
 cruise = np.nanmedian(anatomy.disagreement(ordinary, world_cfg, expert)) if ordinary else np.nan
 period = world_cfg.sim.policy_period_s
@@ -117,7 +116,7 @@ png_anatomy = save_figure(fig, artifacts.artifact_path("figures", "12_anatomy.pn
 window = round(OnPolicy.BEFORE_COLLISION_S / period)  # the seconds section 3's gate keeps first
 near = np.nanmedian(before[:, -window:]) if len(before) else np.nan
 print(
-    f"a plan's farthest point from the state expert's label, median: ordinary driving "
+    f"a plan's farthest point from the expert's label, median: ordinary driving "
     f"{cruise:.2f} m, the last {OnPolicy.BEFORE_COLLISION_S:g} s before a collision {near:.2f} m"
 )
 print(f"saved {png_anatomy}")
@@ -125,19 +124,14 @@ print(f"saved {png_anatomy}")
 # %% [markdown]
 # ## 2. One labeller, and a label is a driver
 #
-# DAgger labels states the learner drove into, where no plan of the expert's led. The course's
-# expert (chapter 04, `control.expert`) carries its plan from decision to decision; wiped before
-# each label, as this chapter once labelled DAgger's rounds, it restarts every manoeuvre in
-# "keep". The **state expert** (`control.state_expert`) runs its state machine with one rule
-# changed, its home lane (the middle one, where the expert keeps any lane it is in: lab note "The
-# two experts part over the home lane"), and reads its plan off the state at every decision: the
-# same state gets the same label whatever drove there. It labels every round and **relabels
-# chapter 04's data**, as Learning by Cheating relabels its buffer, so every sample a fine-tune
-# draws carries one labeller's label. The start networks learned the course's expert's labels:
-# networks on them collided less than on the state expert's, on every seed of the lab note "Do
-# networks learn the labeller?" (not shown at the seed level). A label is only as good as the
-# driver it describes, so drive each: the oracle is the tracker following a labeller at every
-# decision.
+# DAgger labels states the learner drove into, where no plan of the expert's led. So its labeller
+# must answer from the state alone: the same state, the same label, whatever drove there. The
+# course's expert (chapter 04, `control.expert`) reads its plan off the state at every decision,
+# and it labelled chapter 04's data too, so every sample a fine-tune draws carries one
+# labeller's label (the course once had two, and its fine-tunes drifted: lab notes "The lingering
+# comes with the state expert's labels" and "One expert for the whole course"). A label is only
+# as good as the driver it describes, so drive it: the oracle is the tracker following the
+# expert's label at every decision.
 
 # %%
 check = dagger.val_roads(1.0 if profile.quick else 20.0, 32)
@@ -146,38 +140,29 @@ check = dagger.val_roads(1.0 if profile.quick else 20.0, 32)
 drives = {
     "the expert": Expert(sim=world_cfg.sim),
     "the oracle on the expert's labels": Oracle(Expert(sim=world_cfg.sim)),
-    "the oracle on the state expert's labels": Oracle(StateExpert(sim=world_cfg.sim)),
-    "the oracle on the wiped labels": Oracle(WipedExpert(sim=world_cfg.sim)),
 }
 labellers = {}
 for name, policy in drives.items():
     r = evaluate(policy, world_cfg, check, desc=name)
     labellers[name] = r.collisions_per_100mi
     print(
-        f"{name}: {r.collisions} collisions in {r.miles:.1f} mi "
-        f"({r.collisions_per_100mi:.1f} per 100 mi) at {r.mean_speed_mph:.1f} mph"
+        f"{name}: {r.collisions} collisions, {r.off_centre} off-centre episodes in "
+        f"{r.miles:.1f} mi at {r.mean_speed_mph:.1f} mph"
     )
-ends = train.trajectory[:, -1] - train.arrays["state_trajectory"][:, -1]  # (the 1.5 s points)
-apart = float(np.mean(np.linalg.norm(ends, axis=-1) > 1.0))  # the share over 1 m
-print(
-    f"relabelled: at chapter 04's states, the two experts' labels end more than 1 m apart in "
-    f"{apart:.1%} of {len(train):,} samples"
-)
 
 # %% [markdown]
 # ## 3. DAgger aimed at the failing states, and its two controls
 #
 # A round (`dagger.run`, one `RoundSpec` per round): the network drives `drive` times more
-# decisions than the round keeps, on fresh training roads; the state expert labels every state;
+# decisions than the round keeps, on fresh training roads; the expert labels every state;
 # the **gate** (`dagger.gate`) keeps what section 1 points at: the seconds before each collision
 # first (the window of section 1's distance line), then the states where the network's plan lay
 # farthest from the label. The network is fine-tuned on rows drawn from **the whole aggregate**
-# (chapter 04's data, relabelled, and every round's), chapter 09's mean fine-tune. Two arms
-# differ from it in one thing each: the **control** lets the state expert drive, with white noise
-# on its commands as large as the network's measured command error (DART, Laskey et al. 2017),
-# and gates, labels and aggregates the same way; **no new data** runs the same fine-tunes on
-# chapter 04's relabelled data alone: what the fine-tunes and the relabelling do without a new
-# state.
+# (chapter 04's data and every round's), chapter 09's mean fine-tune. Two arms differ from it in
+# one thing each: the **control** lets the expert drive, with white noise on its commands as large
+# as the network's measured command error (DART, Laskey et al. 2017), and gates, labels and
+# aggregates the same way; **no new data** runs the same fine-tunes on chapter 04's data alone:
+# what the fine-tunes do without a new state.
 
 # %%
 cfg = dagger.DaggerConfig.for_profile(profile)
@@ -215,7 +200,7 @@ print(
 # collisions a DAgger round meets"): the lines above say how many of this recipe's kept samples
 # come from the seconds before a collision. The shift is the share of a round's kept samples
 # outside the range of the middle of chapter 04's data in at least one feature. Samples drawn like
-# the data fall outside it too, by chance, so the control's (the state expert's own states with
+# the data fall outside it too, by chance, so the control's (the expert's own states with
 # DART's noise, gated alike) is the baseline DAgger's is read by; the line after the medians says
 # it in words. Why the states moved as they did, this run does not show. Each iterate then drives
 # `val_miles` of validation roads. The kept iterate reads both outcomes (`dagger.kept_iterate`):
@@ -321,15 +306,13 @@ print(
 # no new data shares is the fine-tunes'. A driver is more than its collisions: a lower rate that
 # comes with lingering between lanes is a different driver, so the lines below also say which arms'
 # kept iterates left the lane centre more often than the start (section 3's lines say when, iterate
-# by iterate). Where the arm with no new data did, its fine-tunes on relabelled data moved the
-# driver with no new state at all; only what DAgger adds beyond its control can be its states'.
-# `lab/off_centre_labels.py` runs that arm once more with the expert's own labels instead of the
-# state expert's: in the first book's run (2026-11-29) its iterates stayed near the start on every
-# seed (lab note "The lingering comes with the state expert's labels"; four seeds cannot go below
-# p < 0.05). So in that arm the drift came with the state expert's labels, not with fine-tuning
-# as such; on a lent GPU, mostly with its home lane (lab note "The drift comes mostly with the home
-# lane", every one of four seeds: a hypothesis). Why DAgger's states add to the drift is open
-# (exercise 12.6).
+# by iterate). Where the arm with no new data did, its fine-tunes moved the driver with no new
+# state and no new label; only what DAgger adds beyond its control can be its states'. When the
+# course had two labellers, that arm drifted with the second one's labels (lab notes "The
+# lingering comes with the state expert's labels", "The drift comes mostly with the home lane");
+# with one expert, whether it still drifts is the fourth criterion of the lab note "One expert for
+# the whole course", and section 3's off-centre line for that arm measures it. Why DAgger's states
+# drifted more in earlier runs is open (exercise 12.6).
 
 
 # %%
@@ -367,9 +350,6 @@ headline = {  # (the test roads first: the teaching kit reads a chapter's first 
     "tracker's share (plans clear)": found["plan_clear"],
     "not saved by any hand-over tried": found["latest_savable"]["none tried"],
     "oracle on the expert, per 100 mi": labellers["the oracle on the expert's labels"],
-    "oracle on the state expert, per 100 mi": labellers["the oracle on the state expert's labels"],
-    "labels apart at chapter 04's states (> 1 m)": apart,
-    "oracle on the wiped labels, per 100 mi": labellers["the oracle on the wiped labels"],
 }
 tested = {
     k: {"verdict": words.seeds(v), "p": v.p_fewer, "ratio": v.ratio} for k, v in verdicts.items()
@@ -401,13 +381,12 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # %% [markdown]
 # ## Summary
 #
-# * Dissect before fixing: a collision's latest savable moment (the state expert taking over from
+# * Dissect before fixing: a collision's latest savable moment (the expert taking over from
 #   the very state), the tracker's share (plans that were clear) and its kind say which states a fix
 #   must reach (section 1 prints them for this run).
-# * A label is a driver: the oracle on the expert's labels, on the state expert's and on the wiped
-#   labels drive the same roads (section 2's lines); DAgger's labeller must be a function of the
-#   state *and* drive well (the wiped labels are a function of the state too: see how they
-#   drive), and it relabels chapter 04's data so that a fine-tune learns one labeller.
+# * A label is a driver: the oracle on the expert's labels drives the same roads as the expert
+#   (section 2's lines); DAgger's labeller must be a function of the state *and* drive well, and
+#   one expert labels chapter 04's data and every round, so a fine-tune learns one labeller.
 # * The course's recipe, after the theory's: rounds that drive far more than they keep and gate
 #   what they keep, fine-tunes on the whole aggregate, and the iterate chosen on validation roads.
 # * A data method needs two controls: the same rounds with the expert driving (is it the
@@ -415,10 +394,9 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #   says in words what this run's seeds can credit; its power line prints the smallest p they
 #   can reach, so the record's seeds decide.
 # * A driver is more than its collisions: section 4 prints each arm's off-centre episodes beside
-#   its rate. In the arm with no new data the drift came with the state expert's labels (lab note
-#   "The lingering comes with the state expert's labels"), on a lent GPU mostly with its home lane
-#   (lab note "The drift comes mostly with the home lane"; four seeds: a hypothesis). DAgger's
-#   larger drift is open.
+#   its rate. With two labellers the arm with no new data drifted with the second one's labels
+#   (lab note "The lingering comes with the state expert's labels"); with one, section 3's lines
+#   say whether it still does. DAgger's larger drift in earlier runs is open.
 #
 # ## Exercises
 #
@@ -426,8 +404,8 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    drives). How many kept samples come from before a collision, and how do the iterates drive?
 # 2. More rounds: `rounds=8`. Which iterate does each seed keep? Prakash et al. (2020) saw plain
 #    DAgger get worse after its second round: does the kept iterate protect against that?
-# 3. The anatomy's hand-over with the oracle instead of the state expert (`anatomy.dissect(c,
-#    world_cfg, hand_over=Oracle(StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)))`):
+# 3. The anatomy's hand-over with the oracle instead of the expert (`anatomy.dissect(c,
+#    world_cfg, hand_over=Oracle(Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)))`):
 #    which collisions does the trajectory plus tracker still save, and what does that say about
 #    the tracker's share?
 # 4. DART's noise: scale it (`DaggerConfig.for_profile(profile, dart_scale=2.0)`). Does the
@@ -440,10 +418,5 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    run (lab note "DAgger's iterates off the lane centre"), and why is open. Drive one seed's
 #    kept DAgger iterate (`it = iterates["dagger"][k]`, its network `it.networks[it.kept][1]`)
 #    inside an `anatomy.Witness(..., every=10)` and, at its moments more than 1 m from every lane
-#    centre, compare its plan with the state expert's label. Is it a lane change the labeller
+#    centre, compare its plan with the expert's label. Is it a lane change the labeller
 #    reads as under way, one the network never finishes?
-# 7. The home lane: the state expert heads for the middle lane where the expert keeps any lane
-#    it is in (lab note "The two experts part over the home lane"). Run the rounds with a labeller
-#    that keeps its own lane, `DaggerConfig.for_profile(profile, home_lane="own")` (its rounds and
-#    relabelled data are stored under names of their own). Do the iterates drift less off the
-#    lane centre, and do they collide less or more?

@@ -364,12 +364,15 @@ ARTIFACT_VERSIONS = {
     # 5: the expert reads its plan off the state at every decision (its labels are a function of
     # the state alone); 6: the course's expert carries its plan again (networks learned it
     # better), and every sample also holds the state expert's label (DAgger's relabelling); 7: a
-    # return's change_side is the side it moves to again (6 recorded its overtake's)
-    "dataset": 7,
+    # return's change_side is the side it moves to again (6 recorded its overtake's); 8: one
+    # expert, its plan read off the state, drives and labels (lab note "One expert for the whole
+    # course"); the second label is gone
+    "dataset": 8,
     # 3: the precision (fp32 / tf32) is part of the key
     "checkpoint": 3,
-    # 3: the expert (and so the oracle) reads its plan off the state; 4: they carry it again
-    "evaluation": 4,
+    # 3: the expert (and so the oracle) reads its plan off the state; 4: they carry it again;
+    # 5: one expert, reading its plan off the state, with its home-lane rule
+    "evaluation": 5,
     "head-refit": 1,
     # what a witnessed drive keeps (chapter 12's anatomy: ``driving.anatomy.Witness``); 2: its
     # ordinary moments counted over all cars (a short drive's cars kept none); 3: each car's at a

@@ -20,7 +20,7 @@ import numpy as np
 from labellers import Lateral, drive
 
 from e2e_lite.config import FULL
-from e2e_lite.control.state_expert import StateExpert as Expert
+from e2e_lite.control.expert import Expert
 from e2e_lite.driving.evaluation import EvalConfig
 from e2e_lite.learning.labels import STATE_NAMES as NAMES
 from e2e_lite.simulation.world import WorldConfig

@@ -96,22 +96,23 @@ def test_fingerprint_follows_weights_and_settings():
 
 def test_every_driver_declares_its_identity_and_settings_that_drive_differently_key_apart():
     """Issue 87: each driver says what decides its behaviour (``identity()``), and a stored drive
-    is keyed by it: a state expert's home lane, an oracle's expert and a lane keeper's speed each
+    is keyed by it: the expert's home lane, an oracle's expert and a lane keeper's speed each
     change the key (they shared one before), while the course's stored drivers keep theirs (a
     setting added later is left out at its default: artifacts.added_later)."""
     from e2e_lite.control.drivers import LaneChanger
-    from e2e_lite.control.state_expert import StateExpert
+    from e2e_lite.control.rules import ExpertConfig
     from e2e_lite.imitation.agents import Recorder
     from e2e_lite.safety.agent import SafeAgent
 
-    drivers = [Expert(), StateExpert(), Oracle(), LaneKeeper(), LaneChanger()]
+    drivers = [Expert(), Oracle(), LaneKeeper(), LaneChanger()]
     drivers += [SteeringAgent(_tiny("steer")), TrajectoryAgent(_tiny("gmm"))]
     drivers += [SafeAgent(TrajectoryAgent(_tiny("gmm")), ground_truth=True)]
     drivers += [Recorder(Expert(), lambda obs, agent: None)]
     for d in drivers:
         assert isinstance(d.identity(), list), type(d).__name__
-    assert fingerprint(StateExpert(home="own")) != fingerprint(StateExpert(home="middle"))
-    assert fingerprint(Oracle(StateExpert())) != fingerprint(Oracle())
+    middle = Expert(ExpertConfig(home="middle"))
+    assert fingerprint(Expert()) != fingerprint(middle)
+    assert fingerprint(Oracle(middle)) != fingerprint(Oracle())
     assert fingerprint(LaneKeeper(target_speed_mps=30.0)) != fingerprint(LaneKeeper())
     assert fingerprint(LaneChanger(trigger_m=50.0)) != fingerprint(LaneChanger())
     gmm = _tiny("gmm")

@@ -14,10 +14,10 @@ from conftest import ForkingKeeper
 
 from e2e_lite.config import QUICK
 from e2e_lite.control.drivers import LaneKeeper
-from e2e_lite.control.state_expert import StateExpert
+from e2e_lite.control.expert import Expert
 from e2e_lite.imitation import dagger, recipes
 from e2e_lite.imitation.agents import TrajectoryAgent
-from e2e_lite.imitation.collector import DataConfig, NoiseConfig, OnPolicy, collect, dataset_path
+from e2e_lite.imitation.collector import DataConfig, NoiseConfig, OnPolicy, collect
 from e2e_lite.learning.dataset import synthetic_data
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig
@@ -28,10 +28,8 @@ WORLD = WorldConfig(road=RoadConfig(length_m=1_500.0), traffic=TrafficConfig(n_c
 
 
 def small(n_worlds: int = 8, n_samples: int = 160, **changes) -> DataConfig:
-    """A small collection driven by the state expert (DAgger's labeller)."""
-    return DataConfig(
-        n_samples=n_samples, n_tracks=2, n_worlds=n_worlds, world=WORLD, driver="state", **changes
-    )
+    """A small collection driven by the expert."""
+    return DataConfig(n_samples=n_samples, n_tracks=2, n_worlds=n_worlds, world=WORLD, **changes)
 
 
 class Shadow(LaneKeeper):
@@ -57,7 +55,7 @@ def test_on_policy_samples_are_the_experts_labels_of_the_states_the_learner_visi
     learner = Shadow()
     data = collect(cfg, progress=False, workers=1, on_policy=OnPolicy(learner, beta=0.0))
     # a fresh expert of the same seed, shown the same states in the same order, labels them so
-    expert = StateExpert(cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed)
+    expert = Expert(cfg.expert, vehicle=cfg.world.vehicle, sim=cfg.world.sim, seed=cfg.seed)
     expert.seed_cars(np.arange(cfg.n_worlds))
     expert.reset(cfg.n_worlds)
     quota = cfg.n_samples // cfg.n_worlds
@@ -143,32 +141,6 @@ def test_an_exercises_rounds_are_stored_under_names_of_their_own_and_the_courses
     assert other.samples_key(net) != plain.samples_key(net)
     with pytest.raises(ValueError, match="dart_scale"):
         dagger.DaggerConfig.for_profile(QUICK, dart_scale=-1.0)
-
-
-def test_the_home_lane_of_the_labeller_is_a_setting_of_its_own(tmp_path, monkeypatch):
-    """The state expert's home lane (lab note "The drift comes mostly with the home lane") labels
-    the rounds and chapter 04's relabelled data; at the course's (the middle lane) nothing is
-    named or keyed anew, another is stored under names of its own."""
-    monkeypatch.setenv("E2E_LITE_OUTPUTS", str(tmp_path))
-    course = dagger.DaggerConfig.for_profile(QUICK)
-    own = dagger.DaggerConfig.for_profile(QUICK, home_lane="own")
-    plain, other = (dagger.RoundSpec(QUICK, c, 0, 0, "dagger") for c in (course, own))
-    assert plain.data().home_lane == "middle" and other.data().home_lane == "own"
-    assert plain.samples_name == "12_dagger_seed0_round1.npz"
-    assert other.samples_name != plain.samples_name
-    with pytest.raises(ValueError, match="home_lane"):
-        dagger.DaggerConfig(home_lane="left")
-    train = collect(DataConfig.for_profile(QUICK, "train"), progress=False)
-    val = collect(DataConfig.for_profile(QUICK, "val"), progress=False)
-    same = dagger.relabel_source(QUICK, train, val, "middle")
-    assert same[0] is train and same[1] is val
-    t_own, v_own = dagger.relabel_source(QUICK, train, val, "own")
-    assert len(t_own) == len(train) and len(v_own) == len(val)
-    np.testing.assert_array_equal(t_own.trajectory, train.trajectory)  # the same states
-    stored = dataset_path(DataConfig.for_profile(QUICK, "train", home_lane="own"))
-    assert stored.name == f"train-{len(train)}-home-own.npz" and stored.exists()
-    with pytest.raises(ValueError, match="other settings"):
-        dagger.relabel_source(QUICK, synthetic_data(64), val, "own")
 
 
 def test_the_gate_keeps_the_seconds_before_a_collision_then_the_widest_disagreements():

@@ -9,6 +9,7 @@ import pytest
 from conftest import straight_world
 
 from e2e_lite.config import QUICK
+from e2e_lite.control.rules import ExpertConfig
 from e2e_lite.driving.evaluation import EvalConfig
 from e2e_lite.imitation.collector import (
     AFFORDANCE_NAMES,
@@ -119,19 +120,13 @@ def test_train_and_validation_tracks_never_overlap():
     data = collect(cfg, progress=False)
     assert data.info["split"] == "train" and set(np.unique(data.track)) <= set(range(cfg.n_tracks))
     assert DataConfig.for_profile(QUICK, "val").key != DataConfig.for_profile(QUICK, "train").key
-    # the state expert's home lane keys a dataset only when it is not the course's (the middle)
-    middle = DataConfig.for_profile(QUICK, "train", home_lane="middle")
-    assert middle.key == DataConfig.for_profile(QUICK, "train").key
-    assert DataConfig.for_profile(QUICK, "train", home_lane="own").key != middle.key
-    with pytest.raises(ValueError, match=r"DataConfig\.home_lane"):
-        DataConfig(home_lane="left")
-    # and it changes the state expert's labels alone: the expert drives and labels as before
-    own = collect(dataclasses.replace(cfg, home_lane="own"), progress=False)
-    np.testing.assert_array_equal(own.trajectory, data.trajectory)
-    side = data.arrays["lane"] != 1
-    assert side.any() and not np.allclose(
-        own.arrays["state_trajectory"][side], data.arrays["state_trajectory"][side]
-    )
+    # the expert's home lane keys a dataset, and changes its labels where a car is in a side lane
+    own = DataConfig.for_profile(QUICK, "train")
+    middle = DataConfig.for_profile(QUICK, "train", expert=ExpertConfig(home="middle"))
+    assert own.expert.home == "own" and middle.key != own.key
+    mid = collect(dataclasses.replace(cfg, expert=ExpertConfig(home="middle")), progress=False)
+    returns = [(d.expert_state == CHANGE) & ~d.overtaking for d in (data, mid)]
+    assert not returns[0].any() and returns[1].any()  # keeping its own lane, it never returns
 
 
 def test_dataset_is_saved_reused_and_rebuilt_on_other_settings(capsys):
@@ -283,29 +278,3 @@ def test_road_lateral_removes_heading_and_curve():
     np.testing.assert_allclose(road_lateral(turned, np.array([0.02]), np.zeros(1)), [0.0])
     np.testing.assert_allclose(road_lateral(bend, np.zeros(1), np.array([0.002])), [0.0])
     np.testing.assert_allclose(road_lateral(straight, np.array([0.02]), np.zeros(1)), [0.75])
-
-
-def test_every_sample_also_holds_the_state_experts_label_and_relabelled_trains_on_it():
-    """Chapter 04's data is driven and labelled by the expert, which carries its plan; beside each
-    label lies the state expert's (DAgger's labeller) at the same state: the same at many states,
-    apart at others (two labellers, not one: the state expert heads back to the middle lane, the
-    expert keeps any lane it is in). Driven by
-    the state expert, the two are one label. ``relabelled`` trains on the state expert's labels
-    under the data's own normalisation and another key; an on-policy collection needs it."""
-    from e2e_lite.control.drivers import LaneKeeper
-    from e2e_lite.imitation.collector import OnPolicy
-    from e2e_lite.learning.dataset import relabelled
-
-    cfg = small_cfg(n_samples=400, noise=NoiseConfig(rate_per_s=0.0), restart_rate_per_s=0.0)
-    data = collect(cfg, progress=False)
-    apart = np.linalg.norm(data.trajectory - data.arrays["state_trajectory"], axis=-1).max(-1)
-    assert (apart < 1e-3).mean() > 0.25 and apart.max() > 0.5
-    own = collect(dataclasses.replace(cfg, driver="state"), progress=False)
-    assert np.array_equal(own.trajectory, own.arrays["state_trajectory"])
-    state = relabelled(data)
-    assert np.array_equal(state.trajectory, data.arrays["state_trajectory"])
-    assert state.stats == data.stats and state.info["key"] != data.info["key"]
-    with pytest.raises(ValueError, match="driver='state'"):
-        collect(cfg, progress=False, on_policy=OnPolicy(LaneKeeper()))
-    with pytest.raises(ValueError, match=r"DataConfig\.driver"):
-        DataConfig(driver="remembering")

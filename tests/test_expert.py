@@ -1,5 +1,5 @@
-"""The expert and the state expert (DAgger's labeller): collision-free driving, random sides,
-clean labels, the oracle."""
+"""The expert, under each home-lane rule: collision-free driving, random sides, clean labels that
+depend on the state alone, the oracle."""
 
 from __future__ import annotations
 
@@ -8,45 +8,47 @@ import pytest
 from conftest import straight_world
 
 from e2e_lite.control import rules
-from e2e_lite.control.expert import Expert, WipedExpert
+from e2e_lite.control.expert import Expert, expert_labels
 from e2e_lite.control.oracle import Oracle
 from e2e_lite.control.rules import ExpertConfig, SpeedLimits, car_ahead, lane_clear, speed_profile
-from e2e_lite.control.state_expert import StateExpert, expert_labels
 from e2e_lite.driving.evaluation import EvalConfig, evaluate, observe
 from e2e_lite.learning.labels import CHANGE, KEEP, PASS
 from e2e_lite.simulation.geometry import RoadConfig, Track
 from e2e_lite.simulation.world import Fleet, TrafficConfig, World, WorldConfig, make_world
 
-#: both experts drive by the same rules: the course's, which carries its plan, and DAgger's
-#: labeller, which reads it off the state
-BOTH = pytest.mark.parametrize("kind", [Expert, StateExpert], ids=["expert", "state_expert"])
+#: the expert under every home-lane rule (the course's is ``ExpertConfig().home``)
+HOMES = pytest.mark.parametrize("home", rules.HOMES)
+
+
+def expert_of(home: str, **kw) -> Expert:
+    return Expert(ExpertConfig(home=home), **kw)
 
 
 def small_world_cfg() -> WorldConfig:
     return WorldConfig(road=RoadConfig(length_m=2_000.0), traffic=TrafficConfig())
 
 
-@BOTH
-def test_expert_drives_seeded_tracks_without_collision(kind):
+@HOMES
+def test_expert_drives_seeded_tracks_without_collision(home):
     cfg = small_world_cfg()
-    expert = kind()
+    expert = expert_of(home)
     res = evaluate(expert, cfg, EvalConfig(miles=6.0, n_worlds=4, n_tracks=4), progress=False)
     assert res.collisions == 0 and res.stalls == 0
     assert expert.manoeuvres["left"] > 0 and expert.manoeuvres["right"] > 0
     assert res.mean_speed_mph > 45.0
 
 
-@BOTH
-def test_both_sides_occur_when_both_are_free(kind):
+@pytest.mark.parametrize("home", ("own", "middle"))
+def test_both_sides_occur_when_both_are_free(home):
     """A parked car in the middle lane of a straight road: over many seeds the expert overtakes
-    on the left in some runs and on the right in others."""
+    on the left in some runs and on the right in others (keeping right, it prefers the right)."""
     world = straight_world([300.0], [1], length=1_000.0)
     cfg = WorldConfig()
     sides = []
     for seed in range(16):
         fleet = Fleet([world], cfg)
         fleet.place(0, 100.0, 0.0, 25.0)
-        expert = kind(seed=seed)
+        expert = expert_of(home, seed=seed)
         expert.reset(1)
         side = 0
         for k in range(120):
@@ -61,14 +63,15 @@ def test_both_sides_occur_when_both_are_free(kind):
     assert 0 not in sides
 
 
-@BOTH
-def test_trigger_distance_is_drawn_in_its_range(kind):
-    world = straight_world([400.0], [1], length=1_000.0)
+@HOMES
+def test_trigger_distance_is_drawn_in_its_range(home):
+    lane = 0 if home == "right" else 1  # (in its home lane, the car ahead in it)
+    world = straight_world([400.0], [lane], length=1_000.0)
     starts = []
     for seed in range(10):
         fleet = Fleet([world], WorldConfig())
-        fleet.place(0, 100.0, 0.0, 25.0)
-        expert = kind(seed=seed)
+        fleet.place(0, 100.0, float(world.track.lane_center(lane)), 25.0)
+        expert = expert_of(home, seed=seed)
         expert.reset(1)
         for k in range(200):
             obs = observe(fleet, respawned=k == 0)
@@ -84,13 +87,13 @@ def test_trigger_distance_is_drawn_in_its_range(kind):
     assert max(starts) - min(starts) > 5.0  # randomised, not one fixed distance
 
 
-@BOTH
-def test_blocked_expert_stops_behind_the_car(kind):
+@HOMES
+def test_blocked_expert_stops_behind_the_car(home):
     """Cars in all three lanes side by side: nothing is free, so it must stop, not crash."""
     world = straight_world([300.0, 302.0, 304.0], [0, 1, 2], length=1_000.0)
     fleet = Fleet([world], WorldConfig())
     fleet.place(0, 150.0, 0.0, 25.0)
-    expert = kind()
+    expert = expert_of(home)
     expert.reset(1)
     for k in range(300):
         act = expert.act(observe(fleet, respawned=k == 0))
@@ -99,35 +102,36 @@ def test_blocked_expert_stops_behind_the_car(kind):
     assert fleet.state[0, 3] < 0.5 and s[0] < 300.0 - 2.25 - 3.6
 
 
-@BOTH
-def test_label_on_a_straight_empty_road_is_constant_speed_points(kind):
+@HOMES
+def test_label_on_a_straight_empty_road_is_constant_speed_points(home):
     world = straight_world([], [], length=1_000.0)
     fleet = Fleet([world], WorldConfig())
     v = ExpertConfig().top_speed_mps
-    fleet.place(0, 100.0, 0.0, v)
-    expert = kind()
+    d = float(world.track.lane_center(0 if home == "right" else 1))  # (its home lane)
+    fleet.place(0, 100.0, d, v)
+    expert = expert_of(home)
     expert.reset(1)
     label = expert.trajectory_label(observe(fleet, respawned=True))
     expected = np.stack([v * 0.3 * np.arange(1, 6), np.zeros(5)], axis=-1)
     np.testing.assert_allclose(label[0], expected, atol=1e-6)
 
 
-@BOTH
-def test_label_is_the_clean_rollout_not_the_noisy_future(kind):
+@HOMES
+def test_label_is_the_clean_rollout_not_the_noisy_future(home):
     """Drive 1.5 s with a steering offset: the label taken at the start equals a noise-free
     replay, and differs from where the noisy car actually went."""
     world = straight_world([], [], length=1_000.0)
     cfg = WorldConfig()
     fleet = Fleet([world], cfg)
     fleet.place(0, 100.0, 0.0, 22.0)
-    expert = kind()
+    expert = expert_of(home)
     expert.reset(1)
     obs0 = observe(fleet, respawned=True)
     label = expert.trajectory_label(obs0)[0]
     # noise-free replay with the real machinery
     replay_fleet = Fleet([world], cfg)
     replay_fleet.place(0, 100.0, 0.0, 22.0)
-    replay = kind()
+    replay = expert_of(home)
     replay.reset(1)
     noisy_xy, clean_xy = [], []
     for k in range(15):
@@ -167,7 +171,7 @@ def test_expert_labels_with_kept_speed_limits_are_the_same_and_profile_each_trac
     assert np.abs(plain[0][:, -1, 0]).min() > 10.0  # (the cars drive: a real label)
 
 
-@pytest.mark.parametrize("home", StateExpert.HOMES)
+@HOMES
 def test_a_label_depends_on_the_state_alone(home):
     """The same state, reached after two different histories (the expert's own drive, and a car
     placed there by hand before a new expert's first decision), gets the same label and the same
@@ -177,7 +181,7 @@ def test_a_label_depends_on_the_state_alone(home):
     cfg = WorldConfig()
     fleet = Fleet([world], cfg)
     fleet.place(0, 100.0, 0.0, 25.0)
-    expert = StateExpert(seed=3, home=home)
+    expert = expert_of(home, seed=3)
     expert.reset(1)
     seen = {}
     for k in range(200):
@@ -194,7 +198,7 @@ def test_a_label_depends_on_the_state_alone(home):
     for car_state, seg, label, decision in seen.values():
         other = Fleet([world], cfg)
         other.state[0], other.seg[0] = car_state, seg
-        fresh = StateExpert(seed=3, home=home)
+        fresh = expert_of(home, seed=3)
         fresh.reset(1)
         obs = observe(other, respawned=True)
         np.testing.assert_array_equal(fresh.trajectory_label(obs), label)
@@ -202,8 +206,8 @@ def test_a_label_depends_on_the_state_alone(home):
         assert fresh.decisions[0] == decision
 
 
-def test_the_state_experts_home_lane_is_the_middle_its_own_or_the_rightmost():
-    """In a side lane with nothing ahead, the state expert heads home to the middle lane (a return:
+def test_the_experts_home_lane_is_its_own_the_middle_or_the_rightmost():
+    """In a side lane with nothing ahead, the expert heads home to the middle lane (a return:
     a change, not an overtake); with ``home="own"`` it keeps the lane it is in; with
     ``home="right"`` it keeps the rightmost lane and heads there from the leftmost one lane at a
     time. Each drives validation roads without a collision when the tracker follows its labels."""
@@ -212,8 +216,8 @@ def test_the_state_experts_home_lane_is_the_middle_its_own_or_the_rightmost():
     for lane in (0, 2):
         fleet = Fleet([world], WorldConfig())
         fleet.place(0, 100.0, float(world.track.lane_center(lane)), 25.0)
-        for home in StateExpert.HOMES:
-            expert = StateExpert(seed=3, home=home)
+        for home in rules.HOMES:
+            expert = expert_of(home, seed=3)
             expert.reset(1)
             expert.act(observe(fleet, respawned=True))
             found[home, lane] = expert.decisions[0]
@@ -226,26 +230,20 @@ def test_the_state_experts_home_lane_is_the_middle_its_own_or_the_rightmost():
     assert not found["right", 2].overtaking
     ev = EvalConfig(miles=4.0, n_worlds=8, split="val")
     for home in ("own", "right"):
-        res = evaluate(Oracle(StateExpert(home=home)), small_world_cfg(), ev, progress=False)
+        res = evaluate(Oracle(expert_of(home)), small_world_cfg(), ev, progress=False)
         assert res.collisions == 0, home
-    with pytest.raises(ValueError, match="home"):
-        StateExpert(home="left")
+    with pytest.raises(ValueError, match=r"ExpertConfig\.home"):
+        ExpertConfig(home="left")
 
 
-def test_the_oracle_on_either_experts_labels_drives_as_the_expert_and_a_wiped_memory_does_not():
+def test_the_oracle_on_the_experts_labels_drives_as_the_expert():
     """A label is a driver: the tracker following the expert's labels at every decision (the
-    oracle), or the state expert's (DAgger's labeller), drives validation roads without a
-    collision, as the expert does; the tracker following the expert's labels with its memory
-    wiped at every decision (chapter 12's old labeller: every plan restarted in keep) runs into
-    parked cars on the same roads."""
+    oracle) drives validation roads without a collision, as the expert does."""
     cfg = small_world_cfg()
     ev = EvalConfig(miles=4.0, n_worlds=8, split="val")
     expert = evaluate(Expert(), cfg, ev, progress=False, workers=1)
     oracle = evaluate(Oracle(Expert()), cfg, ev, progress=False, workers=1)
-    labeller = evaluate(Oracle(StateExpert()), cfg, ev, progress=False, workers=1)
-    wiped = evaluate(Oracle(WipedExpert()), cfg, ev, progress=False, workers=1)
-    assert expert.collisions == 0 and oracle.collisions == 0 and labeller.collisions == 0
-    assert wiped.collisions >= 3
+    assert expert.collisions == 0 and oracle.collisions == 0
 
 
 def test_oracle_follows_the_labels_without_collision():
@@ -324,12 +322,12 @@ def test_the_expert_and_the_oracle_drive_alike_in_any_shards_and_count_their_man
 
 
 def test_a_return_is_recorded_with_the_side_it_moves_to():
-    """What the data records of the expert's decisions: the overtake's side, then the return's,
-    which moves the other way (a plan keeps its overtake's side in ``Plan.side``)."""
+    """What the data records of the expert's decisions (home: the middle lane): the overtake's
+    side, then the return's, which moves the other way."""
     world = straight_world([300.0], [1], length=1_000.0)
     fleet = Fleet([world], WorldConfig())
     fleet.place(0, 100.0, 0.0, 25.0)
-    expert = Expert(seed=1)
+    expert = expert_of("middle", seed=1)
     expert.reset(1)
     changes = []
     for k in range(400):

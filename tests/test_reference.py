@@ -55,6 +55,11 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
 * 2026-11-30, ``witness`` 3 only: the anatomy's witness keeps each car's ordinary moments at a
   phase of its own, and none of a car whose share is driven, the same for any number of shards;
   the reference holds no witnessed drive, so every entry is unchanged.
+* 2026-12-07, every entry but the lane keeper's, with ``dataset`` 8 and ``evaluation`` 5 (issue
+  88, lab note "One expert for the whole course"): one expert, its plan read off the state and
+  its own lane its home, drives and labels everything; the second label is gone from the data.
+  The quick dataset, the expert's drive and the trained networks changed. Recorded on the
+  project's 2-core AMD EPYC.
 """
 
 from __future__ import annotations

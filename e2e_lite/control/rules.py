@@ -15,6 +15,9 @@ from ..config import check_pair, check_range
 from ..simulation.geometry import Track
 from ..simulation.world import World
 
+#: the expert's home-lane rules (:attr:`ExpertConfig.home`)
+HOMES = ("own", "middle", "right")
+
 
 @dataclass(frozen=True)
 class ExpertConfig:
@@ -42,6 +45,11 @@ class ExpertConfig:
             ``follow_margin_m`` behind the next parked car in the lane it is heading for, braking at
             this rate [m/s^2].
         lookahead_m: range of the gap search [m].
+        home: the lane it keeps when no parked car holds it out, one of :data:`HOMES`:
+            ``"own"``, the lane it is in (it never returns: every lane change is an overtake);
+            ``"middle"``, back to the middle lane once past; ``"right"``, back to the rightmost
+            lane once past and free, one lane at a time, as a driver keeps right (lab note
+            "One expert for the whole course" measures the three).
     """
 
     top_speed_mps: float = 25.0
@@ -57,9 +65,12 @@ class ExpertConfig:
     follow_margin_m: float = 15.0
     approach_brake_mps2: float = 3.0
     lookahead_m: float = 150.0
+    home: str = "own"
 
     def __post_init__(self) -> None:
         o = "ExpertConfig"
+        if self.home not in HOMES:
+            raise ValueError(f"{o}.home={self.home!r} is invalid: must be one of {HOMES}")
         check_range(o, "top_speed_mps", self.top_speed_mps, 0.0, 60.0, lo_open=True)
         check_range(o, "max_lat_accel_mps2", self.max_lat_accel_mps2, 0.0, 10.0, lo_open=True)
         check_range(o, "curve_brake_mps2", self.curve_brake_mps2, 0.0, 10.0, lo_open=True)

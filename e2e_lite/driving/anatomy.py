@@ -5,8 +5,8 @@ A driver drives inside :class:`Witness`, which keeps each car's last :data:`HIST
 (and the driver's plans, when it has them) and, at every collision, files them as a
 :class:`Collision`. Then, from those states alone:
 
-* **the latest savable moment** (:func:`savable`): the expert that reads its plan off the state
-  (:class:`~e2e_lite.control.state_expert.StateExpert`, DAgger's labeller) takes the car over at
+* **the latest savable moment** (:func:`savable`): the expert, whose plan is read off the state
+  (:class:`~e2e_lite.control.expert.Expert`), takes the car over at
   0.5, 1, 2, 3 and 5 s before the impact, from the very state the car was in (the world is
   deterministic and its decision a function of the state), and drives on: does it avoid it?
 * **the tracker's share** (:func:`plan_collides`): would the driver's own plans of the last
@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from ..artifacts import load_json, save_json
-from ..control.state_expert import StateExpert
+from ..control.expert import Expert
 from ..learning.labels import CHANGE, FOLLOW, interpolated_path
 from ..simulation.policy import Actuation, Observation, Policy, observe
 from ..simulation.world import Fleet, World, WorldConfig, make_world
@@ -305,10 +305,10 @@ def drive_from(
 def savable(
     c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = None
 ) -> dict[float, bool | None]:
-    """For each of :data:`HAND_OVER_S` [s]: does ``hand_over`` (default the state expert), taking
+    """For each of :data:`HAND_OVER_S` [s]: does ``hand_over`` (default the expert), taking
     the car over that long before the impact, avoid it for :data:`AFTER_S` past it? ``None``
     where the moments do not reach that far back (the car was placed less long before it)."""
-    expert = hand_over or StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    expert = hand_over or Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
     period = world_cfg.sim.policy_period_s
     out = {}
     for t in HAND_OVER_S:
@@ -355,7 +355,7 @@ def _observe_moment(moment: Moment, world_cfg: WorldConfig) -> Observation:
     return observe(fleet, respawned=True)
 
 
-def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: StateExpert) -> np.ndarray:
+def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: Expert) -> np.ndarray:
     """Per moment, the largest distance over the 5 points between the driver's plan and the
     expert's label at the same state [m] (NaN where the driver had no plan)."""
     out = np.full(len(moments), np.nan)
@@ -366,7 +366,7 @@ def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: StateExp
     return out
 
 
-def kind(c: Collision, world_cfg: WorldConfig, expert: StateExpert, window_s: float = 3.0) -> str:
+def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float = 3.0) -> str:
     """What kind of collision ``c`` was (:data:`KINDS`), from its last ``window_s``: a rail; the
     parked car in another lane than the car's at the window's start (into an occupied lane); the
     expert, at those states, changing lanes where the driver's plans kept to the lane (missed) or
@@ -398,8 +398,8 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: StateExpert, window_s: fl
 
 def dissect(c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = None) -> Collision:
     """Fill ``c``'s findings: the hand-overs that save it (to ``hand_over``, default the
-    state expert), whether its plans hit, the plans' disagreement with its labels, its kind."""
-    expert = StateExpert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
+    expert), whether its plans hit, the plans' disagreement with its labels, its kind."""
+    expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
     c.contact, c.parked = contact(c.moments[-1], world_cfg)
     c.saved = savable(c, world_cfg, hand_over or expert)
     period = world_cfg.sim.policy_period_s

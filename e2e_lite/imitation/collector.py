@@ -29,7 +29,6 @@ from ..config import Profile, check_range, default_workers, tqdm
 from ..control.affordances import affordances
 from ..control.expert import Expert
 from ..control.rules import ExpertConfig
-from ..control.state_expert import StateExpert, check_home
 from ..driving.evaluation import shard_cars
 from ..driving.metrics import ShardResult, merge_shards
 from ..driving.parallel import drive_in_processes, pinned_threads
@@ -70,11 +69,7 @@ class DataConfig:
             other car and no earlier lap drove, from ``first_track`` on: fresh roads).
         n_worlds: cars driven in lockstep.
         world: roads, traffic, car, time steps.
-        expert: the expert's settings.
-        driver: who drives and labels: ``"expert"``, the course's expert, which carries its plan
-            (:class:`~e2e_lite.control.expert.Expert`, chapter 04's data), or ``"state"``, the
-            one that reads its plan off the state (DAgger's rounds and their control, chapter
-            12). Every sample also holds the latter's label (``state_trajectory``).
+        expert: the expert's settings (its home lane among them), who drives and labels.
         noise: the noise bursts.
         camera: the camera (66 x 200 by default).
         restart_rate_per_s: take-overs per second of driving [1/s], re-placing the car as the
@@ -83,12 +78,10 @@ class DataConfig:
         seed: seeds the expert's draws, the noise and the start lanes.
         first_track: index of the split's first track the cars drive (DAgger's rounds and their
             control drive fresh training roads, chapter 12).
-        home_lane: the state expert's home lane (:class:`~e2e_lite.control.state_expert.
-            StateExpert`'s ``home``): ``"middle"``, ``"own"`` or ``"right"``.
     """
 
     #: added after the course's datasets were keyed: at their defaults those keys stay
-    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("first_track", "home_lane")
+    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("first_track",)
 
     split: str = "train"
     n_samples: int = 48_000
@@ -96,21 +89,16 @@ class DataConfig:
     n_worlds: int = 16
     world: WorldConfig = field(default_factory=WorldConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
-    driver: str = "expert"
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     restart_rate_per_s: float = 0.05
     seed: int = 0
     first_track: int = 0
-    home_lane: str = "middle"
 
     def __post_init__(self) -> None:
         o = "DataConfig"
-        check_home(o, "home_lane", self.home_lane)
         if self.split not in ("train", "val"):
             raise ValueError(f"{o}.split={self.split!r} is invalid: must be 'train' or 'val'")
-        if self.driver not in ("expert", "state"):
-            raise ValueError(f"{o}.driver={self.driver!r} is invalid: must be 'expert' or 'state'")
         check_range(o, "n_samples", self.n_samples, 1, integer=True)
         if self.n_tracks is not None:
             check_range(o, "n_tracks", self.n_tracks, 1, integer=True)
@@ -154,10 +142,9 @@ def car_quotas(cfg: DataConfig) -> np.ndarray:
 
 @dataclass(frozen=True)
 class OnPolicy:
-    """A DAgger collection (chapter 12), passed to :func:`collect` with ``driver="state"``:
-    ``learner`` drives, the state expert executing a share ``beta`` of the decisions and labelling
-    every state (its label is a function of the state, so it labels the learner's states as its
-    own; the course's expert has no plan for a state it did not drive into)."""
+    """A DAgger collection (chapter 12), passed to :func:`collect`: ``learner`` drives, the expert
+    executing a share ``beta`` of the decisions and labelling every state (its label is a
+    function of the state, so it labels the learner's states as its own)."""
 
     learner: Any
     beta: float = 1.0
@@ -198,14 +185,7 @@ class _Recorder:
         self.mix_rngs = [car_rng(cfg.seed, 29, int(c)) for c in cars]
         self.camera = cfg.camera
         world = cfg.world
-        self.labeller = StateExpert(
-            cfg.expert, vehicle=world.vehicle, sim=world.sim, seed=cfg.seed, home=cfg.home_lane
-        )
-        self.expert = (  # who drives and labels; the state expert's labels lie beside its own
-            self.labeller
-            if cfg.driver == "state"
-            else Expert(cfg.expert, vehicle=world.vehicle, sim=world.sim, seed=cfg.seed)
-        )
+        self.expert = Expert(cfg.expert, vehicle=world.vehicle, sim=world.sim, seed=cfg.seed)
         self.quota = car_quotas(cfg)[cars]
         self.offset = np.concatenate([[0], np.cumsum(self.quota)[:-1]])  # car i's first row
         self.count = np.zeros(len(cars), dtype=np.int64)
@@ -238,8 +218,7 @@ class _Recorder:
         return self.count >= self.quota
 
     def act(self, obs: Observation) -> Actuation:
-        traj = self.expert.trajectory_label(obs)  # (the expert's plans before it acts)
-        relabel = traj if self.labeller is self.expert else self.labeller.trajectory_label(obs)
+        traj = self.expert.trajectory_label(obs)
         clean = self.expert.act(obs)
         u = np.stack([r.random(self.DRAWS) for r in self.rngs])  # (B, DRAWS) in [0, 1)
         self.bursts.update(u, obs.speed)
@@ -250,7 +229,7 @@ class _Recorder:
         if len(rows):
             if learned is not None:
                 self._record_learner(learned, traj, rows)
-            self._record(obs, clean, traj, relabel, rows)
+            self._record(obs, clean, traj, rows)
         period = self.cfg.world.sim.policy_period_s
         deep = self.bursts.slow_to > 0  # braked whatever the expert commands
         steer, accel = clean.steer_rad, clean.accel_mps2
@@ -294,21 +273,18 @@ class _Recorder:
         obs: Observation,
         clean: Actuation,
         traj: np.ndarray,
-        relabel: np.ndarray,
         t: np.ndarray,
     ) -> None:
         """Record cars ``t`` (rows of ``obs``), each at its next row of the arrays (``traj``: the
-        driver's labels, ``relabel``: the state expert's)."""
+        expert's labels)."""
         sl = self.offset[t] + self.count[t]
-        every = self.expert.decisions  # (read once: the expert's is built from its plans)
-        a, decisions = self.a, [every[i] for i in t.tolist()]
+        a, decisions = self.a, [self.expert.decisions[i] for i in t.tolist()]
         worlds = [obs.worlds[i] for i in t.tolist()]
         a["images"][sl] = obs.images[t]
         a["speed"][sl] = obs.speed[t]
         a["actuators"][sl, 0] = clean.steer_rad[t]
         a["actuators"][sl, 1] = clean.accel_mps2[t]
         a["trajectory"][sl] = traj[t]
-        a["state_trajectory"][sl] = relabel[t]
         a["affordances"][sl] = affordances(worlds, obs.s[t], obs.d[t], obs.heading_error[t])
         a["track"][sl] = [w.track.track_id[1] for w in worlds]
         a["s"][sl], a["d"][sl] = obs.s[t], obs.d[t]
@@ -359,8 +335,6 @@ def collect(
     if workers is None:  # every core, but no worker for fewer samples than its start is worth
         workers = min(default_workers(), max(1, cfg.n_samples // MIN_SAMPLES_PER_WORKER))
     check_range("collect", "workers", workers, 1, integer=True)
-    if on_policy is not None and cfg.driver != "state":
-        raise ValueError("an on-policy collection needs driver='state' (OnPolicy)")
     bar = tqdm(
         total=cfg.n_samples,
         desc=f"collect {cfg.split}",
@@ -414,11 +388,9 @@ def collect(
 
 
 def dataset_path(cfg: DataConfig, name: str | None = None) -> Path:
-    """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz`` (with
-    ``-home-<home_lane>`` when the state expert's home is not the middle lane), or
+    """Where the dataset of ``cfg`` is stored: ``<outputs>/data/<split>-<n>.npz``, or
     ``<outputs>/data/<name>.npz`` for a variant kept beside it."""
-    home = "" if cfg.home_lane == "middle" else f"-home-{cfg.home_lane}"
-    return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}{home}'}.npz")
+    return artifact_path("data", f"{name or f'{cfg.split}-{cfg.n_samples}'}.npz")
 
 
 def load_or_collect(

@@ -7,10 +7,9 @@ states the expert never showed, where it errs more: over a horizon of T decision
 can grow as ``eps T^2``. Training on the learner's own states, labelled by the expert, bounds
 them by ``eps T`` (their Theorem 3.1). Four things make the course's rounds the theory's:
 
-* **one labeller**: the expert that reads its plan off the state, whose label is a function of
-  the state alone (:mod:`e2e_lite.control.state_expert`), labels every round, and relabels
-  chapter 04's data (:func:`~e2e_lite.learning.dataset.relabelled`, as Learning by Cheating
-  relabels its buffer): every sample a fine-tune draws carries its label;
+* **one labeller**: the course's expert, whose label is a function of the state alone
+  (:mod:`e2e_lite.control.expert`), labelled chapter 04's data and labels every round: every
+  sample a fine-tune draws carries its label;
 * **rare states reached**: a round drives :attr:`DaggerConfig.drive` times more decisions than
   it keeps, and keeps the states where the network's plan and the expert's disagree most and the
   seconds before each collision (:func:`gate`: Prakash et al.'s filter, HG-DAgger's gate);
@@ -21,29 +20,26 @@ them by ``eps T`` (their Theorem 3.1). Four things make the course's rounds the 
   leave the lane centre no more often than the start, is kept (:func:`kept_iterate`).
 
 Three arms (:data:`ARMS`) differ in one thing each. ``dagger``: the network drives.
-``control``: the state expert drives, with white noise on its commands fitted to the network's
+``control``: the expert drives, with white noise on its commands fitted to the network's
 measured command error (DART, Laskey et al. 2017, :func:`dart_noise`), gated, labelled and
 aggregated the same way: only the states differ. ``no_new_data``: the same fine-tunes on chapter
-04's data alone, relabelled, which says what the fine-tunes themselves do (the start network
-learned the course's expert; every arm's fine-tunes learn the state expert's labels). Every round
+04's data alone, which says what the fine-tunes themselves do. Every round
 of every arm stores its samples and its network (:class:`RoundSpec`), so a cut run goes on where
 it stopped.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from ..artifacts import added_later, artifact_path, cached, seeded, settings_key
 from ..config import Profile, check_range
-from ..control.state_expert import check_home
 from ..driving.rollout import EvalConfig, disjoint_runs
 from ..learning.checkpoints import train_or_load, training_data_key
-from ..learning.dataset import DrivingData, allocate, relabelled
+from ..learning.dataset import DrivingData, allocate
 from ..learning.labels import AFFORDANCE_INDEX
 from ..learning.models import DrivingModel
 from ..simulation.world import WorldConfig
@@ -56,7 +52,6 @@ from .collector import (
     OnPolicy,
     collect,
     load_dataset,
-    load_or_collect,
     save_dataset,
 )
 
@@ -94,13 +89,7 @@ class DaggerConfig:
             first round, the expert alone, is chapter 04's data).
         val_miles: validation miles every iterate of a seed drives, to be chosen on [mi].
         dart_scale: the control's DART noise over the network's measured command errors.
-        home_lane: the state expert's home lane, for every label the fine-tunes learn (the
-            rounds' and chapter 04's relabelled data): ``"middle"`` (the course's), ``"own"`` or
-            ``"right"`` (lab note "The drift comes mostly with the home lane").
     """
-
-    #: added after the course's rounds were stored: at their defaults their names stay
-    KEY_DEFAULTS_OMITTED: ClassVar[tuple[str, ...]] = ("home_lane",)
 
     rounds: int = 4
     samples: int = 8_000
@@ -110,11 +99,9 @@ class DaggerConfig:
     beta: float = 0.0
     val_miles: float = 25.0
     dart_scale: float = 1.0
-    home_lane: str = "middle"
 
     def __post_init__(self) -> None:
         o = "DaggerConfig"
-        check_home(o, "home_lane", self.home_lane)
         check_range(o, "rounds", self.rounds, 1, 20, integer=True)
         check_range(o, "samples", self.samples, 1, integer=True)
         check_range(o, "drive", self.drive, 1.0, 100.0)
@@ -181,8 +168,6 @@ class RoundSpec:
             seed=1_000 + self.seed,
             noise=noise or NoiseConfig(rate_per_s=0.0),
             restart_rate_per_s=0.0,
-            driver="state",
-            home_lane=self.cfg.home_lane,
         )
 
     @property
@@ -363,31 +348,6 @@ class Round:
     collection: dict[str, Any]
 
 
-def relabel_source(
-    profile: Profile, train: DrivingData, val: DrivingData, home_lane: str
-) -> tuple[DrivingData, DrivingData]:
-    """The data whose state expert's labels the fine-tunes learn: ``train`` and ``val`` for the
-    course's middle home; for another, ``train`` and ``val`` with that home's state labels (from
-    chapter 04's data of the profile collected with it and stored as its own files: the same
-    states, so only its labels are kept, beside these arrays, under its key)."""
-    if home_lane == "middle":
-        return train, val
-    out = []
-    for split, data in (("train", train), ("val", val)):
-        cfg = DataConfig.for_profile(profile, split)
-        if data.info.get("key") != cfg.key:
-            raise ValueError(
-                f"home_lane={home_lane!r} relabels the profile's own chapter 04 {split} data; "
-                "this one was collected with other settings"
-            )
-        other = load_or_collect(dataclasses.replace(cfg, home_lane=home_lane))
-        if not np.array_equal(other.trajectory, data.trajectory):
-            raise ValueError(f"the {split} data of home_lane={home_lane!r} drove other states")
-        labels = {"state_trajectory": other.arrays["state_trajectory"]}
-        out.append(DrivingData({**data.arrays, **labels}, dict(data.stats), other.info))
-    return out[0], out[1]
-
-
 #: what :func:`run` returns: the start network, and each arm's rounds
 Run = tuple[DrivingModel, dict[str, list[Round]]]
 
@@ -411,9 +371,8 @@ def run(
     start_name = recipes.seeded_name("09_gmm_affordance_cvar", seed)
     objective, tcfg = recipes.finetune_settings(profile, weight, seed, "mean")
     out: dict[str, list[Round]] = {}
-    old, val_state = (relabelled(d) for d in relabel_source(profile, train, val, cfg.home_lane))
     for arm in arms:
-        aggregate, parent, model = [old], start_name, start
+        aggregate, parent, model = [train], start_name, start
         parent_key = training_data_key(train, val)
         rounds = []
         for r in range(cfg.rounds):
@@ -431,7 +390,7 @@ def run(
                 tcfg,
                 objective,
                 data,
-                val_state,
+                val,
                 init_from=parent,
                 parent_data_key=parent_key,
                 carry_optimizer=True,
@@ -442,6 +401,6 @@ def run(
             rounds.append(
                 Round(arm, r + 1, kept, size, shift, found, spec.network_name, model, collection)
             )
-            parent, parent_key = spec.network_name, training_data_key(data, val_state)
+            parent, parent_key = spec.network_name, training_data_key(data, val)
         out[arm] = rounds
     return start, out

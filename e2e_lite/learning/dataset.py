@@ -8,10 +8,9 @@ collector's arrays (:func:`allocate`) and :func:`synthetic_data` are all made fr
 
 Labels are clean: the actuator label is the expert's command from the recorded state *before*
 the noise is added, and the trajectory is what the expert would drive from that state without
-noise (:meth:`~e2e_lite.control.expert.Expert.trajectory_label`), not the noisy future; beside
-it, ``state_trajectory`` is what the expert that reads its plan off the state labels there
-(DAgger's labeller, :func:`relabelled`). Throttle and brake (seed 002's outputs) are recoverable
-from the acceleration label (:func:`~e2e_lite.learning.labels.throttle_brake`).
+noise (:meth:`~e2e_lite.control.expert.Expert.trajectory_label`), not the noisy future. Throttle
+and brake (seed 002's outputs) are recoverable from the acceleration label
+(:func:`~e2e_lite.learning.labels.throttle_brake`).
 """
 
 from __future__ import annotations
@@ -45,12 +44,6 @@ SCHEMA: dict[str, tuple[tuple, type, str]] = {
         np.float32,
         "the expert's noise-free rollout, rear axle in the car frame at 0.3 ... 1.5 s [m] "
         "(x forward, y left)",
-    ),
-    "state_trajectory": (
-        (N_POINTS, POINT_DIMS),
-        np.float32,
-        "the same rollout by the expert that reads its plan off the state (control.state_expert: "
-        "DAgger's labeller)",
     ),
     "affordances": ((len(AFFORDANCE_NAMES),), np.float32, "see labels.AFFORDANCE_NAMES"),
     "track": ((), np.int32, "the track index within the split"),
@@ -245,15 +238,6 @@ def concat(first: DrivingData, second: DrivingData) -> DrivingData:
     return DrivingData(arrays, dict(first.stats), info)
 
 
-def relabelled(data: DrivingData) -> DrivingData:
-    """``data`` with the state expert's labels as its trajectories (``state_trajectory``), as
-    Learning by Cheating relabels its whole buffer with one teacher: DAgger's fine-tunes learn one
-    labeller on old and new samples alike (chapter 12). Statistics (normalisation) kept."""
-    arrays = {**data.arrays, "trajectory": data.arrays["state_trajectory"]}
-    info = {**data.info, "key": settings_key(data.info["key"], "relabelled by the state expert")}
-    return DrivingData(arrays, dict(data.stats), info)
-
-
 def synthetic_data(n: int = 64, seed: int = 0) -> DrivingData:
     """Random frames and plausible random labels with every field of a real dataset: for tests and
     speed benchmarks that must not depend on a collected dataset (nothing to learn in it)."""
@@ -264,7 +248,6 @@ def synthetic_data(n: int = 64, seed: int = 0) -> DrivingData:
     arrays["actuators"][:] = np.stack([rng.normal(0, 0.02, n), rng.normal(0, 1, n)], 1)
     ahead = np.array([7.5, 0.0]) * np.arange(1, N_POINTS + 1)[:, None]  # 7.5 m per point
     arrays["trajectory"][:] = rng.normal(0, 1, (n, N_POINTS, POINT_DIMS)) + ahead
-    arrays["state_trajectory"][:] = arrays["trajectory"]
     arrays["affordances"][:] = rng.normal(0, 1, (n, len(AFFORDANCE_NAMES)))
     return DrivingData(
         arrays, dataset_stats(arrays), {"key": f"synthetic-{seed}-{n}", "split": "train"}

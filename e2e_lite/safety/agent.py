@@ -19,8 +19,8 @@ import numpy as np
 
 from ..config import check_range
 from ..control.affordances import affordances
+from ..control.expert import expert_labels
 from ..control.rules import ExpertConfig, SpeedLimits
-from ..control.state_expert import expert_labels
 from ..simulation.policy import Actuation, Observation, fingerprint
 from ..simulation.world import SimConfig
 from .rule import RESULTS_VERSION, SafetyConfig, check, choose
