@@ -79,8 +79,9 @@ witnessed = [
     for k, start in zip(seeds, starts)
 ]  # per seed: (collisions, ordinary moments), stored and reused like a drive's result
 collisions = [c for hits, _ in witnessed for c in hits][: 8 if profile.quick else None]
+level = anatomy.ordinary_change_weight([m for _, moments in witnessed for m in moments])
 for c in collisions:
-    anatomy.dissect(c, world_cfg)
+    anatomy.dissect(c, world_cfg, ordinary_level=level)
 found = anatomy.table(collisions)
 print(f"{len(seeds)} seeds x {miles:g} mi of validation roads: {found['collisions']} collisions")
 tried = {t: found["collisions"] - n for t, n in found["untried_by_hand_over"].items()}
@@ -93,6 +94,31 @@ print(
     f"{found['plan_clear']} of {found['collisions']}"
 )
 print("kinds: " + ", ".join(f"{kind} {n}" for kind, n in found["kinds"].items()))
+
+# %% [markdown]
+# A lane change begun late can start late in three places (`anatomy.late_change`): **seeing**
+# (at the moment the expert, from the same state, begins the overtake, the network shows no sign
+# of the parked car: its lane-changing modes weigh no more than in ordinary driving), **deciding**
+# (they weigh more, but the plan it follows keeps the lane) or **following** (the plan began the
+# change in time, and the car still hit). The parked car's gap and its width on the 66 x 200
+# camera at the expert's start say how much of it there was to see.
+
+# %%
+late = found["late_changes"]
+
+
+def at(value: float | None, unit: str) -> str:
+    return "-" if value is None else f"{value:.1f} {unit}"
+
+
+print(
+    f"late lane changes {late['n']}: " + ", ".join(f"{p} {n}" for p, n in late["parts"].items())
+)
+print(
+    f"medians: the expert began {at(late['expert_start_s'], 's')} before the impact, the plan "
+    f"{at(late['plan_start_s'], 's')} ({late['never_planned']} never); at the expert's start "
+    f"the car was {at(late['gap_m'], 'm')} ahead, {at(late['width_px'], 'px')} wide on the camera"
+)
 
 # %%
 expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)

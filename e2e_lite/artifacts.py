@@ -376,8 +376,9 @@ ARTIFACT_VERSIONS = {
     "head-refit": 1,
     # what a witnessed drive keeps (chapter 12's anatomy: ``driving.anatomy.Witness``); 2: its
     # ordinary moments counted over all cars (a short drive's cars kept none); 3: each car's at a
-    # phase of its own, and no car after its share (the same moments for any number of shards)
-    "witness": 3,
+    # phase of its own, and no car after its share (the same moments for any number of shards);
+    # 4: a mixture's mode ends and weights at each moment (the late lane change's split)
+    "witness": 4,
     "recovery": 1,
 }
 

@@ -236,6 +236,43 @@ def test_the_anatomy_redrives_a_collision_to_the_same_step_and_hands_it_to_the_e
     assert c.saved[max(c.saved)] and c.latest_savable_s is not None
 
 
+def test_a_late_lane_change_is_split_into_seeing_deciding_and_following():
+    """The anatomy's split of a lane-change collision (issue 88, item 3): the expert, from the
+    car's states, begins its overtake some seconds before the impact with the parked car ahead
+    and on the camera; a plan that begins the change with it is *following*; a plan that keeps
+    the lane while the lane-changing modes weigh more than ordinary driving's is *deciding*, no
+    more is *seeing*; a driver with no modes cannot tell the two apart."""
+    from e2e_lite.driving import anatomy
+    from e2e_lite.driving.evaluation import EvalConfig, evaluate
+
+    witness = anatomy.Witness(LaneKeeper(), WORLD.sim.policy_period_s)
+    evaluate(witness, WORLD, EvalConfig(miles=2.0, n_worlds=4, split="val"), progress=False)
+    c = anatomy.dissect(witness.collisions[0], WORLD)
+    assert c.kind == "lane change missed" and c.late.part == "seeing or deciding"
+    assert c.late.plan_start_s is None and c.late.expert_start_s > 1.0
+    assert 0.0 < c.late.gap_m < 80.0 and c.late.width_px > 2.0  # (a car a few px wide)
+    table = anatomy.table([c])["late_changes"]
+    assert table["n"] == 1 and table["parts"]["seeing or deciding"] == 1
+    start = len(c.moments) - round(c.late.expert_start_s / WORLD.sim.policy_period_s)
+    straight = np.stack([np.arange(1, 6) * 7.5, np.zeros(5)], axis=1)
+    turning = straight + np.array([0.0, 3.7]) * np.linspace(0.2, 1.0, 5)[:, None]
+    expert = anatomy.Expert(vehicle=WORLD.vehicle, sim=WORLD.sim)
+
+    def split(plan_from: int, change_weight: float, level: float) -> str:
+        for k, m in enumerate(c.moments):
+            m.plan = turning if k >= plan_from else straight
+            m.mode_ends, m.weights = (
+                np.array([0.0, 3.7]),
+                np.array([1 - change_weight, change_weight]),
+            )
+        return anatomy.late_change(c, WORLD, expert, level).part
+
+    assert split(start, 0.1, 0.2) == "following"
+    assert split(len(c.moments), 0.4, 0.2) == "deciding"
+    assert split(len(c.moments), 0.1, 0.2) == "seeing"
+    assert anatomy.ordinary_change_weight(c.moments) == pytest.approx(0.1)
+
+
 def test_a_witnessed_drive_is_stored_and_read_back_to_the_same_collisions_and_findings(
     monkeypatch, tmp_path
 ):

@@ -15,7 +15,14 @@ A driver drives inside :class:`Witness`, which keeps each car's last :data:`HIST
 * **how far the plans lay apart** (:func:`disagreement`): the driver's plan against that
   expert's label at the same states, over the seconds before the impact, beside ordinary driving;
 * **the kind** (:func:`kind`): a rail, or a parked car hit by a lane change missed, late or
-  into an occupied lane, by braking short, or other.
+  into an occupied lane, by braking short, or other;
+* **which part of a late lane change starts late** (:func:`late_change`, for the two lane-change
+  kinds): when the expert, from the same states, begins the change, and when the driver's plan
+  does; the parked car's distance and its width on the camera at the expert's start; the
+  mixture's weight on its lane-changing modes over the last seconds. *Following*: the plan began
+  the change in time and the car still hit; *deciding*: the plan began late, but at the expert's
+  start the lane-changing modes already weighed more than in ordinary driving (seen, not taken);
+  *seeing*: neither (the network showed no sign of the car there).
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import numpy as np
 from ..artifacts import load_json, save_json
 from ..control.expert import Expert
 from ..learning.labels import CHANGE, FOLLOW, interpolated_path
+from ..simulation.camera import Camera, CameraConfig
 from ..simulation.policy import Actuation, Observation, Policy, observe
 from ..simulation.world import Fleet, World, WorldConfig, make_world
 
@@ -55,19 +63,62 @@ KINDS = (
     "braking short",
     "other",
 )
+#: the kinds whose lane change :func:`late_change` splits, and the parts it splits them into
+LATE_KINDS = ("lane change late", "lane change missed")
+PARTS = ("seeing", "deciding", "following", "seeing or deciding")
+#: a plan (or a mode) changes lanes when its 1.5 s point lies this far to the side [m]
+CHANGING_M = 1.0
+#: a plan that began its change no later than this after the expert's start began it in time [s]
+IN_TIME_S = 0.5
+#: the ordinary level of the lane-changing modes' weight: this quantile over ordinary moments
+ORDINARY_QUANTILE = 0.95
 
 
 @dataclass
 class Moment:
     """One decision of one car: its state ``(5,)``, its lane-frame segment hint, its world, the
-    driver's plan ``(5, 2)`` there (None: the driver has none) and the command it gave
-    ``(steer [rad], accel [m/s^2])``."""
+    driver's plan ``(5, 2)`` there (None: the driver has none), the command it gave
+    ``(steer [rad], accel [m/s^2])``, and for a mixture its modes' 1.5 s lateral offsets
+    ``mode_ends`` ``(K,)`` [m] and their ``weights`` ``(K,)`` (None: not a mixture)."""
 
     state: np.ndarray
     seg: int
     world: World
     plan: np.ndarray | None
     command: tuple[float, float] = (0.0, 0.0)
+    mode_ends: np.ndarray | None = None
+    weights: np.ndarray | None = None
+
+    @property
+    def change_weight(self) -> float | None:
+        """The mixture's weight on its lane-changing modes (1.5 s point over
+        :data:`CHANGING_M` to the side); None for a driver without modes."""
+        if self.mode_ends is None or self.weights is None:
+            return None
+        return float(self.weights[np.abs(self.mode_ends) > CHANGING_M].sum())
+
+
+@dataclass
+class LateChange:
+    """Which part of a lane-change collision started late (:func:`late_change`).
+
+    Attributes:
+        expert_start_s: how long before the impact the expert, from the car's states, began the
+            overtake [s] (None: not within the witnessed seconds).
+        plan_start_s: ... the driver's plan began it [s] (None: never).
+        gap_m: at the expert's start, the gap from the car's front to the parked car's rear [m].
+        width_px: ... the parked car's width on the camera [px] (0: not drawn).
+        change_weights: per moment of the last 3 s, the lane-changing modes' weight (None: no
+            modes).
+        part: one of :data:`PARTS`.
+    """
+
+    expert_start_s: float | None
+    plan_start_s: float | None
+    gap_m: float | None
+    width_px: float | None
+    change_weights: list[float | None]
+    part: str
 
 
 @dataclass
@@ -87,6 +138,7 @@ class Collision:
         apart_m: per moment, the largest distance between the driver's plan and the expert's
             label [m] (NaN where the driver has no plan).
         kind: one of :data:`KINDS`.
+        late: for the kinds of :data:`LATE_KINDS`, which part started late (else None).
     """
 
     car: int
@@ -98,6 +150,7 @@ class Collision:
     plan_hit: bool | None = None
     apart_m: np.ndarray | None = None
     kind: str = ""
+    late: LateChange | None = None
 
     @property
     def latest_savable_s(self) -> float | None:
@@ -184,7 +237,8 @@ class Witness:
             for i in np.flatnonzero(obs.collided & active).tolist():
                 self._file(i)
         act = self.driver.act(obs)
-        plans = getattr(self.driver, "last", {}).get("points")
+        last = getattr(self.driver, "last", {})
+        plans, modes, weights = last.get("points"), last.get("modes"), last.get("weights")
         steer, accel = np.asarray(act.steer_rad), np.asarray(act.accel_mps2)
         for i in np.flatnonzero(active).tolist():
             if obs.respawned[i]:
@@ -193,6 +247,9 @@ class Witness:
             seg = int(world.track.segment_index(float(obs.s[i])))
             command = (float(steer[i]), float(accel[i]))
             moment = Moment(obs.state[i].copy(), seg, world, plan, command)
+            if modes is not None and weights is not None:
+                moment.mode_ends = np.array(modes[i][:, -1, 1], dtype=float)
+                moment.weights = np.array(weights[i], dtype=float)
             self.buffers[i].append(moment)
             if self.steps[i] % self.every == self.phase[i]:
                 self._ordinary.append((int(self.steps[i]), int(self.cars[i]), moment))
@@ -214,13 +271,16 @@ def witnessed_to_dict(witness: Witness) -> dict[str, Any]:
     def moment(m: Moment) -> dict[str, Any]:
         plan = None if m.plan is None else m.plan.tolist()
         track = list(m.world.track.track_id)
-        return {
+        out = {
             "state": m.state.tolist(),
             "seg": m.seg,
             "track": track,
             "plan": plan,
             "command": list(m.command),
         }
+        if m.mode_ends is not None and m.weights is not None:
+            out["mode_ends"], out["weights"] = m.mode_ends.tolist(), m.weights.tolist()
+        return out
 
     return {
         "collisions": [
@@ -245,7 +305,11 @@ def witnessed_from_dict(
         world = worlds[key]
         plan = None if m["plan"] is None else np.array(m["plan"], dtype=float)
         state = np.array(m["state"], dtype=float)
-        return Moment(state, int(m["seg"]), world, plan, tuple(m["command"]))
+        out = Moment(state, int(m["seg"]), world, plan, tuple(m["command"]))
+        if "weights" in m:
+            out.mode_ends = np.array(m["mode_ends"], dtype=float)
+            out.weights = np.array(m["weights"], dtype=float)
+        return out
 
     collisions = [
         Collision(c["car"], c["step"], [moment(m) for m in c["moments"]])
@@ -396,9 +460,91 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
     return "other"
 
 
-def dissect(c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = None) -> Collision:
+def ordinary_change_weight(ordinary: list[Moment]) -> float | None:
+    """The lane-changing modes' weight that ordinary driving reaches: its
+    :data:`ORDINARY_QUANTILE` over the ``ordinary`` moments (None: no modes)."""
+    found = [w for w in (m.change_weight for m in ordinary) if w is not None]
+    return float(np.quantile(found, ORDINARY_QUANTILE)) if found else None
+
+
+def width_on_camera(moment: Moment, parked: int, camera: CameraConfig | None = None) -> float:
+    """Parked car ``parked``'s width on the front camera at ``moment`` [px]: its rear bumper's
+    two corners, half its height up, projected (0: behind the lens or past the draw distance)."""
+    cfg = camera or CameraConfig()
+    world, state = moment.world, moment.state
+    cars, track = world.cars, world.track
+    s_rear = float(cars.s[parked]) - cars.length_m / 2.0
+    d = float(cars.d[parked]) + np.array([-0.5, 0.5]) * cars.width_m
+    xy = track.position(np.full(2, s_rear), d)
+    rot, t = Camera(cfg).world_to_camera_matrix(tuple(float(v) for v in state[:3]))
+    pts = np.column_stack([xy, np.full(2, 0.7)]) @ rot.T + t  # (about half a car's height)
+    ahead = float(pts[:, 2].min())
+    if ahead < cfg.near_m or ahead > cfg.draw_distance_m:
+        return 0.0
+    cols = Camera(cfg).project(pts)[:, 0]
+    return float(abs(cols[1] - cols[0]))
+
+
+def late_change(
+    c: Collision,
+    world_cfg: WorldConfig,
+    expert: Expert,
+    ordinary_level: float | None,
+    window_s: float = 3.0,
+) -> LateChange:
+    """Which part of ``c``, a lane-change collision (:data:`LATE_KINDS`), started late: the
+    expert's start (the first of ``c``'s moments from which the expert begins an overtake), the
+    plan's (the first whose plan ends more than :data:`CHANGING_M` to the side), the parked
+    car's gap and width on the camera at the expert's start, and the lane-changing modes'
+    weight over the last ``window_s``. The part: *following* when the plan began no later than
+    :data:`IN_TIME_S` after the expert; else *deciding* when, between the expert's start and
+    :data:`IN_TIME_S` after it, the lane-changing modes weighed more than ``ordinary_level``
+    (:func:`ordinary_change_weight`); else *seeing*; *seeing or deciding* for a driver without
+    modes."""
+    period = world_cfg.sim.policy_period_s
+    n = len(c.moments)
+    starts = []
+    for m in c.moments:
+        expert.reset(1)
+        expert.act(_observe_moment(m, world_cfg))
+        decision = expert.decisions[0]
+        starts.append(decision.state == CHANGE and decision.overtaking)
+    first = starts.index(True) if any(starts) else None
+    moved = [m.plan is not None and abs(float(m.plan[-1, 1])) > CHANGING_M for m in c.moments]
+    planned = moved.index(True) if any(moved) else None
+    window = c.moments[-round(window_s / period) :]
+    weights = [m.change_weight for m in window]
+    expert_s = None if first is None else (n - first) * period
+    plan_s = None if planned is None else (n - planned) * period
+    gap = width = None
+    if first is not None and c.parked >= 0:
+        at = c.moments[first]
+        s_car = float(at.world.track.to_frenet(at.state[0], at.state[1])[0])
+        front = s_car + world_cfg.vehicle.rear_to_front_m
+        gap = float(at.world.cars.s[c.parked]) - at.world.cars.length_m / 2.0 - front
+        width = width_on_camera(at, c.parked)
+    lag = round(IN_TIME_S / period)
+    if planned is not None and (first is None or planned <= first + lag):
+        part = "following"
+    elif ordinary_level is None or any(w is None for w in weights):
+        part = "seeing or deciding"
+    else:
+        lo = first if first is not None else max(0, n - len(window))
+        seen = [c.moments[k].change_weight or 0.0 for k in range(lo, min(n, lo + lag + 1))]
+        part = "deciding" if max(seen) > ordinary_level else "seeing"
+    return LateChange(expert_s, plan_s, gap, width, weights, part)
+
+
+def dissect(
+    c: Collision,
+    world_cfg: WorldConfig,
+    hand_over: Policy | None = None,
+    ordinary_level: float | None = None,
+) -> Collision:
     """Fill ``c``'s findings: the hand-overs that save it (to ``hand_over``, default the
-    expert), whether its plans hit, the plans' disagreement with its labels, its kind."""
+    expert), whether its plans hit, the plans' disagreement with its labels, its kind, and for
+    a lane change which part started late (``ordinary_level``: :func:`ordinary_change_weight`
+    of the driver's ordinary moments)."""
     expert = Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim)
     c.contact, c.parked = contact(c.moments[-1], world_cfg)
     c.saved = savable(c, world_cfg, hand_over or expert)
@@ -407,6 +553,8 @@ def dissect(c: Collision, world_cfg: WorldConfig, hand_over: Policy | None = Non
     c.plan_hit = any(plan_collides(m) for m in last) if last else None
     c.apart_m = disagreement(c.moments, world_cfg, expert)
     c.kind = kind(c, world_cfg, expert)
+    if c.kind in LATE_KINDS:
+        c.late = late_change(c, world_cfg, expert, ordinary_level)
     return c
 
 
@@ -414,12 +562,20 @@ def table(collisions: list[Collision]) -> dict[str, Any]:
     """What the anatomy found, added up: per hand-over time how many collisions the expert saved
     and how many it could not be tried on (the car placed less long before), the latest savable
     moment's counts (``"none tried"``: no hand-over tried saved it), the tracker's share
-    (collisions whose plans of the last :data:`PLAN_WINDOW_S` were all clear), and the kinds."""
+    (collisions whose plans of the last :data:`PLAN_WINDOW_S` were all clear), the kinds, and
+    the late lane changes: their parts, the medians of the expert's and the plan's starts [s
+    before the impact], of the gap [m] and the width on the camera [px] at the expert's start."""
     n = len(collisions)
     saved = {t: sum(c.saved.get(t) is True for c in collisions) for t in HAND_OVER_S}
     untried = {t: sum(c.saved.get(t) is None for c in collisions) for t in HAND_OVER_S}
     latest = {str(t): sum(c.latest_savable_s == t for c in collisions) for t in HAND_OVER_S}
     latest["none tried"] = sum(c.latest_savable_s is None for c in collisions)
+    late = [c.late for c in collisions if c.late is not None]
+
+    def median(values: list[float | None]) -> float | None:
+        found = [v for v in values if v is not None]
+        return float(np.median(found)) if found else None
+
     return {
         "collisions": n,
         "saved_by_hand_over": {str(t): saved[t] for t in HAND_OVER_S},
@@ -427,4 +583,13 @@ def table(collisions: list[Collision]) -> dict[str, Any]:
         "latest_savable": latest,
         "plan_clear": sum(c.plan_hit is False for c in collisions),
         "kinds": {k: sum(c.kind == k for c in collisions) for k in KINDS},
+        "late_changes": {
+            "n": len(late),
+            "parts": {p: sum(x.part == p for x in late) for p in PARTS},
+            "expert_start_s": median([x.expert_start_s for x in late]),
+            "plan_start_s": median([x.plan_start_s for x in late]),
+            "never_planned": sum(x.plan_start_s is None for x in late),
+            "gap_m": median([x.gap_m for x in late]),
+            "width_px": median([x.width_px for x in late]),
+        },
     }
