@@ -471,6 +471,52 @@ def test_every_step_reads_both_outcomes_and_a_better_driver_needs_both() -> None
     assert words.better_driver(collisions, declared) == "a better driver"
 
 
+def test_a_record_that_declares_both_outcomes_tests_each_in_its_family_and_over_all() -> None:
+    """Issue 88, item 5: the next record declares every step on both outcomes before it runs,
+    DAgger against no new data among them; each test is Holm-adjusted in its family and over
+    every test of the record (never below the family's), the table shows both, and a declared
+    off-centre test can make a better driver. The committed record, declared before, is read as
+    it declared (its steps and its off-centre reading unchanged)."""
+    from e2e_lite.record.stats import declares_off_centre, family
+
+    def kept(key: str, collisions: list[int], off: list[int]) -> Row:
+        base = row(key, collisions)
+        seeds = tuple(
+            dataclasses.replace(s, interventions=c + o, stalls=0)
+            for s, c, o in zip(base.seeds, collisions, off)
+        )
+        return dataclasses.replace(base, seeds=seeds)
+
+    rows = (
+        row("expert", [0]),
+        kept("gmm_affordance_cvar", [4, 5, 6, 5, 4, 6, 5, 6], [1, 0, 1, 2, 1, 0, 1, 1]),
+        kept("dagger", [1, 2, 1, 2, 1, 2, 1, 1], [1, 0, 0, 1, 1, 0, 1, 0]),
+        kept("dagger_no_new_data", [4, 4, 5, 6, 4, 5, 6, 5], [0, 1, 1, 1, 0, 1, 1, 1]),
+        kept("dagger_control", [3, 4, 5, 5, 4, 4, 5, 5], [1, 1, 0, 1, 1, 1, 0, 1]),
+    )
+    old = report.load()
+    assert not declares_off_centre(old)
+    assert "DAgger against its fine-tunes on no new data" not in {s.step for s in steps(old)}
+    new = dataclasses.replace(with_rows(old, *rows), family=family("before it ran"))
+    assert declares_off_centre(new) and new.family.reason
+    tested, off = steps(new), off_centre_steps(new)
+    assert {s.step for s in tested} == {s.step for s in off}
+    assert "DAgger against its fine-tunes on no new data" in {s.step for s in tested}
+    for st in (*tested, *off):
+        assert st.family != OFF_CENTRE_READING
+        assert st.p_holm_all_fewer >= st.p_holm_fewer - 1e-12
+    dagger = {s.step: s for s in tested}["+ CVaR -> + DAgger"]
+    dagger_off = {s.step: s for s in off}["+ CVaR -> + DAgger"]
+    assert dagger.measure == "collisions" and dagger_off.measure == "off_centre"
+    assert words.better_driver(dagger, dagger_off) in (
+        "a better driver",
+        "not shown to be a better driver",
+    )
+    table = report.table1(new)
+    assert "(all: " in table and "Why: a family is one question" in table
+    assert "were not declared" not in table
+
+
 def test_a_new_record_takes_fresh_seeds() -> None:
     """Issue 88: seeds that trained the course's networks or an earlier record are refused for a
     record of the fresh block, before any work starts (the quick smoke run takes any)."""

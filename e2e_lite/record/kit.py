@@ -12,7 +12,7 @@ from typing import Any
 from ..course.run import CHAPTERS
 from . import words
 from .rows import Record
-from .stats import steps
+from .stats import StepResult, off_centre_steps, steps
 
 RUN_BEGIN = "<!-- course run: rendered by python -m e2e_lite.record.report -->"
 RUN_END = "<!-- /course run -->"
@@ -36,6 +36,7 @@ SESSIONS = {
             "+ CVaR -> + DAgger",
             "DAgger against its control (the expert's samples)",
             "DAgger's control against its fine-tunes on no new data",
+            "DAgger against its fine-tunes on no new data",
         ),
     ),
 }
@@ -154,11 +155,18 @@ def _recipes(record: Record) -> str | None:
     return record.block.recipes_commit if record.block else None
 
 
+def _second(off: StepResult) -> str:
+    """A step's off-centre verdict as a clause after its collisions' (``words.off_centre``)."""
+    said = words.off_centre(off)
+    return said if said.endswith("off-centre episodes") else f"off-centre episodes {said}"
+
+
 def session_findings(run: dict[str, Any] | None, record: Record) -> str:
     """docs/teaching.md's list of what each session's full-profile run should show: the headline
     figures its chapters printed in the recorded course run, and the record's verdicts on the
-    steps it teaches (many seeds: what one student's seed is a draw from)."""
+    steps it teaches, on both outcomes (many seeds: what one student's seed is a draw from)."""
     tested = {st.step: st for st in steps(record)}
+    off = {st.step: st for st in off_centre_steps(record)}
     commit = _recipes(record)
     the_record = f"The record (recipes {commit})" if commit else "The record"
     lines = []
@@ -170,6 +178,8 @@ def session_findings(run: dict[str, Any] | None, record: Record) -> str:
                 shown += [f"{k} {_figure(v)}" for k, v in figures]
         verdicts = [
             f"{name}: {words.cell(tested[name])}, ratio {tested[name].ratio:.2f}"
+            + ("" if name not in off else f", {_second(off[name])}")
+            + f" ({words.better_driver(tested[name], off.get(name))})"
             for name in step_names
             if name in tested
         ]

@@ -33,7 +33,7 @@ from ..stats.seeds import seed_rates, spread
 from . import COURSE_RUN, RECORD, ROOT, words
 from .kit import replace_block, teaching_with
 from .rows import SLOW_SHARE, Record, Row, load_record
-from .stats import OFF_CENTRE_READING, SPREAD_GOAL, off_centre_steps, steps
+from .stats import OFF_CENTRE_READING, SPREAD_GOAL, StepResult, off_centre_steps, steps
 
 RESULTS_MD = ROOT / "docs" / "results.md"
 FIGURE = ROOT / "docs" / "figures" / "table1.png"
@@ -135,16 +135,26 @@ def _steps_table(record: Record) -> list[str]:
         ratio = "-" if np.isnan(st.ratio) else f"{st.ratio:.2f} [{lo:.2f}, {hi:.2f}]"
         paper = "-" if st.paper_ratio is None else f"{st.paper_ratio:.2g}"
         p, p_holm, direction = st.p_read
+        holm_p = f"{p_holm:.2g}" + _all(st)
         cells = (
             f"| {st.step} | {st.family} | {st.seeds[0]} vs {st.seeds[1]} | "
-            f"{p:.2g}: {direction} ({st.test}) | {p_holm:.2g} | {ratio} | {paper} | {words.cell(st)} |"
+            f"{p:.2g}: {direction} ({st.test}) | {holm_p} | {ratio} | {paper} | {words.cell(st)} |"
         )
         if off:
             second = off.get(st.step)
-            read = "-" if second is None else f"{second.verdict_p:.2g}, {words.off_centre(second)}"
+            read = (
+                "-"
+                if second is None
+                else f"{second.verdict_p:.2g}{_all(second)}, {words.off_centre(second)}"
+            )
             cells += f" {read} | {words.better_driver(st, second)} |"
         lines.append(cells)
     return lines
+
+
+def _all(st: StepResult) -> str:
+    """`` (all: p)``, the test's Holm p over every test of the record, where it was declared."""
+    return "" if np.isnan(st.verdict_p_all) else f" (all: {st.verdict_p_all:.2g})"
 
 
 def _table_note(record: Record) -> str:

@@ -227,12 +227,16 @@ class Block(_Json):
 @dataclass(frozen=True)
 class Family(_Json):
     """The families of tests a record declared: each family's question, each test's family, the
-    adjustment within a family, and when they were declared (before the record ran, or not)."""
+    adjustment within a family, when they were declared (before the record ran, or not) and why
+    the tests are grouped so (a record that declared no reason: None)."""
 
     families: dict[str, str]
     tests: dict[str, str]
     adjustment: str
     declared: str
+    reason: str | None = None
+
+    OPTIONAL: ClassVar[tuple[str, ...]] = ("reason",)
 
 
 @dataclass(frozen=True)

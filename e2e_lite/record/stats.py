@@ -46,8 +46,22 @@ FAMILIES = {
     "paper": "the paper's steps: does each reproduce?",
     "beyond": "beyond the paper: does DAgger's step hold?",
     "controls": "each method against its control: is the step the method's?",
-    "data": "does new data from the expert's states beat the same fine-tunes on none?",
+    "data": "does new data beat the same fine-tunes on none?",
 }
+#: why the tests are grouped so, written where they are declared: a family is one question a
+#: reader takes as one claim, so Holm within it holds the chance that any of its answers is
+#: false at 0.05; the Holm p over every test of the record says what survives when the whole
+#: record is read as one claim
+FAMILY_REASON = (
+    "a family is one question, read as one claim, so Holm's adjustment within it holds the"
+    " chance that any of its answers is false at 0.05; the Holm p over every test of the record"
+    " is beside it, for a reader who takes the whole record as one claim"
+)
+#: the outcomes a step is tested on: collisions, and off-centre episodes (the interventions
+#: that were neither collisions nor stalls); an off-centre test is declared under its step's
+#: name with this suffix
+OUTCOMES = ("collisions", "off_centre")
+OFF_CENTRE_SUFFIX = " (off-centre)"
 _CVAR_STEP = "+ affordance -> + CVaR"
 _AFFORDANCE_STEP = "GMM -> + affordance"
 _DAGGER_STEP = "+ CVaR -> + DAgger"
@@ -88,6 +102,9 @@ STEPS = (
         True,
         "data",
     ),
+    Step(
+        "dagger_no_new_data", "dagger", "DAgger against its fine-tunes on no new data", True, "data"
+    ),
 )
 #: the row whose rate the record's power is stated at, and the step it must find
 POWER_ROW, POWER_STEP = "gmm_affordance", 2.0
@@ -116,10 +133,21 @@ def outcome(p_fewer: float, p_more: float, min_p: float, level: float = 0.95) ->
     return UNDECIDABLE if min_p >= cut else NOT_SHOWN
 
 
-def family(declared: str) -> Family:
-    """The families of :data:`STEPS` as a record holds them, with when they were ``declared``."""
+def family(declared: str, outcomes: tuple[str, ...] = OUTCOMES) -> Family:
+    """The families of :data:`STEPS` as a record holds them, with when they were ``declared``:
+    every step on each of ``outcomes`` (an off-centre test named with
+    :data:`OFF_CENTRE_SUFFIX`), in its step's family, and why the tests are grouped so."""
     tests = {st.what: st.family for st in STEPS}
-    return Family(dict(FAMILIES), tests, "holm", declared)
+    if "off_centre" in outcomes:
+        tests |= {st.what + OFF_CENTRE_SUFFIX: st.family for st in STEPS}
+    return Family(dict(FAMILIES), tests, "holm", declared, FAMILY_REASON)
+
+
+def declares_off_centre(record: Record) -> bool:
+    """Whether the record declared its steps' off-centre tests before it ran."""
+    return record.family is not None and any(
+        t.endswith(OFF_CENTRE_SUFFIX) for t in record.family.tests
+    )
 
 
 def declared_family(record: Record) -> Family:
@@ -146,6 +174,9 @@ class StepResult:
         seeds: how many seeds each row has (after, before).
         slow_mph: the later row's speed when it drove slow beside the expert (else None).
         outcome: read at the adjusted p (:func:`outcome`; words: :mod:`e2e_lite.record.words`).
+        measure: the count compared, one of :data:`OUTCOMES`.
+        p_holm_all_fewer, p_holm_all_more: Holm-adjusted over every declared test of the record
+            (NaN where it declared no such reading).
     """
 
     step: str
@@ -165,6 +196,9 @@ class StepResult:
     p_holm_fewer: float = float("nan")
     p_holm_more: float = float("nan")
     outcome: str = ""
+    measure: str = "collisions"
+    p_holm_all_fewer: float = float("nan")
+    p_holm_all_more: float = float("nan")
 
     @property
     def opposite(self) -> bool:
@@ -176,6 +210,11 @@ class StepResult:
         """The Holm-adjusted p the verdict reads: for more collisions when it is the opposite of
         the step's direction, else for fewer."""
         return self.p_holm_more if self.opposite else self.p_holm_fewer
+
+    @property
+    def verdict_p_all(self) -> float:
+        """:attr:`verdict_p`'s twin adjusted over every test of the record (NaN: none)."""
+        return self.p_holm_all_more if self.opposite else self.p_holm_all_fewer
 
     @property
     def paper_inside(self) -> bool | None:
@@ -222,28 +261,53 @@ def test_step(
     )
 
 
-def _tested(record: Record, st: Step, family_of: dict[str, str]) -> StepResult:
-    """:data:`STEPS`' ``st`` tested on ``record``'s seeds (before Holm)."""
+def _tested(
+    record: Record, st: Step, family_of: dict[str, str], measure: str = "collisions"
+) -> StepResult:
+    """:data:`STEPS`' ``st`` tested on ``record``'s seeds' ``measure`` (before Holm)."""
     after, before = record.row(st.after), record.row(st.before)
     paper_a, paper_b = after.paper_per_100mi, before.paper_per_100mi
-    paper = paper_a / paper_b if paper_a is not None and paper_b else None
-    test = compare_seeds(after, before, paired=st.paired)
+    paper = (
+        paper_a / paper_b if paper_a is not None and paper_b and measure == OUTCOMES[0] else None
+    )
+    test = compare_seeds(after, before, paired=st.paired, outcome=measure)
     result = test_step(st, test, paper, slow(after.mph, record.expert_mph))
-    return dataclasses.replace(result, family=family_of.get(st.what, st.family))
+    name = st.what + (OFF_CENTRE_SUFFIX if measure == "off_centre" else "")
+    return dataclasses.replace(result, family=family_of.get(name, st.family), measure=measure)
+
+
+def _declared_tests(record: Record) -> list[StepResult]:
+    """Every declared test whose rows the record holds (a record that declared its families
+    tests only what it declared; one from before the declaration every step on collisions),
+    Holm-adjusted within its family and, where the record declared its off-centre tests, over
+    every test too."""
+    declared = declared_family(record).tests
+    held = [st for st in STEPS if record.row(st.before) and record.row(st.after)]
+    tested = []
+    for measure in OUTCOMES if declares_off_centre(record) else OUTCOMES[:1]:
+        suffix = OFF_CENTRE_SUFFIX if measure == "off_centre" else ""
+        for st in held:
+            if record.family is None or st.what + suffix in declared:
+                tested.append(_tested(record, st, declared, measure))
+    out = []
+    for fam in dict.fromkeys(r.family for r in tested):
+        out += _read_at_holm([r for r in tested if r.family == fam])
+    if declares_off_centre(record):
+        fewer, more = holm([r.p_fewer for r in out]), holm([r.p_more for r in out])
+        out = [
+            dataclasses.replace(r, p_holm_all_fewer=f, p_holm_all_more=m)
+            for r, f, m in zip(out, fewer, more)
+        ]
+    order = [(r.measure, r.step) for r in tested]
+    return sorted(out, key=lambda r: order.index((r.measure, r.step)))
 
 
 def steps(record: Record) -> list[StepResult]:
-    """Each of :data:`STEPS` whose rows the record holds, tested on the seeds' counts, its
-    p-values Holm-adjusted within its declared family (:func:`declared_family`), and its outcome
+    """Each declared test of :data:`STEPS` on collisions whose rows the record holds, tested on
+    the seeds' counts, its p-values Holm-adjusted within its declared family
+    (:func:`declared_family`, and over every test where the record declared that), its outcome
     read at the adjusted p."""
-    family_of = declared_family(record).tests
-    present = [st for st in STEPS if record.row(st.before) and record.row(st.after)]
-    tested = [_tested(record, st, family_of) for st in present]
-    out = []
-    for fam in {r.family for r in tested}:
-        out += _read_at_holm([r for r in tested if r.family == fam])
-    order = [st.what for st in present]
-    return sorted(out, key=lambda r: order.index(r.step))
+    return [r for r in _declared_tests(record) if r.measure == "collisions"]
 
 
 #: the family of the off-centre tests of a record whose families did not declare them: read
@@ -254,12 +318,17 @@ OFF_CENTRE_READING = "off-centre, read after the record"
 def off_centre_steps(record: Record) -> list[StepResult]:
     """Each of :data:`STEPS` tested on the seeds' off-centre episodes (the interventions that
     were neither collisions nor stalls), where both rows recorded them: the second outcome of
-    every step. A record that did not declare these tests reads them after it ran, all in one
-    family (:data:`OFF_CENTRE_READING`), Holm-adjusted together; [] where none was recorded."""
+    every step. A record that declared them reads them in their declared families (as
+    :func:`steps`); one that did not reads them after it ran, all in one family
+    (:data:`OFF_CENTRE_READING`), Holm-adjusted together; [] where none was recorded."""
+    if declares_off_centre(record):
+        return [r for r in _declared_tests(record) if r.measure == "off_centre"]
+    declared = declared_family(record).tests
     kept = [
         st
         for st in STEPS
-        if all(
+        if (record.family is None or st.what in declared)
+        and all(
             r is not None and r.interventions is not None
             for r in (record.row(st.after), record.row(st.before))
         )

@@ -24,6 +24,7 @@ from .stats import (
     UNDECIDABLE,
     StepResult,
     declared_family,
+    declares_off_centre,
     record_power,
 )
 
@@ -202,9 +203,16 @@ def families(record: Record) -> str:
     for key, text in fam.families.items():
         n = sum(f == key for f in fam.tests.values())
         parts.append(f"{text} ({n} test{'s' * (n != 1)})")
+    both = (
+        " Every step is tested on both outcomes, collisions and off-centre episodes, in its"
+        " family; the Holm p over every test of the record is beside each family's ('all')."
+        if declares_off_centre(record)
+        else ""
+    )
+    why = f" Why: {fam.reason}." if fam.reason else ""
     return (
-        f" The families of tests, declared {fam.declared}: " + "; ".join(parts) + ". Each"
-        " family's p-values are Holm-adjusted together, and the verdict reads the adjusted p at"
-        " 0.05; 'reproduces' means the direction of the paper's step, whose own ratio is beside"
+        f" The families of tests, declared {fam.declared}: " + "; ".join(parts) + f".{both}{why}"
+        " Each family's p-values are Holm-adjusted together, and the verdict reads the adjusted p"
+        " at 0.05; 'reproduces' means the direction of the paper's step, whose own ratio is beside"
         " ours ('beats its control', 'fewer collisions': the same for a control, a step beyond)."
     )
