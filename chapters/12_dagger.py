@@ -111,9 +111,7 @@ def at(value: float | None, unit: str) -> str:
     return "-" if value is None else f"{value:.1f} {unit}"
 
 
-print(
-    f"late lane changes {late['n']}: " + ", ".join(f"{p} {n}" for p, n in late["parts"].items())
-)
+print(f"late lane changes {late['n']}: " + ", ".join(f"{p} {n}" for p, n in late["parts"].items()))
 print(
     f"medians: the expert began {at(late['expert_start_s'], 's')} before the impact, the plan "
     f"{at(late['plan_start_s'], 's')} ({late['never_planned']} never); at the expert's start "

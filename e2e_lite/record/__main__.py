@@ -17,7 +17,7 @@ from . import COURSE_RUN, RECORD, ROOT, report
 from .course_run import course_run_record
 from .pool import ShareRefused, pool
 from .rows import Record, Share, dump, load_record
-from .run import parse_seeds, plan, plan_lines, record_share
+from .run import low_rate_row, parse_seeds, plan, plan_lines, record_share
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -118,7 +118,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.job == "pool":
         return _pool(args.shares)
     if args.job == "plan":
-        print("\n".join(plan_lines(plan(load_record(RECORD)))))
+        record = load_record(RECORD)
+        for row in (None, low_rate_row(record)):
+            print("\n".join(plan_lines(plan(record, row=row))))
         return 0
 
     with atomic_write(COURSE_RUN, "w") as f:

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..artifacts import profile_outputs, seeded, settings_key
@@ -26,10 +27,11 @@ from ..imitation.recipes import SELECT_MILES
 from ..learning.models import pick_device
 from ..simulation.world import WorldConfig
 from ..stats.power import seeds_for_power
+from ..stats.seeds import seed_counts
 from .ablation import BEYOND, BY_KEY, CONTROLS, DRIVERS, UNTRAINED, build_drivers
 from .pool import record_block, seed_run
 from .rows import SHARE_FORMAT, Block, Record, SeedRun, Share, ShareRow
-from .stats import family, record_power
+from .stats import POWER_ROW, family, record_dispersion, record_power
 from .stored import evaluate_stored
 
 #: every row of the record: the paper's, DAgger's (chapter 12) and the controls
@@ -175,22 +177,36 @@ def record_share(
     ).sealed()
 
 
+def low_rate_row(record: Record) -> str:
+    """The learned row of two or more seeds whose median seed collides least: the rows whose
+    steps are the hardest to find (issue 88: the record's seeds are planned for them too)."""
+    learned = [r for r in record.rows if r.key not in UNTRAINED and len(r.seeds) >= 2]
+    return min(learned, key=lambda r: float(np.median(seed_counts(r).counts))).key
+
+
 def plan(
     record: Record,
     target: float = 0.8,
     most: int = 30,
     miles_options: Sequence[float] = (100.0, 150.0, 200.0, 300.0),
     n_sim: int = 500,
+    row: str | None = None,
 ) -> dict[str, Any]:
     """The record's plan: for each budget of miles per seed, the fewest training seeds
     (10 to ``most``) whose verdicts find a true 2x step at the record's own + affordance rate with
     at least ``target`` power under the seeds' spread fitted to ``record``
     (:func:`~e2e_lite.record.stats.record_power`), and what each plan costs on 2 cores and on a
     16-core machine with a GPU (:func:`record_work`); the chosen plan is the cheapest on 2 cores
-    that reaches ``target`` (else the most powerful at ``most`` seeds)."""
+    that reaches ``target`` (else the most powerful at ``most`` seeds). With ``row``, the step
+    is at that row's median rate, under the spread fitted to the rows near it (a low-rate row's
+    own, :func:`low_rate_row`)."""
 
     found = record_power(record)
     k, rate = found.dispersion.k, found.rate_per_100mi
+    if row is not None:
+        counts, budget = seed_counts(record.row(row))
+        rate = max(float(np.median(counts)) * 100.0 / budget, 0.5)  # (a zero rate has no step)
+        k = record_dispersion(record, near=row).k
     options = []
     for miles in miles_options:
         need = seeds_for_power(miles, rate, target, most=most, least=10, n_sim=n_sim, dispersion=k)
@@ -207,6 +223,7 @@ def plan(
         else max(options, key=lambda o: o["power"])
     )
     return {
+        "row": row or POWER_ROW,
         "dispersion": k,
         "rate_per_100mi": rate,
         "target": target,
@@ -218,7 +235,7 @@ def plan(
 def plan_lines(found: dict[str, Any]) -> list[str]:
     """:func:`plan` as the lines ``python -m e2e_lite.record --plan`` prints."""
     lines = [
-        f"seeds' spread (dispersion) {found['dispersion']:.2f}; a 2x step at "
+        f"{found['row']}: seeds' spread (dispersion) {found['dispersion']:.2f}; a 2x step at "
         f"{found['rate_per_100mi']:.1f} per 100 mi, power {found['target']:.0%}:"
     ]
     for o in found["options"]:

@@ -384,15 +384,28 @@ def _within(rate: float, centre: float, factor: float) -> bool:
     return max(a, b) / min(a, b) <= factor
 
 
-def shared_spread(record: Record) -> float:
-    """How much of a seed's spread :data:`POWER_ROW` and :data:`POWER_PAIR` share: the Spearman
-    rank correlation of their seeds' counts, at least 0 (0 without both rows)."""
-    a, b = record.row(POWER_ROW), record.row(POWER_PAIR)
-    if a is None or b is None or len(a.seeds) != len(b.seeds) or len(a.seeds) < 3:
-        return 0.0
+#: the largest shared spread the power simulates (a pair sharing all of it is one seed)
+SHARED_MAX = 0.95
 
-    rho = spearmanr(seed_counts(a).counts, seed_counts(b).counts).statistic
-    return float(np.clip(np.nan_to_num(rho), 0.0, 0.95))
+
+def shared_spread(record: Record, level: float = 0.95) -> tuple[float, float, float]:
+    """How much of a seed's spread :data:`POWER_ROW` and :data:`POWER_PAIR` share: the Spearman
+    rank correlation of their seeds' counts, and the range the data allow for it (Fisher's z
+    with Bonett and Wright's standard error for Spearman's rho, ``sqrt((1 + rho^2 / 2) /
+    (n - 3))``), each within 0 and :data:`SHARED_MAX` (all 0 without both rows, or with fewer
+    than four seeds)."""
+    from scipy.stats import norm
+
+    a, b = record.row(POWER_ROW), record.row(POWER_PAIR)
+    if a is None or b is None or len(a.seeds) != len(b.seeds) or len(a.seeds) < 4:
+        return 0.0, 0.0, 0.0
+    n = len(a.seeds)
+    rho = float(np.nan_to_num(spearmanr(seed_counts(a).counts, seed_counts(b).counts).statistic))
+    rho = float(np.clip(rho, -0.999, 0.999))
+    half = norm.ppf(0.5 + level / 2.0) * np.sqrt((1.0 + rho * rho / 2.0) / (n - 3))
+    ends = np.tanh(np.arctanh(rho) + np.array([-half, 0.0, half]))
+    low, mid, high = (float(np.clip(x, 0.0, SHARED_MAX)) for x in ends)
+    return mid, low, high
 
 
 @dataclass(frozen=True)
@@ -406,7 +419,9 @@ class RecordPower:
             paired sign-flip test, both under the fitted spread; rank test without spread).
         min_p: the smallest p-value its seeds can reach.
         dispersion: the spread fitted to the rows near :data:`POWER_ROW`'s rate.
-        shared: the share of that spread a pair shares (:func:`shared_spread`).
+        shared: the share of that spread a pair shares (:func:`shared_spread`), and
+            ``shared_range`` the range the data allow for it, with ``power_paired_range`` the
+            paired test's power at its two ends.
     """
 
     seeds: int
@@ -419,6 +434,8 @@ class RecordPower:
     min_p: float
     dispersion: Dispersion
     shared: float
+    shared_range: tuple[float, float] = (0.0, 0.0)
+    power_paired_range: tuple[float, float] = (0.0, 0.0)
 
 
 def record_power(record: Record) -> RecordPower | None:
@@ -434,11 +451,14 @@ def record_power(record: Record) -> RecordPower | None:
     counts, budget = seed_counts(row)
     rate = max(float(np.median(counts)) * 100.0 / budget, 0.5)  # (a zero rate has no step)
     fitted = record_dispersion(record, near=POWER_ROW)
-    k, rho = fitted.k, shared_spread(record)
+    k, (rho, rho_low, rho_high) = fitted.k, shared_spread(record)
     spread_rank = power(len(counts), budget, rate, POWER_STEP, dispersion=k)
-    spread_pair = power(
-        len(counts), budget, rate, POWER_STEP, dispersion=k, test="sign-flip", shared=rho
-    )
+
+    def paired(shared: float) -> float:
+        return power(
+            len(counts), budget, rate, POWER_STEP, dispersion=k, test="sign-flip", shared=shared
+        ).power
+
     poisson = power(len(counts), budget, rate, POWER_STEP)
     return RecordPower(
         seeds=len(counts),
@@ -446,11 +466,13 @@ def record_power(record: Record) -> RecordPower | None:
         rate_per_100mi=rate,
         label=row.label,
         power=spread_rank.power,
-        power_paired=spread_pair.power,
+        power_paired=paired(rho),
         power_poisson=poisson.power,
         min_p=poisson.min_p,
         dispersion=fitted,
         shared=rho,
+        shared_range=(rho_low, rho_high),
+        power_paired_range=(paired(rho_low), paired(rho_high)),
     )
 
 

@@ -180,13 +180,15 @@ def power(record: Record) -> str:
     if found is None:
         return ""
     k = found.dispersion
+    (lo, hi), (p_lo, p_hi) = found.shared_range, found.power_paired_range
     return (
         f" Power: {found.seeds} seeds x {found.miles_per_seed:.0f} mi find a true"
         f" {POWER_STEP:g}x step at {found.label}'s median rate"
         f" ({found.rate_per_100mi:.1f} per 100 mi) in {100 * found.power:.0f} % of records"
         f" under the seeds' spread (rank test; paired sign-flip"
         f" {100 * found.power_paired:.0f} %, its pairs sharing {found.shared:.2f} of the"
-        f" spread, the rank correlation of the seeds of {found.label} and its fine-tune), a"
+        f" spread, the rank correlation of the seeds of {found.label} and its fine-tune, which"
+        f" the data allow from {lo:.2f} to {hi:.2f}: power {100 * p_lo:.0f}-{100 * p_hi:.0f} %), a"
         f" negative binomial of dispersion {k.k:.2f} [{k.low:.2f}-{k.high:.2f}]"
         f" fitted to this record's {k.rows} rows of seeds whose rates lie within"
         f" {POWER_RATES_WITHIN:g}x of it; {100 * found.power_poisson:.0f} % if seeds did not"

@@ -162,21 +162,44 @@ def fit_dispersion(counts: Sequence[Sequence[float]], level: float = 0.95) -> Di
     recipe, its seeds driving one common budget): the maximum-likelihood dispersion k of a
     negative binomial (``Var = mu + k mu^2``, each row its own mean, every row one k) and its
     profile-likelihood interval (``2 (l_max - l(k)) <=`` the chi-square quantile of 1 df);
-    k = 0 is Poisson."""
+    k = 0 is Poisson. A grid brackets the maximum and the interval's ends, which are then
+    solved for to 1e-6 (the digits a sentence prints are the fit's, not the grid's)."""
     rows = [np.asarray(c, dtype=float) for c in counts if len(c) >= 2]
     if not rows:
         raise ValueError("fit_dispersion: needs a row of at least two seeds")
-    from scipy.stats import chi2  # (here: an evaluation worker never loads scipy.stats)
+    from scipy.optimize import brentq, minimize_scalar  # (an evaluation worker never loads scipy)
+    from scipy.stats import chi2
 
     grid = np.concatenate([[0.0], np.geomspace(1e-3, 20.0, 400)])
     ll = np.array([_nb_loglik(rows, k) for k in grid])
     best = int(np.argmax(ll))
-    drop = chi2.ppf(level, 1) / 2.0
-    inside = grid[ll >= ll[best] - drop]
+    lo_k, hi_k = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
+    k = float(grid[best])
+    if hi_k > lo_k:
+        found = minimize_scalar(
+            lambda x: -_nb_loglik(rows, x),
+            bounds=(lo_k, hi_k),
+            method="bounded",
+            options={"xatol": 1e-7},
+        )
+        if -found.fun >= ll[best]:
+            k = float(found.x)
+    top = max(float(ll[best]), _nb_loglik(rows, k))
+    cut = top - chi2.ppf(level, 1) / 2.0
+    inside = np.flatnonzero(ll >= cut)
+
+    def end(i: int, j: int) -> float:
+        """The interval's end between grid points ``i`` (inside) and ``j`` (outside)."""
+        if not 0 <= j < len(grid):
+            return float(grid[i])
+        return float(brentq(lambda x: _nb_loglik(rows, x) - cut, grid[j], grid[i], xtol=1e-7))
+
+    low = end(int(inside.min()), int(inside.min()) - 1)
+    high = end(int(inside.max()), int(inside.max()) + 1)
     return Dispersion(
-        k=float(grid[best]),
-        low=float(inside.min()),
-        high=float(inside.max()),
+        k=k,
+        low=min(low, k),
+        high=max(high, k),
         rows=len(rows),
         seeds=int(sum(len(r) for r in rows)),
     )
