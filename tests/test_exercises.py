@@ -34,6 +34,9 @@ def test_a_wrong_answer_gets_what_is_off_and_a_hint(tmp_path: Path, capsys) -> N
     assert not ok and "weighted mean" in line
     (tmp_path / "ex_03_2.py").write_text("def steady_error_m():\n    return 0.1\n")
     assert not check("03.2", tmp_path)[0]
+    (tmp_path / "ex_01_1.py").write_text("def lookahead_m():\n    return 90.0\n")
+    ok, line = check("01.1", tmp_path)
+    assert not ok and "look-ahead [m]: 90" in line and "half widths" in line
     # the command: exit 1 on a failed check, 2 on an unknown exercise
     assert main(["check", "01.4", "--stubs", str(tmp_path)]) == 1
     assert main(["check", "99.9"]) == 2

@@ -21,13 +21,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..control.drivers import LaneChanger
 from ..control.tracker import LQRTracker, TrackerConfig, lateral_model
 from ..learning.heads import Mixture
 from ..record.report import load
 from ..record.stats import POWER_ROW, record_dispersion, record_power
 from ..simulation.camera import Camera, CameraConfig
+from ..simulation.policy import observe
+from ..simulation.scenarios import TWO_ANSWERS_CAR_S_M, two_answers_scene
 from ..simulation.vehicle import VehicleParams
-from ..simulation.world import TrafficConfig
+from ..simulation.world import TrafficConfig, WorldConfig
 from ..stats.power import power
 from ..stats.rates import poisson_ci
 
@@ -60,6 +63,36 @@ def _relative(answer: float, expected: float, tolerance: float, what: str, hint:
     if math.isfinite(answer) and abs(answer - expected) <= tolerance * abs(expected):
         return ""
     return f"{what}: {answer:.4g}, expected about {expected:.4g} (within {tolerance:.0%}). {hint}"
+
+
+def _passes(trigger_m: float) -> bool:
+    """Whether the lane changer, at 25 m/s behind chapter 04's parked car, passes it when it
+    changes lanes at a gap of ``trigger_m`` [m]."""
+    world_cfg = WorldConfig()
+    _, fleet = two_answers_scene(world_cfg, gap_m=150.0, speed_mps=25.0)
+    driver = LaneChanger(trigger_m=trigger_m)
+    driver.reset(1)
+    for k in range(round(20.0 / world_cfg.sim.policy_period_s)):
+        act = driver.act(observe(fleet, respawned=k == 0))
+        if fleet.step(act.steer_rad, act.accel_mps2)[0]:
+            return False
+        if fleet.lane_frame()[0][0] > TWO_ANSWERS_CAR_S_M + 10.0:
+            return True
+    return False
+
+
+def _lookahead(answer: float) -> str:
+    """01.1: the smallest trigger at which the lane changer still passes a parked car at 25 m/s
+    (found by halving the range between one that collides and one that passes)."""
+    lo, hi = 1.0, 120.0
+    while hi - lo > 0.25:
+        mid = (lo + hi) / 2.0
+        lo, hi = (lo, mid) if _passes(mid) else (mid, hi)
+    hint = (
+        "Hint: the lateral error follows e'' + 2 zeta wn e' + wn^2 e = 0 from a lane's step; the "
+        "car is clear once it moved the two cars' half widths (0.9 + 0.9 m); times 25 m/s."
+    )
+    return _relative(answer, hi, 0.2, "look-ahead [m]", hint)
 
 
 def _miles_without_collision(answer: float) -> str:
@@ -153,6 +186,7 @@ def _record_size(answer: tuple[int, float]) -> str:
 EXERCISES = {
     e.number: e
     for e in (
+        Exercise("01.1", "ex_01_1.py", "lookahead_m", _lookahead),
         Exercise("01.4", "ex_01_4.py", "miles", _miles_without_collision),
         Exercise("02.1", "ex_02_1.py", "car_width_px", _car_width_px),
         Exercise("03.1", "ex_03_1.py", "pole_radius", _pole_radius),
