@@ -77,7 +77,7 @@ human = Camera(CameraConfig.human())
 # |---|---|---|
 # | `keep` | follow its lane's centre | a car ahead nearer than *trigger*: `change` if a neighbour |
 # | | at the speed limit | is free (a coin picks when both are), else `follow` |
-# | `change` | follow a quintic path | past the dashed line: `keep`, in the new lane |
+# | `change` | follow a quintic path | near the new lane's centre: `keep` there |
 # | `follow` | stop 15 m behind the car | a lane becomes free (slower: a shorter lane change) |
 #
 # It keeps whichever lane it is in (`ExpertConfig.home`; a rule that returns to a home lane adds

@@ -78,9 +78,12 @@ witnessed = [
     )
     for k, start in zip(seeds, starts)
 ]  # per seed: (collisions, ordinary moments), stored and reused like a drive's result
-collisions = [c for hits, _ in witnessed for c in hits][: 8 if profile.quick else None]
-level = anatomy.ordinary_change_weight([m for _, moments in witnessed for m in moments])
-for c in collisions:
+levels = [anatomy.ordinary_change_weight(moments) for _, moments in witnessed]  # per network
+hits = [(c, lv) for (cs, _), lv in zip(witnessed, levels) for c in cs][
+    : 8 if profile.quick else None
+]
+collisions = [c for c, _ in hits]
+for c, level in hits:
     anatomy.dissect(c, world_cfg, ordinary_level=level)
 found = anatomy.table(collisions)
 print(f"{len(seeds)} seeds x {miles:g} mi of validation roads: {found['collisions']} collisions")

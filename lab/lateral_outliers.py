@@ -1,8 +1,8 @@
-"""Where does the expert's lateral acceleration peak? The state expert (the course's expert at
-a73c5b7) drives the roads of lab/labellers.py (validation, first track 5,000, 32 cars, the full
-profile's world), and every decision whose commanded lateral acceleration, less the road's,
-exceeds a threshold is kept with its state and its decision (which branch of the state table
-chose it).
+"""Where does the expert's lateral acceleration peak? The expert (its note ran the state expert,
+the course's expert at a73c5b7) drives the roads of the lab note "Does the labeller drive?"
+(validation, first track 5,000, 32 cars, the full profile's world; its script is at e4eddca),
+and every decision whose commanded lateral acceleration, less the road's, exceeds a threshold is
+kept with its state and its decision (which branch of the state table chose it).
 
     python lab/lateral_outliers.py [--miles 300] [--over 5.0]
 

@@ -98,3 +98,25 @@ def test_the_index_lists_a_chapter_not_yet_run_and_carries_a_note(tmp_path):
     rows = [r for r in index.splitlines() if r[:4].strip("| ").isdigit()]
     assert [r[2:4] for r in rows] == [f"{n:02d}" for n in sorted(CHAPTERS)]
     assert sum("not in this run yet" in r for r in rows) == len(CHAPTERS) - 1
+
+
+def test_each_committed_page_says_whether_its_chapter_changed_since_the_books_run():
+    """A page of docs/book/ carries the "source has changed" line exactly when its chapter today
+    differs from the chapter at the commit the page names (``course.book --mark-changed``); a
+    page whose commit this clone does not hold is not judged."""
+    import re
+    import subprocess
+
+    for path in sorted(book.BOOK.glob("[0-9][0-9]_*.md")):
+        text = path.read_text()
+        commit = re.search(r"at commit `([0-9a-f]+)`", text).group(1)
+        then = subprocess.run(
+            ["git", "show", f"{commit}:chapters/{path.stem}.py"],
+            capture_output=True,
+            text=True,
+            cwd=book.ROOT,
+        )
+        if then.returncode != 0:
+            continue
+        moved = then.stdout != (book.ROOT / "chapters" / f"{path.stem}.py").read_text()
+        assert text.startswith(book.CHANGED) == moved, path.name

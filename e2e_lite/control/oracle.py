@@ -23,7 +23,8 @@ class Oracle:
 
     It shows that the trajectory representation plus the tracker is enough to drive: the ceiling
     of every trajectory-predicting network. Each decision it asks the expert for its label from
-    the current state, advances the expert's plans (their commands are discarded) and follows
+    the current state, lets the expert act there (its commands are discarded: it counts its
+    manoeuvres) and follows
     the label with :func:`~e2e_lite.control.tracker.follow_trajectory`.
 
     With ``point_noise_m`` it follows the label plus Gaussian noise of that standard deviation
@@ -75,7 +76,7 @@ class Oracle:
         return [*preview, *self.expert.identity(), self.seed, *kind]
 
     def reset(self, n_worlds: int) -> None:
-        """Reset the expert's plans and each car's noise."""
+        """Reset the expert (its counters) and each car's noise."""
         self.expert.reset(n_worlds)
         self.rngs = [car_rng(self.seed, 31, int(c)) for c in seeded_cars(self, n_worlds)]
 

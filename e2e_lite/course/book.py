@@ -54,6 +54,49 @@ def shrink(png: Path, width_px: int = WIDTH_PX) -> bytes:
     return buf.getvalue()
 
 
+#: the line at the top of a page whose chapter changed since the book's run
+CHANGED = (
+    "> **This chapter's source has changed since this run**: the prose and code below are the"
+    " run's, and may differ from the chapter's today."
+)
+
+
+def mark_changed(book: Path | None = None, chapters: Path | None = None) -> list[str]:
+    """Give each committed page the :data:`CHANGED` line when its chapter differs today from
+    the chapter at the commit the page names (read with ``git show``), and take it away when
+    not: the book's run stays as it was, its pages say whether the code moved since. Returns
+    the pages it changed."""
+    import re
+    import subprocess
+
+    book, chapters = book or BOOK, chapters or ROOT / "chapters"
+    changed = []
+    for path in sorted(book.glob("[0-9][0-9]_*.md")):
+        text = path.read_text()
+        found = re.search(r"at commit `([0-9a-f]+)`", text)
+        chapter = chapters / f"{path.stem}.py"
+        if found is None or not chapter.exists():
+            continue
+        then = subprocess.run(
+            ["git", "show", f"{found.group(1)}:chapters/{chapter.name}"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
+        if then.returncode != 0:
+            continue  # (no history here: leave the page as it is)
+        moved = then.stdout != chapter.read_text()
+        marked = text.startswith(CHANGED)
+        if moved and not marked:
+            path.write_text(f"{CHANGED}\n\n{text}")
+        elif marked and not moved:
+            path.write_text(text[len(CHANGED) :].lstrip("\n"))
+        else:
+            continue
+        changed.append(path.name)
+    return changed
+
+
 def page(
     transcript: dict[str, Any], source: str, figures: dict[str, str], outputs: str = ""
 ) -> str:
@@ -69,11 +112,7 @@ def page(
         "",
     ]
     if hashlib.sha256(source.encode()).hexdigest() != transcript["source_sha256"]:
-        lines[:0] = [
-            "> **This chapter's source has changed since this run**: the prose and code below"
-            " are the run's, and may differ from the chapter's today.",
-            "",
-        ]
+        lines[:0] = [CHANGED, ""]
     for cell in transcript["cells"]:
         if cell["kind"] == "markdown":
             lines += [cell["text"], ""]
@@ -186,9 +225,21 @@ def _ranges(numbers: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m e2e_lite.course.book", description=__doc__)
-    parser.add_argument("outputs", type=Path, help="the full-profile run's outputs folder")
+    parser.add_argument(
+        "outputs", type=Path, nargs="?", help="the full-profile run's outputs folder"
+    )
     parser.add_argument("--note", default="", help="a line for the index, under the run's")
+    parser.add_argument(
+        "--mark-changed",
+        action="store_true",
+        help="only mark the pages whose chapter changed since the book's run (git)",
+    )
     args = parser.parse_args(argv)
+    if args.mark_changed:
+        print(f"marked or unmarked: {', '.join(mark_changed()) or 'none'}")
+        return 0
+    if args.outputs is None:
+        parser.error("give the run's outputs folder, or --mark-changed")
     wrote = render(args.outputs, note=args.note)
     print(f"wrote {BOOK.relative_to(ROOT)}: {wrote}")
     return 0

@@ -129,12 +129,13 @@ def chapter_work(profile: Profile) -> dict[int, Work]:
         9: trains(s - 1, 3 * rows, tuned=2 * s),  # the CVaR fine-tune and its control
         10: trains(2 * (s - 1), 2 * rows + 4 * ev),  # + the ceilings, PilotNet and L2
         11: trains(0, 3 * rows),  # three variants of the safety module
-        # the anatomy's drive, the labellers' drives; validation: the start and every round of the
-        # three arms; test: four rows; the fine-tunes draw steps_samples per round and arm
+        # the anatomy's drive, the labeller's two drives (the expert, the oracle); validation:
+        # the start and every round of the three arms; test: four rows; the fine-tunes draw
+        # steps_samples per round and arm
         12: Work(
             collected,
             s * 3 * dagger.rounds * dagger.steps_samples,
-            s * (1.5 * ev + (1 + 3 * dagger.rounds) * dagger.val_miles) + 0.6 * ev + 4 * rows,
+            s * (1.5 * ev + (1 + 3 * dagger.rounds) * dagger.val_miles) + 0.3 * ev + 4 * rows,
             other,
         ),
     }

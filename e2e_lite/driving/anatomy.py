@@ -68,7 +68,7 @@ KINDS = (
 )
 #: the kinds whose lane change :func:`late_change` splits, and the parts it splits them into
 LATE_KINDS = ("lane change late", "lane change missed")
-PARTS = ("seeing", "deciding", "following", "seeing or deciding")
+PARTS = ("seeing", "deciding", "following", "seeing or deciding", "no expert start")
 #: a plan that began its change no later than this after the expert's start began it in time [s]
 IN_TIME_S = 0.5
 #: the ordinary level of the lane-changing modes' weight: this quantile over ordinary moments
@@ -227,7 +227,7 @@ def width_on_camera(moment: Moment, parked: int, camera: CameraConfig | None = N
     ahead = float(pts[:, 2].min())
     if ahead < cfg.near_m or ahead > cfg.draw_distance_m:
         return 0.0
-    cols = Camera(cfg).project(pts)[:, 0]
+    cols = np.clip(Camera(cfg).project(pts)[:, 0], 0.0, float(cfg.width_px))  # (in the frame)
     return float(abs(cols[1] - cols[0]))
 
 
@@ -238,28 +238,44 @@ def late_change(
     ordinary_level: float | None,
     window_s: float = 3.0,
 ) -> LateChange:
-    """Which part of ``c``, a lane-change collision (:data:`LATE_KINDS`), started late: the
-    expert's start (the first of ``c``'s moments from which the expert begins an overtake), the
-    plan's (the first whose plan ends more than :data:`CHANGING_M` to the side), the parked
-    car's gap and width on the camera at the expert's start, and the lane-changing modes'
-    weight over the last ``window_s``. The part: *following* when the plan began no later than
-    :data:`IN_TIME_S` after the expert; else *deciding* when, between the expert's start and
-    :data:`IN_TIME_S` after it, the lane-changing modes weighed more than ``ordinary_level``
-    (:func:`ordinary_change_weight`); else *seeing*; *seeing or deciding* for a driver without
-    modes."""
+    """Which part of ``c``, a lane-change collision (:data:`LATE_KINDS`), started late.
+
+    The expert's start: the first moment of the last unbroken run of moments from which the
+    expert, in the hit car's lane, overtakes out of it (a wobble or an earlier car's overtake is
+    another run). The plan's start: the first moment from that start (or from the last
+    ``window_s``, :func:`kind`'s window, when that is earlier) whose plan ends more than
+    :data:`CHANGING_M` to the side. At the expert's start, the parked car's gap and its width
+    on the camera; over the last ``window_s``, the lane-changing modes' weight. The part:
+    *following* when the plan began no later than :data:`IN_TIME_S` after the expert; else
+    *deciding* when, from the expert's start to :data:`IN_TIME_S` after it, the lane-changing
+    modes weighed more than ``ordinary_level`` (:func:`ordinary_change_weight`, of the same
+    driver); else *seeing*; *seeing or deciding* for a driver without modes there; *no expert
+    start* when the expert, from these states, never overtakes out of the hit car's lane."""
     period = world_cfg.sim.policy_period_s
-    n = len(c.moments)
+    n, track = len(c.moments), c.moments[0].world.track
+    hit_lane = int(c.moments[0].world.cars.lane[c.parked]) if c.parked >= 0 else -1
     starts = []
     for m in c.moments:
         expert.reset(1)
         expert.act(_observe_moment(m, world_cfg))
         decision = expert.decisions[0]
-        starts.append(decision.state == CHANGE and decision.overtaking)
-    first = starts.index(True) if any(starts) else None
-    moved = [m.plan is not None and abs(float(m.plan[-1, 1])) > CHANGING_M for m in c.moments]
-    planned = moved.index(True) if any(moved) else None
-    window = c.moments[-round(window_s / period) :]
-    weights = [m.change_weight for m in window]
+        here = int(track.lane_index(float(track.to_frenet(m.state[0], m.state[1])[1])))
+        out = decision.state == CHANGE and decision.overtaking and decision.target != here
+        starts.append(out and here == hit_lane)
+    first = None
+    if any(starts):
+        first = n - 1 - starts[::-1].index(True)
+        while first > 0 and starts[first - 1]:
+            first -= 1
+    window = round(window_s / period)
+    since = n - min(window, n) if first is None else min(first, n - min(window, n))
+    moved = [
+        k
+        for k in range(since, n)
+        if c.moments[k].plan is not None and abs(float(c.moments[k].plan[-1, 1])) > CHANGING_M
+    ]
+    planned = moved[0] if moved else None
+    weights = [m.change_weight for m in c.moments[-window:]]
     expert_s = None if first is None else (n - first) * period
     plan_s = None if planned is None else (n - planned) * period
     gap = width = None
@@ -270,14 +286,16 @@ def late_change(
         gap = float(at.world.cars.s[c.parked]) - at.world.cars.length_m / 2.0 - front
         width = width_on_camera(at, c.parked)
     lag = round(IN_TIME_S / period)
-    if planned is not None and (first is None or planned <= first + lag):
+    if first is None:
+        part = "no expert start"
+    elif planned is not None and planned <= first + lag:
         part = "following"
-    elif ordinary_level is None or any(w is None for w in weights):
-        part = "seeing or deciding"
     else:
-        lo = first if first is not None else max(0, n - len(window))
-        seen = [c.moments[k].change_weight or 0.0 for k in range(lo, min(n, lo + lag + 1))]
-        part = "deciding" if max(seen) > ordinary_level else "seeing"
+        seen = [c.moments[k].change_weight for k in range(first, min(n, first + lag + 1))]
+        if ordinary_level is None or any(w is None for w in seen):
+            part = "seeing or deciding"
+        else:
+            part = "deciding" if max(seen) > ordinary_level else "seeing"
     return LateChange(expert_s, plan_s, gap, width, weights, part)
 
 

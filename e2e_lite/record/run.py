@@ -30,7 +30,7 @@ from ..stats.power import seeds_for_power
 from ..stats.seeds import seed_counts
 from .ablation import BEYOND, BY_KEY, CONTROLS, DRIVERS, UNTRAINED, build_drivers
 from .pool import record_block, seed_run
-from .rows import SHARE_FORMAT, Block, Record, SeedRun, Share, ShareRow
+from .rows import SHARE_FORMAT, Block, Record, Row, SeedRun, Share, ShareRow
 from .stats import POWER_ROW, family, record_dispersion, record_power
 from .stored import evaluate_stored
 
@@ -181,7 +181,12 @@ def low_rate_row(record: Record) -> str:
     """The learned row of two or more seeds whose median seed collides least: the rows whose
     steps are the hardest to find (issue 88: the record's seeds are planned for them too)."""
     learned = [r for r in record.rows if r.key not in UNTRAINED and len(r.seeds) >= 2]
-    return min(learned, key=lambda r: float(np.median(seed_counts(r).counts))).key
+
+    def median_rate(r: Row) -> float:
+        counts, budget = seed_counts(r)
+        return float(np.median(counts)) * 100.0 / budget
+
+    return min(learned, key=median_rate).key
 
 
 def plan(

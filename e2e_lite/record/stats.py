@@ -133,14 +133,21 @@ def outcome(p_fewer: float, p_more: float, min_p: float, level: float = 0.95) ->
     return UNDECIDABLE if min_p >= cut else NOT_SHOWN
 
 
+#: the steps declared after the record of 28eba5c ran: a record that declared no families is
+#: read without them
+LATER_STEPS = ("DAgger against its fine-tunes on no new data",)
+
+
 def family(declared: str, outcomes: tuple[str, ...] = OUTCOMES) -> Family:
     """The families of :data:`STEPS` as a record holds them, with when they were ``declared``:
     every step on each of ``outcomes`` (an off-centre test named with
-    :data:`OFF_CENTRE_SUFFIX`), in its step's family, and why the tests are grouped so."""
+    :data:`OFF_CENTRE_SUFFIX`), in its step's family, and, with both outcomes, why the tests
+    are grouped so (:data:`FAMILY_REASON`)."""
     tests = {st.what: st.family for st in STEPS}
     if "off_centre" in outcomes:
         tests |= {st.what + OFF_CENTRE_SUFFIX: st.family for st in STEPS}
-    return Family(dict(FAMILIES), tests, "holm", declared, FAMILY_REASON)
+    reason = FAMILY_REASON if "off_centre" in outcomes else None
+    return Family(dict(FAMILIES), tests, "holm", declared, reason)
 
 
 def declares_off_centre(record: Record) -> bool:
@@ -155,7 +162,9 @@ def declared_family(record: Record) -> Family:
     declaration) :func:`family`, marked as declared after it ran."""
     if record.family is not None:
         return record.family
-    return family("after this record ran, so its Holm p is a reading, not a plan")
+    read = family("after this record ran, so its Holm p is a reading, not a plan", OUTCOMES[:1])
+    tests = {t: f for t, f in read.tests.items() if t not in LATER_STEPS}
+    return dataclasses.replace(read, tests=tests)
 
 
 @dataclass(frozen=True)
@@ -287,7 +296,10 @@ def _declared_tests(record: Record) -> list[StepResult]:
     for measure in OUTCOMES if declares_off_centre(record) else OUTCOMES[:1]:
         suffix = OFF_CENTRE_SUFFIX if measure == "off_centre" else ""
         for st in held:
-            if record.family is None or st.what + suffix in declared:
+            kept = measure == "collisions" or all(
+                r.interventions is not None for r in (record.row(st.after), record.row(st.before))
+            )
+            if st.what + suffix in declared and kept:
                 tested.append(_tested(record, st, declared, measure))
     out = []
     for fam in dict.fromkeys(r.family for r in tested):
@@ -327,7 +339,7 @@ def off_centre_steps(record: Record) -> list[StepResult]:
     kept = [
         st
         for st in STEPS
-        if (record.family is None or st.what in declared)
+        if st.what in declared
         and all(
             r is not None and r.interventions is not None
             for r in (record.row(st.after), record.row(st.before))
@@ -392,16 +404,18 @@ def shared_spread(record: Record, level: float = 0.95) -> tuple[float, float, fl
     """How much of a seed's spread :data:`POWER_ROW` and :data:`POWER_PAIR` share: the Spearman
     rank correlation of their seeds' counts, and the range the data allow for it (Fisher's z
     with Bonett and Wright's standard error for Spearman's rho, ``sqrt((1 + rho^2 / 2) /
-    (n - 3))``), each within 0 and :data:`SHARED_MAX` (all 0 without both rows, or with fewer
-    than four seeds)."""
+    (n - 3))``), each within 0 and :data:`SHARED_MAX` (all 0 without both rows or with fewer
+    than three seeds; with three, the range is all of it)."""
     from scipy.stats import norm
 
     a, b = record.row(POWER_ROW), record.row(POWER_PAIR)
-    if a is None or b is None or len(a.seeds) != len(b.seeds) or len(a.seeds) < 4:
+    if a is None or b is None or len(a.seeds) != len(b.seeds) or len(a.seeds) < 3:
         return 0.0, 0.0, 0.0
     n = len(a.seeds)
     rho = float(np.nan_to_num(spearmanr(seed_counts(a).counts, seed_counts(b).counts).statistic))
     rho = float(np.clip(rho, -0.999, 0.999))
+    if n < 4:  # (three seeds allow any shared spread)
+        return float(np.clip(rho, 0.0, SHARED_MAX)), 0.0, SHARED_MAX
     half = norm.ppf(0.5 + level / 2.0) * np.sqrt((1.0 + rho * rho / 2.0) / (n - 3))
     ends = np.tanh(np.arctanh(rho) + np.array([-half, 0.0, half]))
     low, mid, high = (float(np.clip(x, 0.0, SHARED_MAX)) for x in ends)
