@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from ..control.expert import Expert
-from ..learning.labels import CHANGE, FOLLOW, interpolated_path
+from ..learning.labels import CHANGE, FOLLOW, Decision, interpolated_path
 from ..simulation.camera import Camera, CameraConfig
 from ..simulation.policy import Observation, Policy, observe
 from ..simulation.world import Fleet, WorldConfig, make_world
@@ -176,6 +176,18 @@ def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: Expert) 
     return out
 
 
+def expert_decisions(
+    moments: list[Moment], world_cfg: WorldConfig, expert: Expert
+) -> list[Decision]:
+    """The expert's decision at each of ``moments``' states (a function of the state alone)."""
+    out = []
+    for m in moments:
+        expert.reset(1)
+        expert.act(_observe_moment(m, world_cfg))
+        out.append(expert.decisions[0])
+    return out
+
+
 def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float = 3.0) -> str:
     """What kind of collision ``c`` was (:data:`KINDS`), from its last ``window_s``: a rail; the
     parked car in another lane than the car's at the window's start (into an occupied lane); the
@@ -190,14 +202,10 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
     hit_lane = int(window[0].world.cars.lane[c.parked])
     if int(track.lane_index(d0)) != hit_lane:
         return "into an occupied lane"
-    states = []
-    for m in window:
-        expert.reset(1)
-        expert.act(_observe_moment(m, world_cfg))
-        states.append(expert.decisions[0].state)
+    states = [d.state for d in expert_decisions(window, world_cfg, expert)]
     if CHANGE in states:
         plans = [m.plan for m in window if m.plan is not None]
-        moved = [abs(float(p[-1, 1])) > 1.0 for p in plans]
+        moved = [abs(float(p[-1, 1])) > CHANGING_M for p in plans]
         if not any(moved):
             return "lane change missed"
         return "lane change late"
@@ -255,10 +263,7 @@ def late_change(
     n, track = len(c.moments), c.moments[0].world.track
     hit_lane = int(c.moments[0].world.cars.lane[c.parked]) if c.parked >= 0 else -1
     starts = []
-    for m in c.moments:
-        expert.reset(1)
-        expert.act(_observe_moment(m, world_cfg))
-        decision = expert.decisions[0]
+    for m, decision in zip(c.moments, expert_decisions(c.moments, world_cfg, expert)):
         here = int(track.lane_index(float(track.to_frenet(m.state[0], m.state[1])[1])))
         out = decision.state == CHANGE and decision.overtaking and decision.target != here
         starts.append(out and here == hit_lane)
