@@ -379,7 +379,8 @@ ARTIFACT_VERSIONS = {
     # phase of its own, and no car after its share (the same moments for any number of shards);
     # 4: a mixture's mode ends and weights at each moment (the late lane change's split)
     "witness": 4,
-    "recovery": 1,
+    # 2: no view of a car slower than RecoveryConfig.min_speed_mps (their labels were absurd)
+    "recovery": 2,
 }
 
 

@@ -278,3 +278,20 @@ def test_road_lateral_removes_heading_and_curve():
     np.testing.assert_allclose(road_lateral(turned, np.array([0.02]), np.zeros(1)), [0.0])
     np.testing.assert_allclose(road_lateral(bend, np.zeros(1), np.array([0.002])), [0.0])
     np.testing.assert_allclose(road_lateral(straight, np.array([0.02]), np.zeros(1)), [0.75])
+
+
+def test_a_standing_car_gets_no_recovery_view():
+    """Recovery views (chapter 05) are made of moving cars only: a car standing behind a parked
+    one has no steering that "brings it back within 2 s", and the tracker's gains at a standstill
+    gave labels of half a radian. Every view's speed is at least the floor, and every moving
+    sample gets one at fraction 1."""
+    from e2e_lite.imitation.recovery import RecoveryConfig, recovery_views
+
+    cfg = small_cfg(n_samples=120)
+    data = collect(cfg, progress=False)
+    data.arrays["speed"][:30] = 0.0  # 30 cars standing, their plans standing too:
+    data.arrays["trajectory"][:30] = 0.0  # (without the floor their views' labels reach 0.4 rad)
+    views = recovery_views(data, cfg, RecoveryConfig(fraction=1.0), progress=False)
+    floor = RecoveryConfig().min_speed_mps
+    assert len(views) == int((data.speed >= floor).sum()) and views.speed.min() >= floor
+    assert np.abs(views.actuators[:, 0]).max() < 0.1  # (a highway correction, not a swerve)

@@ -60,8 +60,9 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
   its own lane its home, drives and labels everything; the second label is gone from the data.
   The quick dataset, the expert's drive and the trained networks changed. Recorded on the
   project's 2-core AMD EPYC.
-* 2026-12-07, ``witness`` 4 only: a witnessed moment keeps a mixture's mode ends and weights (the
-  late lane change's split); the reference holds no witnessed drive, so every entry is unchanged.
+* 2026-12-07, ``witness`` 4 and ``recovery`` 2 only: a witnessed moment keeps a mixture's mode
+  ends and weights (the late lane change's split), and no recovery view is made of a car slower
+  than 5 m/s; the reference holds no witnessed drive and no view, so every entry is unchanged.
 """
 
 from __future__ import annotations
