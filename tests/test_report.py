@@ -195,6 +195,27 @@ def test_a_course_run_is_recorded_from_its_outputs_and_rendered_for_teachers(tmp
         course_run_record(tmp_path)
 
 
+def test_what_a_class_sees_live_is_rendered_from_a_recorded_quick_run(tmp_path) -> None:
+    """Issue 89: the kit lists each chapter's quick-profile headline figures from a recorded
+    quick run (never typed), naming its commit and machine; a full-profile chapter is refused,
+    and without a recorded run the kit says how to make one."""
+    from e2e_lite.record.course_run import quick_run_record
+
+    (tmp_path / "metrics").mkdir()
+    metrics = {"profile": "quick", "headline": {"expert collisions/100mi": 0.0, "x": None}}
+    (tmp_path / "metrics" / "04_expert_and_data.json").write_text(json.dumps(metrics))
+    run = quick_run_record(tmp_path, ROOT)
+    assert run["chapters"] == {"04_expert_and_data": {"expert collisions/100mi": 0.0}}
+    lines = kit.quick_run_lines(run)
+    assert "- **04_expert_and_data**: expert collisions/100mi 0" in lines
+    assert run["machine"] in lines and "No quick run" in kit.quick_run_lines(None)
+    (tmp_path / "metrics" / "05_pilotnet_baseline.json").write_text(json.dumps({"profile": "full"}))
+    with pytest.raises(ValueError, match="not a quick-profile run"):
+        quick_run_record(tmp_path, ROOT)
+    teaching = (ROOT / "docs" / "teaching.md").read_text()
+    assert kit.LIVE_BEGIN in teaching and "### What a class sees live" in teaching
+
+
 def test_what_a_machine_needs_is_measured_and_only_what_was_measured_is_said(tmp_path) -> None:
     """The kit's machine needs come from measurements: folder sizes (a hard link counted once),
     the peak memory a '/usr/bin/time -v' log reports, and the system the run was on."""

@@ -12,7 +12,8 @@ The record is a **pool of shares**, one command per job (``python -m e2e_lite.re
   does not belong, naming its file) into ``docs/results/table1.json`` and renders it;
 * ``plan`` prints the seeds and miles that reach the record's power, and what each costs;
 * ``course-run OUTPUTS`` records what a full-profile course run printed
-  (``docs/results/course_run.json``, rendered into ``docs/teaching.md``).
+  (``docs/results/course_run.json``, rendered into ``docs/teaching.md``), ``quick-run OUTPUTS``
+  what a quick one printed (``docs/results/quick_run.json``: what a class sees live).
 
 :mod:`.rows` types the data, :mod:`.stats` holds the tests declared before a record runs,
 :mod:`.pool` pools, :mod:`.run` runs. :mod:`e2e_lite.record.report` renders, and does nothing else.
@@ -24,3 +25,5 @@ ROOT = Path(__file__).resolve().parents[2]
 #: the committed record of record, and what a full-profile course run printed
 RECORD = ROOT / "docs" / "results" / "table1.json"
 COURSE_RUN = ROOT / "docs" / "results" / "course_run.json"
+#: what a quick-profile course run printed (what a class sees live)
+QUICK_RUN = ROOT / "docs" / "results" / "quick_run.json"

@@ -13,8 +13,8 @@ import e2e_lite.record
 
 from ..artifacts import atomic_write, outputs_dir
 from ..config import FULL, QUICK
-from . import COURSE_RUN, RECORD, ROOT, report
-from .course_run import course_run_record
+from . import COURSE_RUN, QUICK_RUN, RECORD, ROOT, report
+from .course_run import course_run_record, quick_run_record
 from .pool import ShareRefused, pool
 from .rows import Record, Share, dump, load_record
 from .run import low_rate_row, parse_seeds, plan, plan_lines, record_share
@@ -62,6 +62,12 @@ def _parser() -> argparse.ArgumentParser:
         help="record what a full-profile course run printed (docs/results/course_run.json, "
         "rendered into docs/teaching.md)",
     )
+    quick = jobs.add_parser(
+        "quick-run",
+        help="record what a quick-profile course run printed (docs/results/quick_run.json, "
+        "rendered into docs/teaching.md: what a class sees live)",
+    )
+    quick.add_argument("outputs", type=Path, metavar="OUTPUTS")
     course.add_argument("outputs", type=Path, metavar="OUTPUTS")
     course.add_argument("--time-log", type=Path, help="the run's '/usr/bin/time -v' output")
     course.add_argument("--quick-outputs", type=Path, help="a quick course run's outputs folder")
@@ -123,6 +129,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             print("\n".join(plan_lines(plan(record, row=row))))
         return 0
 
+    if args.job == "quick-run":
+        with atomic_write(QUICK_RUN, "w") as f:
+            json.dump(quick_run_record(args.outputs, ROOT), f, indent=1)
+        print(
+            f"wrote {QUICK_RUN.relative_to(ROOT)}: render it with python -m e2e_lite.record.report"
+        )
+        return 0
     with atomic_write(COURSE_RUN, "w") as f:
         needs = {k: getattr(args, k) for k in ("time_log", "quick_outputs", "venv", "downloads")}
         json.dump(course_run_record(args.outputs, **needs), f, indent=1)

@@ -1,6 +1,7 @@
 """What a full-profile course run printed, recorded from its outputs folder (``python -m
 e2e_lite.record course-run OUTPUTS`` writes ``docs/results/course_run.json``, which the report
-renders into ``docs/teaching.md``), with what the machine needed to run it."""
+renders into ``docs/teaching.md``), with what the machine needed to run it; and what a quick one
+printed (``quick-run OUTPUTS``: what a class sees live)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import json
 import os
 import platform
 import re
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -98,5 +100,29 @@ def course_run_record(outputs: Path, **needs: Path | None) -> dict[str, Any]:
         "torch": torch.__version__,
         "outputs_bytes": found.pop("outputs_bytes"),
         "needs": found,
+        "chapters": chapters,
+    }
+
+
+def quick_run_record(outputs: Path, root: Path | None = None) -> dict[str, Any]:
+    """A quick-profile course run, read from its outputs folder: the headline figures each
+    chapter wrote (``metrics/<chapter>.json``), with the machine, torch and the commit of the
+    code in ``root`` (None without git). A chapter whose metrics are another profile's is
+    refused."""
+    chapters = {}
+    for path in sorted((outputs / "metrics").glob("[0-9][0-9]_*.json")):
+        metrics = json.loads(path.read_text())
+        if metrics.get("profile") != "quick":
+            raise ValueError(f"{path}: not a quick-profile run ({metrics.get('profile')})")
+        chapters[path.stem] = {
+            k: v for k, v in metrics.get("headline", {}).items() if v is not None
+        }
+    done = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root
+    )
+    return {
+        "machine": f"{cpu_name()}, {os.cpu_count()} cores",
+        "torch": torch.__version__,
+        "commit": done.stdout.strip() if done.returncode == 0 else None,
         "chapters": chapters,
     }

@@ -20,6 +20,8 @@ FINDINGS_BEGIN = "<!-- sessions' findings: rendered by python -m e2e_lite.record
 FINDINGS_END = "<!-- /sessions' findings -->"
 NEEDS_BEGIN = "<!-- machine needs: rendered by python -m e2e_lite.record.report -->"
 NEEDS_END = "<!-- /machine needs -->"
+LIVE_BEGIN = "<!-- quick run: rendered by python -m e2e_lite.record.report -->"
+LIVE_END = "<!-- /quick run -->"
 #: each session's chapters and the record's steps it teaches (teaching.md's sessions)
 SESSIONS = {
     1: (("01", "02", "03"), ()),
@@ -191,9 +193,36 @@ def session_findings(run: dict[str, Any] | None, record: Record) -> str:
     return "\n".join(lines)
 
 
-def teaching_with(text: str, run: dict[str, Any] | None, record: Record) -> str:
-    """``docs/teaching.md``'s ``text`` with its three rendered blocks made from ``run`` (the
-    recorded course run, or None) and ``record``."""
+def quick_run_lines(quick: dict[str, Any] | None) -> str:
+    """docs/teaching.md's list of what each chapter prints in the quick profile (the headline
+    figures of the recorded quick run): what a class sees live."""
+    if quick is None:
+        return (
+            "*No quick run is recorded yet: run `python -m e2e_lite.course --quick`, then "
+            "`python -m e2e_lite.record quick-run outputs/quick`.*"
+        )
+    lines = [
+        f"- **{stem}**: " + ("; ".join(f"{k} {_figure(v)}" for k, v in figures.items()) or "-")
+        for stem, figures in quick["chapters"].items()
+    ]
+    at = f" at commit {quick['commit']}" if quick.get("commit") else ""
+    lines += [
+        "",
+        f"*The quick profile{at} on {quick['machine']}, torch {quick['torch']}: tiny data,"
+        " networks trained for a few steps, a few miles each; it shows that every path runs, not"
+        " how a method drives (another CPU prints other trained figures; the scripted drivers'"
+        " and the expert's are the same everywhere).*",
+    ]
+    return "\n".join(lines)
+
+
+def teaching_with(
+    text: str, run: dict[str, Any] | None, record: Record, quick: dict[str, Any] | None = None
+) -> str:
+    """``docs/teaching.md``'s ``text`` with its rendered blocks made from ``run`` (the recorded
+    course run, or None), ``record`` and ``quick`` (the recorded quick run, or None)."""
     text = replace_block(text, RUN_BEGIN, RUN_END, course_run_table(run, record))
     text = replace_block(text, FINDINGS_BEGIN, FINDINGS_END, session_findings(run, record))
+    if LIVE_BEGIN in text:
+        text = replace_block(text, LIVE_BEGIN, LIVE_END, quick_run_lines(quick))
     return replace_block(text, NEEDS_BEGIN, NEEDS_END, machine_needs_list(run))

@@ -30,7 +30,7 @@ from ..driving.roads import SPENT_BLOCKS
 from ..driving.rollout import EvalConfig
 from ..stats.power import chi_square_spread
 from ..stats.seeds import seed_rates, spread
-from . import COURSE_RUN, RECORD, ROOT, words
+from . import COURSE_RUN, QUICK_RUN, RECORD, ROOT, words
 from .kit import replace_block, teaching_with
 from .rows import SLOW_SHARE, Record, Row, load_record
 from .stats import OFF_CENTRE_READING, SPREAD_GOAL, StepResult, off_centre_steps, steps
@@ -346,7 +346,8 @@ def renders(record: Record) -> dict[Path, str]:
     }
     if TEACHING.exists():
         run = json.loads(COURSE_RUN.read_text()) if COURSE_RUN.exists() else None
-        wanted[TEACHING] = teaching_with(TEACHING.read_text(), run, record)
+        quick = json.loads(QUICK_RUN.read_text()) if QUICK_RUN.exists() else None
+        wanted[TEACHING] = teaching_with(TEACHING.read_text(), run, record, quick)
     return wanted
 
 
