@@ -31,6 +31,7 @@ import hashlib
 import json
 import os
 import re
+import subprocess
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -477,3 +478,15 @@ def save_figure(fig: Figure, path: Path | str, dpi: int = 110) -> Path:
         fig.savefig(f, format="png", dpi=dpi, bbox_inches="tight")
     show_in_notebook(path)
     return path
+
+
+def code_commit(where: Path) -> str:
+    """The short commit of the git checkout holding ``where``; a copy without git's history (a
+    zip, a lent machine's copy of the tree) says it in ``$E2E_LITE_COMMIT``, else "unknown"."""
+    try:
+        git = ["git", "rev-parse", "--short", "HEAD"]
+        return subprocess.run(
+            git, capture_output=True, text=True, check=True, cwd=where
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return os.environ.get("E2E_LITE_COMMIT", "unknown")

@@ -10,16 +10,14 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import re
-import subprocess
 import sys
 import time
 import traceback
 from pathlib import Path
 from typing import Any
 
-from ..artifacts import atomic_write, outputs_dir
+from ..artifacts import atomic_write, code_commit, outputs_dir
 
 #: a cell's first line: ``# %%`` (code) or ``# %% [markdown]`` (prose)
 CELL = re.compile(r"^# %%( \[markdown\])?\s*$", re.M)
@@ -67,16 +65,6 @@ def _figures(root: Path) -> dict[str, float]:
     return {str(p.relative_to(root)): p.stat().st_mtime for p in folder.rglob("*.png")}
 
 
-def _commit(repo: Path) -> str:
-    try:
-        git = ["git", "rev-parse", "--short", "HEAD"]
-        return subprocess.run(
-            git, capture_output=True, text=True, check=True, cwd=repo
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("E2E_LITE_COMMIT", "unknown")
-
-
 def run(path: Path, flags: list[str]) -> int:
     """Run chapter ``path`` cell by cell as ``__main__`` with ``flags`` as its arguments, and
     write its transcript; returns the exit code (1 after an error, whose traceback is printed
@@ -118,7 +106,7 @@ def run(path: Path, flags: list[str]) -> int:
     repo = path.resolve().parent.parent
     transcript = {
         "chapter": path.stem,
-        "commit": _commit(repo),
+        "commit": code_commit(repo),
         "source_sha256": hashlib.sha256(source.encode()).hexdigest(),
         "flags": flags,
         "exit_code": code,

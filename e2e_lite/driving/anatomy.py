@@ -230,12 +230,13 @@ def width_on_camera(moment: Moment, parked: int, camera: CameraConfig | None = N
     s_rear = float(cars.s[parked]) - cars.length_m / 2.0
     d = float(cars.d[parked]) + np.array([-0.5, 0.5]) * cars.width_m
     xy = track.position(np.full(2, s_rear), d)
-    rot, t = Camera(cfg).world_to_camera_matrix(tuple(float(v) for v in state[:3]))
+    camera = Camera(cfg)
+    rot, t = camera.world_to_camera_matrix(tuple(float(v) for v in state[:3]))
     pts = np.column_stack([xy, np.full(2, 0.7)]) @ rot.T + t  # (about half a car's height)
     ahead = float(pts[:, 2].min())
     if ahead < cfg.near_m or ahead > cfg.draw_distance_m:
         return 0.0
-    cols = np.clip(Camera(cfg).project(pts)[:, 0], 0.0, float(cfg.width_px))  # (in the frame)
+    cols = np.clip(camera.project(pts)[:, 0], 0.0, float(cfg.width_px))  # (in the frame)
     return float(abs(cols[1] - cols[0]))
 
 

@@ -9,12 +9,12 @@ import json
 import os
 import platform
 import re
-import subprocess
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from ..artifacts import code_commit
 from ..course.estimate import cpu_name
 from ..course.run import TIMES_FILE
 
@@ -107,7 +107,7 @@ def course_run_record(outputs: Path, **needs: Path | None) -> dict[str, Any]:
 def quick_run_record(outputs: Path, root: Path | None = None) -> dict[str, Any]:
     """A quick-profile course run, read from its outputs folder: the headline figures each
     chapter wrote (``metrics/<chapter>.json``), with the machine, torch and the commit of the
-    code in ``root`` (None without git). A chapter whose metrics are another profile's is
+    code in ``root`` (None where it cannot be told). A chapter whose metrics are another profile's is
     refused."""
     chapters = {}
     for path in sorted((outputs / "metrics").glob("[0-9][0-9]_*.json")):
@@ -117,12 +117,10 @@ def quick_run_record(outputs: Path, root: Path | None = None) -> dict[str, Any]:
         chapters[path.stem] = {
             k: v for k, v in metrics.get("headline", {}).items() if v is not None
         }
-    done = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root
-    )
+    commit = code_commit(root or Path.cwd())
     return {
         "machine": f"{cpu_name()}, {os.cpu_count()} cores",
         "torch": torch.__version__,
-        "commit": done.stdout.strip() if done.returncode == 0 else None,
+        "commit": None if commit == "unknown" else commit,
         "chapters": chapters,
     }

@@ -13,7 +13,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from ..artifacts import profile_outputs, seeded, settings_key
@@ -27,11 +26,10 @@ from ..imitation.recipes import SELECT_MILES
 from ..learning.models import pick_device
 from ..simulation.world import WorldConfig
 from ..stats.power import seeds_for_power
-from ..stats.seeds import seed_counts
 from .ablation import BEYOND, BY_KEY, CONTROLS, DRIVERS, UNTRAINED, build_drivers
 from .pool import record_block, seed_run
-from .rows import SHARE_FORMAT, Block, Record, Row, SeedRun, Share, ShareRow
-from .stats import POWER_ROW, family, record_dispersion, record_power
+from .rows import SHARE_FORMAT, Block, Record, SeedRun, Share, ShareRow
+from .stats import POWER_ROW, family, median_rate, record_dispersion, record_power
 from .stored import evaluate_stored
 
 #: every row of the record: the paper's, DAgger's (chapter 12) and the controls
@@ -181,11 +179,6 @@ def low_rate_row(record: Record) -> str:
     """The learned row of two or more seeds whose median seed collides least: the rows whose
     steps are the hardest to find (issue 88: the record's seeds are planned for them too)."""
     learned = [r for r in record.rows if r.key not in UNTRAINED and len(r.seeds) >= 2]
-
-    def median_rate(r: Row) -> float:
-        counts, budget = seed_counts(r)
-        return float(np.median(counts)) * 100.0 / budget
-
     return min(learned, key=median_rate).key
 
 
@@ -209,8 +202,7 @@ def plan(
     found = record_power(record)
     k, rate = found.dispersion.k, found.rate_per_100mi
     if row is not None:
-        counts, budget = seed_counts(record.row(row))
-        rate = max(float(np.median(counts)) * 100.0 / budget, 0.5)  # (a zero rate has no step)
+        rate = max(median_rate(record.row(row)), 0.5)  # (a zero rate has no step)
         k = record_dispersion(record, near=row).k
     options = []
     for miles in miles_options:

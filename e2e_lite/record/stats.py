@@ -285,6 +285,13 @@ def _tested(
     return dataclasses.replace(result, family=family_of.get(name, st.family), measure=measure)
 
 
+def _kept_interventions(record: Record, st: Step) -> bool:
+    """Whether both of ``st``'s rows recorded their seeds' interventions (the off-centre test
+    needs them)."""
+    rows = (record.row(st.after), record.row(st.before))
+    return all(r is not None and r.interventions is not None for r in rows)
+
+
 def _declared_tests(record: Record) -> list[StepResult]:
     """Every declared test whose rows the record holds (a record that declared its families
     tests only what it declared; one from before the declaration every step on collisions),
@@ -296,9 +303,7 @@ def _declared_tests(record: Record) -> list[StepResult]:
     for measure in OUTCOMES if declares_off_centre(record) else OUTCOMES[:1]:
         suffix = OFF_CENTRE_SUFFIX if measure == "off_centre" else ""
         for st in held:
-            kept = measure == "collisions" or all(
-                r.interventions is not None for r in (record.row(st.after), record.row(st.before))
-            )
+            kept = measure == "collisions" or _kept_interventions(record, st)
             if st.what + suffix in declared and kept:
                 tested.append(_tested(record, st, declared, measure))
     out = []
@@ -336,24 +341,8 @@ def off_centre_steps(record: Record) -> list[StepResult]:
     if declares_off_centre(record):
         return [r for r in _declared_tests(record) if r.measure == "off_centre"]
     declared = declared_family(record).tests
-    kept = [
-        st
-        for st in STEPS
-        if st.what in declared
-        and all(
-            r is not None and r.interventions is not None
-            for r in (record.row(st.after), record.row(st.before))
-        )
-    ]
-    tested = [
-        test_step(
-            st,
-            compare_seeds(
-                record.row(st.after), record.row(st.before), paired=st.paired, outcome="off_centre"
-            ),
-        )
-        for st in kept
-    ]
+    kept = [st for st in STEPS if st.what in declared and _kept_interventions(record, st)]
+    tested = [_tested(record, st, {}, "off_centre") for st in kept]
     return _read_at_holm([dataclasses.replace(r, family=OFF_CENTRE_READING) for r in tested])
 
 
@@ -377,13 +366,13 @@ def record_dispersion(record: Record, near: str | None = None) -> Dispersion | N
     within :data:`POWER_RATES_WITHIN` of that row's only. None without such a row."""
     rows = [r for r in record.rows if len(r.seeds) >= 2]
     if near is not None and record.row(near) is not None:
-        centre = _median_rate(record.row(near))
-        rows = [r for r in rows if _within(_median_rate(r), centre, POWER_RATES_WITHIN)]
+        centre = median_rate(record.row(near))
+        rows = [r for r in rows if _within(median_rate(r), centre, POWER_RATES_WITHIN)]
     counts = [seed_counts(r).counts for r in rows]
     return fit_dispersion(counts) if counts else None
 
 
-def _median_rate(row: Row) -> float:
+def median_rate(row: Row) -> float:
     """A row's median seed rate [per 100 mi]."""
     counts, budget = seed_counts(row)
     return float(np.median(counts)) * 100.0 / budget
@@ -463,7 +452,7 @@ def record_power(record: Record) -> RecordPower | None:
     if row is None or len(row.seeds) < 2:
         return None
     counts, budget = seed_counts(row)
-    rate = max(float(np.median(counts)) * 100.0 / budget, 0.5)  # (a zero rate has no step)
+    rate = max(median_rate(row), 0.5)  # (a zero rate has no step)
     fitted = record_dispersion(record, near=POWER_ROW)
     k, (rho, rho_low, rho_high) = fitted.k, shared_spread(record)
     spread_rank = power(len(counts), budget, rate, POWER_STEP, dispersion=k)
