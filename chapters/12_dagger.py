@@ -100,11 +100,11 @@ print("kinds: " + ", ".join(f"{kind} {n}" for kind, n in found["kinds"].items())
 
 # %% [markdown]
 # A lane change begun late can start late in three places (`anatomy.late_change`): **seeing**
-# (at the moment the expert, from the same state, begins the overtake, the network shows no sign
-# of the parked car: its lane-changing modes weigh no more than in ordinary driving), **deciding**
-# (they weigh more, but the plan it follows keeps the lane) or **following** (the plan began the
-# change in time, and the car still hit). The parked car's gap and its width on the 66 x 200
-# camera at the expert's start say how much of it there was to see.
+# (once the expert, from the same state, begins the overtake, the network shows no sign of the
+# car: its lane-changing modes weigh no more than while it keeps its lane, its affordance head
+# misreads the gap), **deciding** (it shows one, yet keeps the lane) or **following** (the plan
+# began in time and the car still hit). Plans are read along the road (on a curve a lane-keeping
+# plan ends metres to the car's side); the gap and the car's width say how much there was to see.
 
 # %%
 late = found["late_changes"]
@@ -119,6 +119,7 @@ print(
     f"medians: the expert began {at(late['expert_start_s'], 's')} before the impact, the plan "
     f"{at(late['plan_start_s'], 's')} ({late['never_planned']} never); at the expert's start "
     f"the car was {at(late['gap_m'], 'm')} ahead, {at(late['width_px'], 'px')} wide on the camera"
+    f" (66 x 200); its affordance head read the gap right in {at(late['read_share'], 'of moments')}"
 )
 
 # %%

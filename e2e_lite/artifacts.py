@@ -378,8 +378,9 @@ ARTIFACT_VERSIONS = {
     # what a witnessed drive keeps (chapter 12's anatomy: ``driving.anatomy.Witness``); 2: its
     # ordinary moments counted over all cars (a short drive's cars kept none); 3: each car's at a
     # phase of its own, and no car after its share (the same moments for any number of shards);
-    # 4: a mixture's mode ends and weights at each moment (the late lane change's split)
-    "witness": 4,
+    # 4: a mixture's mode ends and weights at each moment (the late lane change's split); 5: the
+    # mode ends' 1.5 s points (read along the road) and an affordance head's gap-ahead reading
+    "witness": 5,
     # 2: no view of a car slower than RecoveryConfig.min_speed_mps (their labels were absurd)
     "recovery": 2,
 }

@@ -19,6 +19,7 @@ from e2e_lite.imitation import dagger, recipes
 from e2e_lite.imitation.agents import TrajectoryAgent
 from e2e_lite.imitation.collector import DataConfig, NoiseConfig, OnPolicy, collect
 from e2e_lite.learning.dataset import synthetic_data
+from e2e_lite.learning.labels import GAP_CAP_M
 from e2e_lite.learning.models import ModelConfig, build_model, prepare
 from e2e_lite.simulation.geometry import RoadConfig
 from e2e_lite.simulation.world import TrafficConfig, WorldConfig
@@ -254,23 +255,76 @@ def test_a_late_lane_change_is_split_into_seeing_deciding_and_following():
     table = anatomy.table([c])["late_changes"]
     assert table["n"] == 1 and table["parts"]["seeing or deciding"] == 1
     start = len(c.moments) - round(c.late.expert_start_s / WORLD.sim.policy_period_s)
-    straight = np.stack([np.arange(1, 6) * 7.5, np.zeros(5)], axis=1)
-    turning = straight + np.array([0.0, 3.7]) * np.linspace(0.2, 1.0, 5)[:, None]
     expert = anatomy.Expert(vehicle=WORLD.vehicle, sim=WORLD.sim)
 
-    def split(plan_from: int, change_weight: float, level: float) -> str:
+    def split(plan_from: int, change_weight: float, level: float, read: float | None) -> str:
         for k, m in enumerate(c.moments):
-            m.plan = turning if k >= plan_from else straight
-            m.mode_ends, m.weights = (
-                np.array([0.0, 3.7]),
-                np.array([1 - change_weight, change_weight]),
-            )
+            keep, turn = along_lane(m, 0.0), along_lane(m, 3.7)
+            m.plan = turn if k >= plan_from else keep
+            m.mode_ends = np.stack([keep[-1], turn[-1]])
+            m.weights = np.array([1 - change_weight, change_weight])
+            m.gap_read_m = read
         return anatomy.late_change(c, WORLD, expert, level).part
 
-    assert split(start, 0.1, 0.2) == "following"
-    assert split(len(c.moments), 0.4, 0.2) == "deciding"
-    assert split(len(c.moments), 0.1, 0.2) == "seeing"
+    assert split(start, 0.1, 0.2, None) == "following"
+    assert split(len(c.moments), 0.4, 0.2, None) == "deciding"
+    assert split(len(c.moments), 0.1, 0.2, None) == "seeing"
     assert anatomy.ordinary_change_weight(c.moments) == pytest.approx(0.1)
+    # the affordance head: blind to the car (it reads a free lane), or reading its gap right
+    assert split(len(c.moments), 0.1, 0.2, GAP_CAP_M) == "seeing"
+    for m in c.moments:
+        m.gap_read_m = true_gap(m)
+    read = anatomy.late_change(c, WORLD, expert, 0.2)
+    assert read.part == "deciding" and read.read_share == 1.0
+
+
+def along_lane(m, offset_m: float) -> np.ndarray:
+    """A plan ``(5, 2)`` in ``m``'s car frame (rear axle) that follows the road 7.5 m a point
+    and ends ``offset_m`` from the centre of the car's lane."""
+    track = m.world.track
+    x, y, heading = (float(v) for v in m.state[:3])
+    s, d = (float(np.ravel(v)[0]) for v in track.to_frenet(x, y))
+    centre = float(track.lane_center(track.lane_index(d)))
+    k = np.arange(1, 6)
+    xy = np.asarray(track.position(s + 7.5 * k, d + (centre + offset_m - d) * k / 5.0))
+    dx, dy = xy[:, 0] - x, xy[:, 1] - y
+    c, s_ = np.cos(heading), np.sin(heading)
+    return np.stack([c * dx + s_ * dy, -s_ * dx + c * dy], axis=1)
+
+
+def true_gap(m) -> float:
+    """The gap ahead in ``m``'s lane, as the affordance head is taught it [m]."""
+    from e2e_lite.control.affordances import affordances
+    from e2e_lite.driving.witness import GAP_AHEAD
+
+    s, d = (np.ravel(v)[:1] for v in m.world.track.to_frenet(m.state[0], m.state[1]))
+    return float(affordances([m.world], s, d, np.zeros(1))[0][GAP_AHEAD])
+
+
+def test_a_plan_that_keeps_its_lane_on_a_curve_is_not_read_as_a_lane_change():
+    """On a curve a plan that keeps the lane ends metres to the side of the car's heading; the
+    anatomy reads plans and modes along the road (``Moment.lane_offset``), so it is no change
+    there, and a plan into the next lane is one (issue 88: the car's frame read every curve as
+    a change, and the split called every late change *following*)."""
+    from e2e_lite.driving.witness import CHANGING_M, Moment
+    from e2e_lite.simulation.world import make_world
+
+    world = make_world(WORLD, "val", 0)
+    track = world.track
+    s = np.linspace(0.0, track.length - 100.0, 400)
+    bend = float(s[np.argmax(np.abs(track.curvature(s)))])
+    lane = track.lane_center(1)
+    x, y = np.asarray(track.position(bend, lane), dtype=float).reshape(-1)[:2]
+    heading = float(np.ravel(track.heading(bend))[0])
+    m = Moment(np.array([x, y, heading, 25.0, 0.0]), 0, world, None)
+    keep, turn = along_lane(m, 0.0), along_lane(m, 3.7)
+    assert abs(keep[-1, 1]) > CHANGING_M  # the car's frame would call it a change
+    m.plan = keep
+    assert not m.plan_changing and abs(m.lane_offset(keep[-1])[0]) < 0.1
+    m.plan = turn
+    assert m.plan_changing
+    m.mode_ends, m.weights = np.stack([keep[-1], turn[-1]]), np.array([0.7, 0.3])
+    assert m.change_weight == pytest.approx(0.3)
 
 
 def test_a_witnessed_drive_is_stored_and_read_back_to_the_same_collisions_and_findings(

@@ -20,9 +20,10 @@ A driver drives inside :class:`Witness`, which keeps each car's last :data:`HIST
   kinds): when the expert, from the same states, begins the change, and when the driver's plan
   does; the parked car's distance and its width on the camera at the expert's start; the
   mixture's weight on its lane-changing modes over the last seconds. *Following*: the plan began
-  the change in time and the car still hit; *deciding*: the plan began late, but at the expert's
-  start the lane-changing modes already weighed more than in ordinary driving (seen, not taken);
-  *seeing*: neither (the network showed no sign of the car there).
+  the change in time and the car still hit; *deciding*: the plan began late, but the network
+  showed it had seen the car (its lane-changing modes weighed more than while it keeps its lane,
+  or its affordance head read the gap ahead right): seen, not taken; *seeing*: neither. Plans
+  and modes are read along the road, not in the car's frame, where a curve looks like a change.
 """
 
 from __future__ import annotations
@@ -32,13 +33,15 @@ from typing import Any
 
 import numpy as np
 
+from ..control.affordances import affordances
 from ..control.expert import Expert
-from ..learning.labels import CHANGE, FOLLOW, Decision, interpolated_path
+from ..learning.labels import CHANGE, FOLLOW, GAP_CAP_M, Decision, interpolated_path
 from ..simulation.camera import Camera, CameraConfig
 from ..simulation.policy import Observation, Policy, observe
 from ..simulation.world import Fleet, WorldConfig, make_world
 from .witness import (  # noqa: F401 (re-exported: the anatomy's readers find the witness here)
     CHANGING_M,
+    GAP_AHEAD,
     HISTORY_S,
     PHASE_STRIDE,
     Collision,
@@ -72,7 +75,11 @@ PARTS = ("seeing", "deciding", "following", "seeing or deciding", "no expert sta
 #: a plan that began its change no later than this after the expert's start began it in time [s]
 IN_TIME_S = 0.5
 #: the ordinary level of the lane-changing modes' weight: this quantile over ordinary moments
+#: whose plan keeps the lane
 ORDINARY_QUANTILE = 0.95
+#: an affordance head read the gap ahead right when within this many metres, or this share of
+#: the gap, whichever is larger
+READ_TOLERANCE = (5.0, 0.2)
 
 
 def contact(last: Moment, world_cfg: WorldConfig) -> tuple[str, int]:
@@ -204,9 +211,7 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
         return "into an occupied lane"
     states = [d.state for d in expert_decisions(window, world_cfg, expert)]
     if CHANGE in states:
-        plans = [m.plan for m in window if m.plan is not None]
-        moved = [abs(float(p[-1, 1])) > CHANGING_M for p in plans]
-        if not any(moved):
+        if not any(m.plan_changing for m in window):
             return "lane change missed"
         return "lane change late"
     if FOLLOW in states:
@@ -215,10 +220,28 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
 
 
 def ordinary_change_weight(ordinary: list[Moment]) -> float | None:
-    """The lane-changing modes' weight that ordinary driving reaches: its
-    :data:`ORDINARY_QUANTILE` over the ``ordinary`` moments (None: no modes)."""
-    found = [w for w in (m.change_weight for m in ordinary) if w is not None]
+    """The lane-changing modes' weight that ordinary driving reaches while its plan keeps the
+    lane: its :data:`ORDINARY_QUANTILE` over the ``ordinary`` moments whose plan does not change
+    lanes (None: no modes). (The driver's own lane changes are left out: their modes weigh
+    about 1.)"""
+    found = [m.change_weight for m in ordinary if m.plan_changing is False]
+    found = [w for w in found if w is not None]
     return float(np.quantile(found, ORDINARY_QUANTILE)) if found else None
+
+
+def read_right(moment: Moment) -> bool | None:
+    """Did the driver's affordance head read the gap ahead in its lane right at ``moment``:
+    within :data:`READ_TOLERANCE` of the truth? None: no head, or no car ahead within the head's
+    range (:data:`~e2e_lite.learning.labels.GAP_CAP_M`)."""
+    if moment.gap_read_m is None:
+        return None
+    track = moment.world.track
+    s, d = (np.ravel(v)[:1] for v in track.to_frenet(moment.state[0], moment.state[1]))
+    true = float(affordances([moment.world], s, d, np.zeros(1))[0][GAP_AHEAD])
+    if true >= GAP_CAP_M:
+        return None
+    metres, share = READ_TOLERANCE
+    return abs(moment.gap_read_m - true) <= max(metres, share * true)
 
 
 def width_on_camera(moment: Moment, parked: int, camera: CameraConfig | None = None) -> float:
@@ -252,14 +275,19 @@ def late_change(
     The expert's start: the first moment of the last unbroken run of moments from which the
     expert, in the hit car's lane, overtakes out of it (a wobble or an earlier car's overtake is
     another run). The plan's start: the first moment from that start (or from the last
-    ``window_s``, :func:`kind`'s window, when that is earlier) whose plan ends more than
-    :data:`CHANGING_M` to the side. At the expert's start, the parked car's gap and its width
-    on the camera; over the last ``window_s``, the lane-changing modes' weight. The part:
+    ``window_s``, :func:`kind`'s window, when that is earlier) whose plan changes lanes
+    (:attr:`~e2e_lite.driving.witness.Moment.plan_changing`, read along the road). At the
+    expert's start, the parked car's gap and its width on the camera; over the last
+    ``window_s``, the lane-changing modes' weight; from the expert's start to the plan's, how
+    often an affordance head read the gap ahead right (:func:`read_right`). The part:
     *following* when the plan began no later than :data:`IN_TIME_S` after the expert; else
-    *deciding* when, from the expert's start to :data:`IN_TIME_S` after it, the lane-changing
-    modes weighed more than ``ordinary_level`` (:func:`ordinary_change_weight`, of the same
-    driver); else *seeing*; *seeing or deciding* for a driver without modes there; *no expert
-    start* when the expert, from these states, never overtakes out of the hit car's lane."""
+    *deciding* when the driver showed it had seen the car: from the expert's start to
+    :data:`IN_TIME_S` after it its lane-changing modes weighed more than ``ordinary_level``
+    (:func:`ordinary_change_weight`, of the same driver), or its affordance head read the gap
+    right at half or more of its moments; else *seeing*; *seeing or deciding* for a driver with
+    neither modes nor a head to show it; *no expert start* when the expert, from these states,
+    never overtakes out of the hit car's lane.
+    """
     period = world_cfg.sim.policy_period_s
     n, track = len(c.moments), c.moments[0].world.track
     hit_lane = int(c.moments[0].world.cars.lane[c.parked]) if c.parked >= 0 else -1
@@ -275,11 +303,7 @@ def late_change(
             first -= 1
     window = round(window_s / period)
     since = n - min(window, n) if first is None else min(first, n - min(window, n))
-    moved = [
-        k
-        for k in range(since, n)
-        if c.moments[k].plan is not None and abs(float(c.moments[k].plan[-1, 1])) > CHANGING_M
-    ]
+    moved = [k for k in range(since, n) if c.moments[k].plan_changing]
     planned = moved[0] if moved else None
     weights = [m.change_weight for m in c.moments[-window:]]
     expert_s = None if first is None else (n - first) * period
@@ -292,17 +316,22 @@ def late_change(
         gap = float(at.world.cars.s[c.parked]) - at.world.cars.length_m / 2.0 - front
         width = width_on_camera(at, c.parked)
     lag = round(IN_TIME_S / period)
+    reads = [] if first is None else [read_right(m) for m in c.moments[first : planned or n]]
+    reads = [r for r in reads if r is not None]
+    read_share = sum(reads) / len(reads) if reads else None
     if first is None:
         part = "no expert start"
     elif planned is not None and planned <= first + lag:
         part = "following"
     else:
         seen = [c.moments[k].change_weight for k in range(first, min(n, first + lag + 1))]
-        if ordinary_level is None or any(w is None for w in seen):
+        modes = None if ordinary_level is None or None in seen else max(seen) > ordinary_level
+        read = None if read_share is None else read_share >= 0.5
+        if modes is None and read is None:
             part = "seeing or deciding"
         else:
-            part = "deciding" if max(seen) > ordinary_level else "seeing"
-    return LateChange(expert_s, plan_s, gap, width, weights, part)
+            part = "deciding" if modes or read else "seeing"
+    return LateChange(expert_s, plan_s, gap, width, weights, read_share, part)
 
 
 def dissect(
@@ -334,7 +363,8 @@ def table(collisions: list[Collision]) -> dict[str, Any]:
     moment's counts (``"none tried"``: no hand-over tried saved it), the tracker's share
     (collisions whose plans of the last :data:`PLAN_WINDOW_S` were all clear), the kinds, and
     the late lane changes: their parts, the medians of the expert's and the plan's starts [s
-    before the impact], of the gap [m] and the width on the camera [px] at the expert's start."""
+    before the impact], of the gap [m] and the width on the camera [px] at the expert's start,
+    and of the share of moments its affordance head read the gap right."""
     n = len(collisions)
     saved = {t: sum(c.saved.get(t) is True for c in collisions) for t in HAND_OVER_S}
     untried = {t: sum(c.saved.get(t) is None for c in collisions) for t in HAND_OVER_S}
@@ -361,5 +391,6 @@ def table(collisions: list[Collision]) -> dict[str, Any]:
             "never_planned": sum(x.plan_start_s is None for x in late),
             "gap_m": median([x.gap_m for x in late]),
             "width_px": median([x.width_px for x in late]),
+            "read_share": median([x.read_share for x in late]),
         },
     }

@@ -7,6 +7,7 @@ compare with; stored and read back as JSON (:func:`witnessed_to_dict`,
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..artifacts import load_json, save_json
+from ..learning.labels import AFFORDANCE_NAMES
 from ..simulation.policy import Actuation, Observation, Policy
 from ..simulation.world import World, WorldConfig, make_world
 
@@ -24,16 +26,21 @@ HISTORY_S = 6.0
 #: the witness's ordinary moments: car ``c`` keeps its decisions ``n`` with ``n % every`` equal
 #: to ``PHASE_STRIDE * c % every`` (a stride prime to the course's ``every`` spreads the cars)
 PHASE_STRIDE = 61
-#: a plan (or a mode) changes lanes when its 1.5 s point lies this far to the side [m]
+#: a plan (or a mode) changes lanes when its 1.5 s point lies this far from the centre of the
+#: car's lane, read along the road (:meth:`Moment.lane_offset`) [m]
 CHANGING_M = 1.0
+#: where a network's affordance head puts its reading of the gap ahead in its lane
+GAP_AHEAD = AFFORDANCE_NAMES.index("gap_ego_m")
 
 
 @dataclass
 class Moment:
     """One decision of one car: its state ``(5,)``, its lane-frame segment hint, its world, the
     driver's plan ``(5, 2)`` there (None: the driver has none), the command it gave
-    ``(steer [rad], accel [m/s^2])``, and for a mixture its modes' 1.5 s lateral offsets
-    ``mode_ends`` ``(K,)`` [m] and their ``weights`` ``(K,)`` (None: not a mixture)."""
+    ``(steer [rad], accel [m/s^2])``; for a mixture its modes' 1.5 s points ``mode_ends``
+    ``(K, 2)`` and their ``weights`` ``(K,)`` (None: not a mixture); for a network with an
+    affordance head its reading of the gap ahead in its lane ``gap_read_m`` (None: no head).
+    Plans and points are in the car frame at the rear axle [m], as the labels are."""
 
     state: np.ndarray
     seg: int
@@ -42,14 +49,36 @@ class Moment:
     command: tuple[float, float] = (0.0, 0.0)
     mode_ends: np.ndarray | None = None
     weights: np.ndarray | None = None
+    gap_read_m: float | None = None
+
+    def lane_offset(self, points: np.ndarray) -> np.ndarray:
+        """How far each car-frame point of ``points`` ``(..., 2)`` lies from the centre of the
+        car's lane, read along the road [m] (on a curve a plan that keeps its lane ends metres
+        to the side of the car's heading: the car's frame cannot tell a change from a curve)."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        x, y, heading = (float(v) for v in self.state[:3])
+        c, s = math.cos(heading), math.sin(heading)
+        track = self.world.track
+        _, d = track.to_frenet(x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1])
+        centre = track.lane_center(track.lane_index(float(np.ravel(track.to_frenet(x, y)[1])[0])))
+        return np.asarray(d, dtype=float).reshape(-1) - float(centre)
+
+    @property
+    def plan_changing(self) -> bool | None:
+        """Whether the driver's plan changes lanes: its 1.5 s point more than
+        :data:`CHANGING_M` from the centre of the car's lane (None: no plan)."""
+        if self.plan is None:
+            return None
+        return bool(abs(self.lane_offset(self.plan[-1])[0]) > CHANGING_M)
 
     @property
     def change_weight(self) -> float | None:
-        """The mixture's weight on its lane-changing modes (1.5 s point over
-        :data:`CHANGING_M` to the side); None for a driver without modes."""
+        """The mixture's weight on its lane-changing modes (1.5 s point more than
+        :data:`CHANGING_M` from the centre of the car's lane); None for a driver without
+        modes."""
         if self.mode_ends is None or self.weights is None:
             return None
-        return float(self.weights[np.abs(self.mode_ends) > CHANGING_M].sum())
+        return float(self.weights[np.abs(self.lane_offset(self.mode_ends)) > CHANGING_M].sum())
 
 
 @dataclass
@@ -64,6 +93,10 @@ class LateChange:
         width_px: ... the parked car's width on the camera [px] (0: not drawn).
         change_weights: per moment of the last 3 s, the lane-changing modes' weight (None: no
             modes).
+        read_share: from the expert's start until the plan's (or the impact), of the moments
+            with a car ahead within the affordance head's range, the share whose reading of the
+            gap ahead was right (:func:`~e2e_lite.driving.anatomy.read_right`); None: no head
+            or no such moment.
         part: one of :data:`~e2e_lite.driving.anatomy.PARTS`.
     """
 
@@ -72,6 +105,7 @@ class LateChange:
     gap_m: float | None
     width_px: float | None
     change_weights: list[float | None]
+    read_share: float | None
     part: str
 
 
@@ -195,6 +229,7 @@ class Witness:
         act = self.driver.act(obs)
         last = getattr(self.driver, "last", {})
         plans, modes, weights = last.get("points"), last.get("modes"), last.get("weights")
+        read = last.get("affordances")
         steer, accel = np.asarray(act.steer_rad), np.asarray(act.accel_mps2)
         for i in np.flatnonzero(active).tolist():
             if obs.respawned[i]:
@@ -204,8 +239,10 @@ class Witness:
             command = (float(steer[i]), float(accel[i]))
             moment = Moment(obs.state[i].copy(), seg, world, plan, command)
             if modes is not None and weights is not None:
-                moment.mode_ends = np.array(modes[i][:, -1, 1], dtype=float)
+                moment.mode_ends = np.array(modes[i][:, -1, :], dtype=float)
                 moment.weights = np.array(weights[i], dtype=float)
+            if read is not None:
+                moment.gap_read_m = float(read[i][GAP_AHEAD])
             self.buffers[i].append(moment)
             if self.steps[i] % self.every == self.phase[i]:
                 self._ordinary.append((int(self.steps[i]), int(self.cars[i]), moment))
@@ -236,6 +273,8 @@ def witnessed_to_dict(witness: Witness) -> dict[str, Any]:
         }
         if m.mode_ends is not None and m.weights is not None:
             out["mode_ends"], out["weights"] = m.mode_ends.tolist(), m.weights.tolist()
+        if m.gap_read_m is not None:
+            out["gap_read_m"] = m.gap_read_m
         return out
 
     return {
@@ -265,6 +304,7 @@ def witnessed_from_dict(
         if "weights" in m:
             out.mode_ends = np.array(m["mode_ends"], dtype=float)
             out.weights = np.array(m["weights"], dtype=float)
+        out.gap_read_m = m.get("gap_read_m")
         return out
 
     collisions = [
