@@ -100,7 +100,7 @@ def main() -> None:
                     f"changing {r['expert_changing']:.2f}, the plan with it "
                     f"{'-' if with_it is None else f'{with_it:.2f}'}"
                 )
-    out["commit"] = artifacts.code_commit(Path(__file__))
+    out["commit"] = artifacts.code_commit(Path(__file__).parent)
     if not profile.quick:
         path = Path(__file__).resolve().parents[1] / "docs/results/lab/seeing.json"
         path.write_text(json.dumps(out, indent=1) + "\n")
