@@ -26,6 +26,7 @@ from e2e_lite.imitation.collector import (
     situations,
     throttle_brake,
 )
+from e2e_lite.learning.dataset import oversampled
 from e2e_lite.learning.labels import CHANGE
 from e2e_lite.simulation.geometry import generate_track
 from e2e_lite.simulation.vehicle import VehicleParams
@@ -266,6 +267,11 @@ def test_situation_masks_on_hand_made_rows():
     assert masks["slow"].tolist() == [False, False, True, False]
     assert masks["curve"].tolist() == [False, False, False, True]
     assert situations(arrays, np.array([2, 3]))["slow"].tolist() == [True, False]
+    # a recipe's rows that draw the overtake starts 4 times as often (issue 88, item 3's lab)
+    assert oversampled(arrays, "overtake_start", 4).tolist() == [0, 1, 2, 3, 0, 0, 0]
+    assert oversampled(arrays, "slow", 1).tolist() == [0, 1, 2, 3]
+    with pytest.raises(ValueError, match="at least 1"):
+        oversampled(arrays, "slow", 0)
 
 
 def test_road_lateral_removes_heading_and_curve():

@@ -445,23 +445,25 @@ def gmm_affordance_cvar(
     seed: int = 0,
     reduction: str = "cvar",
     sigma: str = CVAR_SIGMA,
+    tag: str = "",
     **kw: Any,
 ) -> Trained:
     """Chapter 09: one epoch of fine-tuning :func:`gmm_affordance`'s checkpoint of the same
     training ``seed`` (trained first if missing, or if it did not keep its optimiser state),
     continuing its Adam state at a tenth of the rate, sigmas as ``sigma`` says
-    (:func:`finetune_settings`).
+    (:func:`finetune_settings`). ``tag``: appended to both checkpoints' names, for a lab's
+    variant of the recipe (e.g. other ``train_rows``) beside the course's own.
 
     ``reduction="cvar"``: CVaR-0.9 of each batch of 256 (the tail holds 25.6 samples);
     ``"mean"``: the control, the same fine-tune with the batch mean (checkpoint
     ``09_gmm_affordance_control``): what one more epoch does without CVaR. ``sigma="open"``
     stores them as ``09_gmm_affordance_cvar_open`` and ``09_gmm_affordance_control_open``.
     """
-    parent = seeded_name("08_gmm_affordance", seed)
+    parent = seeded_name(f"08_gmm_affordance{tag}", seed)
     gmm_affordance(profile, train, val, weight, name=parent, seed=seed, keep_optimizer=True, **kw)
     objective, cfg = finetune_settings(profile, weight, seed, reduction, sigma)
     name = "09_gmm_affordance_cvar" if reduction == "cvar" else "09_gmm_affordance_control"
-    name += "_open" if sigma == "open" else ""
+    name += ("_open" if sigma == "open" else "") + tag
     model, hist = train_or_load(
         seeded_name(name, seed),
         AFFORDANCE_CFG,

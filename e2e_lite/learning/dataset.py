@@ -188,6 +188,19 @@ def situations(
     }
 
 
+def oversampled(
+    arrays: dict[str, np.ndarray], situation: str = "overtake_start", times: int = 4
+) -> np.ndarray:
+    """Training rows that draw one of :func:`situations`' situations ``times`` as often as the
+    rest: every row once, then that situation's rows ``times - 1`` more times (a recipe's
+    ``train_rows``; an epoch grows by as many rows)."""
+    if times < 1:
+        raise ValueError(f"oversampled: times={times} must be at least 1")
+    n = len(arrays["speed"])
+    chosen = np.flatnonzero(situations(arrays)[situation])
+    return np.concatenate([np.arange(n), np.tile(chosen, times - 1)])
+
+
 def road_lateral(
     points_m: np.ndarray, heading_rad: np.ndarray, curvature: np.ndarray
 ) -> np.ndarray:
