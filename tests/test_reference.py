@@ -63,6 +63,9 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
 * 2026-12-07, ``witness`` 4 and ``recovery`` 2 only: a witnessed moment keeps a mixture's mode
   ends and weights (the late lane change's split), and no recovery view is made of a car slower
   than 5 m/s; the reference holds no witnessed drive and no view, so every entry is unchanged.
+* 2026-12-07, ``witness`` 5 only: a witnessed moment keeps its modes' 1.5 s points (read along
+  the road) and an affordance head's gap-ahead reading; the reference holds no witnessed drive,
+  so every entry is unchanged.
 """
 
 from __future__ import annotations
