@@ -380,7 +380,7 @@ def test_a_copy_without_git_names_its_recipes_commit_from_the_environment(monkey
     def no_git(*args, **kwargs):
         raise subprocess.CalledProcessError(128, "git")
 
-    monkeypatch.setattr(record.subprocess, "run", no_git)
+    monkeypatch.setattr(subprocess, "run", no_git)  # (the one git call: artifacts.code_commit)
     monkeypatch.delenv("E2E_LITE_COMMIT", raising=False)
     assert record._commit() == "unknown"
     monkeypatch.setenv("E2E_LITE_COMMIT", "6e94ed0")

@@ -316,7 +316,11 @@ def late_change(
         gap = float(at.world.cars.s[c.parked]) - at.world.cars.length_m / 2.0 - front
         width = width_on_camera(at, c.parked)
     lag = round(IN_TIME_S / period)
-    reads = [] if first is None else [read_right(m) for m in c.moments[first : planned or n]]
+    reads = (
+        []
+        if first is None
+        else [read_right(m) for m in c.moments[first : n if planned is None else planned]]
+    )
     reads = [r for r in reads if r is not None]
     read_share = sum(reads) / len(reads) if reads else None
     if first is None:

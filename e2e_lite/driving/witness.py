@@ -59,9 +59,10 @@ class Moment:
         x, y, heading = (float(v) for v in self.state[:3])
         c, s = math.cos(heading), math.sin(heading)
         track = self.world.track
-        _, d = track.to_frenet(x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1])
-        centre = track.lane_center(track.lane_index(float(np.ravel(track.to_frenet(x, y)[1])[0])))
-        return np.asarray(d, dtype=float).reshape(-1) - float(centre)
+        wx = np.r_[x, x + c * pts[:, 0] - s * pts[:, 1]]  # (the car first, then the points)
+        wy = np.r_[y, y + s * pts[:, 0] + c * pts[:, 1]]
+        d = np.asarray(track.to_frenet(wx, wy)[1], dtype=float).reshape(-1)
+        return d[1:] - float(track.lane_center(track.lane_index(float(d[0]))))
 
     @property
     def plan_changing(self) -> bool | None:

@@ -8,14 +8,13 @@ chapters store theirs, so a cut run goes on where it stopped.
 from __future__ import annotations
 
 import os
-import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from ..artifacts import profile_outputs, seeded, settings_key
+from ..artifacts import code_commit, profile_outputs, seeded, settings_key
 from ..config import FULL, Profile, check_range, default_workers, precision
 from ..course.estimate import Work, cpu_name, estimate_s, plan_text
 from ..driving.roads import ROAD_BLOCKS
@@ -88,16 +87,9 @@ def parse_seeds(text: str) -> list[int]:
 
 def _commit() -> str:
     """The code that trains and drives: the commit at the start (a run takes hours); every recipe
-    choice is frozen in it before the sealed roads are driven. A copy without git's history (a
-    zip, a lent machine's copy of the tree) says its commit in ``$E2E_LITE_COMMIT``."""
-    try:
-        git = ["git", "rev-parse", "--short", "HEAD"]
-        here = Path(__file__).resolve().parent
-        return subprocess.run(
-            git, capture_output=True, text=True, check=True, cwd=here
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("E2E_LITE_COMMIT", "unknown")
+    choice is frozen in it before the sealed roads are driven (:func:`~e2e_lite.artifacts.code_commit`
+    of this package's checkout)."""
+    return code_commit(Path(__file__).resolve().parent)
 
 
 def record_share(
