@@ -442,9 +442,9 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # 5. The old recipe (commit 785b4d7: two rounds of 8,000 samples, the wiped expert's labels, the
 #    last round kept): run its chapter 12 and read its lab notes ("Who labels DAgger's states",
 #    "DAgger's states or its labeller") beside section 2's oracle lines.
-# 6. Off the lane centre: DAgger's kept iterates drifted more than the other arms' in the book's
-#    run (lab note "DAgger's iterates off the lane centre"), and why is open. Drive one seed's
-#    kept DAgger iterate (`it = iterates["dagger"][k]`, its network `it.networks[it.kept][1]`)
-#    inside an `anatomy.Witness(..., every=10)` and, at its moments more than 1 m from every lane
-#    centre, compare its plan with the expert's label. Is it a lane change the labeller
-#    reads as under way, one the network never finishes?
+# 6. Off the lane centre: with two labellers DAgger's kept iterates drifted more than the other
+#    arms' (lab note "DAgger's iterates off the lane centre"; why is open); section 3's lines say
+#    if yours still do. Drive one seed's kept DAgger iterate (`it = iterates["dagger"][k]`, its
+#    network `it.networks[it.kept][1]`) inside an `anatomy.Witness(..., every=10)` and, at its
+#    moments more than 1 m from every lane centre, compare its plan with the expert's label. Is
+#    it a lane change the labeller reads as under way, one the network never finishes?

@@ -720,7 +720,7 @@ def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p
     assert rank_test([2, 2, 2], [2, 2, 2]).min_p == 1.0
     # a bootstrap resample whose control never collided has an infinite ratio: the interval
     # says inf, not NaN (percentiles interpolated between infinities)
-    from e2e_lite.stats.seeds import ratio_interval
+    from e2e_lite.stats.seeds import pooled_ratio_interval, ratio_interval
 
     ratio, low, high = ratio_interval([2, 3, 4, 5], [0, 1, 0, 0], paired=True)
     assert ratio == 14.0 and np.isfinite(low) and high == np.inf
@@ -736,6 +736,11 @@ def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p
         and low == pytest.approx(0.025 ** (1 / 3) / (1 - 0.025 ** (1 / 3)))
     )
     assert np.isnan(ratio_interval([0, 0], [0, 0])[1])
+    # paired rows equal seed by seed: every resample gives 1, so the bootstrap alone says
+    # [1, 1]; the exact interval of 7 against 7 (about 0.30-3.3) is held instead
+    ratio, low, high = ratio_interval([1, 2, 3, 1], [1, 2, 3, 1], paired=True)
+    assert ratio == 1.0 and (low, high) == pytest.approx(pooled_ratio_interval([7], [7]))
+    assert 0.29 < low < 0.31 and 3.3 < high < 3.4
 
 
 def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():

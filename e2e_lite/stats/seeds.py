@@ -197,7 +197,9 @@ def ratio_interval(
     zeros gives 0, so the bootstrap alone would say ``[0, 0]``, or ``[1, inf]`` the other way):
     the interval then also holds the exact conditional one of the pooled counts (Clopper-Pearson
     on ``sum(a)`` of ``sum(a) + sum(b)``, :func:`pooled_ratio_interval`), which treats a row's
-    miles as one draw: the least uncertainty the counts allow."""
+    miles as one draw: the least uncertainty the counts allow. So does an interval whose every
+    resample gives the same ratio (paired rows equal seed by seed: ``[1, 1]`` alone), which
+    would say the counts fix the ratio exactly."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     rng = np.random.default_rng(seed)
     ia = rng.integers(0, len(a), (n_boot, len(a)))
@@ -212,7 +214,7 @@ def ratio_interval(
     # interpolating between two infinite ratios gives NaN: with any, read the order statistics
     method = "linear" if np.isfinite(boot).all() else "inverted_cdf"
     low, high = np.percentile(boot, [tail, 100.0 - tail], method=method)
-    if a.sum() == 0 or b.sum() == 0:
+    if a.sum() == 0 or b.sum() == 0 or low == high:
         exact_low, exact_high = pooled_ratio_interval(a, b, level)
         low, high = min(low, exact_low), max(high, exact_high)
     return float(ratio), float(low), float(high)
