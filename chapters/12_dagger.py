@@ -91,7 +91,7 @@ tried = {t: found["collisions"] - n for t, n in found["untried_by_hand_over"].it
 saved = ", ".join(f"{t} s {n} of {tried[t]}" for t, n in found["saved_by_hand_over"].items())
 print(f"saved by the expert taking over this long before (of those tried there): {saved}")
 latest = ", ".join(f"{t}: {n}" for t, n in found["latest_savable"].items())
-print(f"collisions by their latest savable moment [s]: {latest}")
+print(f"collisions by their latest savable moment [s] ('none tried': none saved it): {latest}")
 print(
     f"the network's plans of the last second all clear (the tracker's share): "
     f"{found['plan_clear']} of {found['collisions']}"
@@ -99,12 +99,12 @@ print(
 print("kinds: " + ", ".join(f"{kind} {n}" for kind, n in found["kinds"].items()))
 
 # %% [markdown]
-# A lane change begun late can start late in three places (`anatomy.late_change`): **seeing**
-# (once the expert, from the same state, begins the overtake, the network shows no sign of the
-# car: its lane-changing modes weigh no more than while it keeps its lane, its affordance head
-# misreads the gap), **deciding** (it shows one, yet keeps the lane) or **following** (the plan
-# began in time and the car still hit). Plans are read along the road (on a curve a lane-keeping
-# plan ends metres to the car's side); the gap and the car's width say how much there was to see.
+# A lane change begun late can start late in three places (`anatomy.late_change`): **seeing** (once
+# the expert, from the same state, begins the overtake, the network shows no sign of the car: its
+# lane-changing modes weigh no more than while it keeps its lane, its affordance head misreads the
+# gap), **deciding** (it shows one, yet its plan starts over 0.5 s after the expert's) or
+# **following** (it starts within 0.5 s of the expert's; the car still hit). Plans are read along
+# the road (lab note "Where the late lane changes start"); gap and width: what there was to see.
 
 # %%
 late = found["late_changes"]
@@ -224,17 +224,17 @@ print(
 )
 
 # %% [markdown]
-# The old recipe's rounds drove a few miles each and seldom met a collision (lab note "How many
-# collisions a DAgger round meets"): the lines above say how many of this recipe's kept samples
-# come from the seconds before a collision. The shift is the share of a round's kept samples
+# The old recipe's rounds drove a third of this recipe's miles and seldom met a collision (lab note
+# "How many collisions a DAgger round meets"): the lines above say how many of this recipe's kept
+# samples come from the seconds before a collision. The shift is the share of a round's kept samples
 # outside the range of the middle of chapter 04's data in at least one feature. Samples drawn like
-# the data fall outside it too, by chance, so the control's (the expert's own states with
-# DART's noise, gated alike) is the baseline DAgger's is read by; the line after the medians says
-# it in words. Why the states moved as they did, this run does not show. Each iterate then drives
+# the data fall outside it too, by chance, so the control's (the expert's own states with DART's
+# noise, gated alike) is the baseline DAgger's is read by; the line after the medians says it in
+# words. Why the states moved as they did, this run does not show. Each iterate then drives
 # `val_miles` of validation roads. The kept iterate reads both outcomes (`dagger.kept_iterate`):
 # among the iterates whose off-centre episodes (the car over a metre from every lane centre for
-# longer than a lane change takes) are no more than the start's could be by chance, the one with
-# the fewest collisions; among ties the latest. A kept iterate 0 is the start.
+# longer than a lane change takes) are no more than the start's could be by chance, the one with the
+# fewest collisions; among ties the latest. A kept iterate 0 is the start.
 
 # %%
 iterates = {
@@ -287,7 +287,7 @@ print(f"saved {png_rounds}")
 # start), **the states** (DAgger against its control, which differs in who drove) and **the
 # data** (the control against no new data). The power line says what these seeds can find (a
 # true 2x step at the start's rate, with the record's seed spread) and the smallest p they can
-# reach; the record's seeds (README, Table 1) are there to decide.
+# reach; a record of this recipe decides (Table 1 names the commit its recipes were frozen at).
 
 # %%
 ev = EvalConfig(miles=profile.ablation_miles, n_worlds=profile.ablation_worlds)
@@ -349,7 +349,7 @@ def said(v: SeedTest, other: str) -> str:
     if v.fewer or v.more:
         return f"collides {'less' if v.fewer else 'more'} than {other}"
     if v.min_p >= 0.05:
-        return f"is undecided against {other} ({len(seeds)} seeds cannot reach p < 0.05)"
+        return f"is undecided against {other} (p {v.p_fewer:.2g}; these seeds' smallest: {v.min_p:.2g})"
     return f"was not shown to collide less than {other}"
 
 
@@ -412,15 +412,15 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # * Dissect before fixing: a collision's latest savable moment (the expert taking over from
 #   the very state), the tracker's share (plans that were clear) and its kind say which states a fix
 #   must reach (section 1 prints them for this run).
-# * A label is a driver: the oracle on the expert's labels drives the same roads as the expert
-#   (section 2's lines); DAgger's labeller must be a function of the state *and* drive well, and
-#   one expert labels chapter 04's data and every round, so a fine-tune learns one labeller.
+# * A label is a driver: section 2 drives the oracle on the expert's labels beside the expert;
+#   DAgger's labeller must be a function of the state *and* drive well, and one expert labels
+#   chapter 04's data and every round, so a fine-tune learns one labeller.
 # * The course's recipe, after the theory's: rounds that drive far more than they keep and gate
 #   what they keep, fine-tunes on the whole aggregate, and the iterate chosen on validation roads.
 # * A data method needs two controls: the same rounds with the expert driving (is it the
 #   network's states?) and the same fine-tunes on no new data (is it data at all?). Section 4
 #   says in words what this run's seeds can credit; its power line prints the smallest p they
-#   can reach, so the record's seeds decide.
+#   can reach, so a record of this recipe (Table 1 names its commit) decides.
 # * A driver is more than its collisions: section 4 prints each arm's off-centre episodes beside
 #   its rate. With two labellers the arm with no new data drifted with the second one's labels
 #   (lab note "The lingering comes with the state expert's labels"); with one, section 3's lines
