@@ -2,8 +2,8 @@
 # The record of record on a cluster: one SLURM array task per training seed, each writing one
 # share, then one pool. Submit from the repository root:
 #
-#   sbatch --array=38-51 docs/record-array.sh          # one share per seed; a class's seeds
-#                                                      # start at 38 (24-37: the record's)
+#   sbatch --array=58-71 docs/record-array.sh          # one share per seed; a class's seeds
+#                                                      # start at 58 (24-57: the records')
 #   sbatch --dependency=afterok:<job id> --wrap \
 #     ".venv/bin/python -m e2e_lite.record pool outputs-*/shares/share-seeds-*.json"
 #
@@ -19,4 +19,4 @@ set -euo pipefail
 seed="${SLURM_ARRAY_TASK_ID:?submit with sbatch --array=FIRST-LAST}"
 # a folder of outputs per task: tasks on shared storage never write the same files
 export E2E_LITE_OUTPUTS="outputs-seed-${seed}"
-.venv/bin/python -m e2e_lite.record run --seeds "${seed}-${seed}" --miles "${MILES:-200}"
+.venv/bin/python -m e2e_lite.record run --seeds "${seed}-${seed}" --miles "${MILES:-150}"

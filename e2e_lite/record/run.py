@@ -34,8 +34,8 @@ from .stored import evaluate_stored
 #: every row of the record: the paper's, DAgger's (chapter 12) and the controls
 ROWS = (*DRIVERS, *BEYOND, *CONTROLS)
 #: the first training seed no choice and no earlier record saw (0-3: the course's own networks;
-#: 10-23 and 24-37: the records of 321f6a9 and 28eba5c)
-FRESH_SEEDS_FROM = 38
+#: 10-23, 24-37 and 38-57: the records of 321f6a9, 28eba5c and 7a36b30)
+FRESH_SEEDS_FROM = 58
 #: the rows a record drives with seed 0's network alone: none. Every learned row trains every
 #: seed of the record on one machine, so no row pools networks trained on different machines
 #: (the record of 28eba5c drove PilotNet and L2 with each machine's seed 0: ablation's
