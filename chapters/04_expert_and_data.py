@@ -9,7 +9,7 @@
 #
 # **You will learn**
 # 1. the expert's state machine: when it *should* overtake and when it *can*;
-# 2. why its trigger and finish distances and its side are random, and what that does to the data
+# 2. why its trigger distance, change duration and side are random, and what that does to the data
 #    (the same scene overtaken left in one sample and right in another);
 # 3. how noise injection puts recovery into the data while the labels stay clean;
 # 4. what a sample holds: a 66 x 200 frame, the speed, clean actuators, a 5-point trajectory and
@@ -122,7 +122,7 @@ for ax, seed in zip(axes, (0, 3)):
     path, states, contacts = expert_drive(seed)
     assert not contacts, "the expert collided on the demonstration scene"
     draw_road(ax, straight, (40.0, 700.0), scene_cars)
-    for st in range(4):
+    for st in np.unique(states):  # (the states this drive visits: the legend's)
         sel = states == st
         ax.scatter(
             path[:-1][sel, 0],
@@ -142,10 +142,10 @@ print(f"saved {strip_png} (lateral scale stretched 6x)")
 # %% [markdown]
 # ## 2. The same scene, two answers
 #
-# A parked car in the middle lane with both neighbours free: the coin decides. Over 48 seeds the
-# expert passes it on both sides, and where it starts varies with the trigger. A network that
-# regresses the *mean* of these answers would aim at the parked car; chapter 07's mixture
-# density head is built for exactly this.
+# A parked car in the middle lane with both neighbours free: the coin decides. Over the seeds below
+# the expert passes it on both sides, and where it starts varies with the trigger. A network that
+# regresses the *mean* of these answers would aim at the parked car; chapter 07's mixture density
+# head is built for exactly this.
 
 # %%
 single, _ = two_answers_scene(world_cfg)  # one parked car in the middle lane at 300 m
@@ -247,7 +247,6 @@ groups = {
     "curve": (np.abs(train.curvature) > 2e-3) & (train.expert_state == KEEP),
     "overtake left": (train.expert_state == CHANGE) & train.overtaking & (train.change_side > 0),
     "overtake right": (train.expert_state == CHANGE) & train.overtaking & (train.change_side < 0),
-    "return": (train.expert_state == CHANGE) & ~train.overtaking,
     "noise burst": train.noise & (train.expert_state == KEEP),
 }
 dcfg = DataConfig.for_profile(profile, "train")
@@ -275,7 +274,7 @@ print(f"saved {samples_png}")
 
 # %% [markdown]
 # Where the labels end after 1.5 s, across the training set: most samples go straight ahead;
-# the tails left and right are the lane changes, the rare events the paper cares about.
+# the tails left and right are the lane changes, the minority the paper cares about.
 
 # %%
 fig = Figure(figsize=(10, 3.4))
@@ -380,7 +379,7 @@ print(
 print(
     f"\ndataset: {len(train)} train / {len(val)} val samples; curves {shares['curve']:.1%}, "
     f"lane changes {shares['lane_change']:.1%} (left {shares['overtake_left']:.1%}, right "
-    f"{shares['overtake_right']:.1%}, return {shares['return']:.1%}), noise {shares['noise']:.1%}"
+    f"{shares['overtake_right']:.1%}), noise {shares['noise']:.1%}"
 )
 
 # %% [markdown]
@@ -391,7 +390,7 @@ print(
 # * The oracle, the tracker following the expert's own 5-point trajectories, drives them too; the
 #   verdict line above says whether a 5-point plan and a controller lose anything against the
 #   expert, and whatever they lose, a network predicting such a plan loses too.
-# * Randomised triggers, finishes and sides make the data multi-modal: the same parked car is
+# * Randomised triggers, durations and sides make the data multi-modal: the same parked car is
 #   passed on the left in some samples and on the right in others.
 # * Noise bursts put off-centre states and recoveries into the data; the labels stay what the
 #   expert would do, not what the noisy car did.
@@ -399,7 +398,7 @@ print(
 #   restarts below cruise speed (section 6's lane keeper stands in for a learned driver).
 #   Take-overs that re-place the car as the evaluator does, and braking bursts, put those states
 #   and the expert's way out of them into the data.
-# * Curves, lane changes and passing are minorities of the data (the shares printed above), the
+# * Curves and lane changes are minorities of the data (the shares printed above), the
 #   situations the later chapters (GMM, CVaR) are about.
 #
 # ## Exercises

@@ -11,7 +11,7 @@
 #   so the network does not have to learn the car's dynamics.
 #
 # The targets are normalised per coordinate with the dataset's statistics: otherwise the far
-# longitudinal points (tens of metres, spread of a metre or two) would dominate the near ones
+# longitudinal points (tens of metres, spread of metres) would dominate the near ones
 # (spread of centimetres; section 1 prints each). The loss is L2 on the normalised target. Its
 # textbook failure is the question at the end: where the expert has two right answers, does L2
 # predict their **mean**? Section 5's one frame answers for this network; chapter 07's scenes

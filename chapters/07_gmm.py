@@ -470,17 +470,17 @@ artifacts.write_metrics(
 #   kept epoch may be the warm-up's, every sigma still 1: the run prints which).
 # * The epoch kept collides least on a few validation-road miles (ties: the decisive frames'
 #   error), not the lowest NLL (why: lab note "The GMM's first failures were the course's").
-# * Where the expert's behaviour splits (overtake left or right), the modes take both sides and
-#   the followed mode one (Fig. 3; section 3 prints each frame's weights). Whether L2 averages
+# * Where the expert's behaviour splits (overtake left or right), the modes can take both sides
+#   and the followed mode one (Fig. 3; section 3 prints each frame's weights). Whether L2 averages
 #   instead is measured by section 4b's scenes, not assumed; in the lab note "Why L2 passes the
 #   overtake scenes" (923dd0a, another network) L2 broke the tie from the car's start offset.
 # * Whether the mixture lowers collisions is measured against L2 on the same roads, with an exact
 #   test. Where section 4b's scenes show no averaging, what separates the two is *open*, as is
 #   whether the mixture adds a failure of its own (the wrong mode followed with confidence).
 # * A learned sigma is also a learned *weight*: uncertain frames are learned least (an older
-#   recipe: lab note "Chapter 10 on the corrected evaluator"; this run: section 5). Over five
-#   seeds the learned-sigma GMM collided more, and less alike, and the road mostly kept its
-#   warm-up (lab note "Every epoch on the road").
+#   recipe: lab note "Chapter 10 on the corrected evaluator"; section 5, when they open). On the
+#   earlier expert's data, over five seeds, the learned-sigma GMM collided more, less alike, and
+#   the road mostly kept its warm-up (lab note "Every epoch on the road").
 #
 # ## Exercises
 #

@@ -361,8 +361,9 @@ artifacts.write_metrics(
 #   as chapter 07 (the paper reports its step from 12.7 to 0.83 per 100 miles). It compares two
 #   *training runs*, one per setting. **The test of the loss is the w = 0 control** (the same
 #   network and head, the loss weight 0), seed by seed: the record's verdict table prints it
-#   (`docs/results.md`), and until + affordance beats w = 0 there, a step from the GMM is not
-#   shown to be the loss's (exercise 4; chapter 10's exercise 7 drives it with your seeds).
+#   (`docs/results.md`, for its recipes), and until + affordance beats w = 0 there, a step from the
+#   GMM is not shown to be the loss's (exercise 4; chapter 10's exercise 7 drives it with your
+#   seeds).
 #
 # ## Exercises
 #

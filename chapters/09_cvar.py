@@ -182,6 +182,8 @@ print(f"{len(tail_rows)} tail samples out of {len(probe_rows)}:")
 print(f"  {'situation':28s} {'by loss':>8s} {'by error':>9s} {'random':>7s}")
 for key in shares_all:
     tail, error_tail, anywhere = (shares[k][key] for k in ("tail", "error_tail", "random"))
+    if tail == error_tail == anywhere == 0:  # (returns and passing: the expert does neither)
+        continue
     print(f"  {key:28s} {tail:8.1%} {error_tail:9.1%} {anywhere:7.1%}")
 both_tails = float(np.mean(in_error_tail[in_tail]))
 ade = probe_metrics["ADE [m]"]
@@ -432,11 +434,11 @@ artifacts.write_metrics(
 #    the drivers `gmm_affordance_cvar_open` and `gmm_affordance_control_open` of
 #    `ablation.DIAGNOSTICS`), seed by seed: does the sign of CVaR against its control change
 #    when the sigmas may move?
-# 3. Two epochs of CVaR-90: does the mean loss keep rising? Does the closed-loop rate follow the
+# 3. Two epochs of CVaR-90: where does the mean loss go next? Does the closed-loop rate follow the
 #    CVaR-90 or the mean?
-# 4. Where does the cost on the easy cases land? On straight validation frames where the expert
-#    keeps its lane, compare the followed trajectory's lateral error at 1.5 s of base, control
-#    and CVaR. Then measure section 3's tail with the validation loss.
+# 4. Does CVaR cost the easy cases anything, and where? On straight validation frames where the
+#    expert keeps its lane, compare the followed trajectory's lateral error at 1.5 s of base,
+#    control and CVaR. Then measure section 3's tail with the validation loss.
 # 5. Fine-tune with a fresh Adam instead (`carry_optimizer=False` in `recipes.gmm_affordance_cvar`'s
 #    `train_or_load` call). How far do the weights move in the first ten steps, against the
 #    carried optimiser?

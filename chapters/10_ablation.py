@@ -184,7 +184,7 @@ for st in (st for st in STEPS if st.family == "paper"):
 # row's: **the fine-tune with the mean** (same parent, epoch, batches and rate, each batch
 # reduced by its mean): is the CVaR step CVaR's, or one more epoch's? It shares its parent with
 # the CVaR row, seed by seed, so the tests are paired. The affordance step's control, **w = 0**
-# (the same head, its loss off), is left to exercise 7 (four trainings): its verdict is the record's.
+# (the same head, its loss off), is exercise 7's (four trainings) and the record's, of its recipes.
 #
 # The seeds' spread measures training noise (goal: a worst seed at most `SPREAD_GOAL` times its
 # row's median); the stalls (a car under 0.5 m/s for 20 s, re-placed), a rate bought by stopping.

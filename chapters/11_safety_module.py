@@ -6,8 +6,8 @@
 # was beyond the scope of this work". A trajectory, unlike a steering angle, says where the car
 # means to be in the next 1.5 s, so **a proposed trajectory can be checked**. This chapter builds
 # the check, tries it on trajectories known to be safe, calibrates it for a learned perception,
-# and drives the affordance-predicting driver of chapter 10 with the lower pooled rate (no step
-# between the two is shown there) with and without it.
+# and drives the affordance-predicting driver of chapter 10 with the lower pooled rate (whether a
+# step between the two is shown, chapter 10's verdict says) with and without it.
 #
 # ## The rule
 #
@@ -80,7 +80,7 @@ print(f"{cfg}")
 # extra rejections are what imperfect perception adds. The network's affordances come from its
 # head refit on the kept trunk (chapter 08, `recipes.perceiving`): the driving is the network's
 # own, to the bit, and the head has trained to the end (whether it reads better than the joint
-# head is *open*: chapter 08 prints both).
+# head, chapter 08 prints; across runs it is *open*).
 
 # %%
 train = load_or_collect(DataConfig.for_profile(profile, "train"))
@@ -541,7 +541,7 @@ artifacts.write_metrics(
 #
 # ## Exercises
 #
-# Each names what the course's investigations measured, in `docs/lab-notes.md`, with the commit
+# Some name what the course's investigations measured, in `docs/lab-notes.md`, with the commit
 # whose code ran it.
 #
 # 1. Set `SafetyConfig(brake_mps2=8.0)` (the car's hardest braking) and `reaction_s=0.0`: how do
@@ -556,8 +556,8 @@ artifacts.write_metrics(
 # 4. The emergency brake is the car's full deceleration while the rule plans with the tracker's.
 #    Drive the last row with `emergency_brake_mps2=7.0`, and with the rule planning at 8 too
 #    (`brake_mps2=8.0`): is it the stronger brake that helps, or the headroom? Check the count on
-#    roads the chapter did not drive (`disjoint_runs` with twice the miles, runs 3-5) before you
-#    believe one p-value (lab note "An emergency brake for the fallback").
+#    roads the chapter did not drive (`disjoint_runs(cfg, world_cfg, 2 * n)[n:]` for n seeds)
+#    before you believe one p-value (lab note "An emergency brake for the fallback").
 # 5. Drive the perceived module uncalibrated (`cfg` for every seed): how many interventions, and
 #    how fast does the car go? What does that say about thresholds chosen for exact inputs?
 # 6. A lane gap needs the camera to place a car in a lane, which fails with the car turned on a

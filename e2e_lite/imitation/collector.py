@@ -408,16 +408,18 @@ def load_or_collect(
 
 
 def describe(data: DrivingData) -> str:
-    """A few readable lines: size, shares of situations, the collection's collisions."""
+    """A few readable lines: size, shares of situations, the collection's collisions. Returns and
+    passing, which an expert keeping its own lane (the course's) never does, are left out at 0."""
     info = data.info
     sh = info["shares"]
     col = info["collection"]
     miles = col["miles"]
+    back = f", return {sh['return']:.1%}" if sh["return"] else ""
+    passing = f"passing {sh['pass']:.1%}, " if sh["pass"] else ""
     return (
         f"{len(data)} samples ({info['split']}), {miles:.1f} mi driven, "
         f"{col['collisions']} collisions under noise\n"
         f"  curves {sh['curve']:.1%}, lane changes {sh['lane_change']:.1%} "
-        f"(overtake left {sh['overtake_left']:.1%}, right {sh['overtake_right']:.1%}, "
-        f"return {sh['return']:.1%}), passing {sh['pass']:.1%}, following {sh['follow']:.1%}, "
-        f"noise active {sh['noise']:.1%}"
+        f"(overtake left {sh['overtake_left']:.1%}, right {sh['overtake_right']:.1%}{back}), "
+        f"{passing}following {sh['follow']:.1%}, noise active {sh['noise']:.1%}"
     )
