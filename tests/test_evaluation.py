@@ -741,6 +741,13 @@ def test_exact_tests_count_every_pattern_and_ties_and_zeros_bound_the_smallest_p
     ratio, low, high = ratio_interval([1, 2, 3, 1], [1, 2, 3, 1], paired=True)
     assert ratio == 1.0 and (low, high) == pytest.approx(pooled_ratio_interval([7], [7]))
     assert 0.29 < low < 0.31 and 3.3 < high < 3.4
+    # rows of other sizes compare rates per seed, not sums: 3 seeds of 5 against 6 of 5 is 1
+    ratio, low, high = ratio_interval([5, 5, 5], [5] * 6)
+    assert ratio == 1.0 and low < 1.0 < high
+    # a paired test of rows of other lengths is refused, whichever row is longer
+    for a, b in (([9], [1, 2, 4]), ([1, 2, 4], [9])):
+        with pytest.raises(ValueError, match="same seeds"):
+            sign_flip_test(a, b)
 
 
 def test_power_under_the_seeds_spread_uses_a_fitted_negative_binomial():

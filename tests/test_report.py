@@ -555,3 +555,32 @@ def test_a_new_record_takes_fresh_seeds() -> None:
     with pytest.raises(ValueError, match=f"fresh block takes seeds {FRESH_SEEDS_FROM} and up"):
         record_share(FULL, [FRESH_SEEDS_FROM - 1, FRESH_SEEDS_FROM])
     assert FRESH_SEEDS_FROM >= 58  # (38-57: the record of 7a36b30, one expert)
+
+
+def test_a_step_that_holm_keeps_above_the_cut_whatever_the_seeds_is_undecidable() -> None:
+    """A review's finding: 4 seeds against 4 reach a rank p of 1/70 at best; in a family of six
+    (three steps on both outcomes) Holm takes even that to 6/70 > 0.05, so no data could decide
+    the step: "undecidable", not "not shown" (which says the seeds could have shown it). In a
+    family of two the same seeds still decide (2/70 < 0.05)."""
+    from e2e_lite.record.stats import FEWER, UNDECIDABLE, StepResult, _read_at_holm
+
+    best = StepResult(
+        "a step",
+        "f",
+        None,
+        1 / 70,
+        1.0,
+        1 / 70,
+        "rank",
+        1 / 70,
+        None,
+        0.1,
+        (0.0, 0.5),
+        None,
+        (4, 4),
+    )
+    six = _read_at_holm([dataclasses.replace(best, step=f"step {k}") for k in range(6)])
+    assert {r.outcome for r in six} == {UNDECIDABLE}
+    assert six[0].p_holm_fewer == pytest.approx(6 / 70)
+    two = _read_at_holm([best, dataclasses.replace(best, step="another")])
+    assert {r.outcome for r in two} == {FEWER}

@@ -348,14 +348,14 @@ def off_centre_steps(record: Record) -> list[StepResult]:
 
 def _read_at_holm(family: list[StepResult]) -> list[StepResult]:
     """One family's steps with their p-values Holm-adjusted together and each outcome read at
-    the adjusted p."""
+    the adjusted p. A step is undecidable when even its smallest reachable p, adjusted with the
+    family's (Holm's adjustment only rises with any p of the family), cannot go below 0.05."""
     fewer = holm([r.p_fewer for r in family])
     more = holm([r.p_more for r in family])
+    reach = holm([r.min_p for r in family])
     return [
-        dataclasses.replace(
-            r, p_holm_fewer=p_f, p_holm_more=p_m, outcome=outcome(p_f, p_m, r.min_p)
-        )
-        for r, p_f, p_m in zip(family, fewer, more)
+        dataclasses.replace(r, p_holm_fewer=p_f, p_holm_more=p_m, outcome=outcome(p_f, p_m, lo))
+        for r, p_f, p_m, lo in zip(family, fewer, more, reach)
     ]
 
 

@@ -154,9 +154,9 @@ def sign_flip_test(a: Sequence[float], b: Sequence[float]) -> Tails:
     The sum of a sign pattern is ``2 P - A``, with ``A = sum |d|`` and ``P`` the sum of the
     ``|d|`` given a plus sign, so whole-number differences are counted by subset sums of
     ``|d|`` (30 seeds in milliseconds); others by listing the patterns (up to 20 seeds)."""
-    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
-    if len(d) != len(np.asarray(b)):
+    if len(np.asarray(a)) != len(np.asarray(b)):  # (before numpy broadcasts one row of 1)
         raise ValueError("sign_flip_test: both rows need the same seeds (paired)")
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
     observed, n = float(d.sum()), len(d)
     if np.all(d == np.rint(d)):
         size = np.abs(d).astype(np.int64)
@@ -186,7 +186,8 @@ def ratio_interval(
     n_boot: int = 4_000,
     seed: int = 0,
 ) -> tuple[float, float, float]:
-    """The rate ratio ``sum(a) / sum(b)`` of two rows' counts (equal budgets per seed) with a
+    """The rate ratio ``mean(a) / mean(b)`` of two rows' counts (equal budgets per seed: with
+    equal numbers of seeds, ``sum(a) / sum(b)``) with a
     percentile bootstrap interval over the training seeds: ``(ratio, low, high)`` (all NaN when
     neither row collided).
 
@@ -206,9 +207,10 @@ def ratio_interval(
     ib = ia if paired else rng.integers(0, len(b), (n_boot, len(b)))
     if a.sum() == 0 and b.sum() == 0:  # 0 / 0: no ratio to estimate
         return math.nan, math.nan, math.nan
+    # (each sum times the other row's number of seeds: the rates per seed, in one division)
     with np.errstate(divide="ignore", invalid="ignore"):
-        boot = a[ia].sum(1) / b[ib].sum(1)
-        ratio = a.sum() / b.sum() if b.sum() else math.inf
+        boot = (a[ia].sum(1) * len(b)) / (b[ib].sum(1) * len(a))
+        ratio = (a.sum() * len(b)) / (b.sum() * len(a)) if b.sum() else math.inf
     boot = np.where(np.isnan(boot), 1.0, boot)  # a resample of 0 / 0: no evidence either way
     tail = (1.0 - level) / 2.0 * 100.0
     # interpolating between two infinite ratios gives NaN: with any, read the order statistics
