@@ -379,7 +379,8 @@ print(
 print(
     f"\ndataset: {len(train)} train / {len(val)} val samples; curves {shares['curve']:.1%}, "
     f"lane changes {shares['lane_change']:.1%} (left {shares['overtake_left']:.1%}, right "
-    f"{shares['overtake_right']:.1%}), noise {shares['noise']:.1%}"
+    f"{shares['overtake_right']:.1%}{f', return {back:.1%}' if (back := shares['return']) else ''}), "
+    f"noise {shares['noise']:.1%}"
 )
 
 # %% [markdown]

@@ -478,9 +478,9 @@ artifacts.write_metrics(
 #   test. Where section 4b's scenes show no averaging, what separates the two is *open*, as is
 #   whether the mixture adds a failure of its own (the wrong mode followed with confidence).
 # * A learned sigma is also a learned *weight*: uncertain frames are learned least (an older
-#   recipe: lab note "Chapter 10 on the corrected evaluator"; section 5, when they open). On the
-#   earlier expert's data, over five seeds, the learned-sigma GMM collided more, less alike, and
-#   the road mostly kept its warm-up (lab note "Every epoch on the road").
+#   recipe: lab note "Chapter 10 on the corrected evaluator"; section 5, if this run's open). On
+#   the earlier expert's data, over five seeds, the learned-sigma GMM collided more and less alike,
+#   and the road mostly kept its warm-up (lab note "Every epoch on the road").
 #
 # ## Exercises
 #

@@ -556,8 +556,9 @@ artifacts.write_metrics(
 # 4. The emergency brake is the car's full deceleration while the rule plans with the tracker's.
 #    Drive the last row with `emergency_brake_mps2=7.0`, and with the rule planning at 8 too
 #    (`brake_mps2=8.0`): is it the stronger brake that helps, or the headroom? Check the count on
-#    roads the chapter did not drive (`disjoint_runs(cfg, world_cfg, 2 * n)[n:]` for n seeds)
-#    before you believe one p-value (lab note "An emergency brake for the fallback").
+#    roads the chapter did not drive (`disjoint_runs(dataclasses.replace(ev, miles=2 * ev.miles),
+#    world_cfg, 2 * n_seeds)[n_seeds:]`) before you believe one p-value (lab note "An emergency
+#    brake for the fallback").
 # 5. Drive the perceived module uncalibrated (`cfg` for every seed): how many interventions, and
 #    how fast does the car go? What does that say about thresholds chosen for exact inputs?
 # 6. A lane gap needs the camera to place a car in a lane, which fails with the car turned on a

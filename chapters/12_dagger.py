@@ -349,7 +349,7 @@ def said(v: SeedTest, other: str) -> str:
     if v.fewer or v.more:
         return f"collides {'less' if v.fewer else 'more'} than {other}"
     if v.min_p >= 0.05:
-        return f"is undecided against {other} (p {v.p_fewer:.2g}; these seeds' smallest: {v.min_p:.2g})"
+        return f"is undecided against {other} (p {v.p_fewer:.2g}; best reachable {v.min_p:.2g})"
     return f"was not shown to collide less than {other}"
 
 

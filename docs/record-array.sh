@@ -3,7 +3,7 @@
 # share, then one pool. Submit from the repository root:
 #
 #   sbatch --array=58-71 docs/record-array.sh          # one share per seed; a class's seeds
-#                                                      # start at 58 (24-57: the records')
+#                                                      # start at 58 (0-57 are taken: record.run.FRESH_SEEDS_FROM)
 #   sbatch --dependency=afterok:<job id> --wrap \
 #     ".venv/bin/python -m e2e_lite.record pool outputs-*/shares/share-seeds-*.json"
 #

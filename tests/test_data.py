@@ -170,6 +170,18 @@ def test_stats_and_shares():
     assert shares["overtake_left"] + shares["overtake_right"] + shares["return"] == pytest.approx(
         shares["lane_change"]
     )
+    # the lines a chapter prints leave out what the course's expert never does (returns,
+    # passing) while it is 0, and show it when a dataset has some
+    from e2e_lite.imitation.collector import describe
+
+    none = {**data.info, "shares": {**shares, "return": 0.0, "pass": 0.0}}
+    some = {**data.info, "shares": {**shares, "return": 0.02, "pass": 0.05}}
+    quiet, told = (
+        describe(dataclasses.replace(data, info=none)),
+        describe(dataclasses.replace(data, info=some)),
+    )
+    assert "return" not in quiet and "passing" not in quiet and "following" in quiet
+    assert "return 2.0%" in told and "passing 5.0%" in told
 
 
 def test_torch_view_shapes():

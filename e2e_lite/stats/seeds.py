@@ -186,10 +186,9 @@ def ratio_interval(
     n_boot: int = 4_000,
     seed: int = 0,
 ) -> tuple[float, float, float]:
-    """The rate ratio ``mean(a) / mean(b)`` of two rows' counts (equal budgets per seed: with
-    equal numbers of seeds, ``sum(a) / sum(b)``) with a
-    percentile bootstrap interval over the training seeds: ``(ratio, low, high)`` (all NaN when
-    neither row collided).
+    """The rate ratio ``mean(a) / mean(b)`` of two rows' counts (equal budgets per seed; with
+    equal numbers of seeds ``sum(a) / sum(b)``) with a percentile bootstrap interval over the
+    training seeds: ``(ratio, low, high)`` (all NaN when neither row collided).
 
     The seeds of each row are resampled with replacement (``paired``: seed pairs together); a
     resample whose ``b`` row never collided gives ``inf``. A ratio below 1: ``a`` collides less.
@@ -202,6 +201,8 @@ def ratio_interval(
     resample gives the same ratio (paired rows equal seed by seed: ``[1, 1]`` alone), which
     would say the counts fix the ratio exactly."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if paired and len(a) != len(b):
+        raise ValueError("ratio_interval: paired rows need the same seeds")
     rng = np.random.default_rng(seed)
     ia = rng.integers(0, len(a), (n_boot, len(a)))
     ib = ia if paired else rng.integers(0, len(b), (n_boot, len(b)))
