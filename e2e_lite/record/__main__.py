@@ -17,7 +17,7 @@ from . import COURSE_RUN, QUICK_RUN, RECORD, ROOT, report
 from .course_run import course_run_record, quick_run_record
 from .pool import ShareRefused, pool
 from .rows import Record, Share, dump, load_record
-from .run import low_rate_row, parse_seeds, plan, plan_lines, record_share
+from .run import FRESH_SEEDS_FROM, low_rate_row, parse_seeds, plan, plan_lines, record_share
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -36,8 +36,9 @@ def _parser() -> argparse.ArgumentParser:
         "--seeds",
         required=True,
         metavar="N|A-B",
-        help="N: training seeds 0 .. N-1, pooled here into the record; A-B: one share of the "
-        "record, written to <outputs>/shares/ for the pool",
+        help="N: training seeds 0 .. N-1, pooled here (the quick smoke run); A-B: one share of "
+        "the record, written to <outputs>/shares/ for the pool (the full profile: seeds from "
+        f"{FRESH_SEEDS_FROM})",
     )
     run.add_argument(
         "--miles",
