@@ -379,8 +379,9 @@ ARTIFACT_VERSIONS = {
     # ordinary moments counted over all cars (a short drive's cars kept none); 3: each car's at a
     # phase of its own, and no car after its share (the same moments for any number of shards);
     # 4: a mixture's mode ends and weights at each moment (the late lane change's split); 5: the
-    # mode ends' 1.5 s points (read along the road) and an affordance head's gap-ahead reading
-    "witness": 5,
+    # mode ends' 1.5 s points (read along the road) and an affordance head's gap-ahead reading;
+    # 6: no ordinary moment from a collision's last seconds (they are the collision's)
+    "witness": 6,
     # 2: no view of a car slower than RecoveryConfig.min_speed_mps (their labels were absurd)
     "recovery": 2,
 }

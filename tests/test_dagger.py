@@ -278,6 +278,56 @@ def test_a_late_lane_change_is_split_into_seeing_deciding_and_following():
     assert read.part == "deciding" and read.read_share == 1.0
 
 
+def test_the_anatomy_reads_a_head_a_kind_a_plan_and_ordinary_driving_as_a_review_found():
+    """Four findings of a review, each on the lane keeper's witnessed collisions:
+    - a head's reading of a free lane (the cap) passes the 5 m / 20 % tolerance at a true gap of
+      50 m or more, so there a right reading shows nothing: None, not True;
+    - the expert's *end* of a lane change (back to its own lane's centre) is no change out of the
+      lane: it does not make a collision a lane change;
+    - a plan whose body reaches past the rail's inner face (the rail is 0.3 m thick) hits it;
+    - no ordinary moment comes from a collision's last seconds."""
+    from e2e_lite.driving import anatomy
+    from e2e_lite.driving.evaluation import EvalConfig, evaluate
+    from e2e_lite.learning.labels import CHANGE, KEEP, Decision
+    from e2e_lite.simulation.world import RAIL_RADIUS_M
+
+    witness = anatomy.Witness(LaneKeeper(), WORLD.sim.policy_period_s, every=20)
+    evaluate(witness, WORLD, EvalConfig(miles=2.0, n_worlds=4, split="val"), progress=False)
+    moments = [m for c in witness.collisions for m in c.moments]
+    gaps = np.array([true_gap(m) for m in moments])
+    far, near = moments[int(np.argmin(np.abs(gaps - 55.0)))], moments[int(np.argmin(gaps))]
+    assert 50.0 <= true_gap(far) < GAP_CAP_M and true_gap(near) < 20.0
+    for m, read, right in ((far, GAP_CAP_M, None), (near, GAP_CAP_M, False)):
+        m.gap_read_m = read
+        assert anatomy.read_right(m) is right
+    near.gap_read_m = true_gap(near) + 1.0
+    assert anatomy.read_right(near) is True
+    # the expert's decisions: steering back to its own lane (target: here) is not out of it
+    c = witness.collisions[0]
+    track = c.moments[0].world.track
+    here = int(track.lane_index(float(track.to_frenet(*c.moments[0].state[:2])[1])))
+    back = [Decision(CHANGE, here, 1, True)] + [Decision(KEEP, here, 0, False)] * 2
+    away = [Decision(CHANGE, here + 1, 1, True)] + [Decision(KEEP, here, 0, False)] * 2
+    assert not any(anatomy._overtakes_out(c.moments[:3], back, here))
+    assert anatomy._overtakes_out(c.moments[:3], away, here)[0]
+    # a straight plan along the rail: its body 0.05 m past the rail's inner face hits it
+    m = dataclasses.replace(c.moments[0])
+    s = float(np.ravel(track.to_frenet(*m.state[:2])[0])[0])
+    edge = track.rail_d - RAIL_RADIUS_M + 0.05 + 0.2 - WORLD.vehicle.width_m / 2.0
+    m.state = m.state.copy()
+    m.state[:2] = np.ravel(track.position(s, edge))[:2]
+    m.state[2] = float(np.ravel(track.heading(s))[0])
+    m.plan = along_lane(m, 0.0) * np.array([1.0, 0.0])  # straight ahead along the road
+    assert anatomy.plan_collides(m)
+    # ordinary moments: kept at each car's phase, none from a collision's last seconds
+    inside = {(m.world.track.track_id, tuple(m.state)) for m in moments}
+    kept = [m for *_, m in witness._ordinary]
+    assert any((m.world.track.track_id, tuple(m.state)) in inside for m in kept)  # (the raw list)
+    assert witness.ordinary and not any(
+        (m.world.track.track_id, tuple(m.state)) in inside for m in witness.ordinary
+    )
+
+
 def along_lane(m, offset_m: float) -> np.ndarray:
     """A plan ``(5, 2)`` in ``m``'s car frame (rear axle) that follows the road 7.5 m a point
     and ends ``offset_m`` from the centre of the car's lane."""

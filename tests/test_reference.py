@@ -66,6 +66,8 @@ is *meant* to change behaviour, and say so in its commit. Changes since d6001bb:
 * 2026-12-07, ``witness`` 5 only: a witnessed moment keeps its modes' 1.5 s points (read along
   the road) and an affordance head's gap-ahead reading; the reference holds no witnessed drive,
   so every entry is unchanged.
+* 2026-12-08, ``witness`` 6 only: no ordinary moment is kept from a collision's last seconds;
+  the reference holds no witnessed drive, so every entry is unchanged.
 """
 
 from __future__ import annotations

@@ -38,7 +38,7 @@ from ..control.expert import Expert
 from ..learning.labels import CHANGE, FOLLOW, GAP_CAP_M, Decision, interpolated_path
 from ..simulation.camera import Camera, CameraConfig
 from ..simulation.policy import Observation, Policy, observe
-from ..simulation.world import Fleet, WorldConfig, make_world
+from ..simulation.world import RAIL_RADIUS_M, Fleet, WorldConfig, make_world
 from .witness import (  # noqa: F401 (re-exported: the anatomy's readers find the witness here)
     CHANGING_M,
     GAP_AHEAD,
@@ -152,7 +152,7 @@ def plan_collides(moment: Moment, margin_m: float = 0.2) -> bool:
     wx = state[0] + c * (x + ahead) - s_ * y
     wy = state[1] + s_ * (x + ahead) + c * y
     s, d = world.track.to_frenet(wx, wy)
-    if np.any(np.abs(d) + veh.width_m / 2.0 - margin_m > world.track.rail_d):
+    if np.any(np.abs(d) + veh.width_m / 2.0 - margin_m > world.track.rail_d - RAIL_RADIUS_M):
         return True
     cars = world.cars
     near = cars.between(float(np.min(s)) - 10.0, float(np.max(s)) + 10.0)
@@ -209,14 +209,27 @@ def kind(c: Collision, world_cfg: WorldConfig, expert: Expert, window_s: float =
     hit_lane = int(window[0].world.cars.lane[c.parked])
     if int(track.lane_index(d0)) != hit_lane:
         return "into an occupied lane"
-    states = [d.state for d in expert_decisions(window, world_cfg, expert)]
-    if CHANGE in states:
+    decisions = expert_decisions(window, world_cfg, expert)
+    if any(_overtakes_out(window, decisions, hit_lane)):
         if not any(m.plan_changing for m in window):
             return "lane change missed"
         return "lane change late"
-    if FOLLOW in states:
+    if any(d.state == FOLLOW for d in decisions):
         return "braking short"
     return "other"
+
+
+def _overtakes_out(moments: list[Moment], decisions: list[Decision], hit_lane: int) -> list[bool]:
+    """Per moment: is the car in lane ``hit_lane`` and the expert, from there, changing out of it
+    to overtake? (The end of a lane change, the expert steering back to its own lane's centre, is
+    a change of state but not out of the lane.)"""
+    track = moments[0].world.track
+    out = []
+    for m, decision in zip(moments, decisions):
+        here = int(track.lane_index(float(track.to_frenet(m.state[0], m.state[1])[1])))
+        away = decision.state == CHANGE and decision.overtaking and decision.target != here
+        out.append(away and here == hit_lane)
+    return out
 
 
 def ordinary_change_weight(ordinary: list[Moment]) -> float | None:
@@ -231,17 +244,20 @@ def ordinary_change_weight(ordinary: list[Moment]) -> float | None:
 
 def read_right(moment: Moment) -> bool | None:
     """Did the driver's affordance head read the gap ahead in its lane right at ``moment``:
-    within :data:`READ_TOLERANCE` of the truth? None: no head, or no car ahead within the head's
-    range (:data:`~e2e_lite.learning.labels.GAP_CAP_M`)."""
+    within :data:`READ_TOLERANCE` of the truth? None: no head, or a gap so near the head's range
+    (:data:`~e2e_lite.learning.labels.GAP_CAP_M`, its reading for a free lane) that reading a
+    free lane would pass too: there a right reading cannot show that the head saw the car (with
+    5 m or 20 %: a gap of 50 m or more)."""
     if moment.gap_read_m is None:
         return None
     track = moment.world.track
     s, d = (np.ravel(v)[:1] for v in track.to_frenet(moment.state[0], moment.state[1]))
     true = float(affordances([moment.world], s, d, np.zeros(1))[0][GAP_AHEAD])
-    if true >= GAP_CAP_M:
-        return None
     metres, share = READ_TOLERANCE
-    return abs(moment.gap_read_m - true) <= max(metres, share * true)
+    tolerance = max(metres, share * true)
+    if GAP_CAP_M - true <= tolerance:
+        return None
+    return abs(moment.gap_read_m - true) <= tolerance
 
 
 def width_on_camera(moment: Moment, parked: int, camera: CameraConfig | None = None) -> float:
@@ -289,13 +305,9 @@ def late_change(
     never overtakes out of the hit car's lane.
     """
     period = world_cfg.sim.policy_period_s
-    n, track = len(c.moments), c.moments[0].world.track
+    n = len(c.moments)
     hit_lane = int(c.moments[0].world.cars.lane[c.parked]) if c.parked >= 0 else -1
-    starts = []
-    for m, decision in zip(c.moments, expert_decisions(c.moments, world_cfg, expert)):
-        here = int(track.lane_index(float(track.to_frenet(m.state[0], m.state[1])[1])))
-        out = decision.state == CHANGE and decision.overtaking and decision.target != here
-        starts.append(out and here == hit_lane)
+    starts = _overtakes_out(c.moments, expert_decisions(c.moments, world_cfg, expert), hit_lane)
     first = None
     if any(starts):
         first = n - 1 - starts[::-1].index(True)

@@ -186,12 +186,22 @@ class Witness:
 
     @property
     def ordinary(self) -> list[Moment]:
-        """Every ordinary moment kept, by this witness or its forks, in the order of the drive."""
-        return [m for *_, m in sorted(self._ordinary, key=lambda x: x[:2])]
+        """Every ordinary moment kept, by this witness or its forks, in the order of the drive,
+        but those of a car's last :data:`HISTORY_S` before one of its collisions: they are that
+        collision's moments, not driving with no collision in sight."""
+        ends: dict[int, list[int]] = {}
+        for step, car, _ in self._filed:  # (a collision's step: its last decision's, plus one)
+            ends.setdefault(car, []).append(step)
+
+        def before_a_collision(step: int, car: int) -> bool:
+            return any(end - self.history <= step < end for end in ends.get(car, ()))
+
+        kept = sorted(self._ordinary, key=lambda x: x[:2])
+        return [m for step, car, m in kept if not before_a_collision(step, car)]
 
     @ordinary.setter
     def ordinary(self, moments: list[Moment]) -> None:
-        self._ordinary[:] = [(k, 0, m) for k, m in enumerate(moments)]
+        self._ordinary[:] = [(k, -1, m) for k, m in enumerate(moments)]  # (no car's: all kept)
 
     @property
     def fork(self) -> Callable[[int], list[Witness]]:
