@@ -2,8 +2,9 @@
 
 Chapter 12's start networks (GMM + affordance + CVaR, chapter 10's seeds) read every validation
 frame with a parked car ahead in the car's lane. Per bin of the true gap ahead and per lane:
-how often the affordance head reads the gap right (``anatomy.READ_TOLERANCE``), how often it
-reads a free lane (at least 55 m where the car is nearer), and, on the frames where the expert
+how often the affordance head reads the gap right (``anatomy.READ_TOLERANCE``; only below 50 m,
+where a reading of a free lane, the 60 m cap, would not pass too: ``anatomy.read_right``), how
+often it reads a free lane (at least 55 m where the car is nearer), and, on the frames where the expert
 changes lanes, how often the network's followed plan changes with it (its 1.5 s point within
 1 m of the label's, sideways, in the car's frame: both plans are in it). A measurement, not a
 choice: it says where the late lane change starts, seeing or deciding, over thousands of frames
@@ -31,7 +32,7 @@ from e2e_lite.imitation.agents import TrajectoryAgent
 from e2e_lite.imitation.collector import DataConfig, load_or_collect
 from e2e_lite.learning.labels import AFFORDANCE_INDEX, CHANGE, GAP_CAP_M
 
-BINS_M = (0.0, 15.0, 30.0, 45.0, GAP_CAP_M)  # bins of the true gap ahead [m]
+BINS_M = (0.0, 15.0, 30.0, 45.0, 50.0, GAP_CAP_M)  # bins of the true gap ahead [m]
 FREE_M = 55.0  # a reading at least this is a free lane [m]
 WITH_M = 1.0  # a plan changes with the expert when its 1.5 s point is this near the label's [m]
 
@@ -65,7 +66,9 @@ def main() -> None:
             read.append(agent.last["affordances"][:, gap_i])
             end_y.append(pts[:, -1, 1])
         read, end_y = np.concatenate(read), np.concatenate(end_y)
-        right = np.abs(read - gap) <= np.maximum(metres, share * gap)
+        tolerance = np.maximum(metres, share * gap)
+        right = np.abs(read - gap) <= tolerance
+        scored = GAP_CAP_M - gap > tolerance  # (as anatomy.read_right: a free reading fails)
         free = (read >= FREE_M) & (gap < FREE_M - metres)
         changing = state == CHANGE
         took = np.abs(end_y - label_y) <= WITH_M
@@ -73,13 +76,13 @@ def main() -> None:
         for lo, hi in itertools.pairwise(BINS_M):
             for ln in [*sorted(set(lane.tolist())), None]:
                 m = (gap >= lo) & (gap < hi) & ((lane == ln) if ln is not None else True)
-                ch = m & changing
+                ch, sc = m & changing, m & scored
                 table.append(
                     {
                         "gap_m": [lo, hi],
                         "lane": "all" if ln is None else int(ln),
                         "frames": int(m.sum()),
-                        "read_right": float(right[m].mean()) if m.any() else None,
+                        "read_right": float(right[sc].mean()) if sc.any() else None,
                         "read_free": float(free[m].mean()) if m.any() else None,
                         "median_error_m": float(np.median(np.abs(read - gap)[m]))
                         if m.any()
@@ -92,10 +95,10 @@ def main() -> None:
         print(f"seed {k}")
         for r in table:
             if r["frames"]:
-                with_it = r["plan_with_expert_change"]
+                with_it, right = r["plan_with_expert_change"], r["read_right"]
                 print(
                     f"  gap {r['gap_m'][0]:4.0f}-{r['gap_m'][1]:2.0f} m lane {r['lane']!s:3s}: "
-                    f"{r['frames']:5d} frames, read right {r['read_right']:.2f}, read free "
+                    f"{r['frames']:5d} frames, read right {'-' if right is None else f'{right:.2f}'}, read free "
                     f"{r['read_free']:.2f}, median error {r['median_error_m']:5.1f} m; expert "
                     f"changing {r['expert_changing']:.2f}, the plan with it "
                     f"{'-' if with_it is None else f'{with_it:.2f}'}"
