@@ -279,12 +279,13 @@ def test_a_late_lane_change_is_split_into_seeing_deciding_and_following():
 
 
 def test_the_anatomy_reads_a_head_a_kind_a_plan_and_ordinary_driving_as_a_review_found():
-    """Four findings of a review, each on the lane keeper's witnessed collisions:
+    """Five findings of a review, each on the lane keeper's witnessed collisions:
     - a head's reading of a free lane (the cap) passes the 5 m / 20 % tolerance at a true gap of
       50 m or more, so there a right reading shows nothing: None, not True;
     - the expert's *end* of a lane change (back to its own lane's centre) is no change out of the
       lane: it does not make a collision a lane change;
     - a plan whose body reaches past the rail's inner face (the rail is 0.3 m thick) hits it;
+    - a car and a rail touched in one step is the car's contact, as the evaluator counts it;
     - no ordinary moment comes from a collision's last seconds."""
     from e2e_lite.driving import anatomy
     from e2e_lite.driving.evaluation import EvalConfig, evaluate
@@ -319,6 +320,15 @@ def test_the_anatomy_reads_a_head_a_kind_a_plan_and_ordinary_driving_as_a_review
     m.state[2] = float(np.ravel(track.heading(s))[0])
     m.plan = along_lane(m, 0.0) * np.array([1.0, 0.0])  # straight ahead along the road
     assert anatomy.plan_collides(m)
+
+    # a car and a rail touched in one step is the car's, as the evaluator counts it
+    class Both:
+        def step(self, *_):
+            return [[("rail", 0), ("car", 3)]]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(anatomy, "_fresh_fleet", lambda *_: Both())
+        assert anatomy.contact(c.moments[-1], WORLD) == ("car", 3)
     # ordinary moments: kept at each car's phase, none from a collision's last seconds
     inside = {(m.world.track.track_id, tuple(m.state)) for m in moments}
     kept = [m for *_, m in witness._ordinary]

@@ -85,13 +85,14 @@ READ_TOLERANCE = (5.0, 0.2)
 def contact(last: Moment, world_cfg: WorldConfig) -> tuple[str, int]:
     """What the car ran into: its last moment's command driven again from its state in a fresh
     copy of its world (the world is deterministic): ``("car", parked index)`` or ``("rail", -1)``
-    (``("", -1)`` if it touches nothing: the collision then came from another cause)."""
+    (``("", -1)`` if it touches nothing: the collision then came from another cause). A car and a
+    rail touched in one step is the car's, as the evaluator counts it."""
     fleet = _fresh_fleet(last, world_cfg)
     hits = fleet.step(np.array([last.command[0]]), np.array([last.command[1]]))[0]
     if not hits:
         return "", -1
-    kind, index = hits[0]
-    return (kind, int(index)) if kind == "car" else (kind, -1)
+    car = next((int(j) for kind, j in hits if kind == "car"), None)
+    return ("car", car) if car is not None else (hits[0][0], -1)
 
 
 def _fresh_fleet(moment: Moment, world_cfg: WorldConfig) -> Fleet:
