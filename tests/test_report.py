@@ -330,11 +330,12 @@ def test_the_record_plan_reaches_its_power_at_the_least_time_and_the_class_can_r
     kit says how a class runs and pools shares, and a job-array script runs them."""
     from e2e_lite.record.run import plan
 
-    found = plan(spread_record(), target=0.6, most=14, miles_options=(100.0, 200.0), n_sim=200)
-    assert 0.15 < found["dispersion"] < 0.6 and len(found["options"]) == 2
+    # (the fixture's spread, Cox-Reid adjusted: about 0.59; plain maximum likelihood found less)
+    found = plan(spread_record(), target=0.6, most=20, miles_options=(100.0, 200.0), n_sim=200)
+    assert 0.15 < found["dispersion"] < 0.7 and len(found["options"]) == 2
     for option in found["options"]:
         assert (
-            10 <= option["seeds"] <= 14 and option["hours_2_cores"] > option["hours_16_cores_gpu"]
+            10 <= option["seeds"] <= 20 and option["hours_2_cores"] > option["hours_16_cores_gpu"]
         )
     assert found["chosen"]["power"] >= 0.6 and found["row"] == "gmm_affordance"
     # the low-rate rows' own plan: their median rate, their own spread (issue 88, item 5)
@@ -342,7 +343,7 @@ def test_the_record_plan_reaches_its_power_at_the_least_time_and_the_class_can_r
 
     low = low_rate_row(spread_record())
     assert low == "gmm_affordance_control"  # (median 1 per 100 mi: the lowest of SPREAD's)
-    own = plan(spread_record(), target=0.6, most=14, miles_options=(100.0,), n_sim=200, row=low)
+    own = plan(spread_record(), target=0.6, most=20, miles_options=(100.0,), n_sim=200, row=low)
     assert own["row"] == low and own["rate_per_100mi"] == 1.0
     assert own["options"][0]["seeds"] >= found["options"][0]["seeds"]  # a rarer step: more seeds
     teaching = (ROOT / "docs" / "teaching.md").read_text()

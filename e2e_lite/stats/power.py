@@ -4,7 +4,7 @@
   (simulated under the seeds' spread), and the smallest p-value it can reach at all (3 seeds
   against 3: 0.05, never below it); :func:`seeds_for_power`, the fewest seeds that reach a power.
 * :func:`fit_dispersion`: the seeds' spread beyond Poisson, a negative binomial's dispersion
-  fitted to rows of per-seed counts, with its profile-likelihood interval;
+  fitted to rows of per-seed counts (Cox-Reid adjusted), with its likelihood interval;
   :func:`chi_square_spread`, one row's chi-square against a shared rate.
 * :func:`holm`: Holm's step-down adjustment of a family of p-values.
 """
@@ -43,8 +43,9 @@ class Dispersion:
     """A negative binomial's dispersion fitted to rows of seeds (:func:`fit_dispersion`).
 
     Attributes:
-        k: the maximum-likelihood dispersion (``Var = mu + k mu^2``; 0 is Poisson).
-        low, high: its profile-likelihood interval.
+        k: the dispersion (``Var = mu + k mu^2``; 0 is Poisson), the maximum of the Cox-Reid
+            adjusted profile likelihood.
+        low, high: its interval from that likelihood.
         rows, seeds: how many rows of two or more seeds it was fitted to, and their seeds.
     """
 
@@ -138,10 +139,13 @@ def seeds_for_power(
 
 
 def _nb_loglik(counts: Sequence[np.ndarray], dispersion: float) -> float:
-    """Log-likelihood of rows of counts under a negative binomial with each row's own mean (its
-    maximum-likelihood estimate, the row's mean count) and one shared ``dispersion`` k:
-    ``log P(y) = lnG(y + r) - lnG(r) - lnG(y + 1) + r ln(r / (r + mu)) + y ln(mu / (r + mu))``,
-    ``r = 1/k``."""
+    """Cox-Reid adjusted log-likelihood of rows of counts under a negative binomial with each
+    row's own mean (its maximum-likelihood estimate, the row's mean count) and one shared
+    ``dispersion`` k: ``log P(y) = lnG(y + r) - lnG(r) - lnG(y + 1) + r ln(r / (r + mu)) +
+    y ln(mu / (r + mu))``, ``r = 1/k``, less half the log of each row's information on its
+    mean's log, ``n mu / (1 + k mu)``. The adjustment pays for each row's mean being fitted
+    from its own few seeds: without it the fit underestimates k (a review's simulation, 8 rows
+    of 4 seeds at k = 0.3: 0.16 on average; adjusted 0.30)."""
     from scipy.special import gammaln  # (here: an evaluation worker never loads scipy)
 
     r = 1.0 / max(dispersion, 1e-8)
@@ -153,15 +157,17 @@ def _nb_loglik(counts: Sequence[np.ndarray], dispersion: float) -> float:
         total += float(
             np.sum(gammaln(y + r) - gammaln(r) - gammaln(y + 1.0))
             + np.sum(r * np.log(r / (r + mu)) + y * np.log(mu / (r + mu)))
+            - 0.5 * math.log(len(y) * mu / (1.0 + mu / r))
         )
     return total
 
 
 def fit_dispersion(counts: Sequence[Sequence[float]], level: float = 0.95) -> Dispersion:
     """The seeds' spread beyond Poisson, fitted to rows of per-seed counts (each row one
-    recipe, its seeds driving one common budget): the maximum-likelihood dispersion k of a
-    negative binomial (``Var = mu + k mu^2``, each row its own mean, every row one k) and its
-    profile-likelihood interval (``2 (l_max - l(k)) <=`` the chi-square quantile of 1 df);
+    recipe, its seeds driving one common budget): the dispersion k of a negative binomial
+    (``Var = mu + k mu^2``, each row its own mean, every row one k) at the maximum of the
+    Cox-Reid adjusted profile likelihood (:func:`_nb_loglik`), and its interval from that
+    likelihood (``2 (l_max - l(k)) <=`` the chi-square quantile of 1 df);
     k = 0 is Poisson. A grid brackets the maximum and the interval's ends, which are then
     solved for to 1e-6 (the digits a sentence prints are the fit's, not the grid's)."""
     rows = [np.asarray(c, dtype=float) for c in counts if len(c) >= 2]
