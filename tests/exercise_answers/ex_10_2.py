@@ -4,4 +4,4 @@ does not; keep it from students)."""
 
 def record_size() -> tuple[int, float]:
     """(seeds per row, miles per seed [mi])."""
-    return 60, 400.0
+    return 80, 300.0
