@@ -376,10 +376,11 @@ print(
         )
     )
 )
+back = f", return {shares['return']:.1%}" if shares["return"] else ""  # (the expert keeps its lane)
 print(
     f"\ndataset: {len(train)} train / {len(val)} val samples; curves {shares['curve']:.1%}, "
     f"lane changes {shares['lane_change']:.1%} (left {shares['overtake_left']:.1%}, right "
-    f"{shares['overtake_right']:.1%}{f', return {back:.1%}' if (back := shares['return']) else ''}), "
+    f"{shares['overtake_right']:.1%}{back}), "
     f"noise {shares['noise']:.1%}"
 )
 

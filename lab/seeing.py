@@ -2,13 +2,13 @@
 
 Chapter 12's start networks (GMM + affordance + CVaR, chapter 10's seeds) read every validation
 frame with a parked car ahead in the car's lane. Per bin of the true gap ahead and per lane:
-how often the affordance head reads the gap right (``anatomy.READ_TOLERANCE``; only below 50 m,
-where a reading of a free lane, the 60 m cap, would not pass too: ``anatomy.read_right``), how
-often it reads a free lane (at least 55 m where the car is nearer), and, on the frames where the expert
-changes lanes, how often the network's followed plan changes with it (its 1.5 s point within
-1 m of the label's, sideways, in the car's frame: both plans are in it). A measurement, not a
-choice: it says where the late lane change starts, seeing or deciding, over thousands of frames
-rather than a run's few collisions.
+how often the affordance head reads the gap right (``anatomy.reads_right``: only below 50 m,
+where a reading of a free lane, the 60 m cap, would not pass too), how often it reads a free
+lane (at least 55 m where the car is nearer), and, on the frames where the expert changes lanes,
+how often the network's followed plan changes with it (its 1.5 s point within 1 m of the
+label's, sideways, in the car's frame: both plans are in it). A measurement, not a choice: it
+says where the late lane change starts, seeing or deciding, over thousands of frames rather
+than a run's few collisions.
 
     python lab/seeing.py [--quick]
 
@@ -26,7 +26,7 @@ import numpy as np
 
 from e2e_lite import artifacts
 from e2e_lite.config import FULL, QUICK
-from e2e_lite.driving.anatomy import READ_TOLERANCE
+from e2e_lite.driving.anatomy import READ_TOLERANCE, reads_right
 from e2e_lite.imitation import recipes
 from e2e_lite.imitation.agents import TrajectoryAgent
 from e2e_lite.imitation.collector import DataConfig, load_or_collect
@@ -53,7 +53,7 @@ def main() -> None:
     if not len(rows):
         print("no validation frame has a parked car ahead within the head's range")
         return
-    metres, share = READ_TOLERANCE
+    metres = READ_TOLERANCE[0]
     out = {"frames_with_a_car_ahead": len(rows), "frames": len(val), "seeds": {}}
     for k in range(profile.ablation_seeds):
         net = recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0]
@@ -66,9 +66,7 @@ def main() -> None:
             read.append(agent.last["affordances"][:, gap_i])
             end_y.append(pts[:, -1, 1])
         read, end_y = np.concatenate(read), np.concatenate(end_y)
-        tolerance = np.maximum(metres, share * gap)
-        right = np.abs(read - gap) <= tolerance
-        scored = GAP_CAP_M - gap > tolerance  # (as anatomy.read_right: a free reading fails)
+        right, scored = reads_right(read, gap)
         free = (read >= FREE_M) & (gap < FREE_M - metres)
         changing = state == CHANGE
         took = np.abs(end_y - label_y) <= WITH_M

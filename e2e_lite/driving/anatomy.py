@@ -243,22 +243,29 @@ def ordinary_change_weight(ordinary: list[Moment]) -> float | None:
     return float(np.quantile(found, ORDINARY_QUANTILE)) if found else None
 
 
+def reads_right(read_m: np.ndarray, true_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per reading of the gap ahead [m] against its truth [m]: is it within
+    :data:`READ_TOLERANCE`, and can that be scored at all? Not where the truth lies so near the
+    head's range (:data:`~e2e_lite.learning.labels.GAP_CAP_M`, its reading for a free lane) that
+    reading a free lane would pass too (with 5 m or 20 %: a gap of 50 m or more). ``(right,
+    scored)``, boolean arrays."""
+    read, true = np.asarray(read_m, dtype=float), np.asarray(true_m, dtype=float)
+    metres, share = READ_TOLERANCE
+    tolerance = np.maximum(metres, share * true)
+    return np.abs(read - true) <= tolerance, GAP_CAP_M - true > tolerance
+
+
 def read_right(moment: Moment) -> bool | None:
-    """Did the driver's affordance head read the gap ahead in its lane right at ``moment``:
-    within :data:`READ_TOLERANCE` of the truth? None: no head, or a gap so near the head's range
-    (:data:`~e2e_lite.learning.labels.GAP_CAP_M`, its reading for a free lane) that reading a
-    free lane would pass too: there a right reading cannot show that the head saw the car (with
-    5 m or 20 %: a gap of 50 m or more)."""
+    """Did the driver's affordance head read the gap ahead in its lane right at ``moment``
+    (:func:`reads_right`)? None: no head, or a gap where a free lane's reading would pass too:
+    there a right reading cannot show that the head saw the car."""
     if moment.gap_read_m is None:
         return None
     track = moment.world.track
     s, d = (np.ravel(v)[:1] for v in track.to_frenet(moment.state[0], moment.state[1]))
     true = float(affordances([moment.world], s, d, np.zeros(1))[0][GAP_AHEAD])
-    metres, share = READ_TOLERANCE
-    tolerance = max(metres, share * true)
-    if GAP_CAP_M - true <= tolerance:
-        return None
-    return abs(moment.gap_read_m - true) <= tolerance
+    right, scored = reads_right(np.array(moment.gap_read_m), np.array(true))
+    return bool(right) if scored else None
 
 
 def width_on_camera(moment: Moment, parked: int, camera: CameraConfig | None = None) -> float:
