@@ -57,8 +57,9 @@ VERDICT_BIN_M = (50.0, 60.0)  # the declared verdict's gaps [m]
 
 
 def choice_frames(data: DrivingData, world_cfg: WorldConfig, split: str) -> dict[str, np.ndarray]:
-    """The choice frames of ``data`` (rows, their true gap [m], whether the expert starts) and
-    a function of each frame's car-frame points: their offsets from the lane's centre [m]."""
+    """The choice frames of ``data`` (rows, their true gap [m], whether the expert starts), a
+    function of each frame's car-frame points (their offsets from the lane's centre [m]) and the
+    frames' worlds by track."""
     a = data.arrays
     aff = a["affordances"]
     offset = aff[:, AFFORDANCE_INDEX["center_offset_m"]]
@@ -95,7 +96,13 @@ def choice_frames(data: DrivingData, world_cfg: WorldConfig, split: str) -> dict
             out[n] = (dd - float(track.lane_center(track.lane_index(d)))).reshape(out.shape[1:])
         return out
 
-    return {"rows": rows, "gap": gap, "start": start[rows], "lane_offset": lane_offset}
+    return {
+        "rows": rows,
+        "gap": gap,
+        "start": start[rows],
+        "lane_offset": lane_offset,
+        "worlds": worlds,
+    }
 
 
 def in_bin(gap: np.ndarray, lo: float, hi: float) -> np.ndarray:
