@@ -173,13 +173,19 @@ def _observe_moment(moment: Moment, world_cfg: WorldConfig) -> Observation:
     return observe(fleet, respawned=True)
 
 
+def expert_label(moment: Moment, world_cfg: WorldConfig, expert: Expert) -> np.ndarray:
+    """The expert's trajectory label at ``moment``'s state, ``(5, 2)`` in the car frame [m] (a
+    function of the state alone, as a plan is read)."""
+    return expert.trajectory_label(_observe_moment(moment, world_cfg))[0]
+
+
 def disagreement(moments: list[Moment], world_cfg: WorldConfig, expert: Expert) -> np.ndarray:
     """Per moment, the largest distance over the 5 points between the driver's plan and the
     expert's label at the same state [m] (NaN where the driver had no plan)."""
     out = np.full(len(moments), np.nan)
     for k, m in enumerate(moments):
         if m.plan is not None:
-            label = expert.trajectory_label(_observe_moment(m, world_cfg))[0]
+            label = expert_label(m, world_cfg, expert)
             out[k] = float(np.linalg.norm(m.plan - label, axis=-1).max())
     return out
 

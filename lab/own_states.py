@@ -1,0 +1,201 @@
+"""Do the course's last networks begin their lane changes late on the states they drive into
+themselves? (issue 88, item 3)
+
+On the expert's own states the start networks begin a lane change close to where the expert's
+labels do (lab note "Neither the trigger gap nor the side coin, as tested, makes the choice
+late"); the deciding collisions' plans began 25-30 m after the expert's from states the networks
+drove into. This lab measures the choice on those states: each start network (GMM + affordance
++ CVaR, chapter 10's seeds) drives its own validation roads inside a ``Witness`` that keeps every
+decision, and at each decision the expert's label is computed from the same state
+(``anatomy.expert_label``, a function of the state alone).
+
+An approach: the decisions of one car in one lane behind one parked car (the first parked car
+ahead in the car's lane, within 80 m of its front bumper), first seen at 75 m or more with the car
+within 0.5 m of its lane's centre (so settled in its lane); approaches that end in a collision are
+the anatomy's and are left out (``Witness.ordinary``). In each: the gap at the first decision whose
+label changes lanes (its 1.5 s point more than ``CHANGING_M`` from the lane's centre, read along
+the road) and at the first whose plan does. The lateness: the label's gap minus the plan's [m]
+(positive: the plan began nearer the car); a plan that never changes while its label did counts
+as beginning at the approach's last gap. Approaches whose label never changes (the expert follows)
+are counted apart.
+
+Declared before the run (the verdict the script prints), over the approaches of each seed:
+
+* late on its own states: on every seed the median approach's plan begins more than 10 m after
+  its label;
+* on time on its own states: on every seed the median lateness is 5 m or less;
+* mixed otherwise.
+
+Beside it: the share of approaches more than 15 m late, and for those against the rest, the
+car's lane, offset from its lane's centre and heading to the road at the label's start (medians).
+
+    python lab/own_states.py [--quick]
+
+Writes docs/results/lab/own_states.json (full profile).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from e2e_lite import artifacts
+from e2e_lite.config import FULL, QUICK
+from e2e_lite.control.expert import Expert
+from e2e_lite.control.rules import car_ahead
+from e2e_lite.driving import anatomy
+from e2e_lite.driving.evaluation import evaluate
+from e2e_lite.driving.witness import CHANGING_M, Moment, Witness
+from e2e_lite.imitation import dagger, recipes
+from e2e_lite.imitation.agents import TrajectoryAgent
+from e2e_lite.imitation.collector import DataConfig, load_or_collect
+from e2e_lite.simulation.world import WorldConfig
+
+RANGE_M = 80.0  # an approach: a parked car ahead in the car's lane within this [m]
+FIRST_SEEN_M = 75.0  # an approach counts when first seen this far or farther [m]
+SETTLED_M = 0.5  # ... with the car this near its lane's centre [m]
+LATE_M, ON_TIME_M, VERY_LATE_M = 10.0, 5.0, 15.0  # the verdict's and the description's [m]
+
+
+def where(m: Moment, front_m: float) -> tuple[int, float, float, float, int]:
+    """``(lane, offset from its centre [m], heading to the road [rad], gap [m], parked car)`` of
+    the car at ``m`` (gap ``inf`` and car ``-1``: none within :data:`RANGE_M`)."""
+    track = m.world.track
+    s, d = (float(np.ravel(v)[0]) for v in track.to_frenet(m.state[0], m.state[1]))
+    lane = int(track.lane_index(d))
+    gap, j = car_ahead(m.world, s + front_m, lane, RANGE_M)
+    heading = float(m.state[2]) - float(track.heading(s))
+    heading = (heading + np.pi) % (2 * np.pi) - np.pi
+    return lane, d - float(track.lane_center(lane)), heading, gap, j
+
+
+def approaches(moments: list[Moment], world_cfg: WorldConfig) -> list[dict]:
+    """The approaches in ``moments`` (one car's decisions in the order of the drive, cars
+    interleaved), each with its label's and plan's start."""
+    front, expert = (
+        world_cfg.vehicle.rear_to_front_m,
+        Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim),
+    )
+    runs: dict[tuple, list[tuple[Moment, tuple]]] = {}
+    for m in moments:
+        at = where(m, front)
+        if at[4] >= 0 and at[3] < RANGE_M:
+            runs.setdefault((m.world.track.track_id, at[0], at[4]), []).append((m, at))
+    out = []
+    for key, run in runs.items():
+        first = run[0][1]
+        if first[3] < FIRST_SEEN_M or abs(first[1]) > SETTLED_M:
+            continue
+        label_at = plan_at = None
+        for m, at in run:
+            if label_at is None:
+                end = anatomy.expert_label(m, world_cfg, expert)[-1]
+                if abs(m.lane_offset(end)[0]) > CHANGING_M:
+                    label_at = at
+            if plan_at is None and m.plan_changing:
+                plan_at = at
+            if label_at is not None and plan_at is not None:
+                break
+        out.append(
+            {
+                "track": list(key[0]),
+                "parked": key[2],
+                "label_start": None if label_at is None else list(label_at[:4]),
+                "plan_start": None if plan_at is None else list(plan_at[:4]),
+                "last_gap_m": run[-1][1][3],
+            }
+        )
+    return out
+
+
+def lateness(a: dict) -> float | None:
+    """How much nearer the car the plan began than the label [m] (None: the label never did)."""
+    if a["label_start"] is None:
+        return None
+    plan_gap = a["last_gap_m"] if a["plan_start"] is None else a["plan_start"][3]
+    return a["label_start"][3] - plan_gap
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true")
+    profile = QUICK if ap.parse_args().quick else FULL
+    miles = 2.0 if profile.quick else 40.0  # validation miles per seed
+    train = load_or_collect(DataConfig.for_profile(profile, "train"))
+    val = load_or_collect(DataConfig.for_profile(profile, "val"))
+    world_cfg = WorldConfig.for_profile(profile)
+    weight = recipes.affordance_weight(profile, train, val)
+    out: dict = {"miles_per_seed": miles, "seeds": {}}
+    for k in range(profile.ablation_seeds):
+        net = recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0]
+        witness = Witness(TrajectoryAgent(net), world_cfg.sim.policy_period_s, every=1)
+        evaluate(witness, world_cfg, dagger.val_run(profile, k, miles), desc=f"seed {k}")
+        found = approaches(witness.ordinary, world_cfg)
+        late = [x for x in (lateness(a) for a in found) if x is not None]
+        never = sum(a["label_start"] is not None and a["plan_start"] is None for a in found)
+        very = [a for a in found if (lateness(a) or 0.0) > VERY_LATE_M]
+        rest = [a for a in found if a["label_start"] is not None and a not in very]
+
+        def medians(group: list[dict]) -> dict[str, float | None]:
+            starts = np.array([a["label_start"] for a in group], dtype=float).reshape(-1, 4)
+            names = ("lane", "offset_m", "heading_rad", "gap_m")
+            if not len(starts):
+                return dict.fromkeys(names)
+            return {n: float(np.median(starts[:, i])) for i, n in enumerate(names)}
+
+        seed = {
+            "approaches": len(found),
+            "label_never_changes": len(found) - len(late),
+            "plan_never_changes": never,
+            "median_lateness_m": float(np.median(late)) if late else None,
+            "very_late_share": len(very) / len(late) if late else None,
+            "at_the_label_start": {"very late": medians(very), "the rest": medians(rest)},
+            "collisions": len(witness.collisions),
+            "approaches_each": found,
+        }
+        out["seeds"][k] = seed
+        print(
+            f"seed {k}: {seed['approaches']} approaches ({seed['label_never_changes']} where the "
+            f"label never changes, {never} where only the label does); median lateness "
+            f"{_m(seed['median_lateness_m'])}, more than {VERY_LATE_M:g} m late "
+            f"{_pct(seed['very_late_share'])}"
+        )
+        for name, at in seed["at_the_label_start"].items():
+            print(
+                f"  {name} at the label's start: lane {_m(at['lane'], '')}, offset "
+                f"{_m(at['offset_m'])}, heading {_m(at['heading_rad'], ' rad', 3)}, gap "
+                f"{_m(at['gap_m'])}"
+            )
+    found = [s["median_lateness_m"] for s in out["seeds"].values()]
+    if None in found:
+        verdict = "no verdict: a seed has no approach whose label changes lanes"
+    elif all(x > LATE_M for x in found):
+        verdict = f"late on its own states: median lateness over {LATE_M:g} m on every seed"
+    elif all(x <= ON_TIME_M for x in found):
+        verdict = (
+            f"on time on its own states: median lateness {ON_TIME_M:g} m or less on every seed"
+        )
+    else:
+        verdict = "mixed: the seeds' medians fall on both sides or between the thresholds"
+    out["verdict"] = verdict
+    print(f"verdict (declared): {verdict}")
+    out["commit"] = artifacts.code_commit(Path(__file__).parent)
+    if not profile.quick:
+        path = Path(__file__).resolve().parents[1] / "docs/results/lab/own_states.json"
+        path.write_text(json.dumps(out, indent=1) + "\n")
+        print(f"wrote {path}")
+
+
+def _m(x: float | None, unit: str = " m", digits: int = 1) -> str:
+    return "-" if x is None else f"{x:.{digits}f}{unit}"
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.0f} %"
+
+
+if __name__ == "__main__":
+    main()
