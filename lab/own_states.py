@@ -27,7 +27,10 @@ Declared before the run (the verdict the script prints), over the approaches of 
 * mixed otherwise.
 
 Beside it: the share of approaches more than 15 m late, and for those against the rest, the
-car's lane, offset from its lane's centre and heading to the road at the label's start (medians).
+car's lane, offset from its lane's centre and heading to the road at the label's start (medians);
+and (added after the run, not part of the verdict) where the plans began: the 5th percentile and
+median of the plan's start gap, and how many began nearer than the expert's nearest trigger gap
+(45 m, ``ExpertConfig.trigger_m``).
 
     python lab/own_states.py [--quick]
 
@@ -58,6 +61,7 @@ RANGE_M = 80.0  # an approach: a parked car ahead in the car's lane within this 
 FIRST_SEEN_M = 75.0  # an approach counts when first seen this far or farther [m]
 SETTLED_M = 0.5  # ... with the car this near its lane's centre [m]
 LATE_M, ON_TIME_M, VERY_LATE_M = 10.0, 5.0, 15.0  # the verdict's and the description's [m]
+NEAR_M = 45.0  # a plan that begins nearer than the expert's nearest trigger gap [m]
 
 
 def where(m: Moment, front_m: float) -> tuple[int, float, float, float, int]:
@@ -146,8 +150,20 @@ def main() -> None:
                 return dict.fromkeys(names)
             return {n: float(np.median(starts[:, i])) for i, n in enumerate(names)}
 
+        began = np.array(
+            [
+                a["last_gap_m"] if a["plan_start"] is None else a["plan_start"][3]
+                for a in found
+                if a["label_start"] is not None
+            ]
+        )
         seed = {
             "approaches": len(found),
+            "plan_start_gap_m": {
+                "p5": float(np.percentile(began, 5)) if len(began) else None,
+                "median": float(np.median(began)) if len(began) else None,
+                f"nearer_than_{NEAR_M:g}": int((began < NEAR_M).sum()),
+            },
             "label_never_changes": len(found) - len(late),
             "plan_never_changes": never,
             "median_lateness_m": float(np.median(late)) if late else None,
@@ -162,6 +178,12 @@ def main() -> None:
             f"label never changes, {never} where only the label does); median lateness "
             f"{_m(seed['median_lateness_m'])}, more than {VERY_LATE_M:g} m late "
             f"{_pct(seed['very_late_share'])}"
+        )
+        began_at = seed["plan_start_gap_m"]
+        print(
+            f"  the plans began at {_m(began_at['median'])} (median; 5th percentile "
+            f"{_m(began_at['p5'])}), nearer than {NEAR_M:g} m in "
+            f"{began_at[f'nearer_than_{NEAR_M:g}']} approaches"
         )
         for name, at in seed["at_the_label_start"].items():
             print(
