@@ -30,7 +30,13 @@ Beside it: the share of approaches more than 15 m late, and for those against th
 car's lane, offset from its lane's centre and heading to the road at the label's start (medians);
 and (added after the run, not part of the verdict) where the plans began: the 5th percentile and
 median of the plan's start gap, and how many began nearer than the expert's nearest trigger gap
-(45 m, ``ExpertConfig.trigger_m``).
+(45 m, ``ExpertConfig.trigger_m``). Also added after a review, outside the verdict: the same
+measure over every approach first seen at 75 m or more, settled or not, those ending in a
+collision included (the declared filter leaves out exactly the late approaches that collide),
+approaches cut by the end of a car's miles before their plan began counted as unknown, how
+many are more than 15 m and 25 m or more late, by the car's offset from its lane's centre at
+first sight, and the lateness of each approach that ends in a collision. A label that changes
+at the first decision seen makes the lateness a lower bound (counted).
 
     python lab/own_states.py [--quick]
 
@@ -40,6 +46,7 @@ Writes docs/results/lab/own_states.json (full profile).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -51,7 +58,7 @@ from e2e_lite.control.expert import Expert
 from e2e_lite.control.rules import car_ahead
 from e2e_lite.driving import anatomy
 from e2e_lite.driving.evaluation import evaluate
-from e2e_lite.driving.witness import CHANGING_M, Moment, Witness
+from e2e_lite.driving.witness import CHANGING_M, Collision, Moment, Witness
 from e2e_lite.imitation import dagger, recipes
 from e2e_lite.imitation.agents import TrajectoryAgent
 from e2e_lite.imitation.collector import DataConfig, load_or_collect
@@ -62,6 +69,8 @@ FIRST_SEEN_M = 75.0  # an approach counts when first seen this far or farther [m
 SETTLED_M = 0.5  # ... with the car this near its lane's centre [m]
 LATE_M, ON_TIME_M, VERY_LATE_M = 10.0, 5.0, 15.0  # the verdict's and the description's [m]
 NEAR_M = 45.0  # a plan that begins nearer than the expert's nearest trigger gap [m]
+FAR_LATE_M = 25.0  # as late as the deciding collisions' plans [m]
+OFFSET_BINS_M = (0.0, 0.2, 0.5, 2.0)  # the car's offset from its lane's centre at first sight [m]
 
 
 def where(m: Moment, front_m: float) -> tuple[int, float, float, float, int]:
@@ -76,51 +85,112 @@ def where(m: Moment, front_m: float) -> tuple[int, float, float, float, int]:
     return lane, d - float(track.lane_center(lane)), heading, gap, j
 
 
-def approaches(moments: list[Moment], world_cfg: WorldConfig) -> list[dict]:
-    """The approaches in ``moments`` (one car's decisions in the order of the drive, cars
-    interleaved), each with its label's and plan's start."""
+def approaches(
+    kept: list[tuple[int, int, Moment]],
+    world_cfg: WorldConfig,
+    collisions: list[Collision] = (),
+    settled: bool = True,
+) -> list[dict]:
+    """The approaches in ``kept`` (``Witness.kept``'s ``(decision, car, moment)``, in the order of
+    the drive), each with its label's and plan's start, its first sight and how it ended:
+    ``"collision"`` (the car collided within a decision of its last), ``"went on"`` (the car
+    decided again, out of the approach: another lane, or past the car) or ``"cut"`` (the car's
+    miles ended). ``settled``: only approaches first seen with the car within :data:`SETTLED_M`
+    of its lane's centre (the declared verdict's)."""
     front, expert = (
         world_cfg.vehicle.rear_to_front_m,
         Expert(vehicle=world_cfg.vehicle, sim=world_cfg.sim),
     )
-    runs: dict[tuple, list[tuple[Moment, tuple]]] = {}
-    for m in moments:
+    decided = {(car, step) for step, car, _ in kept}
+    collided = {(c.car, c.step) for c in collisions}
+    runs: dict[tuple, list[tuple[int, Moment, tuple]]] = {}
+    for step, car, m in kept:
         at = where(m, front)
         if at[4] >= 0 and at[3] < RANGE_M:
-            runs.setdefault((m.world.track.track_id, at[0], at[4]), []).append((m, at))
+            runs.setdefault((car, m.world.track.track_id, at[0], at[4]), []).append((step, m, at))
     out = []
-    for key, run in runs.items():
-        first = run[0][1]
-        if first[3] < FIRST_SEEN_M or abs(first[1]) > SETTLED_M:
+    for (car, track, _, parked), run in runs.items():
+        first, last = run[0][2], run[-1][0]
+        if first[3] < FIRST_SEEN_M or (settled and abs(first[1]) > SETTLED_M):
             continue
         label_at = plan_at = None
-        for m, at in run:
+        for k, (_, m, at) in enumerate(run):
             if label_at is None:
                 end = anatomy.expert_label(m, world_cfg, expert)[-1]
                 if abs(m.lane_offset(end)[0]) > CHANGING_M:
-                    label_at = at
+                    label_at, label_first = at, k == 0
             if plan_at is None and m.plan_changing:
                 plan_at = at
             if label_at is not None and plan_at is not None:
                 break
+        if (car, last + 1) in collided:
+            ended = "collision"
+        else:
+            ended = "went on" if (car, last + 1) in decided else "cut"
         out.append(
             {
-                "track": list(key[0]),
-                "parked": key[2],
+                "car": car,
+                "track": list(track),
+                "parked": parked,
+                "first_seen": list(first[:4]),
                 "label_start": None if label_at is None else list(label_at[:4]),
+                "label_at_first_sight": None if label_at is None else label_first,
                 "plan_start": None if plan_at is None else list(plan_at[:4]),
-                "last_gap_m": run[-1][1][3],
+                "last_gap_m": run[-1][2][3],
+                "ended": ended,
             }
         )
     return out
 
 
-def lateness(a: dict) -> float | None:
-    """How much nearer the car the plan began than the label [m] (None: the label never did)."""
+def lateness(a: dict, censor: bool = False) -> float | None:
+    """How much nearer the car the plan began than the label [m] (None: the label never did;
+    with ``censor``, also a plan that never began in an approach cut by the end of the car's
+    miles: its lateness is unknown). The declared verdict reads a plan that never began as
+    beginning at the approach's last gap."""
     if a["label_start"] is None:
+        return None
+    if a["plan_start"] is None and censor and a["ended"] == "cut":
         return None
     plan_gap = a["last_gap_m"] if a["plan_start"] is None else a["plan_start"][3]
     return a["label_start"][3] - plan_gap
+
+
+def tail(found: list[dict]) -> dict:
+    """Every approach first seen at :data:`FIRST_SEEN_M` or more, settled or not, those ending in
+    a collision included (added after the declared run, outside its verdict): how many are late
+    by more than :data:`VERY_LATE_M` and by :data:`FAR_LATE_M` or more, by the car's offset from
+    its lane's centre at first sight (:data:`OFFSET_BINS_M`), and the collisions' approaches."""
+    known = [(a, x) for a in found if (x := lateness(a, censor=True)) is not None]
+    by_offset = []
+    for lo, hi in itertools.pairwise(OFFSET_BINS_M):
+        group = [x for a, x in known if lo <= abs(a["first_seen"][1]) < hi]
+        by_offset.append(
+            {
+                "first_offset_m": [lo, hi],
+                "approaches": len(group),
+                "late_over_15_m": sum(x > VERY_LATE_M for x in group),
+                "late_25_m_or_more": sum(x >= FAR_LATE_M for x in group),
+            }
+        )
+    return {
+        "approaches": len(found),
+        "label_changes": len(known),
+        "cut_unknown": sum(a["label_start"] is not None for a in found) - len(known),
+        "label_at_first_sight": sum(bool(a["label_at_first_sight"]) for a, _ in known),
+        "late_over_15_m": sum(x > VERY_LATE_M for _, x in known),
+        "late_25_m_or_more": sum(x >= FAR_LATE_M for _, x in known),
+        "by_first_offset": by_offset,
+        "collisions": [
+            {
+                "lateness_m": x,
+                "label_gap_m": a["label_start"][3],
+                "first_offset_m": a["first_seen"][1],
+            }
+            for a, x in known
+            if a["ended"] == "collision"
+        ],
+    }
 
 
 def main() -> None:
@@ -137,7 +207,9 @@ def main() -> None:
         net = recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0]
         witness = Witness(TrajectoryAgent(net), world_cfg.sim.policy_period_s, every=1)
         evaluate(witness, world_cfg, dagger.val_run(profile, k, miles), desc=f"seed {k}")
-        found = approaches(witness.ordinary, world_cfg)
+        ordinary = {id(m) for m in witness.ordinary}  # (the declared run's moments)
+        declared = [x for x in witness.kept if id(x[2]) in ordinary]
+        found = approaches(declared, world_cfg)
         late = [x for x in (lateness(a) for a in found) if x is not None]
         never = sum(a["label_start"] is not None and a["plan_start"] is None for a in found)
         very = [a for a in found if (lateness(a) or 0.0) > VERY_LATE_M]
@@ -191,6 +263,23 @@ def main() -> None:
                 f"{_m(at['offset_m'])}, heading {_m(at['heading_rad'], ' rad', 3)}, gap "
                 f"{_m(at['gap_m'])}"
             )
+        every = tail(approaches(witness.kept, world_cfg, witness.collisions, settled=False))
+        seed["every_approach"] = every
+        print(
+            f"  every approach (outside the verdict): {every['label_changes']} whose label "
+            f"changes and whose end is known ({every['cut_unknown']} cut), "
+            f"{every['late_over_15_m']} more than {VERY_LATE_M:g} m late, "
+            f"{every['late_25_m_or_more']} {FAR_LATE_M:g} m or more; ending in a collision: "
+            + (", ".join(f"{_m(c['lateness_m'])} late" for c in every["collisions"]) or "none")
+        )
+    print("every approach, all seeds (outside the verdict), by the offset at first sight:")
+    for n, (lo, hi) in enumerate(itertools.pairwise(OFFSET_BINS_M)):
+        rows = [s["every_approach"]["by_first_offset"][n] for s in out["seeds"].values()]
+        total = {key: sum(r[key] for r in rows) for key in rows[0] if key != "first_offset_m"}
+        print(
+            f"  {lo:g}-{hi:g} m: {total['approaches']} approaches, {total['late_over_15_m']} more "
+            f"than {VERY_LATE_M:g} m late, {total['late_25_m_or_more']} {FAR_LATE_M:g} m or more"
+        )
     found = [s["median_lateness_m"] for s in out["seeds"].values()]
     if None in found:
         verdict = "no verdict: a seed has no approach whose label changes lanes"

@@ -331,11 +331,13 @@ def test_the_anatomy_reads_a_head_a_kind_a_plan_and_ordinary_driving_as_a_review
         assert anatomy.contact(c.moments[-1], WORLD) == ("car", 3)
     # ordinary moments: kept at each car's phase, none from a collision's last seconds
     inside = {(m.world.track.track_id, tuple(m.state)) for m in moments}
-    kept = [m for *_, m in witness._ordinary]
-    assert any((m.world.track.track_id, tuple(m.state)) in inside for m in kept)  # (the raw list)
+    kept = [m for *_, m in witness.kept]
+    assert any((m.world.track.track_id, tuple(m.state)) in inside for m in kept)  # (all kept)
     assert witness.ordinary and not any(
         (m.world.track.track_id, tuple(m.state)) in inside for m in witness.ordinary
     )
+    steps = [(step, car) for step, car, _ in witness.kept]  # in the order of the drive
+    assert steps == sorted(steps) and len(kept) > len(witness.ordinary)
 
 
 def along_lane(m, offset_m: float) -> np.ndarray:

@@ -196,8 +196,15 @@ class Witness:
         def before_a_collision(step: int, car: int) -> bool:
             return any(end - self.history <= step < end for end in ends.get(car, ()))
 
-        kept = sorted(self._ordinary, key=lambda x: x[:2])
-        return [m for step, car, m in kept if not before_a_collision(step, car)]
+        return [m for step, car, m in self.kept if not before_a_collision(step, car)]
+
+    @property
+    def kept(self) -> list[tuple[int, int, Moment]]:
+        """Every moment kept as an ordinary one, those of a car's last seconds before a collision
+        included (:attr:`ordinary` leaves them out), in the order of the drive: ``[(the car's
+        decision, the car, moment), ...]`` (a car's decisions counted from 0; a collision's
+        :attr:`~Collision.step` is its last decision's plus one)."""
+        return sorted(self._ordinary, key=lambda x: x[:2])
 
     @ordinary.setter
     def ordinary(self, moments: list[Moment]) -> None:
