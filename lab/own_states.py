@@ -38,9 +38,22 @@ many are more than 15 m and 25 m or more late, by the car's offset from its lane
 first sight, and the lateness of each approach that ends in a collision. A label that changes
 at the first decision seen makes the lateness a lower bound (counted).
 
-    python lab/own_states.py [--quick]
+A second, declared test of the association the first run found after its verdict (late starts
+with the car off its lane's centre), on fresh validation roads (``--fresh``: those of training
+seeds 4-7, which chapter 12 does not drive; the same four networks), over every approach first
+seen at 75 m or more with its lateness known: the approaches first seen 0.2 m or more off the
+lane's centre against those within 0.2 m, by the share begun 25 m or more after the label.
+Declared before that run:
 
-Writes docs/results/lab/own_states.json (full profile).
+* shown: pooled over the seeds, the off-centre share is larger (Fisher's exact test, one-sided,
+  p < 0.05, approaches as units) and larger on at least three of the four seeds;
+* not shown: the pooled off-centre share is no larger;
+* unsettled otherwise.
+
+    python lab/own_states.py [--quick] [--fresh]
+
+Writes docs/results/lab/own_states.json, or with ``--fresh`` own_states_fresh.json (full
+profile).
 """
 
 from __future__ import annotations
@@ -51,6 +64,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import fisher_exact
 
 from e2e_lite import artifacts
 from e2e_lite.config import FULL, QUICK
@@ -196,7 +210,9 @@ def tail(found: list[dict]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true")
-    profile = QUICK if ap.parse_args().quick else FULL
+    ap.add_argument("--fresh", action="store_true", help="other validation roads: the second test")
+    args = ap.parse_args()
+    profile, fresh = (QUICK if args.quick else FULL), args.fresh
     miles = 2.0 if profile.quick else 40.0  # validation miles per seed
     train = load_or_collect(DataConfig.for_profile(profile, "train"))
     val = load_or_collect(DataConfig.for_profile(profile, "val"))
@@ -206,7 +222,8 @@ def main() -> None:
     for k in range(profile.ablation_seeds):
         net = recipes.gmm_affordance_cvar(profile, train, val, weight, k)[0]
         witness = Witness(TrajectoryAgent(net), world_cfg.sim.policy_period_s, every=1)
-        evaluate(witness, world_cfg, dagger.val_run(profile, k, miles), desc=f"seed {k}")
+        roads = dagger.val_run(profile, k + profile.ablation_seeds * fresh, miles)
+        evaluate(witness, world_cfg, roads, desc=f"seed {k}")
         ordinary = {id(m) for m in witness.ordinary}  # (the declared run's moments)
         declared = [x for x in witness.kept if id(x[2]) in ordinary]
         found = approaches(declared, world_cfg)
@@ -293,11 +310,54 @@ def main() -> None:
         verdict = "mixed: the seeds' medians fall on both sides or between the thresholds"
     out["verdict"] = verdict
     print(f"verdict (declared): {verdict}")
+    if fresh:
+        out["off_centre_test"] = off_centre_test(out["seeds"])
+        print(f"the off-centre test (declared for --fresh): {out['off_centre_test']['verdict']}")
     out["commit"] = artifacts.code_commit(Path(__file__).parent)
     if not profile.quick:
-        path = Path(__file__).resolve().parents[1] / "docs/results/lab/own_states.json"
+        name = "own_states_fresh.json" if fresh else "own_states.json"
+        path = Path(__file__).resolve().parents[1] / "docs/results/lab" / name
         path.write_text(json.dumps(out, indent=1) + "\n")
         print(f"wrote {path}")
+
+
+def off_centre_test(seeds: dict) -> dict:
+    """The declared test of ``--fresh``: approaches first seen 0.2 m or more off the lane's
+    centre against those within 0.2 m, by the share begun 25 m or more late."""
+
+    def counts(seed: dict) -> tuple[int, int, int, int]:
+        bins = seed["every_approach"]["by_first_offset"]
+        late_off = sum(b["late_25_m_or_more"] for b in bins[1:])
+        n_off = sum(b["approaches"] for b in bins[1:])
+        return late_off, n_off, bins[0]["late_25_m_or_more"], bins[0]["approaches"]
+
+    per_seed = [counts(s) for s in seeds.values()]
+    late_off, n_off, late_in, n_in = (sum(c[i] for c in per_seed) for i in range(4))
+    table = [[late_off, n_off - late_off], [late_in, n_in - late_in]]
+    p = float(fisher_exact(table, alternative="greater").pvalue) if n_off and n_in else None
+    larger = sum(a / b > c / d for a, b, c, d in per_seed if b and d)
+    share_off = late_off / n_off if n_off else None
+    share_in = late_in / n_in if n_in else None
+    if p is None:
+        verdict = "no verdict: a group has no approach"
+    elif p < 0.05 and larger >= 3:
+        verdict = (
+            f"shown: off centre {late_off} of {n_off}, centred {late_in} of {n_in} (p {p:.2g})"
+        )
+    elif share_off <= share_in:
+        verdict = f"not shown: off centre {late_off} of {n_off}, centred {late_in} of {n_in}"
+    else:
+        verdict = (
+            f"unsettled: off centre {late_off} of {n_off}, centred {late_in} of {n_in} (p {p:.2g},"
+            f" larger on {larger} of {len(per_seed)} seeds)"
+        )
+    return {
+        "off_centre": [late_off, n_off],
+        "centred": [late_in, n_in],
+        "p_one_sided": p,
+        "seeds_larger": larger,
+        "verdict": verdict,
+    }
 
 
 def _m(x: float | None, unit: str = " m", digits: int = 1) -> str:
