@@ -439,12 +439,12 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # 4. DART's noise: scale it (`DaggerConfig.for_profile(profile, dart_scale=2.0)`). Does the
 #    control's kept-sample shift (section 3's median lines) move towards DAgger's or away from
 #    it, and does the control drive better?
-# 5. The old recipe (commit 785b4d7: two rounds of 8,000 samples, the wiped expert's labels, the
-#    last round kept): run its chapter 12 and read its lab notes ("Who labels DAgger's states",
-#    "DAgger's states or its labeller") beside section 2's oracle lines.
+# 5. The old recipe (785b4d7: two rounds of 8,000 samples, the wiped expert's labels, the last round
+#    kept): run its chapter 12 beside section 2's oracle lines and the lab note "Who labels DAgger's
+#    states".
 # 6. Off the lane centre: with two labellers DAgger's kept iterates drifted more than the other
-#    arms' (lab note "DAgger's iterates off the lane centre"; why is open); section 3's lines say
-#    if yours still do. Drive one seed's kept DAgger iterate (`it = iterates["dagger"][k]`, its
-#    network `it.networks[it.kept][1]`) inside an `anatomy.Witness(..., every=10)` and, at its
-#    moments more than 1 m from every lane centre, compare its plan with the expert's label. Is
-#    it a lane change the labeller reads as under way, one the network never finishes?
+#    arms' (lab note "DAgger's iterates off the lane centre"); section 3 says if yours do. Drive a
+#    kept iterate (`it.networks[it.kept][1]`, `it = iterates["dagger"][k]`) in an `anatomy.Witness(
+#    ..., every=10)`; where it is 1 m off every lane centre, is its plan a change left unfinished?
+# 7. Late starts: `lab/own_states.py` labels every state the start networks drive into. Are the
+#    late ones (lab note "The late starts come off the lane's centre") the shift DAgger aims at?
