@@ -76,7 +76,8 @@ def main() -> None:
                 f"{lo:g}-{hi:g} m {100 * c / max(n, 1):.0f} %"
                 for (lo, hi), c in zip(itertools.pairwise(OFFSET_BINS_M), counts)
             )
-            print(f"{name}: {n} first sights; {shares}")
+            what = "approaches" if name.startswith("driven") else "frames"
+            print(f"{name}: {n} {what} at a first sight's gap; {shares}")
     out["commit"] = artifacts.code_commit(Path(__file__).parent)
     if not profile.quick:
         (LAB / "offset_at_sight.json").write_text(json.dumps(out, indent=1) + "\n")
