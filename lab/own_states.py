@@ -29,8 +29,9 @@ Declared before the run (the verdict the script prints), over the approaches of 
 Beside it: the share of approaches more than 15 m late, and for those against the rest, the
 car's lane, offset from its lane's centre and heading to the road at the label's start (medians);
 and (added after the run, not part of the verdict) where the plans began: the 5th percentile and
-median of the plan's start gap, and how many began nearer than the expert's nearest trigger gap
-(45 m, ``ExpertConfig.trigger_m``). Also added after a review, outside the verdict: the same
+median of the plan's start gap, how many began nearer than the expert's nearest trigger gap
+(45 m, ``ExpertConfig.trigger_m``), the lateness's quartiles, and how many began within 5 m of
+their label and 5-15 m after it. Also added after a review, outside the verdict: the same
 measure over every approach first seen at 75 m or more, settled or not, those ending in a
 collision included (the declared filter leaves out exactly the late approaches that collide),
 approaches cut by the end of a car's miles before their plan began counted as unknown, how
@@ -256,6 +257,9 @@ def main() -> None:
             "label_never_changes": len(found) - len(late),
             "plan_never_changes": never,
             "median_lateness_m": float(np.median(late)) if late else None,
+            "lateness_quartiles_m": np.percentile(late, [25, 75]).tolist() if late else None,
+            "within_5_m": sum(abs(x) <= ON_TIME_M for x in late),
+            "later_5_to_15_m": sum(ON_TIME_M < x <= VERY_LATE_M for x in late),
             "very_late_share": len(very) / len(late) if late else None,
             "at_the_label_start": {"very late": medians(very), "the rest": medians(rest)},
             "collisions": len(witness.collisions),
@@ -268,6 +272,13 @@ def main() -> None:
             f"{_m(seed['median_lateness_m'])}, more than {VERY_LATE_M:g} m late "
             f"{_pct(seed['very_late_share'])}"
         )
+        if late:
+            q1, q3 = seed["lateness_quartiles_m"]
+            print(
+                f"  lateness quartiles {q1:.1f} and {q3:.1f} m; within {ON_TIME_M:g} m "
+                f"{seed['within_5_m']} of {len(late)}, {ON_TIME_M:g}-{VERY_LATE_M:g} m late "
+                f"{seed['later_5_to_15_m']}"
+            )
         began_at = seed["plan_start_gap_m"]
         print(
             f"  the plans began at {_m(began_at['median'])} (median; 5th percentile "
