@@ -163,8 +163,6 @@ print(f"saved {png_anatomy}")
 
 # %%
 check = dagger.val_roads(1.0 if profile.quick else 20.0, 32)
-
-
 drives = {
     "the expert": Expert(sim=world_cfg.sim),
     "the oracle on the expert's labels": Oracle(Expert(sim=world_cfg.sim)),
@@ -224,17 +222,15 @@ print(
 )
 
 # %% [markdown]
-# The old recipe's rounds drove a third of this recipe's miles and seldom met a collision (lab note
-# "How many collisions a DAgger round meets"): the lines above say how many of this recipe's kept
-# samples come from the seconds before a collision. The shift is the share of a round's kept samples
-# outside the range of the middle of chapter 04's data in at least one feature. Samples drawn like
-# the data fall outside it too, by chance, so the control's (the expert's own states with DART's
-# noise, gated alike) is the baseline DAgger's is read by; the line after the medians says it in
-# words. Why the states moved as they did, this run does not show. Each iterate then drives
-# `val_miles` of validation roads. The kept iterate reads both outcomes (`dagger.kept_iterate`):
-# among the iterates whose off-centre episodes (the car over a metre from every lane centre for
-# longer than a lane change takes) are no more than the start's could be by chance, the one with the
-# fewest collisions; among ties the latest. A kept iterate 0 is the start.
+# The lines above say how many kept samples come from the seconds before a collision (the old
+# recipe's rounds seldom met one: lab note "How many collisions a DAgger round meets"). The shift is
+# the share of a round's kept samples outside the middle of chapter 04's data in at least one
+# feature; samples drawn like the data fall outside it too, by chance, so the control's is the
+# baseline DAgger's is read by, and the line after the medians says it in words (why the states
+# moved, this run does not show). Each iterate then drives `val_miles` of validation roads, and the
+# kept iterate reads both outcomes (`dagger.kept_iterate`): among the iterates whose off-centre
+# episodes (over a metre from every lane centre for longer than a lane change takes) are no more
+# than the start's could be by chance, the fewest collisions; among ties the latest (0: the start).
 
 # %%
 iterates = {
@@ -439,12 +435,15 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 # 4. DART's noise: scale it (`DaggerConfig.for_profile(profile, dart_scale=2.0)`). Does the
 #    control's kept-sample shift (section 3's median lines) move towards DAgger's or away from
 #    it, and does the control drive better?
-# 5. The old recipe (785b4d7: two rounds of 8,000 samples, the wiped expert's labels, the last round
-#    kept): run its chapter 12 beside section 2's oracle lines and the lab note "Who labels DAgger's
-#    states".
-# 6. Off the lane centre: with two labellers DAgger's kept iterates drifted more than the other
-#    arms' (lab note "DAgger's iterates off the lane centre"); section 3 says if yours do. Drive a
-#    kept iterate (`it.networks[it.kept][1]`, `it = iterates["dagger"][k]`) in an `anatomy.Witness(
-#    ..., every=10)`; where it is 1 m off every lane centre, is its plan a change left unfinished?
-# 7. Late starts: `lab/own_states.py` labels every state the start networks drive into. Are the
-#    late ones (lab note "The late starts come off the lane's centre") the shift DAgger aims at?
+# 5. The old recipe (`git checkout 785b4d7`: the wiped expert's labels, two rounds, the last kept):
+#    run its chapter 12 beside the lab notes "Who labels DAgger's states" and "Does the labeller
+#    drive?". Does a labeller whose labels do not drive make DAgger better?
+# 6. Off the lane centre: with two labellers DAgger's kept iterates drifted (lab note "DAgger's
+#    iterates off the lane centre"; why is open); section 3 says if yours do. Drive seed k's kept
+#    iterate (`it = iterates["dagger"][k]`, `it.networks[it.kept][1]`) in an `anatomy.Witness(...,
+#    every=10)`; where it is more than 1 m from every lane centre, compare its plan with the
+#    expert's label (`anatomy.expert_label`): a change the label reads as under way, never finished?
+# 7. Late starts: `python lab/own_states.py` (about 5 min; it rewrites its JSON in
+#    `docs/results/lab/`, so `git diff` compares yours with the course's) labels every state the
+#    start networks drive into. Which approaches begin 25 m or more after their label? Does
+#    `python lab/offset_at_sight.py` find such states missing from chapter 04's data?
