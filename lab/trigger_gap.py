@@ -59,16 +59,19 @@ BINS_M = (20.0, 30.0, 40.0, 45.0, 50.0, 55.0, 60.0, 65.0, 70.0, 75.0, 80.0)  # t
 VERDICT_BIN_M = (50.0, 60.0)  # the declared verdict's gaps [m]
 
 
-def choice_frames(data: DrivingData, world_cfg: WorldConfig, split: str) -> dict[str, np.ndarray]:
+def choice_frames(
+    data: DrivingData, world_cfg: WorldConfig, split: str, candidates: np.ndarray | None = None
+) -> dict[str, np.ndarray]:
     """The choice frames of ``data`` (rows, their true gap [m], whether the expert starts), a
     function of each frame's car-frame points (their offsets from the lane's centre [m]) and the
-    frames' worlds by track."""
+    frames' worlds by track. ``candidates``: other rows to read so (default: the choice frames
+    the docstring of this lab defines)."""
     a = data.arrays
     aff = a["affordances"]
     offset = aff[:, AFFORDANCE_INDEX["center_offset_m"]]
     state, start = a["expert_state"], situations(a)["overtake_start"]
     keep = np.isin(state, [KEEP, FOLLOW]) & (np.abs(offset) < CHANGE_START_M)
-    rows = np.flatnonzero(start | keep)
+    rows = np.flatnonzero(start | keep) if candidates is None else np.asarray(candidates)
     worlds: dict[int, World] = {}
     gap = np.full(len(rows), np.inf)
     approach = np.zeros((len(rows), 2), np.int64)  # (track, the parked car ahead): one approach
