@@ -318,3 +318,32 @@ def test_the_readme_layout_names_every_library_file_in_its_folder() -> None:
         if p.name != "__init__.py" and "__pycache__" not in p.parts
     }
     assert listed == present, (sorted(listed - present), sorted(present - listed))
+
+
+def test_every_lab_script_imports_what_exists() -> None:
+    """A lab script whose helper left the tree leaves with it (each runs at its note's commit):
+    every module a script of lab/ imports at its top level is installed, or is a script beside
+    it. The check can fail: a script importing a removed sibling is found (tried on one)."""
+    import ast
+    import importlib.util
+    from pathlib import Path
+
+    lab = Path(__file__).resolve().parents[1] / "lab"
+
+    def missing(source: str) -> list[str]:
+        names = []
+        for node in ast.parse(source).body:
+            if isinstance(node, ast.Import):
+                names += [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.append(node.module)
+        tops = {n.split(".")[0] for n in names}
+        return sorted(
+            t
+            for t in tops
+            if not (lab / f"{t}.py").exists() and importlib.util.find_spec(t) is None
+        )
+
+    assert missing("from labellers import Lateral\nimport numpy\n") == ["labellers"]
+    found = {p.name: missing(p.read_text()) for p in sorted(lab.glob("*.py"))}
+    assert found and not any(found.values()), {k: v for k, v in found.items() if v}
