@@ -62,6 +62,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -86,6 +87,7 @@ LATE_M, ON_TIME_M, VERY_LATE_M = 10.0, 5.0, 15.0  # the verdict's and the descri
 NEAR_M = 45.0  # a plan that begins nearer than the expert's nearest trigger gap [m]
 FAR_LATE_M = 25.0  # as late as the deciding collisions' plans [m]
 OFFSET_BINS_M = (0.0, 0.2, 0.5, 2.0)  # the car's offset from its lane's centre at first sight [m]
+SINCE_BINS_S = (0.0, 5.0, 10.0, math.inf)  # the time from the car's last lane change [s]
 
 
 def where(m: Moment, front_m: float) -> tuple[int, float, float, float, int]:
@@ -119,13 +121,25 @@ def approaches(
     decided = {(car, step) for step, car, _ in kept}
     collided = {(c.car, c.step) for c in collisions}
     runs: dict[tuple, list[tuple[int, Moment, tuple]]] = {}
+    lane_of: dict[int, tuple] = {}  # car -> (its track, its lane, the decision it changed lane)
+    changed: dict[tuple, int | None] = {}  # approach -> the car's last lane change before it
     for step, car, m in kept:
         at = where(m, front)
+        track = m.world.track.track_id
+        was = lane_of.get(car)
+        if was is None or was[0] != track:
+            lane_of[car] = (track, at[0], None)  # (a new road: no lane change on it yet)
+        elif was[1] != at[0]:
+            lane_of[car] = (track, at[0], step)
         if at[4] >= 0 and at[3] < RANGE_M:
-            runs.setdefault((car, m.world.track.track_id, at[0], at[4]), []).append((step, m, at))
+            key = (car, track, at[0], at[4])
+            changed.setdefault(key, lane_of[car][2])
+            runs.setdefault(key, []).append((step, m, at))
     out = []
-    for (car, track, _, parked), run in runs.items():
+    period = world_cfg.sim.policy_period_s
+    for (car, track, lane, parked), run in runs.items():
         first, last = run[0][2], run[-1][0]
+        since = changed[(car, track, lane, parked)]
         if first[3] < FIRST_SEEN_M or (settled and abs(first[1]) > SETTLED_M):
             continue
         label_at = plan_at = None
@@ -153,6 +167,7 @@ def approaches(
                 "plan_start": None if plan_at is None else list(plan_at[:4]),
                 "last_gap_m": run[-1][2][3],
                 "ended": ended,
+                "since_lane_change_s": None if since is None else (run[0][0] - since) * period,
             }
         )
     return out
@@ -188,9 +203,26 @@ def tail(found: list[dict]) -> dict:
                 "late_25_m_or_more": sum(x >= FAR_LATE_M for x in group),
             }
         )
+    by_change = []
+    for lo, hi in itertools.pairwise(SINCE_BINS_S):
+        group = [
+            x
+            for a, x in known
+            if lo
+            <= (math.inf if a["since_lane_change_s"] is None else a["since_lane_change_s"])
+            < hi
+        ]
+        by_change.append(
+            {
+                "since_lane_change_s": [lo, hi],
+                "approaches": len(group),
+                "late_25_m_or_more": sum(x >= FAR_LATE_M for x in group),
+            }
+        )
     return {
         "approaches": len(found),
         "label_changes": len(known),
+        "by_since_lane_change": by_change,
         "cut_unknown": sum(a["label_start"] is not None for a in found) - len(known),
         "label_at_first_sight": sum(bool(a["label_at_first_sight"]) for a, _ in known),
         "late_over_15_m": sum(x > VERY_LATE_M for _, x in known),
@@ -299,6 +331,14 @@ def main() -> None:
             f"{every['late_over_15_m']} more than {VERY_LATE_M:g} m late, "
             f"{every['late_25_m_or_more']} {FAR_LATE_M:g} m or more; ending in a collision: "
             + (", ".join(f"{_m(c['lateness_m'])} late" for c in every["collisions"]) or "none")
+        )
+    print("every approach, all seeds (outside the verdict), by the last lane change before it:")
+    for n, (lo, hi) in enumerate(itertools.pairwise(SINCE_BINS_S)):
+        rows = [s["every_approach"]["by_since_lane_change"][n] for s in out["seeds"].values()]
+        print(
+            f"  {lo:g}-{hi:g} s before the first sight (inf: none on this road): "
+            f"{sum(r['approaches'] for r in rows)} approaches, "
+            f"{sum(r['late_25_m_or_more'] for r in rows)} {FAR_LATE_M:g} m or more late"
         )
     print("every approach, all seeds (outside the verdict), by the offset at first sight:")
     for n, (lo, hi) in enumerate(itertools.pairwise(OFFSET_BINS_M)):
