@@ -87,7 +87,8 @@ LATE_M, ON_TIME_M, VERY_LATE_M = 10.0, 5.0, 15.0  # the verdict's and the descri
 NEAR_M = 45.0  # a plan that begins nearer than the expert's nearest trigger gap [m]
 FAR_LATE_M = 25.0  # as late as the deciding collisions' plans [m]
 OFFSET_BINS_M = (0.0, 0.2, 0.5, 2.0)  # the car's offset from its lane's centre at first sight [m]
-SINCE_BINS_S = (0.0, 5.0, 10.0, math.inf)  # the time from the car's last lane change [s]
+#: the time from the car's last lane change to the first sight [s] ((None, None): none on the road)
+CHANGE_BINS = ((0.0, 5.0), (5.0, 10.0), (10.0, math.inf), (None, None))
 
 
 def where(m: Moment, front_m: float) -> tuple[int, float, float, float, int]:
@@ -204,14 +205,8 @@ def tail(found: list[dict]) -> dict:
             }
         )
     by_change = []
-    for lo, hi in itertools.pairwise(SINCE_BINS_S):
-        group = [
-            x
-            for a, x in known
-            if lo
-            <= (math.inf if a["since_lane_change_s"] is None else a["since_lane_change_s"])
-            < hi
-        ]
+    for lo, hi in CHANGE_BINS:
+        group = [x for a, x in known if _since_in(a["since_lane_change_s"], lo, hi)]
         by_change.append(
             {
                 "since_lane_change_s": [lo, hi],
@@ -333,10 +328,11 @@ def main() -> None:
             + (", ".join(f"{_m(c['lateness_m'])} late" for c in every["collisions"]) or "none")
         )
     print("every approach, all seeds (outside the verdict), by the last lane change before it:")
-    for n, (lo, hi) in enumerate(itertools.pairwise(SINCE_BINS_S)):
+    for n, (lo, hi) in enumerate(CHANGE_BINS):
         rows = [s["every_approach"]["by_since_lane_change"][n] for s in out["seeds"].values()]
+        when = "none on this road" if lo is None else f"{lo:g}-{hi:g} s"
         print(
-            f"  {lo:g}-{hi:g} s before the first sight (inf: none on this road): "
+            f"  {when} before the first sight: "
             f"{sum(r['approaches'] for r in rows)} approaches, "
             f"{sum(r['late_25_m_or_more'] for r in rows)} {FAR_LATE_M:g} m or more late"
         )
@@ -409,6 +405,14 @@ def off_centre_test(seeds: dict) -> dict:
         "seeds_larger": larger,
         "verdict": verdict,
     }
+
+
+def _since_in(since: float | None, lo: float | None, hi: float | None) -> bool:
+    """Whether a time since the last lane change [s] (None: none) lies in the bin ``[lo, hi)``
+    (``lo`` None: the bin of no lane change)."""
+    if lo is None or since is None:
+        return lo is None and since is None
+    return lo <= since < hi
 
 
 def _m(x: float | None, unit: str = " m", digits: int = 1) -> str:
