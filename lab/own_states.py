@@ -51,6 +51,13 @@ Declared before that run:
 * not shown: the pooled off-centre share is no larger;
 * unsettled otherwise.
 
+A third, declared after the first run found it too and before its own run on the fresh roads
+(at 5ab00bb's run of the first roads: 7 of 189 approaches first seen within 5 s of the car's last
+lane change began 25 m or more late, against 7 of 486 seen later or with no change before them
+on their road): approaches first seen within 5 s of the car's last lane change against the
+rest, by the same share, the same test and rule (``--fresh``; its power is low: at those rates
+about half of such records would show it).
+
     python lab/own_states.py [--quick] [--fresh]
 
 Writes docs/results/lab/own_states.json, or with ``--fresh`` own_states_fresh.json (full
@@ -360,6 +367,8 @@ def main() -> None:
     if fresh:
         out["off_centre_test"] = off_centre_test(out["seeds"])
         print(f"the off-centre test (declared for --fresh): {out['off_centre_test']['verdict']}")
+        out["lane_change_test"] = lane_change_test(out["seeds"])
+        print(f"the lane-change test (declared for --fresh): {out['lane_change_test']['verdict']}")
     out["commit"] = artifacts.code_commit(Path(__file__).parent)
     if not profile.quick:
         name = "own_states_fresh.json" if fresh else "own_states.json"
@@ -368,39 +377,61 @@ def main() -> None:
         print(f"wrote {path}")
 
 
+def lane_change_test(seeds: dict) -> dict:
+    """The third declared test of ``--fresh``: approaches first seen within 5 s of the car's
+    last lane change against the rest, by the share begun 25 m or more late."""
+    per_seed = []
+    for seed in seeds.values():
+        bins = seed["every_approach"]["by_since_lane_change"]  # (CHANGE_BINS' order)
+        per_seed.append(
+            (
+                bins[0]["late_25_m_or_more"],
+                bins[0]["approaches"],
+                sum(b["late_25_m_or_more"] for b in bins[1:]),
+                sum(b["approaches"] for b in bins[1:]),
+            )
+        )
+    return _fisher_verdict(per_seed, ("within 5 s", "later or none"))
+
+
 def off_centre_test(seeds: dict) -> dict:
     """The declared test of ``--fresh``: approaches first seen 0.2 m or more off the lane's
     centre against those within 0.2 m, by the share begun 25 m or more late."""
-
-    def counts(seed: dict) -> tuple[int, int, int, int]:
+    per_seed = []
+    for seed in seeds.values():
         bins = seed["every_approach"]["by_first_offset"]
-        late_off = sum(b["late_25_m_or_more"] for b in bins[1:])
-        n_off = sum(b["approaches"] for b in bins[1:])
-        return late_off, n_off, bins[0]["late_25_m_or_more"], bins[0]["approaches"]
+        per_seed.append(
+            (
+                sum(b["late_25_m_or_more"] for b in bins[1:]),
+                sum(b["approaches"] for b in bins[1:]),
+                bins[0]["late_25_m_or_more"],
+                bins[0]["approaches"],
+            )
+        )
+    return _fisher_verdict(per_seed, ("off centre", "centred"))
 
-    per_seed = [counts(s) for s in seeds.values()]
-    late_off, n_off, late_in, n_in = (sum(c[i] for c in per_seed) for i in range(4))
-    table = [[late_off, n_off - late_off], [late_in, n_in - late_in]]
-    p = float(fisher_exact(table, alternative="greater").pvalue) if n_off and n_in else None
+
+def _fisher_verdict(per_seed: list[tuple[int, int, int, int]], names: tuple[str, str]) -> dict:
+    """A declared test of ``--fresh``: per seed ``(late, approaches)`` of the group ``names[0]``
+    and of ``names[1]``; shown where, pooled, the first's share of late approaches is larger
+    (Fisher's exact test, one-sided, p < 0.05) and larger on at least three seeds; not shown
+    where it is no larger; else unsettled."""
+    late_a, n_a, late_b, n_b = (sum(c[i] for c in per_seed) for i in range(4))
+    table = [[late_a, n_a - late_a], [late_b, n_b - late_b]]
+    p = float(fisher_exact(table, alternative="greater").pvalue) if n_a and n_b else None
     larger = sum(a / b > c / d for a, b, c, d in per_seed if b and d)
-    share_off = late_off / n_off if n_off else None
-    share_in = late_in / n_in if n_in else None
+    counted = f"{names[0]} {late_a} of {n_a}, {names[1]} {late_b} of {n_b}"
     if p is None:
         verdict = "no verdict: a group has no approach"
     elif p < 0.05 and larger >= 3:
-        verdict = (
-            f"shown: off centre {late_off} of {n_off}, centred {late_in} of {n_in} (p {p:.2g})"
-        )
-    elif share_off <= share_in:
-        verdict = f"not shown: off centre {late_off} of {n_off}, centred {late_in} of {n_in}"
+        verdict = f"shown: {counted} (p {p:.2g})"
+    elif late_a / n_a <= late_b / n_b:
+        verdict = f"not shown: {counted}"
     else:
-        verdict = (
-            f"unsettled: off centre {late_off} of {n_off}, centred {late_in} of {n_in} (p {p:.2g},"
-            f" larger on {larger} of {len(per_seed)} seeds)"
-        )
+        verdict = f"unsettled: {counted} (p {p:.2g}, larger on {larger} of {len(per_seed)} seeds)"
     return {
-        "off_centre": [late_off, n_off],
-        "centred": [late_in, n_in],
+        names[0].replace(" ", "_"): [late_a, n_a],
+        names[1].replace(" ", "_"): [late_b, n_b],
         "p_one_sided": p,
         "seeds_larger": larger,
         "verdict": verdict,
