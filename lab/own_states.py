@@ -154,8 +154,8 @@ def approaches(
         for k, (_, m, at) in enumerate(run):
             if label_at is None:
                 end = anatomy.expert_label(m, world_cfg, expert)[-1]
-                if abs(m.lane_offset(end)[0]) > CHANGING_M:
-                    label_at, label_first = at, k == 0
+                if abs(off := m.lane_offset(end)[0]) > CHANGING_M:
+                    label_at, label_first, label_side = at, k == 0, 1 if off > 0 else -1
             if plan_at is None and m.plan_changing:
                 plan_at = at
             if label_at is not None and plan_at is not None:
@@ -172,6 +172,7 @@ def approaches(
                 "first_seen": list(first[:4]),
                 "label_start": None if label_at is None else list(label_at[:4]),
                 "label_at_first_sight": None if label_at is None else label_first,
+                "label_side": None if label_at is None else label_side,
                 "plan_start": None if plan_at is None else list(plan_at[:4]),
                 "last_gap_m": run[-1][2][3],
                 "ended": ended,
@@ -230,6 +231,13 @@ def tail(found: list[dict]) -> dict:
         "late_over_15_m": sum(x > VERY_LATE_M for _, x in known),
         "late_25_m_or_more": sum(x >= FAR_LATE_M for _, x in known),
         "by_first_offset": by_offset,
+        "off_centre_by_side": {
+            side: {
+                "approaches": len(group := [x for a, x in known if _off_side(a) == side]),
+                "late_25_m_or_more": sum(x >= FAR_LATE_M for x in group),
+            }
+            for side in ("towards the change", "away from it")
+        },
         "collisions": [
             {
                 "lateness_m": x,
@@ -343,6 +351,13 @@ def main() -> None:
             f"{sum(r['approaches'] for r in rows)} approaches, "
             f"{sum(r['late_25_m_or_more'] for r in rows)} {FAR_LATE_M:g} m or more late"
         )
+    print("every approach first seen off centre, all seeds (outside the verdict), by its side:")
+    for side in ("towards the change", "away from it"):
+        rows = [s["every_approach"]["off_centre_by_side"][side] for s in out["seeds"].values()]
+        print(
+            f"  {side}: {sum(r['approaches'] for r in rows)} approaches, "
+            f"{sum(r['late_25_m_or_more'] for r in rows)} {FAR_LATE_M:g} m or more late"
+        )
     print("every approach, all seeds (outside the verdict), by the offset at first sight:")
     for n, (lo, hi) in enumerate(itertools.pairwise(OFFSET_BINS_M)):
         rows = [s["every_approach"]["by_first_offset"][n] for s in out["seeds"].values()]
@@ -436,6 +451,16 @@ def _fisher_verdict(per_seed: list[tuple[int, int, int, int]], names: tuple[str,
         "seeds_larger": larger,
         "verdict": verdict,
     }
+
+
+def _off_side(a: dict) -> str | None:
+    """For an approach first seen :data:`OFFSET_BINS_M`'s 0.2 m or more off its lane's centre:
+    was the car off towards the side its label changes to, or away from it (None: centred, or
+    a label that never changed)."""
+    offset = a["first_seen"][1]
+    if a["label_side"] is None or abs(offset) < OFFSET_BINS_M[1]:
+        return None
+    return "towards the change" if offset * a["label_side"] > 0 else "away from it"
 
 
 def _since_in(since: float | None, lo: float | None, hi: float | None) -> bool:
