@@ -443,7 +443,7 @@ artifacts.write_metrics("12_dagger", metrics, figures=(png_anatomy, png_rounds))
 #    iterate (`it = iterates["dagger"][k]`, `it.networks[it.kept][1]`) in an `anatomy.Witness(...,
 #    every=10)`; where it is more than 1 m from every lane centre, compare its plan with the
 #    expert's label (`anatomy.expert_label`): a change the label reads as under way, never finished?
-# 7. Late starts: `python lab/own_states.py` (about 5 min; it rewrites its JSON in
-#    `docs/results/lab/`, so `git diff` compares yours with the course's) labels every state the
-#    start networks drive into. Which approaches begin 25 m or more after their label? Does
-#    `python lab/offset_at_sight.py` find such states missing from chapter 04's data?
+# 7. Late starts: `python lab/own_states.py` (about 5 min on this chapter's stored networks; it
+#    rewrites its JSON in `docs/results/lab/`: `git diff` compares yours with the course's) labels
+#    every state the start networks drive into. Which approaches begin 25 m or more after their
+#    label? Does `python lab/offset_at_sight.py` find such states missing from chapter 04's data?
