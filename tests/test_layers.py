@@ -322,8 +322,9 @@ def test_the_readme_layout_names_every_library_file_in_its_folder() -> None:
 
 def test_every_lab_script_imports_what_exists() -> None:
     """A lab script whose helper left the tree leaves with it (each runs at its note's commit):
-    every module a script of lab/ imports at its top level is installed, or is a script beside
-    it. The check can fail: a script importing a removed sibling is found (tried on one)."""
+    the top-level name of every module a script of lab/ imports at its top level is installed, or
+    is a script beside it (a removed name inside a package, or an import inside a function, is
+    not checked). The check can fail: a script importing a removed sibling is found."""
     import ast
     import importlib.util
     from pathlib import Path

@@ -203,7 +203,8 @@ class Witness:
         """Every moment kept as an ordinary one, those of a car's last seconds before a collision
         included (:attr:`ordinary` leaves them out), in the order of the drive: ``[(the car's
         decision, the car, moment), ...]`` (a car's decisions counted from 0; a collision's
-        :attr:`~Collision.step` is its last decision's plus one)."""
+        :attr:`~Collision.step` is its last decision's plus one; moments set through
+        :attr:`ordinary`'s setter read ``(their index, -1, moment)``)."""
         return sorted(self._ordinary, key=lambda x: x[:2])
 
     @ordinary.setter
