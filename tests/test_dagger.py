@@ -338,6 +338,13 @@ def test_the_anatomy_reads_a_head_a_kind_a_plan_and_ordinary_driving_as_a_review
     )
     steps = [(step, car) for step, car, _ in witness.kept]  # in the order of the drive
     assert steps == sorted(steps) and len(kept) > len(witness.ordinary)
+    # the expert's label at a moment: a function of its state; no car ahead, it keeps the lane
+    expert = Expert(vehicle=WORLD.vehicle, sim=WORLD.sim)
+    free = [m for m in witness.ordinary if true_gap(m) >= GAP_CAP_M]
+    label = anatomy.expert_label(free[0], WORLD, expert)
+    assert label.shape == (5, 2) and label[-1, 0] > 20.0  # (1.5 s ahead at speed)
+    assert np.array_equal(anatomy.expert_label(dataclasses.replace(free[0]), WORLD, expert), label)
+    assert abs(free[0].lane_offset(label[-1])[0]) < anatomy.CHANGING_M
 
 
 def along_lane(m, offset_m: float) -> np.ndarray:
