@@ -27,13 +27,10 @@ Writes docs/results/lab/offset_choice.json (full profile).
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
 import numpy as np
-from trigger_gap import approaches, choice_frames
+from trigger_gap import approaches, choice_frames, write_result
 
-from e2e_lite import artifacts
 from e2e_lite.config import FULL, QUICK
 from e2e_lite.driving.witness import CHANGING_M
 from e2e_lite.imitation import recipes
@@ -96,11 +93,7 @@ def main() -> None:
         verdict = "mixed: the seeds disagree"
     out["verdict"] = verdict
     print(f"verdict (declared): {verdict}")
-    out["commit"] = artifacts.code_commit(Path(__file__).parent)
-    if not profile.quick:
-        path = Path(__file__).resolve().parents[1] / "docs/results/lab/offset_choice.json"
-        path.write_text(json.dumps(out, indent=1) + "\n")
-        print(f"wrote {path}")
+    write_result(out, "offset_choice.json", profile)
 
 
 def _pct(x: float | None) -> str:

@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from e2e_lite import artifacts
-from e2e_lite.config import FULL, QUICK
+from e2e_lite.config import FULL, QUICK, Profile
 from e2e_lite.control.rules import car_ahead
 from e2e_lite.driving.witness import CHANGING_M
 from e2e_lite.imitation import recipes
@@ -116,6 +116,16 @@ def choice_frames(
 
 def in_bin(gap: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return (gap >= lo) & (gap < hi)
+
+
+def write_result(out: dict, name: str, profile: Profile) -> None:
+    """Stamp ``out`` with the code's commit and, in the full profile, write it to
+    docs/results/lab/``name`` (a lab's JSON: the quick profile's numbers test the code only)."""
+    out["commit"] = artifacts.code_commit(Path(__file__).parent)
+    if not profile.quick:
+        path = Path(__file__).resolve().parents[1] / "docs/results/lab" / name
+        path.write_text(json.dumps(out, indent=1) + "\n")
+        print(f"wrote {path}")
 
 
 def approaches(frames: dict[str, np.ndarray], mask: np.ndarray) -> int:
@@ -211,11 +221,7 @@ def main() -> None:
     print(
         f"verdict (declared; {vb['frames']} frames from {vb['approaches']} approaches): {verdict}"
     )
-    out["commit"] = artifacts.code_commit(Path(__file__).parent)
-    if not profile.quick:
-        path = Path(__file__).resolve().parents[1] / "docs/results/lab/trigger_gap.json"
-        path.write_text(json.dumps(out, indent=1) + "\n")
-        print(f"wrote {path}")
+    write_result(out, "trigger_gap.json", profile)
 
 
 def _pct(x: float | None) -> str:
